@@ -1,0 +1,200 @@
+"""Typed messages between a tidee server, its agents and its viewers.
+
+Every message is a dataclass of plain fields (str, int, float, bool, None, lists and
+dicts of those) plus numpy arrays; ``protocol/codec.py`` turns them into bytes and back.
+Nothing here imports pybullet or torch.
+
+Frames and units (the whole system uses these):
+  * the *start frame* is the agent's pose at reset: x forward, y left, z up, metres,
+    origin on the floor under the agent;
+  * ``Observation.camera_pose`` is the 4x4 transform from the camera's optical frame
+    (x right, y down, z forward, as OpenCV) to the start frame, so a pixel (u, v) with
+    depth d maps to ``camera_pose @ [d (u-cx)/fx, d (v-cy)/fy, d, 1]``;
+  * ``Observation.agent_pose`` is (x, y, yaw_deg, pitch_deg) in the start frame; yaw is
+    counter-clockwise from +x, pitch positive looking *down* (AI2THOR's horizon).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+import numpy as np
+
+PROTOCOL_VERSION = 1
+
+
+class ActionName(str, Enum):
+    MoveAhead = "MoveAhead"
+    MoveBack = "MoveBack"
+    MoveLeft = "MoveLeft"
+    MoveRight = "MoveRight"
+    RotateLeft = "RotateLeft"
+    RotateRight = "RotateRight"
+    LookUp = "LookUp"
+    LookDown = "LookDown"
+    PickupObject = "PickupObject"
+    PutObject = "PutObject"
+    OpenObject = "OpenObject"
+    CloseObject = "CloseObject"
+    Done = "Done"
+
+
+# Actions that act on whatever is at a pixel: they need x and y in [0, 1].
+PIXEL_ACTIONS = frozenset({ActionName.PickupObject, ActionName.PutObject,
+                           ActionName.OpenObject, ActionName.CloseObject})
+
+
+class ActionError(str, Enum):
+    """Why an action failed. Every failed action carries exactly one of these."""
+
+    blocked = "blocked"                    # a move would collide with furniture or a wall
+    look_limit = "look_limit"              # pitch would leave [-30, 60] degrees
+    too_far = "too_far"                    # the thing at the pixel is beyond 1.5 m
+    nothing_there = "nothing_there"        # the ray hit nothing (or only wall/ceiling)
+    not_pickupable = "not_pickupable"
+    not_receptacle = "not_receptacle"
+    not_openable = "not_openable"
+    no_free_space = "no_free_space"        # no stable pose for the held object there
+    receptacle_closed = "receptacle_closed"
+    already_open = "already_open"
+    already_closed = "already_closed"
+    hands_full = "hands_full"
+    hands_empty = "hands_empty"
+    episode_over = "episode_over"          # Done was called or the step cap reached
+
+
+class ErrorCode(str, Enum):
+    """Why a *request* was rejected (as opposed to an action that failed in the world)."""
+
+    malformed = "malformed"                # bytes that do not decode
+    bad_version = "bad_version"
+    invalid_field = "invalid_field"        # a field of the wrong type or out of range
+    oversized = "oversized"
+    unknown_session = "unknown_session"
+    server_busy = "server_busy"            # too many sessions
+    internal = "internal"
+
+
+ROOM_TYPES = ("Kitchen", "LivingRoom", "Bedroom", "Bathroom")
+SPLITS = ("train", "val", "test")
+
+
+@dataclass
+class Action:
+    name: ActionName
+    x: float | None = None  # normalised pixel column in [0, 1] (left to right)
+    y: float | None = None  # normalised pixel row in [0, 1] (top to bottom)
+
+    def __post_init__(self) -> None:
+        self.name = ActionName(self.name)
+        if self.name in PIXEL_ACTIONS:
+            for axis, v in (("x", self.x), ("y", self.y)):
+                if v is None or not (0.0 <= float(v) <= 1.0):
+                    raise ValueError(f"{self.name.value} needs {axis} in [0, 1], got {v!r}")
+            self.x, self.y = float(self.x), float(self.y)  # type: ignore[arg-type]
+        elif self.x is not None or self.y is not None:
+            raise ValueError(f"{self.name.value} takes no pixel; got x={self.x!r}, y={self.y!r}")
+
+
+@dataclass
+class EpisodeSpec:
+    """What a reset asks for: which room, which mess, which camera."""
+
+    room_type: str = "LivingRoom"
+    seed: int = 0
+    mess_index: int | None = None   # None: the tidy room; else messy configuration #i
+    resolution: int = 256           # square images
+    camera_height: float = 0.9015   # metres, the paper's
+    max_steps: int = 1000
+    pose_noise: bool = False        # LoCoBot-like: 0.005 m per move, 0.5 deg per turn
+    depth_noise: bool = False
+    start_seed: int | None = None   # spawn pose; None: near the room centre, from seed
+
+    def __post_init__(self) -> None:
+        if self.room_type not in ROOM_TYPES:
+            raise ValueError(f"room_type must be one of {ROOM_TYPES}, got {self.room_type!r}")
+        if not (16 <= int(self.resolution) <= 1024):
+            raise ValueError(f"resolution must be in [16, 1024], got {self.resolution}")
+        if not (0.2 <= float(self.camera_height) <= 2.0):
+            raise ValueError(f"camera_height must be in [0.2, 2.0] m, got {self.camera_height}")
+        if not (1 <= int(self.max_steps) <= 100_000):
+            raise ValueError(f"max_steps must be in [1, 100000], got {self.max_steps}")
+        if int(self.seed) < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if self.mess_index is not None and int(self.mess_index) < 0:
+            raise ValueError(f"mess_index must be >= 0 or None, got {self.mess_index}")
+
+
+@dataclass
+class GroundTruth:
+    """Privileged state: only sent when a client asks for it (oracle modes, evaluation)."""
+
+    instance_seg: np.ndarray            # int32 HxW: index into ``objects``, -1 for none
+    objects: list[dict[str, Any]]       # scene-export entries (see server/scene.py)
+
+
+@dataclass
+class Observation:
+    session: str
+    step: int
+    rgb: np.ndarray                     # uint8 HxWx3
+    depth: np.ndarray                   # float32 HxW, metres along the optical axis
+    camera_pose: np.ndarray             # float64 4x4, optical frame -> start frame
+    agent_pose: tuple[float, float, float, float]  # x, y, yaw_deg, pitch_deg (start frame)
+    intrinsics: np.ndarray              # float64 3x3
+    held: str | None = None             # object type held, if any
+    held_id: str | None = None
+    last_action: str | None = None
+    success: bool = True
+    error: str | None = None            # an ActionError value when success is False
+    message: str = ""                   # human-readable detail for the error
+    done: bool = False
+    steps_left: int = 0
+    ground_truth: GroundTruth | None = None
+
+
+@dataclass
+class ResetRequest:
+    session: str
+    spec: EpisodeSpec = field(default_factory=EpisodeSpec)
+    ground_truth: bool = False
+    encoding: str = "raw"               # raw | jpeg | png  (images on the wire)
+    protocol_version: int = PROTOCOL_VERSION
+
+
+@dataclass
+class StepRequest:
+    session: str
+    action: Action
+    ground_truth: bool = False
+    encoding: str = "raw"
+    protocol_version: int = PROTOCOL_VERSION
+
+
+@dataclass
+class StateRequest:
+    """Evaluation only: the full scene state (the scene export plus mess records)."""
+
+    session: str
+    protocol_version: int = PROTOCOL_VERSION
+
+
+@dataclass
+class StateReply:
+    session: str
+    scene: dict[str, Any]
+
+
+@dataclass
+class CloseRequest:
+    session: str
+    protocol_version: int = PROTOCOL_VERSION
+
+
+@dataclass
+class ErrorReply:
+    code: ErrorCode
+    message: str
+    session: str | None = None

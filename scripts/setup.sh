@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Create or reuse the virtual environment and install tidee with everything it needs.
+set -euo pipefail
+VENV=${1:-.venv}
+cd "$(dirname "$0")/.."
+
+# System libraries for PyBullet's EGL renderer (Mesa llvmpipe). Without them the
+# simulator falls back to PyBullet's TinyRenderer, so a failure here is not fatal.
+need_pkgs=()
+for pkg in libegl1 libegl-mesa0 libgl1-mesa-dri; do
+  dpkg -s "$pkg" >/dev/null 2>&1 || need_pkgs+=("$pkg")
+done
+if [ ${#need_pkgs[@]} -gt 0 ] && command -v apt-get >/dev/null 2>&1; then
+  echo "setup: installing ${need_pkgs[*]} (EGL renderer)"
+  SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
+  ($SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_pkgs[@]}") \
+    || echo "setup: could not install ${need_pkgs[*]}; the simulator will use the TinyRenderer"
+fi
+
+if [ ! -x "$VENV/bin/python" ]; then
+  python3 -m venv "$VENV"
+fi
+"$VENV/bin/python" -m pip install -q --upgrade pip
+# torch first and pinned: an unpinned torch would pull GBs of CUDA wheels.
+"$VENV/bin/python" -m pip install -q "torch==2.13.0"
+"$VENV/bin/python" -m pip install -q -e ".[agent,viewer,dev]"
+echo "setup: $VENV ready"

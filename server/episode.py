@@ -1,0 +1,388 @@
+"""One tidy episode: a room, an agent body, its camera and the actions of the paper.
+
+``Episode.reset`` builds the (tidy or messy) room for an ``EpisodeSpec`` and spawns the
+agent near the room centre; ``Episode.step`` executes one action and returns the next
+``Observation``. World failures never raise: ``obs.success`` / ``obs.error`` say why.
+Ground truth is attached only when the caller asks for it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from tidee.protocol.messages import (Action, ActionError, ActionName, EpisodeSpec, GroundTruth,
+                                     Observation)
+from tidee.server.messup import mess_up
+from tidee.server.rooms import AGENT_RADIUS, NAV_CELL, generate_scene, main_component, nav_grid
+from tidee.server.scene import Scene
+from tidee.server.world import FOV_DEG, World
+
+MOVE_M = 0.25
+TURN_DEG = 90.0
+LOOK_DEG = 30.0
+PITCH_LIMITS = (-30.0, 60.0)        # AI2THOR's horizon limits, positive looking down
+INTERACT_M = 1.5
+POSE_NOISE_M = 0.005
+POSE_NOISE_DEG = 0.5
+DEPTH_NOISE_REL = 0.02
+MOVES = {ActionName.MoveAhead: (1, 0), ActionName.MoveBack: (-1, 0),
+         ActionName.MoveLeft: (0, 1), ActionName.MoveRight: (0, -1)}
+
+
+class SceneLibrary:
+    """Tidy and messy scenes by key, generated on demand and kept in a small LRU."""
+
+    def __init__(self, capacity: int = 32) -> None:
+        self.capacity = capacity
+        self._cache: OrderedDict[tuple, dict] = OrderedDict()
+
+    def _get(self, key: tuple) -> dict | None:
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        return None
+
+    def _put(self, key: tuple, scene: Scene) -> None:
+        self._cache[key] = scene.to_dict()
+        while len(self._cache) > self.capacity:
+            self._cache.popitem(last=False)
+
+    def scene(self, world: World, room_type: str, seed: int, mess_index: int | None) -> Scene:
+        """The scene, built into ``world`` as a side effect."""
+        key = (room_type, int(seed), mess_index)
+        cached = self._get(key)
+        if cached is not None:
+            scene = Scene.from_dict(cached)
+            world.build(scene)
+            return scene
+        tidy_cached = self._get((room_type, int(seed), None))
+        tidy = Scene.from_dict(tidy_cached) if tidy_cached else generate_scene(room_type, seed, world=world)
+        if tidy_cached is None:
+            self._put((room_type, int(seed), None), tidy)
+        if mess_index is None:
+            scene = Scene.from_dict(self._cache[(room_type, int(seed), None)])
+            world.build(scene)
+            return scene
+        world.build(tidy)
+        records = mess_up(world, tidy, mess_index)
+        messy = world.export()
+        messy.mess_index = mess_index
+        messy.mess = records
+        self._put(key, messy)
+        scene = Scene.from_dict(self._cache[key])
+        world.build(scene)
+        return scene
+
+
+@dataclass
+class Body:
+    """The agent: true pose (world) and what its odometry believes (world)."""
+
+    x: float
+    y: float
+    yaw: float            # radians
+    pitch: float          # degrees, positive down
+    odo_x: float
+    odo_y: float
+    odo_yaw: float
+    held: str | None = None
+
+
+def _rot_z(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def camera_axes(yaw: float, pitch_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(right, down, forward) unit vectors in the world for a yaw and a downward pitch."""
+    th = math.radians(pitch_deg)
+    fwd = np.array([math.cos(yaw) * math.cos(th), math.sin(yaw) * math.cos(th), -math.sin(th)])
+    right = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
+    down = np.cross(fwd, right)
+    return right, down, fwd
+
+
+class Episode:
+    def __init__(self, renderer: str = "auto", library: SceneLibrary | None = None) -> None:
+        self.world = World(renderer=renderer)
+        self.library = library or SceneLibrary()
+        self.spec = EpisodeSpec()
+        self.session = ""
+        self.scene: Scene | None = None
+        self.body = Body(0, 0, 0, 0, 0, 0, 0)
+        self.start = (0.0, 0.0, 0.0)
+        self.steps = 0
+        self.done = False
+        self.free = np.zeros((1, 1), bool)
+        self.rng = np.random.default_rng(0)
+        self._present: list[str] = []
+
+    @property
+    def renderer(self) -> str:
+        return self.world.renderer
+
+    def close(self) -> None:
+        self.world.close()
+
+    # ----------------------------------------------------------------- reset
+    def reset(self, spec: EpisodeSpec, session: str = "local", ground_truth: bool = False) -> Observation:
+        self.spec, self.session = spec, session
+        self.scene = self.library.scene(self.world, spec.room_type, spec.seed, spec.mess_index)
+        self.steps, self.done = 0, False
+        self.rng = np.random.default_rng(np.random.SeedSequence(
+            [spec.seed, -1 if spec.mess_index is None else spec.mess_index, spec.start_seed or 0, 5150]))
+        self._update_free()
+        x, y = self._spawn_point(spec.start_seed)
+        yaw = float(self.rng.integers(4)) * math.pi / 2
+        self.body = Body(x, y, yaw, 0.0, x, y, yaw)
+        self.start = (x, y, yaw)
+        return self._observe(None, True, None, "", ground_truth)
+
+    def load(self, scene: Scene, spec: EpisodeSpec, agent_xy: tuple[float, float], yaw_deg: float,
+             session: str = "local", ground_truth: bool = False) -> Observation:
+        """Start an episode in a given scene with the agent at a given pose (tests, tools)."""
+        self.spec, self.session, self.scene = spec, session, scene
+        self.world.build(scene)
+        self.steps, self.done = 0, False
+        self.rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5150]))
+        self._update_free()
+        yaw = math.radians(yaw_deg)
+        self.body = Body(agent_xy[0], agent_xy[1], yaw, 0.0, agent_xy[0], agent_xy[1], yaw)
+        self.start = (agent_xy[0], agent_xy[1], yaw)
+        return self._observe(None, True, None, "", ground_truth)
+
+    def _update_free(self) -> None:
+        assert self.scene is not None
+        aabbs = [self.world.aabb(o.id) for o in self.scene.objects if not o.pickupable and o.type != "Floor"]
+        self.free = nav_grid(aabbs, self.scene.width, self.scene.depth)
+
+    def _spawn_point(self, start_seed: int | None) -> tuple[float, float]:
+        assert self.scene is not None
+        cells = np.argwhere(main_component(self.free))
+        pts = (cells + 0.5) * NAV_CELL
+        if start_seed is None:
+            centre = np.array([self.scene.width / 2, self.scene.depth / 2])
+            k = int(np.argmin(np.linalg.norm(pts - centre, axis=1)))
+        else:
+            k = int(np.random.default_rng(start_seed).integers(len(pts)))
+        return float(pts[k][0]), float(pts[k][1])
+
+    # ----------------------------------------------------------------- step
+    def step(self, action: Action, ground_truth: bool = False) -> Observation:
+        if self.scene is None:
+            raise RuntimeError("step() before reset()")
+        name = ActionName(action.name)
+        if self.done:
+            return self._observe(name.value, False, ActionError.episode_over,
+                                 "the episode is over (Done was called or the step cap reached)", ground_truth)
+        self.steps += 1
+        ok, err, msg = self._execute(action)
+        if name == ActionName.Done or self.steps >= self.spec.max_steps:
+            self.done = True
+        return self._observe(name.value, ok, err, msg, ground_truth)
+
+    def _execute(self, a: Action) -> tuple[bool, ActionError | None, str]:
+        n = a.name
+        if n in MOVES:
+            return self._move(*MOVES[n])
+        if n in (ActionName.RotateLeft, ActionName.RotateRight):
+            sign = 1.0 if n == ActionName.RotateLeft else -1.0
+            noise = math.radians(self.rng.normal(0, POSE_NOISE_DEG)) if self.spec.pose_noise else 0.0
+            self.body.yaw += sign * math.radians(TURN_DEG) + noise
+            self.body.odo_yaw += sign * math.radians(TURN_DEG)
+            return True, None, ""
+        if n in (ActionName.LookUp, ActionName.LookDown):
+            new = self.body.pitch + (LOOK_DEG if n == ActionName.LookDown else -LOOK_DEG)
+            if not PITCH_LIMITS[0] - 1e-6 <= new <= PITCH_LIMITS[1] + 1e-6:
+                return False, ActionError.look_limit, f"pitch would be {new:.0f} deg, outside {PITCH_LIMITS}"
+            self.body.pitch = new
+            return True, None, ""
+        if n == ActionName.Done:
+            return True, None, ""
+        assert a.x is not None and a.y is not None
+        if n == ActionName.PickupObject:
+            return self._pickup(a.x, a.y)
+        if n == ActionName.PutObject:
+            return self._put(a.x, a.y)
+        return self._open_close(a.x, a.y, open_=(n == ActionName.OpenObject))
+
+    def _walkable(self, x: float, y: float) -> bool:
+        i, j = int(x / NAV_CELL), int(y / NAV_CELL)
+        return 0 <= i < self.free.shape[0] and 0 <= j < self.free.shape[1] and bool(self.free[i, j])
+
+    def _move(self, fwd: int, left: int) -> tuple[bool, ActionError | None, str]:
+        b = self.body
+        dx = MOVE_M * (fwd * math.cos(b.yaw) - left * math.sin(b.yaw))
+        dy = MOVE_M * (fwd * math.sin(b.yaw) + left * math.cos(b.yaw))
+        if self.spec.pose_noise:
+            dx += self.rng.normal(0, POSE_NOISE_M)
+            dy += self.rng.normal(0, POSE_NOISE_M)
+        tx, ty = b.x + dx, b.y + dy
+        if not all(self._walkable(b.x + f * dx, b.y + f * dy) for f in (0.5, 1.0)):
+            return False, ActionError.blocked, "the move would collide with furniture or a wall"
+        b.x, b.y = tx, ty
+        ox = MOVE_M * (fwd * math.cos(b.odo_yaw) - left * math.sin(b.odo_yaw))
+        oy = MOVE_M * (fwd * math.sin(b.odo_yaw) + left * math.cos(b.odo_yaw))
+        b.odo_x, b.odo_y = b.odo_x + ox, b.odo_y + oy
+        return True, None, ""
+
+    # -- interaction --------------------------------------------------------------
+    def _eye(self) -> np.ndarray:
+        return np.array([self.body.x, self.body.y, self.spec.camera_height])
+
+    def _pixel_ray(self, u: float, v: float) -> tuple[str | None, int, np.ndarray, float]:
+        """Cast through a normalised pixel; returns (object id, link, hit point, distance)."""
+        right, down, fwd = camera_axes(self.body.yaw, self.body.pitch)
+        t = math.tan(math.radians(FOV_DEG / 2))
+        d = fwd + (2 * u - 1) * t * right + (2 * v - 1) * t * down
+        d /= np.linalg.norm(d)
+        eye = self._eye()
+        oid, link, point, _ = self.world.ray(eye, eye + 20.0 * d)
+        return oid, link, point, float(np.linalg.norm(point - eye))
+
+    def _pickup(self, u: float, v: float) -> tuple[bool, ActionError | None, str]:
+        if self.body.held is not None:
+            return False, ActionError.hands_full, f"already holding {self.body.held}"
+        oid, _, _, dist = self._pixel_ray(u, v)
+        if oid is None:
+            return False, ActionError.nothing_there, "nothing at that pixel"
+        if dist > INTERACT_M:
+            return False, ActionError.too_far, f"{oid} is {dist:.2f} m away (limit {INTERACT_M} m)"
+        obj = self.world.bodies[oid].obj
+        if not obj.pickupable:
+            return False, ActionError.not_pickupable, f"{obj.type} cannot be picked up"
+        self.world.set_static(oid, True)
+        self.world.set_pose(oid, [self.body.x, self.body.y, -5.0], [0, 0, 0, 1])
+        obj.parent, obj.parent_type = "agent", "agent"
+        self.body.held = oid
+        return True, None, ""
+
+    def _put(self, u: float, v: float) -> tuple[bool, ActionError | None, str]:
+        held = self.body.held
+        if held is None:
+            return False, ActionError.hands_empty, "not holding anything"
+        oid, link, point, dist = self._pixel_ray(u, v)
+        if oid is None:
+            return False, ActionError.nothing_there, "nothing at that pixel"
+        if dist > INTERACT_M:
+            return False, ActionError.too_far, f"{oid} is {dist:.2f} m away (limit {INTERACT_M} m)"
+        target = self.world.bodies[oid].obj
+        if target.pickupable and not target.receptacle and target.parent not in (None, "agent"):
+            target = self.world.bodies[target.parent].obj   # aiming at a thing on a table: the table
+        if not target.receptacle:
+            return False, ActionError.not_receptacle, f"{target.type} is not a receptacle"
+        if target.openable and not target.is_open:
+            return False, ActionError.receptacle_closed, f"{target.type} is closed; open it first"
+        if self.world.place(held, target.id, point, yaw=self.body.yaw):
+            self.body.held = None
+            return True, None, ""
+        return False, ActionError.no_free_space, f"no stable free spot for {held} on {target.id} there"
+
+    def _open_close(self, u: float, v: float, open_: bool) -> tuple[bool, ActionError | None, str]:
+        oid, _, _, dist = self._pixel_ray(u, v)
+        if oid is None:
+            return False, ActionError.nothing_there, "nothing at that pixel"
+        if dist > INTERACT_M:
+            return False, ActionError.too_far, f"{oid} is {dist:.2f} m away (limit {INTERACT_M} m)"
+        obj = self.world.bodies[oid].obj
+        parent = self.world.bodies.get(obj.parent or "")
+        if not obj.openable and obj.pickupable and parent is not None and parent.obj.openable:
+            obj, oid = parent.obj, parent.obj.id      # aiming at a thing inside: its container
+        if not obj.openable:
+            return False, ActionError.not_openable, f"{obj.type} cannot be opened or closed"
+        if obj.is_open == open_:
+            return False, (ActionError.already_open if open_ else ActionError.already_closed), \
+                f"{obj.type} is already {'open' if open_ else 'closed'}"
+        self.world.set_open(oid, open_)
+        if open_ and not obj.pickupable and self._door_hits_agent(oid):
+            self.world.set_open(oid, False)
+            return False, ActionError.blocked, f"the {obj.type} door would hit the agent; step back"
+        if not obj.pickupable:
+            self._update_free()
+        return True, None, ""
+
+    def _door_hits_agent(self, oid: str) -> bool:
+        lo, hi = self.world.aabb(oid)
+        dx = max(lo[0] - self.body.x, 0.0, self.body.x - hi[0])
+        dy = max(lo[1] - self.body.y, 0.0, self.body.y - hi[1])
+        return math.hypot(dx, dy) < AGENT_RADIUS
+
+    # ----------------------------------------------------------------- observe
+    def _start_from_world(self) -> np.ndarray:
+        x0, y0, yaw0 = self.start
+        t = np.eye(4)
+        t[:3, :3] = _rot_z(yaw0).T
+        t[:3, 3] = -_rot_z(yaw0).T @ np.array([x0, y0, 0.0])
+        return t
+
+    def camera_pose_world(self, believed: bool) -> np.ndarray:
+        b = self.body
+        x, y, yaw = (b.odo_x, b.odo_y, b.odo_yaw) if believed else (b.x, b.y, b.yaw)
+        right, down, fwd = camera_axes(yaw, b.pitch)
+        t = np.eye(4)
+        t[:3, 0], t[:3, 1], t[:3, 2] = right, down, fwd
+        t[:3, 3] = [x, y, self.spec.camera_height]
+        return t
+
+    def intrinsics(self) -> np.ndarray:
+        r = self.spec.resolution
+        f = (r / 2) / math.tan(math.radians(FOV_DEG / 2))
+        return np.array([[f, 0, (r - 1) / 2], [0, f, (r - 1) / 2], [0, 0, 1.0]])
+
+    def _observe(self, last: str | None, ok: bool, err: ActionError | None, msg: str,
+                 ground_truth: bool) -> Observation:
+        b = self.body
+        right, down, fwd = camera_axes(b.yaw, b.pitch)
+        rgb, depth, seg = self.world.render(self._eye(), fwd, -down, self.spec.resolution, segmentation=ground_truth)
+        if self.spec.depth_noise:
+            depth = (depth * (1.0 + self.rng.normal(0, DEPTH_NOISE_REL, depth.shape))).astype(np.float32)
+        s2w = self._start_from_world()
+        cam = s2w @ self.camera_pose_world(believed=True)
+        ox, oy, _ = s2w[:3, :3] @ np.array([b.odo_x, b.odo_y, 0]) + s2w[:3, 3]
+        yaw_deg = math.degrees(b.odo_yaw - self.start[2])
+        gt = self._ground_truth(seg) if ground_truth else None
+        held_type = self.world.bodies[b.held].obj.type if b.held else None
+        return Observation(
+            session=self.session, step=self.steps, rgb=rgb, depth=depth, camera_pose=cam,
+            agent_pose=(float(ox), float(oy), float((yaw_deg + 180) % 360 - 180), float(b.pitch)),
+            intrinsics=self.intrinsics(), held=held_type, held_id=b.held, last_action=last, success=ok,
+            error=err.value if err else None, message=msg, done=self.done,
+            steps_left=max(self.spec.max_steps - self.steps, 0), ground_truth=gt)
+
+    def _ground_truth(self, seg: np.ndarray | None) -> GroundTruth:
+        objects = self.object_states()
+        index = {o["id"]: k for k, o in enumerate(objects)}
+        lut = {uid: index[oid] for uid, oid in self.world.uid_to_id.items()}
+        inst = np.full(seg.shape if seg is not None else (0, 0), -1, np.int32)
+        if seg is not None:
+            uids = seg & ((1 << 24) - 1)
+            for uid, k in lut.items():
+                inst[uids == uid] = k
+        return GroundTruth(instance_seg=inst, objects=objects)
+
+    def object_states(self) -> list[dict]:
+        """Scene-export entries at the current physics state, with ``moved`` flags."""
+        assert self.scene is not None
+        moved = {m.id for m in self.scene.mess}
+        out = []
+        for o in self.world.export().objects:
+            d = {k: getattr(o, k) for k in ("id", "type", "variant", "pickupable", "receptacle", "openable",
+                                            "is_open", "parent", "parent_type", "position", "orientation", "size")}
+            d["moved"] = o.id in moved
+            out.append(d)
+        return out
+
+    def state(self) -> dict:
+        """Privileged: the full scene (evaluation), with the agent's true pose."""
+        assert self.scene is not None
+        self.world.refresh_parents()
+        scene = self.world.export().to_dict()
+        scene["agent"] = {"x": self.body.x, "y": self.body.y, "yaw_deg": math.degrees(self.body.yaw),
+                          "pitch_deg": self.body.pitch, "held": self.body.held, "steps": self.steps,
+                          "done": self.done}
+        return scene
+

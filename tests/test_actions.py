@@ -1,0 +1,171 @@
+"""Each action's semantics and failure reasons, in a hand-built room with known geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tidee.protocol.messages import Action, ActionName as A
+from tidee.server.episode import Episode
+from tests.fixtures import project, spec, table_room, table_top
+
+
+@pytest.fixture()
+def ep():
+    e = Episode(renderer="tiny")
+    yield e
+    e.close()
+
+
+def at_table(ep: Episode):
+    """Agent 1.0 m south of the table centre, facing north (+y), looking down 30 deg."""
+    ep.load(table_room(), spec(), (2.0, 0.6), yaw_deg=90)
+    return ep.step(Action(A.LookDown))
+
+
+def test_observation_shapes_and_intrinsics(ep):
+    obs = ep.load(table_room(), spec(96), (2.0, 1.0), yaw_deg=90)
+    assert obs.rgb.shape == (96, 96, 3) and obs.rgb.dtype == np.uint8
+    assert obs.depth.shape == (96, 96) and obs.depth.dtype == np.float32
+    assert obs.intrinsics[0, 0] == pytest.approx(48.0)  # 90 deg FOV: f = W / 2
+    assert obs.ground_truth is None  # privileged data only on request
+    np.testing.assert_allclose(obs.agent_pose, (0, 0, 0, 0), atol=1e-9)
+
+
+def test_depth_matches_known_geometry(ep):
+    # Facing the south wall (inner face at y = 0) from y = 1.0: centre pixel depth 1.0 m.
+    obs = ep.load(table_room(), spec(64), (1.0, 1.0), yaw_deg=-90)
+    assert obs.depth[31:33, 31:33].mean() == pytest.approx(1.0, abs=0.02)
+
+
+def test_moves_turns_and_looks(ep):
+    ep.load(table_room(), spec(), (1.0, 1.0), yaw_deg=0)
+    obs = ep.step(Action(A.MoveAhead))
+    assert obs.success and obs.agent_pose[0] == pytest.approx(0.25)
+    obs = ep.step(Action(A.MoveLeft))
+    assert obs.success and obs.agent_pose[1] == pytest.approx(0.25)
+    obs = ep.step(Action(A.RotateLeft))
+    assert obs.agent_pose[2] == pytest.approx(90)
+    obs = ep.step(Action(A.LookUp))
+    assert obs.success and obs.agent_pose[3] == pytest.approx(-30)
+    obs = ep.step(Action(A.LookUp))
+    assert not obs.success and obs.error == "look_limit"
+    for _ in range(3):
+        obs = ep.step(Action(A.LookDown))
+    assert obs.success and obs.agent_pose[3] == pytest.approx(60)
+    assert ep.step(Action(A.LookDown)).error == "look_limit"
+
+
+def test_move_into_wall_is_blocked(ep):
+    ep.load(table_room(), spec(), (0.3, 1.0), yaw_deg=180)  # facing the west wall, 0.3 m away
+    obs = ep.step(Action(A.MoveAhead))
+    assert not obs.success and obs.error == "blocked"
+    assert obs.agent_pose[0] == pytest.approx(0.0)
+
+
+def test_pickup_and_put_on_table(ep):
+    obs = at_table(ep)
+    mug = ep.world.bodies["Mug_0"].obj
+    x, y = project(ep, obs, np.array(mug.position) + [0, 0, mug.size[2] / 2])
+    assert ep.step(Action(A.PutObject, x, y)).error == "hands_empty"
+    obs = ep.step(Action(A.PickupObject, x, y))
+    assert obs.success, obs.message
+    assert obs.held == "Mug" and obs.held_id == "Mug_0"
+    obs = ep.step(Action(A.PickupObject, x, y))
+    assert obs.error == "hands_full"
+    table = ep.world.bodies["DiningTable_0"].obj
+    tx, ty = project(ep, obs, np.array([2.3, 1.9, table_top(table)]))
+    obs = ep.step(Action(A.PutObject, tx, ty))
+    assert obs.success, obs.message
+    assert obs.held is None
+    state = {o["id"]: o for o in ep.object_states()}
+    assert state["Mug_0"]["parent"] == "DiningTable_0"
+    assert abs(state["Mug_0"]["position"][0] - 2.3) < 0.2
+
+
+def test_failure_reasons(ep):
+    obs = at_table(ep)
+    table = ep.world.bodies["DiningTable_0"].obj
+    tx, ty = project(ep, obs, np.array([2.3, 1.75, table_top(table)]))
+    assert ep.step(Action(A.PickupObject, tx, ty)).error == "not_pickupable"
+    assert ep.step(Action(A.OpenObject, tx, ty)).error == "not_openable"
+    # Looking level at the far wall: 3.4 m away.
+    ep.step(Action(A.LookUp))
+    obs = ep.step(Action(A.PickupObject, 0.5, 0.5))
+    assert obs.error == "too_far", obs.message
+
+
+def test_fridge_open_put_inside_close(ep):
+    scene = table_room()
+    ep.load(scene, spec(), (2.0, 0.6), yaw_deg=90)
+    obs = ep.step(Action(A.LookDown))
+    mug = ep.world.bodies["Mug_0"].obj
+    mx, my = project(ep, obs, np.array(mug.position) + [0, 0, mug.size[2] / 2])
+    assert ep.step(Action(A.PickupObject, mx, my)).success
+    # Stand 1 m in front of the fridge (just clear of its swinging door), facing it.
+    ep.body.x = ep.body.odo_x = 3.0
+    ep.body.y = ep.body.odo_y = 2.1
+    ep.body.pitch = 0.0
+    obs = ep.step(Action(A.RotateLeft))
+    obs = ep.step(Action(A.RotateRight))
+    fridge = ep.world.bodies["Fridge_0"].obj
+    door = np.array([fridge.position[0], fridge.position[1] - fridge.size[1] / 2, 1.0])
+    x, y = project(ep, obs, door)
+    obs = ep.step(Action(A.PutObject, x, y))
+    assert obs.error == "receptacle_closed", obs.message
+    assert ep.step(Action(A.CloseObject, x, y)).error == "already_closed"
+    obs = ep.step(Action(A.OpenObject, x, y))
+    assert obs.success, obs.message
+    # Aim at the front of the lowest-but-one inside shelf.
+    shelves = sorted((s for s in ep.world.surfaces_world("Fridge_0") if s[4]), key=lambda s: s[2])
+    cxy, half, z, _, _ = shelves[min(1, len(shelves) - 1)]
+    inside = np.array([cxy[0], fridge.position[1] - fridge.size[1] / 2 + 0.12, z])
+    px, py = project(ep, obs, inside)
+    assert ep.step(Action(A.OpenObject, px, py)).error == "already_open"
+    obs = ep.step(Action(A.PutObject, px, py))
+    assert obs.success, obs.message
+    state = {o["id"]: o for o in ep.object_states()}
+    assert state["Mug_0"]["parent"] == "Fridge_0"
+    obs = ep.step(Action(A.CloseObject, px, py))
+    assert obs.success, obs.message
+    assert not ep.world.bodies["Fridge_0"].obj.is_open
+
+
+def test_done_and_step_cap(ep):
+    ep.load(table_room(), spec(), (1.0, 1.0), yaw_deg=0)
+    obs = ep.step(Action(A.Done))
+    assert obs.done and obs.success
+    obs = ep.step(Action(A.RotateLeft))
+    assert not obs.success and obs.error == "episode_over"
+    s = spec()
+    s.max_steps = 3
+    ep.load(table_room(), s, (1.0, 1.0), yaw_deg=0)
+    for k in range(3):
+        obs = ep.step(Action(A.RotateLeft))
+    assert obs.done and obs.steps_left == 0
+
+
+def test_ground_truth_only_on_request(ep):
+    obs = at_table(ep)
+    assert obs.ground_truth is None
+    obs = ep.step(Action(A.RotateLeft), ground_truth=True)
+    obs = ep.step(Action(A.RotateRight), ground_truth=True)
+    gt = obs.ground_truth
+    assert gt is not None and gt.instance_seg.shape == obs.depth.shape
+    ids = [gt.objects[k]["id"] for k in np.unique(gt.instance_seg) if k >= 0]
+    assert "DiningTable_0" in ids and "Mug_0" in ids
+
+
+def test_pose_noise_drifts_true_pose_not_odometry():
+    e = Episode(renderer="tiny")
+    try:
+        s = spec()
+        s.pose_noise = True
+        e.load(table_room(), s, (1.0, 0.6), yaw_deg=0)
+        for a in (A.MoveAhead, A.MoveAhead, A.RotateLeft, A.MoveAhead):
+            obs = e.step(Action(a))
+        assert obs.agent_pose[0] == pytest.approx(0.5) and obs.agent_pose[1] == pytest.approx(0.25)
+        true_offset = np.hypot(e.body.x - 1.5, e.body.y - 0.85)
+        assert 0 < true_offset < 0.1
+    finally:
+        e.close()
