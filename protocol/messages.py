@@ -78,6 +78,7 @@ class ErrorCode(str, Enum):
 
 
 ROOM_TYPES = ("Kitchen", "LivingRoom", "Bedroom", "Bathroom")
+IMAGE_ENCODINGS = ("raw", "jpeg", "png")  # how observation images travel (protocol/README.md)
 SPLITS = ("train", "val", "test")
 
 
@@ -155,6 +156,11 @@ class Observation:
     ground_truth: GroundTruth | None = None
 
 
+def _check_encoding(encoding: str) -> None:
+    if encoding not in IMAGE_ENCODINGS:
+        raise ValueError(f"encoding must be one of {IMAGE_ENCODINGS}, got {encoding!r}")
+
+
 @dataclass
 class ResetRequest:
     session: str
@@ -162,6 +168,9 @@ class ResetRequest:
     ground_truth: bool = False
     encoding: str = "raw"               # raw | jpeg | png  (images on the wire)
     protocol_version: int = PROTOCOL_VERSION
+
+    def __post_init__(self) -> None:
+        _check_encoding(self.encoding)
 
 
 @dataclass
@@ -171,6 +180,9 @@ class StepRequest:
     ground_truth: bool = False
     encoding: str = "raw"
     protocol_version: int = PROTOCOL_VERSION
+
+    def __post_init__(self) -> None:
+        _check_encoding(self.encoding)
 
 
 @dataclass
@@ -191,6 +203,12 @@ class StateReply:
 class CloseRequest:
     session: str
     protocol_version: int = PROTOCOL_VERSION
+
+
+@dataclass
+class CloseReply:
+    session: str
+    closed: bool                        # False: there was no such session (already freed)
 
 
 @dataclass

@@ -134,7 +134,7 @@ class Episode:
         self.scene = self.library.scene(self.world, spec.room_type, spec.seed, spec.mess_index)
         self.steps, self.done = 0, False
         self.rng = np.random.default_rng(np.random.SeedSequence(
-            [spec.seed, -1 if spec.mess_index is None else spec.mess_index, spec.start_seed or 0, 5150]))
+            [spec.seed, 0 if spec.mess_index is None else spec.mess_index + 1, spec.start_seed or 0, 5150]))
         self._update_free()
         x, y = self._spawn_point(spec.start_seed)
         yaw = float(self.rng.integers(4)) * math.pi / 2

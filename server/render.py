@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from tidee.server.episode import SceneLibrary
+from tidee.server.rooms import NAV_CELL, nav_grid
 from tidee.server.scene import Scene
 from tidee.server.world import World
 
@@ -24,7 +25,7 @@ def top_down(world: World, scene: Scene, res: int, annotate: bool = True) -> np.
     """A view from above the ceiling, moved objects circled in red when the scene is messy."""
     cx, cy = scene.width / 2, scene.depth / 2
     half = max(scene.width, scene.depth) / 2 + 0.3
-    height = half / math.tan(math.radians(45)) + 0.1
+    height = 1.25 * half / math.tan(math.radians(45)) + 1.0  # room edges stay in view
     eye = np.array([cx, cy, height])
     rgb = world.render(eye, np.array([0, 0, -1.0]), np.array([0, 1.0, 0]), res)[0].copy()
     if not annotate:
@@ -43,9 +44,14 @@ def top_down(world: World, scene: Scene, res: int, annotate: bool = True) -> np.
 
 
 def corner_views(world: World, scene: Scene, res: int) -> list[np.ndarray]:
+    """From the walkable spot nearest each corner, at head height, towards the centre."""
+    free = nav_grid([world.aabb(o.id) for o in scene.objects if not o.pickupable and o.type != "Floor"],
+                    scene.width, scene.depth)
+    pts = (np.argwhere(free) + 0.5) * NAV_CELL
     views = []
     m = 0.35
-    for x, y in ((m, m), (scene.width - m, m), (scene.width - m, scene.depth - m), (m, scene.depth - m)):
+    for corner in ((m, m), (scene.width - m, m), (scene.width - m, scene.depth - m), (m, scene.depth - m)):
+        x, y = pts[int(np.argmin(np.linalg.norm(pts - np.array(corner), axis=1)))] if len(pts) else corner
         eye = np.array([x, y, 1.75])
         target = np.array([scene.width / 2, scene.depth / 2, 0.55])
         views.append(_look_at(world, eye, target, res))

@@ -1,0 +1,141 @@
+"""Python client of a tidee simulation server over Zenoh: one client, one session."""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from typing import Any
+
+import zenoh
+
+from tidee.protocol import keys
+from tidee.protocol.codec import ProtocolError, decode, encode
+from tidee.protocol.messages import (IMAGE_ENCODINGS, Action, CloseReply, CloseRequest, EpisodeSpec,
+                                     ErrorCode, ErrorReply, Observation, ResetRequest, StateReply,
+                                     StateRequest, StepRequest)
+from tidee.protocol.zenoh_config import make_config, resolve_endpoint, resolve_router
+
+DEFAULT_SERVER_ID = "sim0"
+_ZENOH_TIMEOUT = b"Timeout"   # what Zenoh itself answers when a query's time runs out
+
+
+class RemoteError(RuntimeError):
+    """The server refused a request: ``code`` says why, ``message`` says what was wrong."""
+
+    def __init__(self, code: ErrorCode, message: str, session: str | None = None) -> None:
+        super().__init__(f"{ErrorCode(code).value}: {message}")
+        self.code = ErrorCode(code)
+        self.message = message
+        self.session = session
+
+
+class SimClient:
+    """One episode session on a tidee server: ``reset``, ``step``, ``state``, ``close``.
+
+    Declares ``tidee/alive/client/{server_id}/{session}``, so the server frees the
+    session when this client closes, its Zenoh session closes, or its process dies.
+    The constructor waits (up to ``connect_timeout`` s) until the server is visible.
+    Observations' raw arrays are read-only views of the received frame; copy to modify.
+    Not thread-safe: one caller at a time (the server handles a session's requests in order).
+    """
+
+    def __init__(self, endpoint: str | None = None, router: str | None = None,
+                 server_id: str = DEFAULT_SERVER_ID, session: str | None = None, timeout: float = 60.0,
+                 encoding: str = "raw", zsession: zenoh.Session | None = None,
+                 connect_timeout: float = 10.0) -> None:
+        if encoding not in IMAGE_ENCODINGS:
+            raise ValueError(f"encoding must be one of {IMAGE_ENCODINGS}, got {encoding!r}")
+        self.server_id = keys.check_id("server_id", server_id)
+        self.session_id = keys.check_id("session", session or uuid.uuid4().hex[:16])
+        self.timeout, self.encoding = timeout, encoding
+        self._where = resolve_router(router) or resolve_endpoint(endpoint)
+        self._owns_zenoh = zsession is None
+        self._z: zenoh.Session | None = zsession or zenoh.open(make_config(False, endpoint, router))
+        try:
+            token_key = keys.alive_client(self.server_id, self.session_id)
+            self._token = self._z.liveliness().declare_token(token_key)
+            self._wait_for_server(connect_timeout)
+        except BaseException:
+            self._release()
+            raise
+
+    # --- the session ----------------------------------------------------------------
+    def reset(self, spec: EpisodeSpec, ground_truth: bool = False) -> Observation:
+        request = ResetRequest(self.session_id, spec, ground_truth, self.encoding)
+        return self._call("reset", request, Observation)
+
+    def step(self, action: Action, ground_truth: bool = False) -> Observation:
+        request = StepRequest(self.session_id, action, ground_truth, self.encoding)
+        return self._call("step", request, Observation)
+
+    def state(self) -> dict[str, Any]:
+        return self._call("state", StateRequest(self.session_id), StateReply).scene
+
+    def close(self) -> None:
+        """Ask the server to free the session, then leave Zenoh. Idempotent."""
+        if self._z is None:
+            return
+        try:
+            self._call("close", CloseRequest(self.session_id), CloseReply, timeout=min(self.timeout, 5.0))
+        except (RemoteError, TimeoutError):
+            pass  # the token going away frees the session anyway
+        finally:
+            self._release()
+
+    def __enter__(self) -> SimClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- plumbing ---------------------------------------------------------------------
+    def _call(self, op: str, request: Any, reply_type: type, timeout: float | None = None) -> Any:
+        if self._z is None:
+            raise RuntimeError(f"session {self.session_id} is closed")
+        key = keys.sim_op(self.server_id, self.session_id, op)
+        timeout = self.timeout if timeout is None else timeout
+        replies = self._z.get(key, payload=encode(request), timeout=timeout,
+                              congestion_control=zenoh.CongestionControl.BLOCK)  # the reply inherits it
+        try:
+            reply = replies.recv()
+        except zenoh.ZError:  # the query finished with no reply: nobody serves that key
+            raise TimeoutError(f"no reply to {op} on {key}: is server {self.server_id!r} running at "
+                               f"{self._where}?") from None
+        if reply.ok is not None:
+            return self._decode(reply.ok.payload.to_bytes(), (reply_type, ErrorReply), op)
+        payload = reply.err.payload.to_bytes()
+        if payload == _ZENOH_TIMEOUT:
+            raise TimeoutError(f"no reply to {op} on {key} within {timeout} s")
+        return self._decode(payload, ErrorReply, op)
+
+    def _decode(self, payload: bytes, expected: type | tuple[type, ...], op: str) -> Any:
+        try:
+            msg = decode(payload, expected=expected)
+        except ProtocolError as e:
+            raise RemoteError(e.code, f"undecodable reply to {op}: {e.message}", self.session_id) from None
+        if isinstance(msg, ErrorReply):
+            raise RemoteError(msg.code, msg.message, msg.session)
+        return msg
+
+    def _wait_for_server(self, timeout: float) -> None:
+        assert self._z is not None
+        seen = threading.Event()
+        sub = self._z.liveliness().declare_subscriber(keys.alive_server(self.server_id),
+                                                      lambda sample: seen.set(), history=True)
+        try:
+            if not seen.wait(timeout):
+                raise TimeoutError(f"no tidee server {self.server_id!r} at {self._where} "
+                                   f"within {timeout} s (start one with: tidee server)")
+        finally:
+            sub.undeclare()
+
+    def _release(self) -> None:
+        z, self._z = self._z, None
+        if z is None:
+            return
+        token = getattr(self, "_token", None)
+        if token is not None:
+            token.undeclare()
+        if self._owns_zenoh:
+            z.close()
+

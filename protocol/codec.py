@@ -1,0 +1,435 @@
+"""Protocol messages <-> bytes.
+
+Frame layout (all integers little-endian; see protocol/README.md)::
+
+    offset 0   4 bytes   magic b"TIDE"
+    offset 4   u16       protocol version (PROTOCOL_VERSION)
+    offset 6   u32       header length H
+    offset 10  H bytes   header: UTF-8 JSON {"type": <message name>, "fields": {...}},
+                         right-padded with spaces so the buffer section starts 16-aligned
+    offset 10+H          buffer section: the arrays' bytes
+
+Plain fields are JSON (enums as their values, nested dataclasses as objects, tuples as
+lists). An array field's JSON value is a descriptor
+``{"dtype": "<f4", "shape": [h, w], "encoding": "raw", "offset": o, "nbytes": n}``:
+``n`` bytes at offset ``o`` of the buffer section. ``raw`` arrays decode zero-copy with
+``np.frombuffer`` (read-only views of the frame); ``encoding="png"|"jpeg"`` compresses
+``Observation.rgb`` with opencv and sends ``Observation.depth`` as a 16-bit PNG in
+millimetres (``png-depth-mm``).
+
+Decoding is strict: any problem raises ``ProtocolError(code, message)`` with the field's
+dotted path in the message; ``__post_init__`` validation of the dataclasses surfaces as
+``ErrorCode.invalid_field``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import inspect
+import json
+import math
+import struct
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from tidee.protocol import messages
+from tidee.protocol.messages import IMAGE_ENCODINGS, PROTOCOL_VERSION, ErrorCode
+
+MAGIC = b"TIDE"
+_PREFIX = struct.Struct("<4sHI")
+ALIGN = 16
+DEFAULT_MAX_BYTES = 64 * 1024 * 1024
+DEFAULT_JPEG_QUALITY = 90
+_INT64 = (-(1 << 63), 1 << 63)
+
+# Every dataclass in messages.py can be a frame's top-level message.
+MESSAGE_TYPES: dict[str, type] = {
+    name: cls for name, cls in inspect.getmembers(messages, inspect.isclass)
+    if dataclasses.is_dataclass(cls) and cls.__module__ == messages.__name__}
+
+_WIRE_DTYPES = frozenset({"|u1", "|i1", "|b1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f4", "<f8"})
+
+
+class ProtocolError(Exception):
+    """A frame that cannot be accepted; ``code`` says which kind of problem."""
+
+    def __init__(self, code: ErrorCode, message: str) -> None:
+        super().__init__(f"{ErrorCode(code).value}: {message}")
+        self.code = ErrorCode(code)
+        self.message = message
+
+
+# --- per-field array contracts ----------------------------------------------------------
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """What an array field must be: its dtype, rank, fixed dims, and image kind."""
+
+    dtype: str                        # numpy dtype.str on the wire
+    shape: tuple[int | None, ...]     # None: any size
+    image: str | None = None          # "color" | "depth": compressible under png/jpeg
+
+    def describe(self) -> str:
+        dims = "x".join("N" if d is None else str(d) for d in self.shape)
+        return f"{np.dtype(self.dtype).name} {dims}"
+
+    def matches(self, dtype: str, shape: tuple[int, ...]) -> bool:
+        return dtype == self.dtype and len(shape) == len(self.shape) and all(
+            want is None or want == got for want, got in zip(self.shape, shape))
+
+
+ARRAY_FIELDS: dict[tuple[type, str], ArraySpec] = {
+    (messages.Observation, "rgb"): ArraySpec("|u1", (None, None, 3), image="color"),
+    (messages.Observation, "depth"): ArraySpec("<f4", (None, None), image="depth"),
+    (messages.Observation, "camera_pose"): ArraySpec("<f8", (4, 4)),
+    (messages.Observation, "intrinsics"): ArraySpec("<f8", (3, 3)),
+    (messages.GroundTruth, "instance_seg"): ArraySpec("<i4", (None, None)),
+}
+
+
+# --- encode -----------------------------------------------------------------------------
+
+class _Buffers:
+    """The buffer section being assembled: 16-aligned chunks and their descriptors."""
+
+    def __init__(self) -> None:
+        self.chunks: list[bytes | memoryview] = []
+        self.size = 0
+
+    def add(self, data: bytes | memoryview, dtype: str, shape: tuple[int, ...], encoding: str) -> dict:
+        pad = -self.size % ALIGN
+        if pad:
+            self.chunks.append(b"\0" * pad)
+            self.size += pad
+        desc = {"dtype": dtype, "shape": list(shape), "encoding": encoding,
+                "offset": self.size, "nbytes": len(data)}
+        self.chunks.append(data)
+        self.size += len(data)
+        return desc
+
+
+def encode(msg: Any, encoding: str = "raw", *, jpeg_quality: int = DEFAULT_JPEG_QUALITY) -> bytes:
+    """One frame for ``msg`` (any message dataclass); ``encoding`` applies to images."""
+    name = type(msg).__name__
+    if MESSAGE_TYPES.get(name) is not type(msg):
+        raise TypeError(f"cannot encode {name}: not a message type ({', '.join(sorted(MESSAGE_TYPES))})")
+    if encoding not in IMAGE_ENCODINGS:
+        raise ValueError(f"encoding must be one of {IMAGE_ENCODINGS}, got {encoding!r}")
+    buffers = _Buffers()
+    fields = _encode_dataclass(msg, "", buffers, encoding, jpeg_quality)
+    header = json.dumps({"type": name, "fields": fields}, separators=(",", ":"),
+                        allow_nan=False).encode()
+    header += b" " * (-(_PREFIX.size + len(header)) % ALIGN)
+    return b"".join([_PREFIX.pack(MAGIC, PROTOCOL_VERSION, len(header)), header, *buffers.chunks])
+
+
+def _encode_dataclass(obj: Any, path: str, buffers: _Buffers, encoding: str, quality: int) -> dict:
+    out = {}
+    for f in dataclasses.fields(obj):
+        value, fpath = getattr(obj, f.name), _join(path, f.name)
+        if isinstance(value, np.ndarray):
+            out[f.name] = _encode_array(value, fpath, ARRAY_FIELDS.get((type(obj), f.name)),
+                                        buffers, encoding, quality)
+        elif dataclasses.is_dataclass(value):
+            out[f.name] = _encode_dataclass(value, fpath, buffers, encoding, quality)
+        else:
+            out[f.name] = _plain(value, fpath)
+    return out
+
+
+def _plain(value: Any, path: str) -> Any:
+    """A JSON-able copy of a plain value (enums, numpy scalars and small arrays unwrapped)."""
+    if isinstance(value, enum.Enum):
+        return value.value
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [_plain(v, f"{path}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, dict):
+        for k in value:
+            if not isinstance(k, str):
+                raise TypeError(f"field '{path}' has a non-string key {k!r}; JSON objects need string keys")
+        return {k: _plain(v, _join(path, k)) for k, v in value.items()}
+    if dataclasses.is_dataclass(value):
+        return {f.name: _plain(getattr(value, f.name), _join(path, f.name))
+                for f in dataclasses.fields(value)}
+    raise TypeError(f"field '{path}' holds a {type(value).__name__}, which has no wire form")
+
+
+def _encode_array(arr: np.ndarray, path: str, spec: ArraySpec | None, buffers: _Buffers,
+                  encoding: str, quality: int) -> dict:
+    arr = np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("<"))
+    dtype = arr.dtype.str
+    if dtype not in _WIRE_DTYPES:
+        raise TypeError(f"field '{path}' has dtype {arr.dtype}; the wire carries {sorted(_WIRE_DTYPES)}")
+    if spec is not None and not spec.matches(dtype, arr.shape):
+        raise TypeError(f"field '{path}' must be {spec.describe()}, got {arr.dtype} {arr.shape}")
+    if encoding != "raw" and spec is not None and spec.image == "color":
+        ext = ".jpg" if encoding == "jpeg" else ".png"
+        params = [cv2.IMWRITE_JPEG_QUALITY, quality] if encoding == "jpeg" else []
+        ok, buf = cv2.imencode(ext, cv2.cvtColor(arr, cv2.COLOR_RGB2BGR), params)
+        if not ok:
+            raise ValueError(f"opencv could not {encoding}-encode field '{path}'")
+        return buffers.add(buf.reshape(-1).data, dtype, arr.shape, encoding)
+    if encoding != "raw" and spec is not None and spec.image == "depth":
+        mm = np.nan_to_num(arr * 1000.0, nan=0.0, posinf=0.0, neginf=0.0)
+        ok, buf = cv2.imencode(".png", np.clip(np.rint(mm), 0, 65535).astype(np.uint16))
+        if not ok:
+            raise ValueError(f"opencv could not png-encode field '{path}'")
+        return buffers.add(buf.reshape(-1).data, dtype, arr.shape, "png-depth-mm")
+    return buffers.add(memoryview(arr).cast("B"), dtype, arr.shape, "raw")
+
+
+# --- decode -----------------------------------------------------------------------------
+
+def decode(data: bytes | bytearray | memoryview, *, max_bytes: int = DEFAULT_MAX_BYTES,
+           expected: type | tuple[type, ...] | None = None) -> Any:
+    """The message in ``data``; ``ProtocolError`` if anything about it is wrong.
+
+    ``expected``: the message type(s) acceptable here, checked before the fields are.
+    Raw arrays in the result are read-only views of ``data``.
+    """
+    view = memoryview(data).cast("B")
+    if len(view) > max_bytes:
+        raise ProtocolError(ErrorCode.oversized, f"frame is {len(view)} bytes, the limit is {max_bytes}")
+    if len(view) < _PREFIX.size:
+        raise ProtocolError(ErrorCode.malformed, f"frame is {len(view)} bytes, shorter than the "
+                                                 f"{_PREFIX.size}-byte prefix")
+    magic, version, header_len = _PREFIX.unpack_from(view)
+    if magic != MAGIC:
+        raise ProtocolError(ErrorCode.malformed, f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
+    if version != PROTOCOL_VERSION:
+        raise ProtocolError(ErrorCode.bad_version,
+                            f"frame has protocol version {version}, this side speaks {PROTOCOL_VERSION}")
+    body_start = _PREFIX.size + header_len
+    if body_start > len(view):
+        raise ProtocolError(ErrorCode.malformed, f"frame truncated: the header claims {header_len} bytes, "
+                                                 f"only {len(view) - _PREFIX.size} follow the prefix")
+    header = _parse_header(view[_PREFIX.size:body_start])
+    cls = MESSAGE_TYPES.get(header["type"]) if isinstance(header["type"], str) else None
+    if cls is None:
+        raise ProtocolError(ErrorCode.malformed, f"unknown message type {header['type']!r}; "
+                                                 f"known: {', '.join(sorted(MESSAGE_TYPES))}")
+    if expected is not None and not issubclass(cls, expected):
+        names = " or ".join(t.__name__ for t in (expected if isinstance(expected, tuple) else (expected,)))
+        raise ProtocolError(ErrorCode.malformed, f"expected {names}, got {cls.__name__}")
+    fields = header["fields"]
+    if not isinstance(fields, dict):
+        raise ProtocolError(ErrorCode.malformed, f"header 'fields' must be an object, got {_show(fields)}")
+    if "protocol_version" in fields and fields["protocol_version"] != PROTOCOL_VERSION:
+        raise ProtocolError(ErrorCode.bad_version, f"field 'protocol_version' is "
+                                                   f"{_show(fields['protocol_version'])}, this side speaks "
+                                                   f"{PROTOCOL_VERSION}")
+    return _Decoder(view[body_start:], max_bytes).dataclass(fields, cls, "")
+
+
+def _parse_header(raw: memoryview) -> dict:
+    def reject_constant(name: str) -> None:
+        raise ValueError(f"non-finite number {name} in header")
+
+    try:
+        header = json.loads(bytes(raw).decode("utf-8"), parse_constant=reject_constant)
+    except (UnicodeDecodeError, ValueError, RecursionError) as e:
+        raise ProtocolError(ErrorCode.malformed, f"header is not valid UTF-8 JSON: {e}") from None
+    if not isinstance(header, dict) or set(header) != {"type", "fields"}:
+        keys = sorted(header) if isinstance(header, dict) else type(header).__name__
+        raise ProtocolError(ErrorCode.malformed, f"header must be an object with keys 'type' and 'fields', "
+                                                 f"got {keys}")
+    return header
+
+
+class _Decoder:
+    """Type-directed conversion of header JSON into message objects, against one frame."""
+
+    def __init__(self, body: memoryview, max_bytes: int) -> None:
+        self.body, self.max_bytes = body, max_bytes
+
+    def value(self, value: Any, hint: Any, path: str, array_spec: ArraySpec | None = None) -> Any:
+        origin, args = typing.get_origin(hint), typing.get_args(hint)
+        if hint is Any:
+            return value
+        if origin in (typing.Union, types.UnionType):
+            if value is None:
+                if type(None) in args:
+                    return None
+                raise _invalid(path, "a value, not null", value)
+            arms = [a for a in args if a is not type(None)]
+            if len(arms) == 1:
+                return self.value(value, arms[0], path, array_spec)
+            raise TypeError(f"unsupported union {hint} at '{path}'")  # not in messages.py
+        if value is None:
+            raise _invalid(path, f"{_describe(hint)}, not null", value)
+        if hint is np.ndarray:
+            return self.array(value, path, array_spec)
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+            if not isinstance(value, dict):
+                raise _invalid(path, f"an object ({hint.__name__})", value)
+            return self.dataclass(value, hint, path)
+        if isinstance(hint, type) and issubclass(hint, enum.Enum):
+            try:
+                return hint(value)
+            except ValueError:
+                raise _invalid(path, f"one of {[e.value for e in hint]}", value) from None
+        if hint is bool:
+            if isinstance(value, bool):
+                return value
+            raise _invalid(path, "a boolean", value)
+        if hint is int:
+            if isinstance(value, int) and not isinstance(value, bool) and _INT64[0] <= value < _INT64[1]:
+                return value
+            raise _invalid(path, "a 64-bit integer", value)
+        if hint is float:
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                return float(value)
+            raise _invalid(path, "a number", value)
+        if hint is str:
+            if isinstance(value, str):
+                return value
+            raise _invalid(path, "a string", value)
+        if origin is tuple:
+            if not isinstance(value, list) or len(value) != len(args):
+                raise _invalid(path, f"a list of {len(args)} items", value)
+            return tuple(self.value(v, a, f"{path}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+        if origin is list:
+            if not isinstance(value, list):
+                raise _invalid(path, "a list", value)
+            return [self.value(v, args[0], f"{path}[{i}]") for i, v in enumerate(value)]
+        if origin is dict:
+            if not isinstance(value, dict):
+                raise _invalid(path, "an object", value)
+            return {k: self.value(v, args[1], _join(path, k)) for k, v in value.items()}
+        raise TypeError(f"unsupported field type {hint} at '{path}'")  # not in messages.py
+
+    def dataclass(self, obj: dict, cls: type, path: str) -> Any:
+        hints = _hints(cls)
+        unknown = sorted(set(obj) - set(hints))
+        if unknown:
+            raise ProtocolError(ErrorCode.invalid_field,
+                                f"unknown field '{_join(path, unknown[0])}' in {cls.__name__} "
+                                f"(fields: {', '.join(hints)})")
+        kwargs = {}
+        for f in dataclasses.fields(cls):
+            fpath = _join(path, f.name)
+            if f.name not in obj:
+                if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                    raise ProtocolError(ErrorCode.invalid_field, f"field '{fpath}' is required")
+                continue
+            kwargs[f.name] = self.value(obj[f.name], hints[f.name], fpath, ARRAY_FIELDS.get((cls, f.name)))
+        try:
+            return cls(**kwargs)
+        except (ValueError, TypeError) as e:
+            where = f"field '{path}'" if path else cls.__name__
+            raise ProtocolError(ErrorCode.invalid_field, f"invalid {where}: {e}") from None
+
+    def array(self, desc: Any, path: str, spec: ArraySpec | None) -> np.ndarray:
+        want = {"dtype", "shape", "encoding", "offset", "nbytes"}
+        if not isinstance(desc, dict) or set(desc) != want:
+            raise _invalid(path, f"an array descriptor with keys {sorted(want)}", desc)
+        dtype, shape, enc, offset, nbytes = (desc[k] for k in
+                                             ("dtype", "shape", "encoding", "offset", "nbytes"))
+        if dtype not in _WIRE_DTYPES:
+            raise _invalid(f"{path}.dtype", f"one of {sorted(_WIRE_DTYPES)}", dtype)
+        if not (isinstance(shape, list) and len(shape) <= 8
+                and all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)):
+            raise _invalid(f"{path}.shape", "a list of at most 8 non-negative integers", shape)
+        for key, v in (("offset", offset), ("nbytes", nbytes)):
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+                raise _invalid(f"{path}.{key}", "a non-negative integer", v)
+        shape_t = tuple(shape)
+        if spec is not None and not spec.matches(dtype, shape_t):
+            raise _invalid(path, spec.describe(), f"{np.dtype(dtype).name} {shape_t}")
+        size = math.prod(shape_t) * np.dtype(dtype).itemsize
+        if size > self.max_bytes:
+            raise ProtocolError(ErrorCode.oversized, f"field '{path}' declares {shape_t} "
+                                                     f"{np.dtype(dtype).name}: {size} bytes, the limit is "
+                                                     f"{self.max_bytes}")
+        if offset + nbytes > len(self.body):
+            raise ProtocolError(ErrorCode.malformed, f"frame truncated: field '{path}' needs buffer bytes "
+                                                     f"[{offset}, {offset + nbytes}), the frame has "
+                                                     f"{len(self.body)}")
+        buf = self.body[offset:offset + nbytes]
+        if enc == "raw":
+            if nbytes != size:
+                raise ProtocolError(ErrorCode.invalid_field, f"field '{path}' declares {shape_t} "
+                                                             f"{np.dtype(dtype).name} = {size} bytes "
+                                                             f"but nbytes is {nbytes}")
+            return np.frombuffer(buf, dtype=dtype).reshape(shape_t)
+        image = spec.image if spec is not None else None
+        allowed = {"color": ("png", "jpeg"), "depth": ("png-depth-mm",)}.get(image or "", ())
+        if enc not in allowed:
+            raise _invalid(f"{path}.encoding", f"one of {['raw', *allowed]}", enc)
+        return _decode_image(buf, shape_t, image, path)
+
+
+def _decode_image(buf: memoryview, shape: tuple[int, ...], image: str | None, path: str) -> np.ndarray:
+    """A png/jpeg buffer back to the declared array, refusing any size other than declared."""
+    dims = _image_dims(buf)
+    if dims is None:
+        raise ProtocolError(ErrorCode.invalid_field, f"field '{path}' is not a PNG or JPEG image")
+    if dims != shape[:2]:
+        raise ProtocolError(ErrorCode.invalid_field, f"field '{path}': the compressed image is "
+                                                     f"{dims[0]}x{dims[1]}, declared {shape[:2]}")
+    raw = np.frombuffer(buf, np.uint8)
+    if image == "color":
+        bgr = cv2.imdecode(raw, cv2.IMREAD_COLOR)
+        if bgr is None or bgr.shape != shape:
+            raise ProtocolError(ErrorCode.invalid_field,
+                                f"field '{path}' does not decode to a {shape} colour image")
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    mm = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
+    if mm is None or mm.dtype != np.uint16 or mm.shape != shape:
+        raise ProtocolError(ErrorCode.invalid_field,
+                            f"field '{path}' does not decode to a {shape} 16-bit PNG")
+    return mm.astype(np.float32) * np.float32(0.001)
+
+
+def _image_dims(buf: memoryview) -> tuple[int, int] | None:
+    """(height, width) from a PNG or JPEG header, read before decompressing anything."""
+    b = bytes(buf[:65536]) if len(buf) > 65536 else bytes(buf)
+    if b[:8] == b"\x89PNG\r\n\x1a\n" and len(b) >= 24 and b[12:16] == b"IHDR":
+        width, height = struct.unpack(">II", b[16:24])
+        return height, width
+    if b[:2] == b"\xff\xd8":
+        i = 2
+        while i + 9 <= len(b) and b[i] == 0xFF:
+            marker, seg_len = b[i + 1], struct.unpack(">H", b[i + 2:i + 4])[0]
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame
+                height, width = struct.unpack(">HH", b[i + 5:i + 9])
+                return height, width
+            i += 2 + seg_len
+    return None
+
+
+# --- helpers ----------------------------------------------------------------------------
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _join(path: str, name: str) -> str:
+    return f"{path}.{name}" if path else name
+
+
+def _show(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _describe(hint: Any) -> str:
+    return getattr(hint, "__name__", str(hint))
+
+
+def _invalid(path: str, expectation: str, value: Any) -> ProtocolError:
+    return ProtocolError(ErrorCode.invalid_field, f"field '{path}' must be {expectation}, got {_show(value)}")

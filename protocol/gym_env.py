@@ -1,0 +1,105 @@
+"""``tidee/Tidy-v0``: a tidee episode as a Gymnasium environment.
+
+Actions: ``{"action": Discrete(13), "point": Box(0, 1, (2,))}``: the action index is into
+``ACTIONS`` (the order of ``ActionName``); ``point`` is the normalised pixel (x, y) and
+only matters for the pixel actions (pick, put, open, close).
+Observations: ``{"rgb": HxWx3 uint8, "depth": HxW float32 metres, "pose": (x, y, yaw_deg,
+pitch_deg) float32 in the start frame}``; everything else of the ``Observation``
+(success, error, held object, camera pose, intrinsics, ground truth) is in ``info``.
+Reward is always 0: tidying is scored at the end by evaluation, not per step.
+``terminated`` when the agent calls Done; ``truncated`` when the step cap ends the episode.
+``reset(seed=s)`` plays room seed ``s``; without a seed, the env's RNG draws one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from tidee.protocol.messages import PIXEL_ACTIONS, Action, ActionName, EpisodeSpec, Observation
+from tidee.protocol.transport import SimTransport, make_transport
+
+ACTIONS: tuple[ActionName, ...] = tuple(ActionName)
+_MAX_SEED = 2**31 - 1
+# Generous finite bounds (rooms are under 10 m; the renderer's far plane is 20 m).
+MAX_DEPTH_M = 100.0
+POSE_LOW = np.array([-100.0, -100.0, -180.0, -90.0], np.float32)
+POSE_HIGH = -POSE_LOW
+
+
+class TidyEnv(gym.Env[dict[str, np.ndarray], dict[str, Any]]):
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
+
+    def __init__(self, spec: EpisodeSpec | None = None, transport: str | SimTransport = "inproc",
+                 transport_kwargs: dict[str, Any] | None = None, ground_truth: bool = False,
+                 render_mode: str | None = None) -> None:
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, "
+                             f"got {render_mode!r}")
+        self.episode_spec = spec or EpisodeSpec()
+        self.ground_truth = ground_truth
+        self.render_mode = render_mode
+        self.transport: SimTransport = (make_transport(transport, **(transport_kwargs or {}))
+                                        if isinstance(transport, str) else transport)
+        r = self.episode_spec.resolution
+        self.action_space = spaces.Dict({
+            "action": spaces.Discrete(len(ACTIONS)),
+            "point": spaces.Box(0.0, 1.0, (2,), np.float32),
+        })
+        self.observation_space = spaces.Dict({
+            "rgb": spaces.Box(0, 255, (r, r, 3), np.uint8),
+            "depth": spaces.Box(0.0, MAX_DEPTH_M, (r, r), np.float32),
+            "pose": spaces.Box(POSE_LOW, POSE_HIGH, (4,), np.float32),
+        })
+        self._last: Observation | None = None
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """``options``: EpisodeSpec fields to change for this episode (not ``resolution``)."""
+        super().reset(seed=seed)
+        changes = dict(options or {})
+        if changes.get("resolution", self.episode_spec.resolution) != self.episode_spec.resolution:
+            raise ValueError("resolution fixes the observation space; make a new env to change it")
+        room_seed = seed if seed is not None else int(self.np_random.integers(_MAX_SEED))
+        spec = dataclasses.replace(self.episode_spec, **{"seed": room_seed, **changes})
+        self._last = self.transport.reset(spec, ground_truth=self.ground_truth)
+        return self._observation(self._last), self._info(self._last)
+
+    def step(self, action: dict[str, Any]) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        self._last = obs = self.transport.step(to_action(action), ground_truth=self.ground_truth)
+        terminated = obs.done and obs.last_action == ActionName.Done.value
+        return self._observation(obs), 0.0, terminated, obs.done and not terminated, self._info(obs)
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode == "rgb_array" and self._last is not None:
+            return self._last.rgb
+        return None
+
+    def close(self) -> None:
+        self.transport.close()
+        super().close()
+
+    @staticmethod
+    def _observation(obs: Observation) -> dict[str, np.ndarray]:
+        return {"rgb": obs.rgb, "depth": obs.depth, "pose": np.asarray(obs.agent_pose, np.float32)}
+
+    @staticmethod
+    def _info(obs: Observation) -> dict[str, Any]:
+        info = {f.name: getattr(obs, f.name) for f in dataclasses.fields(obs)
+                if f.name not in ("rgb", "depth", "agent_pose", "ground_truth")}
+        if obs.ground_truth is not None:
+            info["ground_truth"] = obs.ground_truth
+        return info
+
+
+def to_action(action: dict[str, Any]) -> Action:
+    """A gym action (``{"action": index, "point": (x, y)}``) as a protocol ``Action``."""
+    name = ACTIONS[int(action["action"])]
+    if name in PIXEL_ACTIONS:
+        x, y = np.clip(np.asarray(action["point"], np.float64), 0.0, 1.0)
+        return Action(name, float(x), float(y))
+    return Action(name)

@@ -1,0 +1,63 @@
+"""Zenoh session configuration: peer mode on loopback by default, a router on request.
+
+Without a router (the default), processes on one machine find each other through one
+well-known *rendezvous* endpoint, ``TIDEE_ZENOH_ENDPOINT`` (default
+``tcp/127.0.0.1:7447``): the server listens there, every other process connects to it
+and listens on an ephemeral loopback port, and gossip scouting (over those links, not
+multicast) lets agents and viewers connect to each other directly. Multicast scouting is
+off, so nothing is announced beyond the configured endpoints.
+
+With a router endpoint (``TIDEE_ZENOH_ROUTER`` or ``router=``, e.g. ``tcp/zenohd:7447``
+in compose), every process runs in client mode connected to that router instead.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import zenoh
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+ENDPOINT_ENV = "TIDEE_ZENOH_ENDPOINT"
+ROUTER_ENV = "TIDEE_ZENOH_ROUTER"
+_EPHEMERAL_LOOPBACK = "tcp/127.0.0.1:0"
+
+
+def resolve_endpoint(endpoint: str | None = None) -> str:
+    """The rendezvous endpoint: the argument, else ``TIDEE_ZENOH_ENDPOINT``, else the default."""
+    return endpoint or os.environ.get(ENDPOINT_ENV) or DEFAULT_ENDPOINT
+
+
+def resolve_router(router: str | None = None) -> str | None:
+    """The router endpoint: the argument, else ``TIDEE_ZENOH_ROUTER``, else None (peer mode)."""
+    return router or os.environ.get(ROUTER_ENV) or None
+
+
+def make_config(listen: bool, endpoint: str | None = None, router: str | None = None) -> zenoh.Config:
+    """A Zenoh config for one process.
+
+    ``listen``: this process is the rendezvous (the server): it listens on the endpoint;
+    otherwise it connects to it. Ignored in router mode, where everyone connects to the router.
+    """
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    router = resolve_router(router)
+    if router:
+        _set(conf, "mode", "client")
+        _set(conf, "connect/endpoints", [router])
+        return conf
+    rendezvous = resolve_endpoint(endpoint)
+    _set(conf, "mode", "peer")
+    _set(conf, "scouting/gossip/enabled", True)
+    if listen:
+        _set(conf, "listen/endpoints", [rendezvous])
+        _set(conf, "connect/endpoints", [])
+    else:
+        _set(conf, "listen/endpoints", [_EPHEMERAL_LOOPBACK])
+        _set(conf, "connect/endpoints", [rendezvous])
+    return conf
+
+
+def _set(conf: zenoh.Config, key: str, value: object) -> None:
+    conf.insert_json5(key, json.dumps(value))

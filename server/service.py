@@ -1,0 +1,332 @@
+"""The Zenoh simulation server: one process, many concurrent episodes, one per session id.
+
+Threads: Zenoh callbacks only put a job on a queue (no decoding, no simulation, no Zenoh
+calls); worker threads drain the queues and do everything else. A session is pinned to
+one worker (by a hash of its id), so its requests run in order and its episode (and its
+renderer's GL context) is only ever touched by one thread. One worker is the default:
+PyBullet holds the GIL, so more workers only make a slow reset of one session delay the
+others less.
+
+Robustness: every request is decoded strictly; a bad one gets an ``ErrorReply`` saying
+what was wrong; an exception inside an episode becomes ``ErrorReply(internal)`` and the
+session stays usable (its next reset starts afresh). Sessions are freed on ``close``,
+when their client's liveliness token disappears, or when the server stops.
+
+Congestion: replies travel with the query's congestion control, which ``SimClient`` sets
+to ``BLOCK`` (the agent must get every frame; Zenoh 1.x ignores a reply's own setting);
+the viewer feed (``tidee/sim/{server}/obs/{session}``) is published with ``DROP``, so a
+slow viewer loses frames instead of stalling the simulation. Viewers should subscribe
+with a ``RingChannel`` (latest wins).
+"""
+
+from __future__ import annotations
+
+import atexit
+import dataclasses
+import logging
+import queue
+import signal
+import threading
+import zlib
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import zenoh
+
+from tidee.protocol import keys
+from tidee.protocol.codec import ProtocolError, decode, encode
+from tidee.protocol.messages import (CloseReply, CloseRequest, ErrorCode, ErrorReply, Observation,
+                                     ResetRequest, StateReply, StateRequest, StepRequest)
+from tidee.protocol.transport import EpisodeLike
+from tidee.protocol.zenoh_config import make_config
+
+log = logging.getLogger("tidee.server")
+
+REQUEST_TYPES: dict[str, type] = {"reset": ResetRequest, "step": StepRequest, "state": StateRequest,
+                                  "close": CloseRequest}
+RENDERERS = ("auto", "egl", "tiny")
+
+
+@dataclass
+class ServerConfig:
+    endpoint: str | None = None        # listen here (default: TIDEE_ZENOH_ENDPOINT, else loopback:7447)
+    router: str | None = None          # or: client mode through this Zenoh router (TIDEE_ZENOH_ROUTER)
+    max_sessions: int = 16
+    renderer: str = "auto"             # auto | egl | tiny
+    server_id: str = "sim0"
+    workers: int = 1                   # threads running episodes (see the module docstring)
+    max_request_bytes: int = 1 << 20   # requests carry no arrays
+
+    def __post_init__(self) -> None:
+        keys.check_id("server_id", self.server_id)
+        if self.renderer not in RENDERERS:
+            raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
+        for name in ("max_sessions", "workers", "max_request_bytes"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+
+@dataclass
+class _Job:
+    session: str | None                # None when the key did not parse
+    op: str                            # reset | step | state | close | gone (client token deleted)
+    query: zenoh.Query | None = None
+    payload: bytes = b""
+    key_error: str | None = None
+
+
+@dataclass
+class _Session:
+    episode: EpisodeLike | None        # None while the episode is being built
+    token: Any = None                  # liveliness: tidee/alive/session/{server}/{session}
+    publisher: zenoh.Publisher | None = None
+
+
+class SimServer:
+    """Serve episodes over Zenoh until ``stop()``. ``episode_factory`` builds one episode
+    (called on the session's worker thread); default: ``tidee.server.episode.Episode``."""
+
+    def __init__(self, config: ServerConfig,
+                 episode_factory: Callable[[], EpisodeLike] | None = None) -> None:
+        self.config = config
+        self._factory = episode_factory or self._default_factory()
+        self._sessions: dict[str, _Session] = {}
+        self._lock = threading.Lock()              # guards _sessions (admission across workers)
+        self._queues: list[queue.SimpleQueue[_Job | None]] = [
+            queue.SimpleQueue() for _ in range(config.workers)]
+        self._workers = [threading.Thread(target=self._work, args=(i,), name=f"tidee-sim-worker-{i}",
+                                          daemon=True) for i in range(config.workers)]
+        self._z: zenoh.Session | None = None
+        self._inbound: list[Any] = []              # queryable + liveliness subscriber
+        self._server_token: Any = None
+        self._handlers: dict[str, Callable[[Any], Any]] = {
+            "reset": self._reset, "step": self._step, "state": self._state, "close": self._close}
+
+    # --- lifecycle ----------------------------------------------------------------------
+    def start(self) -> SimServer:
+        cfg = self.config
+        self._z = zenoh.open(make_config(listen=True, endpoint=cfg.endpoint, router=cfg.router))
+        for worker in self._workers:
+            worker.start()
+        self._inbound = [
+            self._z.declare_queryable(keys.sim_op_wildcard(cfg.server_id), self._on_query),
+            self._z.liveliness().declare_subscriber(keys.alive_clients_wildcard(cfg.server_id),
+                                                    self._on_client_liveliness, history=True),
+        ]
+        # Declared last: a client that sees this token can already reach the queryable.
+        self._server_token = self._z.liveliness().declare_token(keys.alive_server(cfg.server_id))
+        # A process that exits with Python callbacks still declared hangs in Zenoh's teardown.
+        atexit.register(self.stop)
+        log.info("tidee server %r ready: max %d sessions, %d worker(s)", cfg.server_id, cfg.max_sessions,
+                 cfg.workers)
+        return self
+
+    def stop(self) -> None:
+        """Stop taking requests, finish queued ones, free every session, leave Zenoh."""
+        if self._z is None:
+            return
+        atexit.unregister(self.stop)
+        for decl in self._inbound:
+            decl.undeclare()
+        self._inbound = []
+        for q in self._queues:
+            q.put(None)
+        for worker in self._workers:
+            worker.join()
+        self._server_token.undeclare()
+        self._z.close()
+        self._z = None
+        log.info("tidee server %r stopped", self.config.server_id)
+
+    def __enter__(self) -> SimServer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def sessions(self) -> tuple[str, ...]:
+        """Ids of the sessions this server holds now."""
+        with self._lock:
+            return tuple(self._sessions)
+
+    # --- Zenoh callbacks: enqueue only ---------------------------------------------------
+    def _on_query(self, query: zenoh.Query) -> None:
+        key = str(query.key_expr)
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            _, session, op = keys.parse_sim_op(key)
+        except ValueError as e:
+            self._queues[0].put(_Job(None, "invalid", query, payload, key_error=str(e)))
+            return
+        self._route(session).put(_Job(session, op, query, payload))
+
+    def _on_client_liveliness(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.DELETE:
+            return
+        try:
+            _, _, session = keys.parse_alive(str(sample.key_expr))
+        except ValueError:
+            return
+        if session is not None:
+            self._route(session).put(_Job(session, "gone"))
+
+    def _route(self, session: str) -> queue.SimpleQueue[_Job | None]:
+        return self._queues[zlib.crc32(session.encode()) % len(self._queues)]
+
+    # --- workers ------------------------------------------------------------------------
+    def _work(self, index: int) -> None:
+        q = self._queues[index]
+        while (job := q.get()) is not None:
+            if job.op == "gone":
+                if self._free(job.session):  # type: ignore[arg-type]
+                    log.info("session %s: client gone, freed", job.session)
+                continue
+            self._answer(job)
+        for session in self.sessions:  # stopping: free the sessions this worker owns
+            if self._route(session) is q:
+                self._free(session)
+
+    def _answer(self, job: _Job) -> None:
+        assert job.query is not None
+        encoding = "raw"
+        try:
+            request = self._parse(job)
+            encoding = getattr(request, "encoding", "raw")
+            reply = self._handlers[job.op](request)
+        except ProtocolError as e:
+            reply = ErrorReply(e.code, e.message, job.session)
+        except Exception as e:  # an episode's bug must not take the server or other sessions down
+            log.exception("session %s: %s failed", job.session, job.op)
+            reply = ErrorReply(ErrorCode.internal, f"{job.op} failed: {type(e).__name__}: {e}", job.session)
+        self._send(job, reply, encoding)
+
+    def _parse(self, job: _Job) -> Any:
+        if job.key_error is not None:
+            raise ProtocolError(ErrorCode.malformed, job.key_error)
+        request = decode(job.payload, max_bytes=self.config.max_request_bytes, expected=REQUEST_TYPES[job.op])
+        if request.session != job.session:
+            raise ProtocolError(ErrorCode.invalid_field, f"field 'session' is {request.session!r} but "
+                                                         f"the key names session {job.session!r}")
+        return request
+
+    def _send(self, job: _Job, reply: Any, encoding: str) -> None:
+        query = job.query
+        assert query is not None
+        try:
+            try:
+                frame = encode(reply, encoding)
+            except Exception as e:  # e.g. an episode returned a depth map of the wrong dtype
+                log.exception("session %s: cannot encode the %s reply", job.session, job.op)
+                reply = ErrorReply(ErrorCode.internal, f"cannot encode the reply: {e}", job.session)
+                frame = encode(reply)
+            if isinstance(reply, ErrorReply):
+                query.reply_err(frame)
+            else:
+                query.reply(query.key_expr, frame)  # congestion control: the query's (BLOCK)
+            if isinstance(reply, Observation):
+                self._publish(job.session, reply, frame, encoding)  # type: ignore[arg-type]
+        except Exception:
+            log.exception("session %s: could not reply to %s", job.session, job.op)
+        finally:
+            query.drop()  # sends the final answer now rather than when Python collects the query
+
+    def _publish(self, session: str, obs: Observation, frame: bytes, encoding: str) -> None:
+        """The viewer feed: the same frame, minus any privileged ground truth."""
+        with self._lock:
+            entry = self._sessions.get(session)
+        if entry is None or entry.publisher is None:
+            return
+        if obs.ground_truth is not None:
+            frame = encode(dataclasses.replace(obs, ground_truth=None), encoding)
+        entry.publisher.put(frame)
+
+    # --- requests (on the session's worker) ----------------------------------------------
+    def _reset(self, request: ResetRequest) -> Observation:
+        episode = self._episode(request.session, create=True)
+        return episode.reset(request.spec, session=request.session, ground_truth=request.ground_truth)
+
+    def _step(self, request: StepRequest) -> Observation:
+        return self._episode(request.session).step(request.action, ground_truth=request.ground_truth)
+
+    def _state(self, request: StateRequest) -> StateReply:
+        return StateReply(request.session, self._episode(request.session).state())
+
+    def _close(self, request: CloseRequest) -> CloseReply:
+        closed = self._free(request.session)
+        if closed:
+            log.info("session %s: closed by its client", request.session)
+        return CloseReply(request.session, closed)
+
+    # --- sessions -------------------------------------------------------------------------
+    def _episode(self, session: str, create: bool = False) -> EpisodeLike:
+        with self._lock:
+            entry = self._sessions.get(session)
+            if entry is None and create:
+                if len(self._sessions) >= self.config.max_sessions:
+                    raise ProtocolError(
+                        ErrorCode.server_busy,
+                        f"server {self.config.server_id!r} holds {len(self._sessions)} sessions, its "
+                        f"maximum (max_sessions); close one or start another server")
+                entry = self._sessions[session] = _Session(episode=None)  # reserve the slot
+        if entry is None:
+            raise ProtocolError(ErrorCode.unknown_session,
+                                f"no session {session!r} on server {self.config.server_id!r}: "
+                                f"send reset first (or it was closed)")
+        if entry.episode is None:
+            try:
+                entry.episode = self._factory()
+            except BaseException:
+                with self._lock:
+                    self._sessions.pop(session, None)
+                raise
+            assert self._z is not None
+            server_id = self.config.server_id
+            entry.token = self._z.liveliness().declare_token(keys.alive_session(server_id, session))
+            entry.publisher = self._z.declare_publisher(keys.observations(server_id, session),
+                                                        congestion_control=zenoh.CongestionControl.DROP)
+            log.info("session %s: opened (%d held)", session, len(self.sessions))
+        return entry.episode
+
+    def _free(self, session: str) -> bool:
+        """Close and forget ``session``; False if there was no such session."""
+        with self._lock:
+            entry = self._sessions.pop(session, None)
+        if entry is None:
+            return False
+        releases = [decl.undeclare for decl in (entry.publisher, entry.token) if decl is not None]
+        if entry.episode is not None:
+            releases.append(entry.episode.close)
+        for release in releases:
+            try:
+                release()
+            except Exception:
+                log.exception("session %s: error while freeing it", session)
+        return True
+
+    # --- default episodes ------------------------------------------------------------------
+    def _default_factory(self) -> Callable[[], EpisodeLike]:
+        """Real episodes; scene caches are per worker thread (``SceneLibrary`` is not thread-safe)."""
+        local = threading.local()
+        renderer = self.config.renderer
+
+        def make_episode() -> EpisodeLike:
+            from tidee.server.episode import Episode, SceneLibrary
+            if not hasattr(local, "library"):
+                local.library = SceneLibrary()
+            return Episode(renderer=renderer, library=local.library)
+
+        return make_episode
+
+
+def serve(config: ServerConfig, episode_factory: Callable[[], EpisodeLike] | None = None) -> None:
+    """Run a server until SIGINT or SIGTERM, then shut it down cleanly."""
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    server = SimServer(config, episode_factory).start()
+    try:
+        stop.wait()
+    finally:
+        server.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

@@ -1,0 +1,275 @@
+"""The Zenoh server end to end on loopback: sessions, errors, liveliness, shutdown."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+import pytest
+import zenoh
+
+from tests.fakes import FakeEpisode
+from tidee.protocol import keys
+from tidee.protocol.client import RemoteError, SimClient
+from tidee.protocol.codec import decode, encode
+from tidee.protocol.messages import (Action, ActionName, EpisodeSpec, ErrorCode, ErrorReply, Observation,
+                                     ResetRequest, StepRequest)
+from tidee.protocol.zenoh_config import make_config
+from tidee.server.service import ServerConfig, SimServer
+
+REPO = Path(__file__).resolve().parents[1]
+SPEC = EpisodeSpec(resolution=32, max_steps=50)
+
+
+def free_endpoint() -> str:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def start_server(factory: Callable[[], Any] | None = FakeEpisode, **config: Any) -> SimServer:
+    cfg = ServerConfig(endpoint=free_endpoint(), server_id=f"t{uuid.uuid4().hex[:8]}", **config)
+    return SimServer(cfg, factory).start()
+
+
+@pytest.fixture
+def server() -> Iterator[SimServer]:
+    srv = start_server(max_sessions=3)
+    yield srv
+    srv.stop()
+
+
+@pytest.fixture
+def raw_zenoh(server: SimServer) -> Iterator[zenoh.Session]:
+    """A bare Zenoh session on the server's network, for hand-made requests and viewers."""
+    z = zenoh.open(make_config(False, server.config.endpoint))
+    yield z
+    z.close()
+
+
+def client(server: SimServer, **kwargs: Any) -> SimClient:
+    return SimClient(endpoint=server.config.endpoint, server_id=server.config.server_id, timeout=10.0,
+                     **kwargs)
+
+
+def raw_request(z: zenoh.Session, key: str, payload: bytes) -> Any:
+    """Send ``payload`` to ``key``; the decoded reply (ok or err)."""
+    reply = z.get(key, payload=payload, timeout=10.0).recv()
+    sample = reply.ok if reply.ok is not None else reply.err
+    return decode(sample.payload.to_bytes())
+
+
+def test_episode_end_to_end(server: SimServer, raw_zenoh: zenoh.Session) -> None:
+    frames: list[bytes] = []
+    with client(server) as c:
+        feed = raw_zenoh.declare_subscriber(keys.observations(server.config.server_id, c.session_id),
+                                            lambda sample: frames.append(sample.payload.to_bytes()))
+        obs = c.reset(SPEC)
+        assert isinstance(obs, Observation) and obs.session == c.session_id and obs.step == 0
+        assert obs.rgb.shape == (32, 32, 3) and obs.depth.dtype == np.float32
+        assert server.sessions == (c.session_id,)
+        live = [str(r.ok.key_expr) for r in raw_zenoh.liveliness().get(
+            keys.alive_sessions_wildcard(server.config.server_id), timeout=5.0) if r.ok is not None]
+        assert live == [keys.alive_session(server.config.server_id, c.session_id)]
+
+        obs = c.step(Action(ActionName.MoveAhead))
+        assert obs.step == 1 and obs.agent_pose[0] == pytest.approx(0.25) and obs.ground_truth is None
+        obs = c.step(Action(ActionName.PickupObject, 0.2, 0.5), ground_truth=True)
+        assert not obs.success and obs.error == "nothing_there"
+        assert obs.ground_truth is not None and obs.ground_truth.instance_seg.shape == (32, 32)
+        assert c.state()["steps"] == 2
+        obs = c.step(Action(ActionName.Done))
+        assert obs.done and obs.steps_left == 47
+        obs = c.step(Action(ActionName.MoveAhead))
+        assert not obs.success and obs.error == "episode_over"
+
+        assert wait_until(lambda: len(frames) == 5), f"viewer feed got {len(frames)} of 5 frames"
+        published = [decode(f) for f in frames]
+        assert [o.step for o in published] == [0, 1, 2, 3, 3]
+        assert all(o.ground_truth is None for o in published)  # privileged data stays off the feed
+        feed.undeclare()
+    assert wait_until(lambda: server.sessions == ())
+
+
+def test_compressed_observations_over_the_wire(server: SimServer) -> None:
+    with client(server, encoding="png") as c:
+        c.reset(SPEC)
+        obs = c.step(Action(ActionName.RotateLeft))
+        assert obs.rgb.shape == (32, 32, 3) and obs.depth.dtype == np.float32
+        assert obs.agent_pose[2] == pytest.approx(90.0)
+
+
+def test_two_sessions_step_concurrently(server: SimServer) -> None:
+    steps = 25
+    clients = [client(server), client(server)]
+    seen: dict[str, list[tuple[int, float]]] = {}
+    errors: list[BaseException] = []
+
+    def run(c: SimClient, seed: int) -> None:
+        try:
+            c.reset(EpisodeSpec(resolution=32, seed=seed, max_steps=100))
+            seen[c.session_id] = [(o.step, o.agent_pose[0], o.session == c.session_id)
+                                  for o in (c.step(Action(ActionName.MoveAhead)) for _ in range(steps))]
+        except BaseException as e:  # surfaced below
+            errors.append(e)
+
+    threads = [threading.Thread(target=run, args=(c, seed)) for seed, c in enumerate(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=30)
+    assert not errors, errors
+    assert set(server.sessions) == {c.session_id for c in clients}
+    for c in clients:
+        assert seen[c.session_id] == [(i, pytest.approx(0.25 * i), True) for i in range(1, steps + 1)]
+    # Interleaved from one thread too: each session keeps its own state.
+    a, b = clients
+    assert a.step(Action(ActionName.MoveAhead)).step == steps + 1
+    assert b.step(Action(ActionName.RotateLeft)).step == steps + 1
+    assert a.step(Action(ActionName.MoveAhead)).step == steps + 2
+    for c in clients:
+        c.close()
+
+
+def test_bad_requests_get_precise_errors_and_others_keep_working(server: SimServer,
+                                                                 raw_zenoh: zenoh.Session) -> None:
+    sid = server.config.server_id
+    with client(server) as good:
+        good.reset(SPEC)
+        key = keys.sim_op(sid, good.session_id, "step")
+
+        garbage = raw_request(raw_zenoh, key, b"\x00garbage\xff" * 3)
+        assert isinstance(garbage, ErrorReply) and garbage.code == ErrorCode.malformed
+        assert "bad magic" in garbage.message
+
+        empty = raw_request(raw_zenoh, key, b"")
+        assert empty.code == ErrorCode.malformed and "shorter than" in empty.message
+
+        wrong_type = raw_request(raw_zenoh, key, encode(ResetRequest(good.session_id, SPEC)))
+        assert wrong_type.code == ErrorCode.malformed
+        assert "expected StepRequest, got ResetRequest" in wrong_type.message
+
+        other = raw_request(raw_zenoh, key, encode(StepRequest("someone_else", Action(ActionName.MoveAhead))))
+        assert other.code == ErrorCode.invalid_field and "'someone_else'" in other.message
+
+        bad_op = raw_request(raw_zenoh, f"tidee/sim/{sid}/session/{good.session_id}/teleport", b"x")
+        assert bad_op.code == ErrorCode.malformed and "unknown op 'teleport'" in bad_op.message
+
+        bad_id = raw_request(raw_zenoh, f"tidee/sim/{sid}/session/no.dots/step", b"x")
+        assert bad_id.code == ErrorCode.malformed and "session must be" in bad_id.message
+
+        big = raw_request(raw_zenoh, key, b"TIDE" + b"\0" * (server.config.max_request_bytes + 1))
+        assert big.code == ErrorCode.oversized
+
+        # None of that disturbed the session it was aimed at.
+        assert good.step(Action(ActionName.MoveAhead)).step == 1
+        assert good.state()["steps"] == 1
+
+
+def test_unknown_session(server: SimServer) -> None:
+    with client(server) as c:
+        with pytest.raises(RemoteError) as info:
+            c.step(Action(ActionName.MoveAhead))
+        assert info.value.code == ErrorCode.unknown_session and "send reset first" in info.value.message
+        with pytest.raises(RemoteError, match="unknown_session"):
+            c.state()
+
+
+def test_session_limit(server: SimServer) -> None:
+    clients = [client(server) for _ in range(3)]
+    for c in clients:
+        c.reset(SPEC)
+    extra = client(server)
+    with pytest.raises(RemoteError) as info:
+        extra.reset(SPEC)
+    assert info.value.code == ErrorCode.server_busy and "max_sessions" in info.value.message
+    clients.pop().close()
+    assert extra.reset(SPEC).step == 0
+    for c in [*clients, extra]:
+        c.close()
+
+
+def test_episode_exception_becomes_internal_error_and_session_survives() -> None:
+    srv = start_server(lambda: FakeEpisode(fail_on="LookUp"))
+    try:
+        with client(srv) as c:
+            c.reset(SPEC)
+            with pytest.raises(RemoteError) as info:
+                c.step(Action(ActionName.LookUp))
+            assert info.value.code == ErrorCode.internal and "fake failure on LookUp" in info.value.message
+            assert c.step(Action(ActionName.MoveAhead)).step == 1
+    finally:
+        srv.stop()
+
+
+def test_session_of_a_vanished_client_is_freed(server: SimServer) -> None:
+    z = zenoh.open(make_config(False, server.config.endpoint))
+    c = client(server, zsession=z)
+    c.reset(SPEC)
+    survivor = client(server)
+    survivor.reset(SPEC)
+    assert set(server.sessions) == {c.session_id, survivor.session_id}
+    z.close()  # no close request: the liveliness token just disappears
+    assert wait_until(lambda: server.sessions == (survivor.session_id,), timeout=5.0), server.sessions
+    assert survivor.step(Action(ActionName.MoveAhead)).step == 1
+    survivor.close()
+
+
+def test_no_server_is_a_timeout() -> None:
+    start = time.monotonic()
+    with pytest.raises(TimeoutError, match="no tidee server 'nobody'"):
+        SimClient(endpoint=free_endpoint(), server_id="nobody", connect_timeout=0.3)
+    assert time.monotonic() - start < 5
+
+
+def test_serve_shuts_down_cleanly_on_sigterm() -> None:
+    endpoint, sid = free_endpoint(), f"t{uuid.uuid4().hex[:8]}"
+    code = ("from tidee.server.service import ServerConfig, serve; from tests.fakes import FakeEpisode; "
+            f"serve(ServerConfig(endpoint={endpoint!r}, server_id={sid!r}), FakeEpisode)")
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env)
+    try:
+        with SimClient(endpoint=endpoint, server_id=sid, timeout=10.0, connect_timeout=30.0) as c:
+            c.reset(SPEC)
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(timeout=15) == 0
+            with pytest.raises(TimeoutError):
+                c.step(Action(ActionName.MoveAhead))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_real_episode_over_zenoh() -> None:
+    """The real simulator behind the server (a small room, the tiny renderer)."""
+    pytest.importorskip("pybullet")
+    srv = start_server(factory=None, renderer="tiny")  # None: the real Episode
+    try:
+        with client(srv) as c:
+            obs = c.reset(EpisodeSpec(room_type="Kitchen", seed=3, resolution=64), ground_truth=True)
+            assert obs.rgb.shape == (64, 64, 3) and obs.depth.max() > 0
+            assert obs.ground_truth is not None and len(obs.ground_truth.objects) > 0
+            obs = c.step(Action(ActionName.RotateLeft))
+            assert obs.success and obs.agent_pose[2] == pytest.approx(90.0, abs=1.0)
+            assert "objects" in c.state()
+    finally:
+        srv.stop()
