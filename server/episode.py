@@ -244,14 +244,22 @@ class Episode:
         oid, link, point, _ = self.world.ray(eye, eye + 20.0 * d)
         return oid, link, point, float(np.linalg.norm(point - eye))
 
-    def _pickup(self, u: float, v: float) -> tuple[bool, ActionError | None, str]:
-        if self.body.held is not None:
-            return False, ActionError.hands_full, f"already holding {self.body.held}"
-        oid, _, _, dist = self._pixel_ray(u, v)
+    def _target(self, u: float, v: float) -> tuple[str, np.ndarray] | tuple[bool, ActionError, str]:
+        """The object at a pixel within reach: (id, hit point), or a failure triple."""
+        oid, _, point, dist = self._pixel_ray(u, v)
         if oid is None:
             return False, ActionError.nothing_there, "nothing at that pixel"
         if dist > INTERACT_M:
             return False, ActionError.too_far, f"{oid} is {dist:.2f} m away (limit {INTERACT_M} m)"
+        return oid, point
+
+    def _pickup(self, u: float, v: float) -> tuple[bool, ActionError | None, str]:
+        if self.body.held is not None:
+            return False, ActionError.hands_full, f"already holding {self.body.held}"
+        hit = self._target(u, v)
+        if len(hit) == 3:
+            return hit  # type: ignore[return-value]
+        oid = hit[0]
         obj = self.world.bodies[oid].obj
         if not obj.pickupable:
             return False, ActionError.not_pickupable, f"{obj.type} cannot be picked up"
@@ -265,11 +273,10 @@ class Episode:
         held = self.body.held
         if held is None:
             return False, ActionError.hands_empty, "not holding anything"
-        oid, link, point, dist = self._pixel_ray(u, v)
-        if oid is None:
-            return False, ActionError.nothing_there, "nothing at that pixel"
-        if dist > INTERACT_M:
-            return False, ActionError.too_far, f"{oid} is {dist:.2f} m away (limit {INTERACT_M} m)"
+        hit = self._target(u, v)
+        if len(hit) == 3:
+            return hit  # type: ignore[return-value]
+        oid, point = hit  # type: ignore[misc]
         target = self.world.bodies[oid].obj
         if target.pickupable and not target.receptacle and target.parent not in (None, "agent"):
             target = self.world.bodies[target.parent].obj   # aiming at a thing on a table: the table
@@ -283,11 +290,10 @@ class Episode:
         return False, ActionError.no_free_space, f"no stable free spot for {held} on {target.id} there"
 
     def _open_close(self, u: float, v: float, open_: bool) -> tuple[bool, ActionError | None, str]:
-        oid, _, _, dist = self._pixel_ray(u, v)
-        if oid is None:
-            return False, ActionError.nothing_there, "nothing at that pixel"
-        if dist > INTERACT_M:
-            return False, ActionError.too_far, f"{oid} is {dist:.2f} m away (limit {INTERACT_M} m)"
+        hit = self._target(u, v)
+        if len(hit) == 3:
+            return hit  # type: ignore[return-value]
+        oid = hit[0]
         obj = self.world.bodies[oid].obj
         parent = self.world.bodies.get(obj.parent or "")
         if not obj.openable and obj.pickupable and parent is not None and parent.obj.openable:
