@@ -7,6 +7,10 @@ and listens on an ephemeral loopback port, and gossip scouting (over those links
 multicast) lets agents and viewers connect to each other directly. Multicast scouting is
 off, so nothing is announced beyond the configured endpoints.
 
+``zenoh.open`` returns at once (``scouting/delay`` 0: Zenoh's default makes a peer's
+open wait up to 500 ms for gossip): wait for what you need before the first request,
+as ``SimClient`` waits for the server's liveliness token.
+
 With a router endpoint (``TIDEE_ZENOH_ROUTER`` or ``router=``, e.g. ``tcp/zenohd:7447``
 in compose), every process runs in client mode connected to that router instead.
 """
@@ -50,6 +54,7 @@ def make_config(listen: bool, endpoint: str | None = None, router: str | None = 
     rendezvous = resolve_endpoint(endpoint)
     _set(conf, "mode", "peer")
     _set(conf, "scouting/gossip/enabled", True)
+    _set(conf, "scouting/delay", 0)
     if listen:
         _set(conf, "listen/endpoints", [rendezvous])
         _set(conf, "connect/endpoints", [])

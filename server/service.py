@@ -1,11 +1,14 @@
 """The Zenoh simulation server: one process, many concurrent episodes, one per session id.
 
-Threads: Zenoh callbacks only put a job on a queue (no decoding, no simulation, no Zenoh
-calls); worker threads drain the queues and do everything else. A session is pinned to
-one worker (by a hash of its id), so its requests run in order and its episode (and its
-renderer's GL context) is only ever touched by one thread. One worker is the default:
-PyBullet holds the GIL, so more workers only make a slow reset of one session delay the
-others less.
+Threads: the queryable and the client-liveliness subscriber deliver into Zenoh FIFO
+channels; one dispatcher thread per channel only turns each item into a job on a worker
+queue (no decoding, no simulation, no Zenoh calls); worker threads do everything else. No
+Python callback runs on Zenoh's threads, and a process that forgets ``stop()`` still exits
+(Zenoh's Python callbacks run on non-daemon threads that would keep it alive). A session
+is pinned to one worker (by a hash of its id), so its requests run in order and its
+episode (and its renderer's GL context) is only ever touched by one thread. One worker is
+the default: PyBullet holds the GIL, so more workers only make a slow reset of one
+session delay the others less.
 
 Robustness: every request is decoded strictly; a bad one gets an ``ErrorReply`` saying
 what was wrong; an exception inside an episode becomes ``ErrorReply(internal)`` and the
@@ -21,13 +24,13 @@ with a ``RingChannel`` (latest wins).
 
 from __future__ import annotations
 
-import atexit
 import dataclasses
 import logging
 import queue
 import signal
 import threading
 import zlib
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -45,6 +48,8 @@ log = logging.getLogger("tidee.server")
 REQUEST_TYPES: dict[str, type] = {"reset": ResetRequest, "step": StepRequest, "state": StateRequest,
                                   "close": CloseRequest}
 RENDERERS = ("auto", "egl", "tiny")
+INBOX_CAPACITY = 1024                  # queries or liveliness events waiting for a dispatcher
+DEPARTED_MEMORY = 4096                 # how many vanished clients' session ids are remembered
 
 
 @dataclass
@@ -91,13 +96,17 @@ class SimServer:
         self.config = config
         self._factory = episode_factory or self._default_factory()
         self._sessions: dict[str, _Session] = {}
-        self._lock = threading.Lock()              # guards _sessions (admission across workers)
+        self._lock = threading.Lock()              # guards _sessions and _departed
+        # Sessions whose client's token went away: a request the client sent just before it
+        # vanished must not create a session nobody will ever free.
+        self._departed: OrderedDict[str, None] = OrderedDict()
         self._queues: list[queue.SimpleQueue[_Job | None]] = [
             queue.SimpleQueue() for _ in range(config.workers)]
         self._workers = [threading.Thread(target=self._work, args=(i,), name=f"tidee-sim-worker-{i}",
                                           daemon=True) for i in range(config.workers)]
         self._z: zenoh.Session | None = None
         self._inbound: list[Any] = []              # queryable + liveliness subscriber
+        self._dispatchers: list[threading.Thread] = []
         self._server_token: Any = None
         self._handlers: dict[str, Callable[[Any], Any]] = {
             "reset": self._reset, "step": self._step, "state": self._state, "close": self._close}
@@ -108,15 +117,21 @@ class SimServer:
         self._z = zenoh.open(make_config(listen=True, endpoint=cfg.endpoint, router=cfg.router))
         for worker in self._workers:
             worker.start()
-        self._inbound = [
-            self._z.declare_queryable(keys.sim_op_wildcard(cfg.server_id), self._on_query),
-            self._z.liveliness().declare_subscriber(keys.alive_clients_wildcard(cfg.server_id),
-                                                    self._on_client_liveliness, history=True),
-        ]
+        queries = self._z.declare_queryable(keys.sim_op_wildcard(cfg.server_id),
+                                            zenoh.handlers.FifoChannel(INBOX_CAPACITY))
+        clients = self._z.liveliness().declare_subscriber(keys.alive_clients_wildcard(cfg.server_id),
+                                                          zenoh.handlers.FifoChannel(INBOX_CAPACITY),
+                                                          history=True)
+        self._inbound = [queries, clients]
+        self._dispatchers = [
+            threading.Thread(target=self._dispatch, args=(queries, self._on_query), daemon=True,
+                             name="tidee-sim-queries"),
+            threading.Thread(target=self._dispatch, args=(clients, self._on_client_liveliness), daemon=True,
+                             name="tidee-sim-clients")]
+        for dispatcher in self._dispatchers:
+            dispatcher.start()
         # Declared last: a client that sees this token can already reach the queryable.
         self._server_token = self._z.liveliness().declare_token(keys.alive_server(cfg.server_id))
-        # A process that exits with Python callbacks still declared hangs in Zenoh's teardown.
-        atexit.register(self.stop)
         log.info("tidee server %r ready: max %d sessions, %d worker(s)", cfg.server_id, cfg.max_sessions,
                  cfg.workers)
         return self
@@ -125,10 +140,11 @@ class SimServer:
         """Stop taking requests, finish queued ones, free every session, leave Zenoh."""
         if self._z is None:
             return
-        atexit.unregister(self.stop)
         for decl in self._inbound:
-            decl.undeclare()
-        self._inbound = []
+            decl.undeclare()  # closes its channel: the dispatcher's loop ends
+        for dispatcher in self._dispatchers:
+            dispatcher.join()
+        self._inbound, self._dispatchers = [], []
         for q in self._queues:
             q.put(None)
         for worker in self._workers:
@@ -150,7 +166,15 @@ class SimServer:
         with self._lock:
             return tuple(self._sessions)
 
-    # --- Zenoh callbacks: enqueue only ---------------------------------------------------
+    # --- dispatchers: enqueue only --------------------------------------------------------
+    @staticmethod
+    def _dispatch(channel: Any, handle: Callable[[Any], None]) -> None:
+        for item in channel:  # until the queryable or subscriber is undeclared
+            try:
+                handle(item)
+            except Exception:  # keep dispatching whatever one item did
+                log.exception("dropped an inbound item")
+
     def _on_query(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
         payload = query.payload.to_bytes() if query.payload is not None else b""
@@ -162,13 +186,21 @@ class SimServer:
         self._route(session).put(_Job(session, op, query, payload))
 
     def _on_client_liveliness(self, sample: zenoh.Sample) -> None:
-        if sample.kind != zenoh.SampleKind.DELETE:
-            return
         try:
             _, _, session = keys.parse_alive(str(sample.key_expr))
         except ValueError:
             return
-        if session is not None:
+        if session is None:
+            return
+        gone = sample.kind == zenoh.SampleKind.DELETE
+        with self._lock:
+            if gone:
+                self._departed[session] = None
+                while len(self._departed) > DEPARTED_MEMORY:
+                    self._departed.popitem(last=False)
+            else:  # a (new) client declared this session id
+                self._departed.pop(session, None)
+        if gone:
             self._route(session).put(_Job(session, "gone"))
 
     def _route(self, session: str) -> queue.SimpleQueue[_Job | None]:
@@ -215,30 +247,30 @@ class SimServer:
         assert query is not None
         try:
             try:
-                frame = encode(reply, encoding)
+                payload = zenoh.ZBytes(encode(reply, encoding))  # converted once: reply and feed share it
             except Exception as e:  # e.g. an episode returned a depth map of the wrong dtype
                 log.exception("session %s: cannot encode the %s reply", job.session, job.op)
                 reply = ErrorReply(ErrorCode.internal, f"cannot encode the reply: {e}", job.session)
-                frame = encode(reply)
+                payload = zenoh.ZBytes(encode(reply))
             if isinstance(reply, ErrorReply):
-                query.reply_err(frame)
+                query.reply_err(payload)
             else:
-                query.reply(query.key_expr, frame)  # congestion control: the query's (BLOCK)
+                query.reply(query.key_expr, payload)  # congestion control: the query's (BLOCK)
             if isinstance(reply, Observation):
-                self._publish(job.session, reply, frame, encoding)  # type: ignore[arg-type]
+                self._publish(job.session, reply, payload, encoding)  # type: ignore[arg-type]
         except Exception:
             log.exception("session %s: could not reply to %s", job.session, job.op)
         finally:
             query.drop()  # sends the final answer now rather than when Python collects the query
 
-    def _publish(self, session: str, obs: Observation, frame: bytes, encoding: str) -> None:
+    def _publish(self, session: str, obs: Observation, frame: zenoh.ZBytes, encoding: str) -> None:
         """The viewer feed: the same frame, minus any privileged ground truth."""
         with self._lock:
             entry = self._sessions.get(session)
         if entry is None or entry.publisher is None:
             return
         if obs.ground_truth is not None:
-            frame = encode(dataclasses.replace(obs, ground_truth=None), encoding)
+            frame = zenoh.ZBytes(encode(dataclasses.replace(obs, ground_truth=None), encoding))
         entry.publisher.put(frame)
 
     # --- requests (on the session's worker) ----------------------------------------------
@@ -263,6 +295,9 @@ class SimServer:
         with self._lock:
             entry = self._sessions.get(session)
             if entry is None and create:
+                if session in self._departed:
+                    raise ProtocolError(ErrorCode.unknown_session,
+                                        f"the client of session {session!r} has disconnected")
                 if len(self._sessions) >= self.config.max_sessions:
                     raise ProtocolError(
                         ErrorCode.server_busy,

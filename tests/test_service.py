@@ -61,6 +61,8 @@ def server() -> Iterator[SimServer]:
 def raw_zenoh(server: SimServer) -> Iterator[zenoh.Session]:
     """A bare Zenoh session on the server's network, for hand-made requests and viewers."""
     z = zenoh.open(make_config(False, server.config.endpoint))
+    server_token = keys.alive_server(server.config.server_id)
+    assert wait_until(lambda: any(r.ok is not None for r in z.liveliness().get(server_token, timeout=1.0)))
     yield z
     z.close()
 
@@ -79,7 +81,9 @@ def raw_request(z: zenoh.Session, key: str, payload: bytes) -> Any:
 
 def test_episode_end_to_end(server: SimServer, raw_zenoh: zenoh.Session) -> None:
     frames: list[bytes] = []
-    with client(server) as c:
+    # The client shares the viewer's Zenoh session, so the server learns of the feed's
+    # subscriber (same link, in order) before the first reset arrives.
+    with client(server, zsession=raw_zenoh) as c:
         feed = raw_zenoh.declare_subscriber(keys.observations(server.config.server_id, c.session_id),
                                             lambda sample: frames.append(sample.payload.to_bytes()))
         obs = c.reset(SPEC)
@@ -231,6 +235,18 @@ def test_session_of_a_vanished_client_is_freed(server: SimServer) -> None:
     assert wait_until(lambda: server.sessions == (survivor.session_id,), timeout=5.0), server.sessions
     assert survivor.step(Action(ActionName.MoveAhead)).step == 1
     survivor.close()
+
+
+def test_request_sent_by_a_client_that_then_vanished_opens_no_session(server: SimServer,
+                                                                     raw_zenoh: zenoh.Session) -> None:
+    sid = server.config.server_id
+    raw_zenoh.liveliness().declare_token(keys.alive_client(sid, "ghost")).undeclare()
+    assert wait_until(lambda: "ghost" in server._departed)  # the server saw the client leave
+    late = raw_request(raw_zenoh, keys.sim_op(sid, "ghost", "reset"), encode(ResetRequest("ghost", SPEC)))
+    assert late.code == ErrorCode.unknown_session and "disconnected" in late.message
+    assert server.sessions == ()
+    with client(server, session="ghost") as c:  # a new client may take the id again
+        assert c.reset(SPEC).step == 0
 
 
 def test_no_server_is_a_timeout() -> None:
