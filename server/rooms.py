@@ -21,7 +21,7 @@ from scipy import ndimage
 
 from tidee.server.catalog import CATEGORIES, ROOM_TEMPLATES, receptacle_weights, sample_size
 from tidee.server.catalog.schema import Category
-from tidee.server.scene import FLOOR_ID, Scene, SceneObject
+from tidee.server.scene import FLOOR_ID, Scene, SceneObject, quat_yaw
 from tidee.server.world import World, resolve_category
 
 WALL_HEIGHT = 2.6
@@ -304,8 +304,7 @@ def _wall_of(obj: SceneObject, width: float, depth: float) -> tuple[int, float]:
 
 
 def _yaw(obj: SceneObject) -> float:
-    q = obj.orientation
-    return math.atan2(2 * (q[3] * q[2] + q[0] * q[1]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
+    return quat_yaw(obj.orientation)
 
 
 def _center_xy(obj: SceneObject) -> tuple[float, float]:

@@ -8,11 +8,17 @@ z = 0, room spanning [0, width] x [0, depth]); orientations are quaternions (x, 
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 SCENE_FORMAT_VERSION = 1
+
+
+def quat_yaw(q: list[float] | tuple[float, ...]) -> float:
+    """Yaw (rotation about z, radians) of a quaternion (x, y, z, w)."""
+    return math.atan2(2 * (q[3] * q[2] + q[0] * q[1]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
 FLOOR_ID = "Floor"
 
 

@@ -19,7 +19,7 @@ import pybullet as pb
 from tidee.server.catalog import CATEGORIES
 from tidee.server.catalog.schema import Category, Part, Surface
 from tidee.server.meshes import Mesh, add_part, atlas_path, hex_to_rgb, part_geometry
-from tidee.server.scene import FLOOR_ID, Scene, SceneObject
+from tidee.server.scene import FLOOR_ID, Scene, SceneObject, quat_yaw
 
 log = logging.getLogger(__name__)
 
@@ -63,10 +63,6 @@ class BodyInfo:
     surfaces: tuple[Surface, ...]
     doors: list[Door]
     mass: float
-
-
-def _quat_yaw(q: list[float] | tuple[float, ...]) -> float:
-    return pb.getEulerFromQuaternion(q)[2]
 
 
 class RendererUnavailable(RuntimeError):
@@ -311,7 +307,7 @@ class World:
         """Each surface as (centre xy, half extents, height z, yaw, inside) in world terms."""
         info = self.bodies[obj_id]
         pos, orn = self.pose(obj_id)
-        yaw = _quat_yaw(orn)
+        yaw = quat_yaw(orn)
         cy, sy = math.cos(yaw), math.sin(yaw)
         size = np.array(info.obj.size)
         out = []
@@ -437,25 +433,6 @@ class World:
             if pb.getClosestPoints(info.uid, uid, margin, physicsClientId=self.client):
                 hits.append(oid)
         return hits
-
-    def shape_collides(self, shape: int, position: list[float], ignore_types: set[str]) -> str | None:
-        """The first static body a collision shape at ``position`` would touch, if any."""
-        r = 1.2
-        near = pb.getOverlappingObjects([position[0] - r, position[1] - r, 0.02],
-                                        [position[0] + r, position[1] + r, position[2] + 2.0],
-                                        physicsClientId=self.client) or []
-        seen: set[int] = set()
-        for uid, _ in near:
-            if uid in seen:
-                continue
-            seen.add(uid)
-            oid = self.uid_to_id.get(uid)
-            if oid is None or self.bodies[oid].obj.type in ignore_types:
-                continue
-            if pb.getClosestPoints(bodyA=-1, bodyB=uid, distance=0.0, collisionShapeA=shape,
-                                   collisionShapePositionA=position, physicsClientId=self.client):
-                return oid
-        return None
 
     # ------------------------------------------------------------------ placing
     def place(self, obj_id: str, receptacle_id: str, near: np.ndarray, yaw: float, max_settles: int = 3) -> bool:
