@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml scripts/setup.sh
 	touch $(STAMP)
 
 demo: setup
-	$(PY) -m tidee.cli demo --out demo_out
+	$(PY) -m tidee.cli run --room-type LivingRoom --seed 200 --mess-index 0
 
 test: setup
 	$(PY) -m pytest -q
@@ -21,4 +21,4 @@ test-all: setup
 	$(PY) -m pytest -q -m ""
 
 clean:
-	rm -rf demo_out bench/*.tmp
+	rm -rf demo_out runs bench/*.tmp

@@ -91,6 +91,18 @@ ARRAY_FIELDS: dict[tuple[type, str], ArraySpec] = {
     (messages.Observation, "camera_pose"): ArraySpec("<f8", (4, 4)),
     (messages.Observation, "intrinsics"): ArraySpec("<f8", (3, 3)),
     (messages.GroundTruth, "instance_seg"): ArraySpec("<i4", (None, None)),
+    (messages.AgentStatus, "trajectory"): ArraySpec("<f4", (None, 2)),
+    (messages.AgentStatus, "path"): ArraySpec("<f4", (None, 2)),
+    (messages.AgentFrame, "rgb"): ArraySpec("|u1", (None, None, 3), image="color"),
+    (messages.AgentFrame, "depth"): ArraySpec("<f4", (None, None), image="depth"),
+    (messages.AgentFrame, "camera_pose"): ArraySpec("<f8", (4, 4)),
+    (messages.AgentFrame, "intrinsics"): ArraySpec("<f8", (3, 3)),
+    (messages.MapSnapshot, "occupancy"): ArraySpec("|u1", (None, None)),
+    (messages.MapSnapshot, "explored"): ArraySpec("|b1", (None, None)),
+    (messages.MapSnapshot, "points"): ArraySpec("<f4", (None, 3)),
+    (messages.MapSnapshot, "point_labels"): ArraySpec("<i2", (None,)),
+    (messages.SearchHeatmap, "heatmap"): ArraySpec("<f4", (None, None)),
+    (messages.SearchHeatmap, "points"): ArraySpec("<f4", (None, 2)),
 }
 
 

@@ -216,3 +216,157 @@ class ErrorReply:
     code: ErrorCode
     message: str
     session: str | None = None
+
+
+# --- agent -> viewer telemetry (key: tidee/agent/{session}/telemetry/{kind}) -----------
+#
+# All positions are in the episode's start frame (x forward, y left, z up, metres).
+# A top-down grid ``g`` with ``origin`` (x0, y0) and ``cell`` c covers cell (i, j) =
+# [x0 + i c, x0 + (i+1) c) x [y0 + j c, y0 + (j+1) c): axis 0 runs along +x, axis 1
+# along +y. Every message carries the agent ``step`` it describes; viewers keep the
+# latest of each kind (a ring buffer of one), so a slow viewer drops frames, never lags.
+
+TELEMETRY_KINDS = ("status", "frame", "maps", "memory", "search", "ack")
+PHASES = ("idle", "mapping", "searching", "approaching", "picking", "inferring",
+          "placing", "searching_receptacle", "dropping", "done")
+COMMAND_KINDS = ("pause", "resume", "step", "new_episode", "preference")
+
+
+@dataclass
+class ReceptaclePrediction:
+    label: str
+    prob: float
+
+
+@dataclass
+class AgentStatus:
+    """Kind ``status``: what the agent is doing (a few hundred bytes; every step)."""
+
+    session: str
+    step: int
+    phase: str                               # one of PHASES
+    episode: dict[str, Any]                  # room_type, seed, mess_index, variant, perception, ...
+    pose: tuple[float, float, float, float]  # x, y, yaw_deg, pitch_deg (believed)
+    paused: bool = False
+    target_object: str | None = None         # the OOP object being handled (label)
+    target_id: int | None = None             # its object-memory id
+    target_receptacle: str | None = None
+    predictions: list[ReceptaclePrediction] = field(default_factory=list)  # top-5 receptacles
+    held: str | None = None
+    objects_fixed: int = 0                   # puts of OOP objects that succeeded
+    oop_found: int = 0
+    done: bool = False
+    message: str = ""                        # the last event, for people
+    trajectory: np.ndarray | None = None     # float32 Nx2: believed positions so far (subsampled)
+    path: np.ndarray | None = None           # float32 Mx2: planned path to the current goal
+    goal: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.phase not in PHASES:
+            raise ValueError(f"phase must be one of {PHASES}, got {self.phase!r}")
+
+
+@dataclass
+class Detection2D:
+    label: str
+    score: float
+    box: tuple[float, float, float, float]   # x0, y0, x1, y1 in pixels
+    oop_prob: float | None = None
+    track_id: int | None = None              # object-memory id it merged into
+
+
+@dataclass
+class AgentFrame:
+    """Kind ``frame``: the current RGB-D frame and the detections in it."""
+
+    session: str
+    step: int
+    rgb: np.ndarray                          # uint8 HxWx3
+    depth: np.ndarray                        # float32 HxW, metres
+    camera_pose: np.ndarray                  # float64 4x4, optical -> start frame
+    intrinsics: np.ndarray                   # float64 3x3
+    detections: list[Detection2D] = field(default_factory=list)
+    perception: str = "oracle"               # which perception produced the detections
+
+
+@dataclass
+class MapSnapshot:
+    """Kind ``maps``: the 2D occupancy map and the semantic voxel map as points."""
+
+    session: str
+    step: int
+    origin: tuple[float, float]              # start-frame (x, y) of grid cell (0, 0)'s corner
+    cell: float                              # metres per 2D cell
+    occupancy: np.ndarray                    # uint8 XxY: 0 unknown, 1 free, 2 obstacle
+    explored: np.ndarray                     # bool XxY
+    voxel_size: float                        # metres per voxel edge (x, y); points are centres
+    points: np.ndarray                       # float32 Nx3: occupied voxel centres
+    point_labels: np.ndarray                 # int16 N: index into ``classes``, -1 unlabelled
+    classes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class TrackedObjectMsg:
+    id: int
+    label: str
+    score: float
+    centroid: tuple[float, float, float]
+    box_min: tuple[float, float, float]
+    box_max: tuple[float, float, float]
+    oop_prob: float | None = None
+    out_of_place: bool = False
+    held: bool = False
+
+
+@dataclass
+class ObjectMemoryMsg:
+    """Kind ``memory``: every object the agent tracks."""
+
+    session: str
+    step: int
+    objects: list[TrackedObjectMsg] = field(default_factory=list)
+
+
+@dataclass
+class SearchHeatmap:
+    """Kind ``search``: where the agent looks for ``target`` (a top-down grid)."""
+
+    session: str
+    step: int
+    target: str
+    origin: tuple[float, float]
+    cell: float
+    heatmap: np.ndarray                      # float32 XxY in [0, 1]
+    points: np.ndarray                       # float32 Kx2: ranked search points (x, y)
+    source: str = "search_network"
+
+
+@dataclass
+class AgentCommand:
+    """A viewer -> agent command (key ``tidee/agent/{session}/cmd``)."""
+
+    kind: str                                # one of COMMAND_KINDS
+    command_id: str = ""
+    room_type: str | None = None             # new_episode
+    seed: int | None = None
+    mess_index: int | None = None
+    text: str | None = None                  # preference: "I want my alarm clock on the desk"
+
+    def __post_init__(self) -> None:
+        if self.kind not in COMMAND_KINDS:
+            raise ValueError(f"kind must be one of {COMMAND_KINDS}, got {self.kind!r}")
+        if self.kind == "preference" and not (self.text and self.text.strip()):
+            raise ValueError("a preference command needs non-empty text")
+        if self.room_type is not None and self.room_type not in ROOM_TYPES:
+            raise ValueError(f"room_type must be one of {ROOM_TYPES}, got {self.room_type!r}")
+
+
+@dataclass
+class CommandAck:
+    """Kind ``ack``: the agent's answer to an AgentCommand."""
+
+    session: str
+    command_id: str
+    kind: str
+    ok: bool
+    message: str = ""

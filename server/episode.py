@@ -390,5 +390,7 @@ class Episode:
         scene["agent"] = {"x": self.body.x, "y": self.body.y, "yaw_deg": math.degrees(self.body.yaw),
                           "pitch_deg": self.body.pitch, "held": self.body.held, "steps": self.steps,
                           "done": self.done}
+        x0, y0, yaw0 = self.start
+        scene["start"] = {"x": x0, "y": y0, "yaw_deg": math.degrees(yaw0)}  # the start frame in the world
         return scene
 

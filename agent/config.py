@@ -1,0 +1,87 @@
+"""Typed configuration of the agent; every module choice is a name (ablations are flags).
+
+``AgentConfig.variant`` picks one of the paper's tidying agents (Table 1):
+
+=================  =====================================================  ==========
+variant            placement (where does it belong?) and receptacle search  built
+=================  =====================================================  ==========
+TIDEE              Memex + rGCN, visual search network                     issue 6
+WithoutMemex       rGCN on the scene graph only, visual search network     issue 6
+3DSmntMap2Place    search network conditioned on the object's own class    issue 6
+CommonMemory       most common receptacle for the category (training)      yes
+RandomReceptacle   first receptacle found by random exploration            yes
+=================  =====================================================  ==========
+
+AI2THORPlacement and MessyPlacement are reference rows built from the episode record
+(``tidee.agent.evaluation``), not agents.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+from tidee.agent.mapping.maps import MapConfig
+from tidee.agent.perception import PERCEPTIONS
+
+AGENT_VARIANTS = ("TIDEE", "WithoutMemex", "3DSmntMap2Place", "CommonMemory", "RandomReceptacle")
+REFERENCE_VARIANTS = ("AI2THORPlacement", "MessyPlacement")
+BUILT_VARIANTS = ("CommonMemory", "RandomReceptacle")
+EXPLORERS = ("random", "frontier")
+
+
+def check_variant_built(variant: str) -> None:
+    if variant not in AGENT_VARIANTS:
+        raise ValueError(f"unknown variant {variant!r}; agents: {AGENT_VARIANTS}, "
+                         f"reference rows (evaluation only): {REFERENCE_VARIANTS}")
+    if variant not in BUILT_VARIANTS:
+        raise NotImplementedError(f"variant {variant} needs the Memex + rGCN and the visual search network, "
+                                  f"which are not built yet (issue 6); built variants: {BUILT_VARIANTS}")
+
+
+@dataclass
+class PolicyConfig:
+    """Thresholds of Algorithm 1 (paper supplement 'Pseudo code')."""
+
+    explore_unexplored_stop: float = 0.12   # A: stop mapping when this fraction of reachable map is unexplored
+    mapping_step_budget: int = 320          # mapping never takes more than this many steps
+    goal_step_budget: int = 60              # steps to reach one navigation goal before giving up
+    oop_threshold: float = 0.5              # P(OOP) at or above which an object is picked
+    k_empty_goals: int = 3                  # k: stop after this many search goals without a new OOP object
+    m_place_tries: int = 3                  # m: placement attempts per receptacle class before moving on
+    max_receptacle_classes: int = 3         # ranked receptacle classes tried before searching / dropping
+    search_goals: int = 4                   # goals visited when searching for a receptacle not in memory
+    interact_m: float = 1.35                # aim to interact within this eye-to-target distance (server: 1.5)
+    approach_m: float = 0.9                 # navigation stop radius around an object's (x, y)
+    reserve_steps: int = 15                 # stop handling new objects when fewer steps than this remain
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.explore_unexplored_stop < 1.0:
+            raise ValueError(f"explore_unexplored_stop must be in [0, 1), got {self.explore_unexplored_stop}")
+        if not 0.0 < self.oop_threshold <= 1.0:
+            raise ValueError(f"oop_threshold must be in (0, 1], got {self.oop_threshold}")
+        for name in ("mapping_step_budget", "goal_step_budget", "k_empty_goals", "m_place_tries",
+                     "max_receptacle_classes", "search_goals"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+
+@dataclass
+class AgentConfig:
+    variant: str = "CommonMemory"
+    perception: str = "oracle"
+    oop: str = "relation_stats"
+    explorer: str = "random"                # how unexplored space is mapped: random goals | frontier
+    seed: int = 0                           # the agent's own random draws (goal sampling, RandomReceptacle)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+
+    def __post_init__(self) -> None:
+        check_variant_built(self.variant)
+        if self.perception not in PERCEPTIONS:
+            raise ValueError(f"perception must be one of {PERCEPTIONS}, got {self.perception!r}")
+        if self.explorer not in EXPLORERS:
+            raise ValueError(f"explorer must be one of {EXPLORERS}, got {self.explorer!r}")
+
+    def describe(self) -> dict:
+        return dataclasses.asdict(self)

@@ -1,0 +1,114 @@
+"""``tidee eval tidy``: tidy episodes on held-out rooms, scored by the simulated judge.
+
+Runs each requested agent variant on the same messy configurations of a split (test by
+default: 20 rooms x 5 messes), in-process (one simulator per worker process), and writes
+``report.json``, ``report.md`` and PNG plots through ``tidee.agent.evaluation.report``.
+Ground truth is read only here, after each episode, to score it (and by the agent itself
+only when perception is "oracle", which every report names).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing as mp
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tidee.agent.config import AGENT_VARIANTS, BUILT_VARIANTS, REFERENCE_VARIANTS, AgentConfig, check_variant_built
+
+
+def select_configs(split: str, episodes: int | None) -> list[Any]:
+    """``episodes`` configurations spread evenly over the split (all of them when None)."""
+    from tidee.server.splits import mess_config, num_configs
+
+    n = num_configs(split)
+    if episodes is None or episodes >= n:
+        idx = list(range(n))
+    else:
+        if episodes < 1:
+            raise ValueError(f"--episodes must be >= 1, got {episodes}")
+        idx = sorted({int(round(i)) for i in np.linspace(0, n - 1, episodes)})
+    return [mess_config(split, i) for i in idx]
+
+
+def _run_one(job: dict[str, Any]) -> dict[str, Any]:
+    """One episode in this worker's own simulator (module-level so it pickles)."""
+    from tidee.agent.runner import EpisodeRunner
+    from tidee.protocol.messages import EpisodeSpec
+    from tidee.protocol.transport import InProcessTransport
+
+    global _TRANSPORT
+    try:
+        transport = _TRANSPORT
+    except NameError:
+        transport = _TRANSPORT = InProcessTransport(renderer=job["renderer"])
+    cfg = AgentConfig(variant=job["variant"], perception=job["perception"], oop=job["oop"],
+                      explorer=job["explorer"], seed=job["agent_seed"])
+    spec = EpisodeSpec(room_type=job["room_type"], seed=job["seed"], mess_index=job["mess_index"],
+                       resolution=job["resolution"], max_steps=job["max_steps"])
+    runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.get("log_dir"))
+    res = runner.run(spec, evaluate=True,
+                     episode_name=f"{job['variant']}_{spec.room_type}_{spec.seed}_mess{spec.mess_index}")
+    assert res.record is not None
+    record = dict(res.record, split=job["split"])
+    record["timing_ms"] = {k: float(np.median(v)) if v else None for k, v in res.timings.items()}
+    return record
+
+
+def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = None,
+                  variants: list[str] | None = None, perception: str = "oracle", oop: str = "relation_stats",
+                  explorer: str = "random", resolution: int = 256, max_steps: int = 1000, workers: int = 1,
+                  renderer: str = "auto", keep_logs: bool = False, progress: bool = True) -> dict[str, Any]:
+    from tqdm import tqdm
+
+    from tidee.agent.evaluation.report import with_references, write_report
+
+    variants = variants or list(BUILT_VARIANTS)
+    agents = [v for v in variants if v not in REFERENCE_VARIANTS]
+    for v in agents:
+        check_variant_built(v)   # a clear error for TIDEE & co. until issue 6 lands
+    unknown = [v for v in variants if v not in AGENT_VARIANTS + REFERENCE_VARIANTS]
+    if unknown:
+        raise ValueError(f"unknown variants {unknown}; choose from {AGENT_VARIANTS + REFERENCE_VARIANTS}")
+    if not agents:
+        raise ValueError("give at least one agent variant (the reference rows need an agent's episodes)")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    configs = select_configs(split, episodes)
+    jobs = [{"variant": v, "perception": perception, "oop": oop, "explorer": explorer, "agent_seed": c.index,
+             "room_type": c.room_type, "seed": c.seed, "mess_index": c.mess_index, "split": split,
+             "resolution": resolution, "max_steps": max_steps, "renderer": renderer,
+             "log_dir": str(out / "logs") if keep_logs else None}
+            for c in configs for v in agents]
+    t0 = time.time()
+    records: list[dict[str, Any]] = []
+    bar = tqdm(total=len(jobs), desc="tidy episodes", disable=not progress)
+    if workers <= 1:
+        for job in jobs:
+            records.append(_run_one(job))
+            bar.update()
+    else:
+        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+            for rec in pool.map(_run_one, jobs):
+                records.append(rec)
+                bar.update()
+    bar.close()
+    all_records = with_references(records)
+    keep = set(variants) | set(agents)
+    if not any(v in REFERENCE_VARIANTS for v in variants):
+        keep |= set(REFERENCE_VARIANTS)   # the reference rows are always part of Table 1
+    all_records = [r for r in all_records if r["variant"] in keep]
+    timing = {k: float(np.median([r["timing_ms"][k] for r in records if r.get("timing_ms", {}).get(k) is not None]))
+              for k in ("perception_ms", "mapping_ms", "planning_ms", "step_ms", "sim_ms")}
+    notes = [f"split={split}, {len(configs)} messy configurations x {len(agents)} agents, "
+             f"resolution {resolution}, max {max_steps} steps, OOP detector '{oop}', explorer '{explorer}'",
+             f"perception: {perception}" + (" (ORACLE: detections from the simulator's segmentation)"
+                                           if perception == "oracle" else ""),
+             f"median per-step agent time (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in timing.items()),
+             f"command: tidee eval tidy --split {split} --episodes {len(configs)} --variants {','.join(variants)} "
+             f"--perception {perception} --out {out}",
+             f"total wall time {time.time() - t0:.0f} s with {workers} worker(s)"]
+    return write_report(all_records, out, title=f"Tidy evaluation ({split} rooms)", notes=notes)

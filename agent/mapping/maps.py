@@ -1,0 +1,457 @@
+"""Semantic mapping: a 2D navigation map, a labelled voxel map and the object memory.
+
+Everything lives in the episode's *start frame* (x forward, y left, z up, metres, the
+floor at z = 0). The maps are square, ``map_size_m`` on a side and centred on the start
+pose; 2D grids and the voxel grid's (x, y) axes follow ``MapSnapshot``'s convention
+(see ``geometry.GridSpec``): axis 0 along +x, axis 1 along +y, cell (0, 0) at the
+(-x, -y) corner. The voxel grid's axis 2 runs along +z from ``voxel_z_range[0]``.
+
+Per frame (``SemanticMapper.update``) the depth image is lifted to points (every
+``stride``-th pixel) and accumulated:
+  * voxel occupancy (any point in the voxel, ever) and a voxel label grid (the class of
+    the last detection whose pixels hit the voxel, -1 for none);
+  * 2D maps at ``nav_cell``: ``obstacle`` (a point in the ``obstacle_z`` height band),
+    ``floor_seen`` (a point below ``floor_z``), ``seen_count`` (frames that put a point
+    in the cell) and ``explored`` (``seen_count >= explored_threshold``);
+  * the cells around each believed agent position (radius ``agent_free_radius``) are
+    free: the agent stood there.
+Each detection becomes a 3D centroid (the point of the region's median-depth pixel, as
+in the paper) and box (5th-95th percentiles of the region's points) merged into the
+``ObjectMemory``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from tidee.agent.mapping.geometry import MIN_DEPTH, GridSpec, pixel_rays, valid_depth
+from tidee.agent.mapping.memory import ObjectMemory, TrackedObject
+from tidee.agent.perception.base import Detection
+from tidee.protocol.messages import MapSnapshot, Observation
+
+UNKNOWN, FREE, OBSTACLE = 0, 1, 2   # occupancy_grid values (as MapSnapshot)
+_GAUSS_TRUNCATE = 4.0               # scipy's default: kernels reach 4 sigma
+
+
+def _cells_per(length: float, cell: float, what: str) -> int:
+    n = length / cell
+    if abs(n - round(n)) > 1e-6 or round(n) < 1:
+        raise ValueError(f"{what}: {length} m is not a whole number of {cell} m cells")
+    return int(round(n))
+
+
+@dataclass
+class MapConfig:
+    """Mapping parameters (metres unless noted). Defaults give 256x256 2D maps at 5 cm and a
+    128x128x64 voxel grid (10 cm x 10 cm x 5 cm), as in the paper."""
+
+    map_size_m: float = 12.8                       # square map side, centred on the start pose
+    nav_cell: float = 0.05                         # 2D map cell edge
+    voxel_xy: float = 0.1                          # voxel edge along x and y
+    voxel_z: float = 0.05                          # voxel edge along z
+    voxel_z_range: tuple[float, float] = (-0.1, 3.1)  # heights covered by the voxel grid
+    obstacle_z: tuple[float, float] = (0.1, 1.8)   # points with z in [lo, hi) are obstacles
+    floor_z: float = 0.06                          # points with z below this are floor (free)
+    explored_threshold: int = 1                    # frames with a point before a cell is explored
+    max_depth: float = 8.0                         # farther depths are ignored
+    stride: int = 2                                # pixel subsampling for the maps (not for objects)
+    semantic_sigma_voxels: float = 1.5             # Gaussian dilation of centroids, in xy voxels
+    agent_free_radius: float = 0.15                # disc kept free around each believed position
+    merge_distance: float = 1.0                    # object memory: same label within this merges
+    box_merge: str = "union"                       # object memory: 3D boxes of merged views (mean | union)
+    min_object_points: int = 5                     # detections with fewer valid pixels are skipped
+    max_object_points: int = 4096                  # pixels used for an object's box (subsampled)
+
+    def __post_init__(self) -> None:
+        self.voxel_z_range = (float(self.voxel_z_range[0]), float(self.voxel_z_range[1]))
+        self.obstacle_z = (float(self.obstacle_z[0]), float(self.obstacle_z[1]))
+        for name in ("map_size_m", "nav_cell", "voxel_xy", "voxel_z", "merge_distance"):
+            if not float(getattr(self, name)) > 0:
+                raise ValueError(f"MapConfig.{name} must be > 0, got {getattr(self, name)}")
+        _cells_per(self.map_size_m, self.nav_cell, "MapConfig.map_size_m / nav_cell")
+        _cells_per(self.map_size_m, self.voxel_xy, "MapConfig.map_size_m / voxel_xy")
+        lo, hi = self.voxel_z_range
+        if not lo < hi:
+            raise ValueError(f"MapConfig.voxel_z_range must be (lo, hi) with lo < hi, "
+                             f"got {self.voxel_z_range}")
+        _cells_per(hi - lo, self.voxel_z, "MapConfig.voxel_z_range / voxel_z")
+        if not self.obstacle_z[0] < self.obstacle_z[1]:
+            raise ValueError(f"MapConfig.obstacle_z must be (lo, hi) with lo < hi, got {self.obstacle_z}")
+        if not self.floor_z <= self.obstacle_z[0]:
+            raise ValueError(f"MapConfig.floor_z ({self.floor_z}) must not exceed obstacle_z[0] "
+                             f"({self.obstacle_z[0]})")
+        if int(self.explored_threshold) < 1:
+            raise ValueError(f"MapConfig.explored_threshold must be >= 1, got {self.explored_threshold}")
+        if not self.max_depth > MIN_DEPTH:
+            raise ValueError(f"MapConfig.max_depth must be > {MIN_DEPTH} m, got {self.max_depth}")
+        if int(self.stride) < 1:
+            raise ValueError(f"MapConfig.stride must be >= 1, got {self.stride}")
+        if self.semantic_sigma_voxels < 0:
+            raise ValueError(f"MapConfig.semantic_sigma_voxels must be >= 0, "
+                             f"got {self.semantic_sigma_voxels}")
+        if self.agent_free_radius < 0:
+            raise ValueError(f"MapConfig.agent_free_radius must be >= 0, got {self.agent_free_radius}")
+        if int(self.min_object_points) < 1 or int(self.max_object_points) < int(self.min_object_points):
+            raise ValueError(f"MapConfig needs 1 <= min_object_points <= max_object_points, got "
+                             f"{self.min_object_points}, {self.max_object_points}")
+
+    @property
+    def nav_shape(self) -> tuple[int, int]:
+        n = _cells_per(self.map_size_m, self.nav_cell, "nav")
+        return n, n
+
+    @property
+    def voxel_shape(self) -> tuple[int, int, int]:
+        n = _cells_per(self.map_size_m, self.voxel_xy, "voxel")
+        nz = _cells_per(self.voxel_z_range[1] - self.voxel_z_range[0], self.voxel_z, "voxel z")
+        return n, n, nz
+
+
+def _disk_kernel(radius: float, cell: float) -> np.ndarray:
+    """uint8 (2r+1)^2 kernel: cells whose centres lie within ``radius`` metres of the centre."""
+    r = int(math.floor(radius / cell + 1e-9))
+    d = np.arange(-r, r + 1)
+    return ((d[:, None] ** 2 + d[None, :] ** 2) * cell * cell <= radius * radius + 1e-12).astype(np.uint8)
+
+
+def _gauss_peak(sigma: float) -> float:
+    """The centre weight of scipy's normalised 1D Gaussian kernel (1 for sigma 0)."""
+    if sigma <= 0:
+        return 1.0
+    r = int(_GAUSS_TRUNCATE * sigma + 0.5)
+    x = np.arange(-r, r + 1)
+    return float(1.0 / np.exp(-0.5 * (x / sigma) ** 2).sum())
+
+
+@dataclass
+class _ObjectStats:
+    centroid: np.ndarray   # float64 3
+    box_min: np.ndarray
+    box_max: np.ndarray
+
+
+class SemanticMapper:
+    """Accumulates observations into 2D/3D maps and the object memory (start frame, metres).
+
+    ``classes``: the label vocabulary; a detection's voxel label and semantic channel is
+    ``classes.index(label)``. Detections with labels outside ``classes`` are still tracked
+    in the memory but label no voxels.
+
+    The array attributes (``obstacle``, ``floor_seen``, ``seen_count``, ``occupancy``,
+    ``voxel_labels``, ...) are the live maps: read them, do not write them.
+    """
+
+    def __init__(self, config: MapConfig | None = None, classes: Sequence[str] = ()) -> None:
+        self.config = config if config is not None else MapConfig()
+        self.classes = list(classes)
+        if len(set(self.classes)) != len(self.classes):
+            dup = sorted({c for c in self.classes if self.classes.count(c) > 1})
+            raise ValueError(f"classes must be unique; repeated: {dup}")
+        self._class_index = {c: i for i, c in enumerate(self.classes)}
+        if len(self.classes) > np.iinfo(np.int16).max:
+            raise ValueError(f"at most {np.iinfo(np.int16).max} classes fit the int16 label grid")
+        cfg = self.config
+        half = cfg.map_size_m / 2
+        self.grid = GridSpec((-half, -half), cfg.nav_cell, cfg.nav_shape)
+        self.voxel_grid = GridSpec((-half, -half), cfg.voxel_xy, cfg.voxel_shape[:2])
+        self.voxel_shape = cfg.voxel_shape
+        self.memory = ObjectMemory(cfg.merge_distance, cfg.box_merge)
+        self._rays: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Forget every map and the object memory (a new episode)."""
+        nx, ny = self.grid.shape
+        self.obstacle = np.zeros((nx, ny), bool)
+        self.floor_seen = np.zeros((nx, ny), bool)
+        self.seen_count = np.zeros((nx, ny), np.uint16)
+        self.visited = np.zeros((nx, ny), bool)      # discs around believed agent positions
+        self.stood = np.zeros((nx, ny), bool)        # cells the agent's centre has been in
+        self.occupancy = np.zeros(self.voxel_shape, bool)
+        self.voxel_labels = np.full(self.voxel_shape, -1, np.int16)
+        self.memory.clear()
+        self.last_track_ids: list[int | None] = []   # per detection of the last update
+        self.steps = 0
+
+    @property
+    def explored(self) -> np.ndarray:
+        """bool XxY: cells that received points in at least ``explored_threshold`` frames."""
+        return self.seen_count >= self.config.explored_threshold
+
+    # ------------------------------------------------------------------ update
+    def update(self, obs: Observation, detections: Sequence[Detection] = ()) -> list[TrackedObject]:
+        """Fold one observation and its detections into the maps and the memory.
+
+        Returns the memory entries touched this frame (each once, in detection order);
+        ``last_track_ids`` gives, per detection, the id it merged into (None if skipped).
+        """
+        cfg = self.config
+        depth = np.asarray(obs.depth)
+        if depth.ndim != 2:
+            raise ValueError(f"Observation.depth must be HxW, got shape {depth.shape}")
+        h, w = depth.shape
+        k = np.asarray(obs.intrinsics, dtype=np.float64)
+        pose = np.asarray(obs.camera_pose, dtype=np.float64)
+        if k.shape != (3, 3) or pose.shape != (4, 4):
+            raise ValueError(f"Observation needs 3x3 intrinsics and a 4x4 camera_pose, got "
+                             f"{k.shape} and {pose.shape}")
+        rot, trans = pose[:3, :3], pose[:3, 3]
+        depth_flat = depth.reshape(-1)
+
+        rays, pix = self._lattice((h, w), k, int(cfg.stride))
+        d = depth_flat[pix]
+        keep = valid_depth(d, cfg.max_depth)
+        pix = pix[keep]
+        pts = (rays[keep] * d[keep, None]) @ rot.T + trans      # float64 Nx3, start frame
+
+        vflat = self._accumulate(pts)
+        self._mark_agent(obs.agent_pose)
+
+        touched: list[TrackedObject] = []
+        self.last_track_ids = [None] * len(detections)
+        if detections:
+            valid_full = valid_depth(depth_flat, cfg.max_depth)
+            # ascending score: where detections overlap, the most confident labels the voxels last
+            order = sorted(range(len(detections)), key=lambda i: float(detections[i].score))
+            for i in order:
+                det = detections[i]
+                region = np.asarray(det.region((h, w)), dtype=bool)
+                if region.shape != (h, w):
+                    raise ValueError(f"detection {det.label!r}: region shape {region.shape} does not "
+                                     f"match the depth image {(h, w)}")
+                region_flat = region.reshape(-1)
+                stats = self._object_stats(region_flat, valid_full, depth_flat, k, rot, trans, w)
+                if stats is None:
+                    continue
+                cls = self._class_index.get(det.label)
+                if cls is not None:
+                    self._label_voxels(cls, region_flat[pix], pts, vflat, stats)
+                obj = self.memory.add_or_merge(det.label, det.score, stats.centroid, stats.box_min,
+                                               stats.box_max, step=int(obs.step), feature=det.feature,
+                                               oop_prob=det.oop_prob)
+                self.last_track_ids[i] = obj.id
+            seen: set[int] = set()
+            for tid in self.last_track_ids:
+                if tid is not None and tid not in seen:
+                    seen.add(tid)
+                    touched.append(self.memory.get(tid))  # type: ignore[arg-type]
+        self.steps += 1
+        return touched
+
+    def _lattice(self, shape: tuple[int, int], k: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray]:
+        key = (shape, stride, k.tobytes())
+        hit = self._rays.get(key)
+        if hit is None:
+            if len(self._rays) >= 4:   # a few cameras at most; never grow without bound
+                self._rays.clear()
+            hit = self._rays[key] = pixel_rays(shape, k, stride)
+        return hit
+
+    def _voxel_index(self, pts: np.ndarray) -> np.ndarray:
+        """int64 N flat voxel indices of points, -1 outside the voxel grid."""
+        cfg = self.config
+        nx, ny, nz = self.voxel_shape
+        ox, oy = self.voxel_grid.origin
+        ix = np.floor((pts[:, 0] - ox) / cfg.voxel_xy).astype(np.int64)
+        iy = np.floor((pts[:, 1] - oy) / cfg.voxel_xy).astype(np.int64)
+        iz = np.floor((pts[:, 2] - cfg.voxel_z_range[0]) / cfg.voxel_z).astype(np.int64)
+        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny) & (iz >= 0) & (iz < nz)
+        return np.where(inside, (ix * ny + iy) * nz + iz, -1)
+
+    def _accumulate(self, pts: np.ndarray) -> np.ndarray:
+        """Add start-frame points to the voxel and 2D maps; returns their flat voxel indices."""
+        cfg = self.config
+        vflat = self._voxel_index(pts)
+        self.occupancy.reshape(-1)[vflat[vflat >= 0]] = True
+
+        nx, ny = self.grid.shape
+        ij = self.grid.world_to_cell(pts[:, :2])
+        inside = self.grid.in_bounds(ij)
+        flat = ij[inside, 0] * ny + ij[inside, 1]
+        z = pts[inside, 2]
+        hit = np.zeros(nx * ny, bool)
+        hit[flat] = True
+        seen = self.seen_count.reshape(-1)
+        seen += hit & (seen < np.iinfo(np.uint16).max)
+        band = (z >= cfg.obstacle_z[0]) & (z < cfg.obstacle_z[1])
+        self.obstacle.reshape(-1)[flat[band]] = True
+        self.floor_seen.reshape(-1)[flat[z < cfg.floor_z]] = True
+        return vflat
+
+    def _mark_agent(self, agent_pose: Sequence[float]) -> None:
+        xy = np.array([float(agent_pose[0]), float(agent_pose[1])])
+        cells = self.grid.disc(xy, self.config.agent_free_radius)
+        self.visited[cells[:, 0], cells[:, 1]] = True
+        c = self.grid.world_to_cell(xy)
+        if self.grid.in_bounds(c)[0]:
+            self.stood[c[0, 0], c[0, 1]] = True
+
+    def _object_stats(self, region_flat: np.ndarray, valid_full: np.ndarray, depth_flat: np.ndarray,
+                      k: np.ndarray, rot: np.ndarray, trans: np.ndarray, width: int) -> _ObjectStats | None:
+        """Centroid (the median-depth pixel's point) and 5-95 % box of a region, or None when
+        fewer than ``min_object_points`` of its pixels have a valid depth."""
+        cfg = self.config
+        sel = np.flatnonzero(region_flat & valid_full)
+        n = sel.size
+        if n < cfg.min_object_points:
+            return None
+        ds = depth_flat[sel]
+        med = sel[np.argpartition(ds, n // 2)[n // 2]]
+        if n > cfg.max_object_points:
+            sel = sel[:: int(math.ceil(n / cfg.max_object_points))]
+        sel = np.append(sel, med)
+        u = (sel % width).astype(np.float64)
+        v = (sel // width).astype(np.float64)
+        dd = depth_flat[sel].astype(np.float64)
+        cam = np.stack([dd * (u - k[0, 2]) / k[0, 0], dd * (v - k[1, 2]) / k[1, 1], dd], axis=1)
+        p = cam @ rot.T + trans
+        lo, hi = np.percentile(p[:-1] if p.shape[0] > 1 else p, [5.0, 95.0], axis=0)
+        return _ObjectStats(centroid=p[-1].copy(), box_min=lo, box_max=hi)
+
+    def _label_voxels(self, cls: int, in_region: np.ndarray, pts: np.ndarray, vflat: np.ndarray,
+                      stats: _ObjectStats) -> None:
+        """Label the voxels of this frame's map points that fall in the detection's pixels and
+        within one voxel of its 3D box (drops most background behind a box-only detection)."""
+        idx = np.flatnonzero(in_region)
+        if idx.size == 0:
+            return
+        pad = (self.config.voxel_xy, self.config.voxel_xy, self.config.voxel_z)
+        v = vflat[idx]
+        ok = v >= 0
+        for a in range(3):
+            coord = pts[idx, a]
+            ok &= (coord >= stats.box_min[a] - pad[a]) & (coord <= stats.box_max[a] + pad[a])
+        self.voxel_labels.reshape(-1)[v[ok]] = cls
+
+    # ------------------------------------------------------------------ navigation maps
+    def _effective_obstacle(self) -> np.ndarray:
+        return self.obstacle & ~self.visited
+
+    def occupancy_grid(self) -> np.ndarray:
+        """uint8 XxY at ``nav_cell``: 0 unknown, 1 free (explored or stood on, no obstacle),
+        2 obstacle (as ``MapSnapshot.occupancy``)."""
+        obstacle = self._effective_obstacle()
+        out = np.zeros(self.grid.shape, np.uint8)
+        out[self.explored | self.visited] = FREE
+        out[obstacle] = OBSTACLE
+        return out
+
+    def traversible(self, agent_radius: float = 0.2) -> np.ndarray:
+        """bool XxY: cells where the agent's centre may go: not within ``agent_radius`` metres
+        of an obstacle cell. Unknown cells count as traversible (optimistic planning); cells
+        the agent's centre has been in always do. The array covers exactly the map: anything
+        outside it is not traversible (see ``traversible_at``)."""
+        if agent_radius < 0:
+            raise ValueError(f"agent_radius must be >= 0 metres, got {agent_radius}")
+        obstacle = self._effective_obstacle()
+        if agent_radius > 0:
+            kernel = _disk_kernel(agent_radius, self.grid.cell)
+            obstacle = cv2.dilate(obstacle.view(np.uint8), kernel).astype(bool)
+        return ~obstacle | self.stood
+
+    def traversible_at(self, xy: np.ndarray, agent_radius: float = 0.2) -> np.ndarray:
+        """bool N: whether start-frame points xy (Nx2, metres) are traversible (False off the map)."""
+        ij = self.grid.world_to_cell(xy)
+        inside = self.grid.in_bounds(ij)
+        out = np.zeros(ij.shape[0], bool)
+        trav = self.traversible(agent_radius)
+        out[inside] = trav[ij[inside, 0], ij[inside, 1]]
+        return out
+
+    def stamp_obstacle(self, xy: Sequence[float] | np.ndarray, radius: float = 0.1) -> None:
+        """Mark cells within ``radius`` metres of start-frame ``xy`` as obstacle (e.g. after a
+        blocked move); this overrides the free disc around earlier agent positions."""
+        cells = self.grid.disc(xy, radius)
+        self.obstacle[cells[:, 0], cells[:, 1]] = True
+        self.visited[cells[:, 0], cells[:, 1]] = False
+
+    def clear_obstacle(self, xy: Sequence[float] | np.ndarray, radius: float) -> None:
+        """Unmark obstacle cells within ``radius`` metres of start-frame ``xy`` (a later frame
+        that sees an obstacle there marks it again)."""
+        cells = self.grid.disc(xy, radius)
+        self.obstacle[cells[:, 0], cells[:, 1]] = False
+
+    # ------------------------------------------------------------------ voxels and semantics
+    def voxel_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Occupied voxels: (centres float32 Nx3 in the start frame, labels int16 N, -1 none)."""
+        cfg = self.config
+        flat = np.flatnonzero(self.occupancy.reshape(-1))
+        ix, iy, iz = np.unravel_index(flat, self.voxel_shape)
+        ox, oy = self.voxel_grid.origin
+        centres = np.empty((flat.size, 3), np.float32)
+        centres[:, 0] = ox + (ix + 0.5) * cfg.voxel_xy
+        centres[:, 1] = oy + (iy + 0.5) * cfg.voxel_xy
+        centres[:, 2] = cfg.voxel_z_range[0] + (iz + 0.5) * cfg.voxel_z
+        return centres, self.voxel_labels.reshape(-1)[flat]
+
+    def _coarse_occupancy(self, z_bins: int) -> np.ndarray:
+        nx, ny, nz = self.voxel_shape
+        if z_bins < 1 or nz % z_bins:
+            raise ValueError(f"z_bins must divide the {nz} voxel heights, got {z_bins}")
+        occ = self.occupancy.reshape(nx, ny, z_bins, nz // z_bins).any(axis=3)
+        return np.ascontiguousarray(occ.transpose(2, 0, 1), dtype=np.float32)   # z_bins x X x Y
+
+    def _centroid_heat(self, label: str, z_bins: int) -> np.ndarray | None:
+        """float32 z_bins x X x Y: the label's centroids counted per coarse voxel, Gaussian-blurred
+        and scaled so that an isolated centroid peaks at 1; None when the label has no entry."""
+        objs = self.memory.of_label(label)
+        if not objs:
+            return None
+        cfg = self.config
+        nx, ny, nz = self.voxel_shape
+        bin_h = (cfg.voxel_z_range[1] - cfg.voxel_z_range[0]) / z_bins
+        c = np.array([o.centroid for o in objs])
+        ij = self.voxel_grid.world_to_cell(c[:, :2])
+        inside = self.voxel_grid.in_bounds(ij)
+        if not inside.any():
+            return None
+        iz = np.clip(np.floor((c[:, 2] - cfg.voxel_z_range[0]) / bin_h).astype(np.int64), 0, z_bins - 1)
+        heat = np.zeros((z_bins, nx, ny), np.float32)
+        np.add.at(heat, (iz[inside], ij[inside, 0], ij[inside, 1]), 1.0)
+        s_xy = float(cfg.semantic_sigma_voxels)
+        s_z = s_xy * cfg.voxel_xy / bin_h          # the same metric spread along z
+        if s_xy > 0:
+            heat = gaussian_filter(heat, sigma=(s_z, s_xy, s_xy), mode="constant", truncate=_GAUSS_TRUNCATE)
+            heat /= _gauss_peak(s_z) * _gauss_peak(s_xy) ** 2
+        return heat
+
+    def semantic_volume(self, z_bins: int = 8, labels: Sequence[str] | None = None) -> np.ndarray:
+        """float32 [C, z_bins, X, Y] (X = Y = 128 by default): per class (``classes``, or
+        ``labels`` in that order) the paper's M^j = M^o + g(f(C^j)): the voxel occupancy
+        coarsened to ``z_bins`` heights plus the class's memory centroids splatted into the
+        coarse grid and Gaussian-dilated (an isolated centroid adds 1 at its voxel)."""
+        names = self.classes if labels is None else list(labels)
+        occ = self._coarse_occupancy(z_bins)
+        vol = np.empty((len(names),) + occ.shape, np.float32)
+        vol[:] = occ
+        for ch, name in enumerate(names):
+            heat = self._centroid_heat(name, z_bins)
+            if heat is not None:
+                vol[ch] += heat
+        return vol
+
+    def semantic_topdown(self, label: str, z_bins: int = 8, include_occupancy: bool = True) -> np.ndarray:
+        """float32 X x Y: the max over heights of ``label``'s ``semantic_volume`` channel
+        (without the occupancy term when ``include_occupancy`` is False)."""
+        heat = self._centroid_heat(label, z_bins)
+        base = self._coarse_occupancy(z_bins) if include_occupancy else None
+        if heat is None:
+            heat = np.zeros((z_bins,) + self.voxel_grid.shape, np.float32)
+        vol = heat if base is None else heat + base
+        return vol.max(axis=0)
+
+    # ------------------------------------------------------------------ telemetry
+    def snapshot(self, session: str, step: int) -> MapSnapshot:
+        """The viewer's ``MapSnapshot`` of the current maps."""
+        points, labels = self.voxel_points()
+        return MapSnapshot(session=session, step=int(step), origin=self.grid.origin, cell=self.grid.cell,
+                           occupancy=self.occupancy_grid(), explored=self.explored.copy(),
+                           voxel_size=self.voxel_grid.cell, points=points, point_labels=labels,
+                           classes=list(self.classes))

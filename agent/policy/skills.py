@@ -1,0 +1,243 @@
+"""The agent's motor skills, as generators that yield actions (paper §3.1, supplement).
+
+Each skill is a generator: it yields an ``Action``; by the time it resumes, the runner has
+stepped the world and folded the new observation into the maps (``body.obs`` and
+``body.detections`` are current). A skill's return value (``yield from``) says whether it
+worked. Skills only use the agent's own maps and detections, never ground truth.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Generator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tidee.agent.mapping.geometry import project
+from tidee.agent.mapping.maps import SemanticMapper
+from tidee.agent.mapping.memory import TrackedObject
+from tidee.agent.navigation.fmm import FMMPlanner, NavStatus
+from tidee.agent.perception.base import Detection
+from tidee.protocol.messages import Action, ActionName, Observation
+
+Skill = Generator[Action, None, bool]
+AGENT_RADIUS = 0.2            # metres (the server's collision radius)
+PITCHES = (-30.0, 0.0, 30.0, 60.0)
+MOVE_M = 0.25
+
+
+def wrap_deg(a: float) -> float:
+    return (a + 180.0) % 360.0 - 180.0
+
+
+@dataclass
+class Body:
+    """What the skills read and write: the latest observation, the maps, the plan for display."""
+
+    mapper: SemanticMapper
+    obs: Observation | None = None
+    detections: list[Detection] = field(default_factory=list)
+    path: np.ndarray | None = None        # float32 Mx2: the current planned path (viewer)
+    goal: tuple[float, float] | None = None
+    nav_steps: int = 0
+
+    @property
+    def pose(self) -> tuple[float, float, float, float]:
+        assert self.obs is not None
+        return tuple(float(v) for v in self.obs.agent_pose)  # type: ignore[return-value]
+
+    @property
+    def xy(self) -> np.ndarray:
+        x, y, _, _ = self.pose
+        return np.array([x, y])
+
+    def steps_left(self) -> int:
+        return int(self.obs.steps_left) if self.obs is not None else 0
+
+
+# --- navigation ---------------------------------------------------------------------------
+
+def goal_mask_near_box(mapper: SemanticMapper, box_min: np.ndarray, box_max: np.ndarray,
+                       radius: float) -> np.ndarray:
+    """bool grid: cells whose centre is within ``radius`` of the box's (x, y) footprint."""
+    g = mapper.grid
+    xs = g.origin[0] + (np.arange(g.shape[0]) + 0.5) * g.cell
+    ys = g.origin[1] + (np.arange(g.shape[1]) + 0.5) * g.cell
+    dx = np.maximum(np.maximum(box_min[0] - xs, xs - box_max[0]), 0.0)
+    dy = np.maximum(np.maximum(box_min[1] - ys, ys - box_max[1]), 0.0)
+    return np.hypot(dx[:, None], dy[None, :]) <= radius
+
+
+def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: np.ndarray | None = None,
+             radius: float = 0.0, stop_radius: float = 0.2, budget: int = 60) -> Skill:
+    """Walk to a goal with fast-marching planning, replanning every step on the growing map.
+
+    A blocked move stamps an obstacle in front of the agent (the failed cell) and replans.
+    Returns True on arrival; False when the goal is unreachable, the budget is spent or the
+    agent keeps bumping into things.
+    """
+    bumps = 0
+    for _ in range(budget):
+        if body.steps_left() <= 1:
+            return False
+        x, y, yaw, _ = body.pose
+        planner = FMMPlanner(body.mapper.traversible(AGENT_RADIUS), body.mapper.grid)
+        if goal_mask is not None:
+            ok = planner.set_goal_mask(goal_mask, start_xy=(x, y))
+            body.goal = tuple(float(v) for v in np.argwhere(goal_mask).mean(0) * planner.cell
+                              + np.array(planner.origin)) if goal_mask.any() else None
+        else:
+            assert goal_xy is not None
+            ok = planner.set_goal(goal_xy, radius_m=radius, start_xy=(x, y))
+            body.goal = (float(goal_xy[0]), float(goal_xy[1]))
+        if not ok:
+            return False
+        action = planner.next_action(x, y, yaw, stop_radius_m=stop_radius)
+        if action is None:
+            body.path = None
+            return planner.status == NavStatus.arrived
+        body.path = planner.path((x, y), max_points=200).astype(np.float32)
+        yield Action(action)
+        body.nav_steps += 1
+        obs = body.obs
+        assert obs is not None
+        if action == ActionName.MoveAhead and not obs.success and obs.error == "blocked":
+            bumps += 1
+            t = math.radians(yaw)
+            body.mapper.stamp_obstacle((x + 0.3 * math.cos(t), y + 0.3 * math.sin(t)), radius=0.1)
+            if bumps > 6:
+                return False
+    return False
+
+
+def rotate_to(body: Body, yaw_target: float) -> Skill:
+    """Turn (in 90° steps) to the heading nearest ``yaw_target`` (degrees)."""
+    for _ in range(3):
+        diff = wrap_deg(yaw_target - body.pose[2])
+        if abs(diff) <= 45.0:
+            return True
+        yield Action(ActionName.RotateLeft if diff > 0 else ActionName.RotateRight)
+    return abs(wrap_deg(yaw_target - body.pose[2])) <= 45.0
+
+
+def pitch_to(body: Body, pitch_target: float) -> Skill:
+    target = min(PITCHES, key=lambda p: abs(p - pitch_target))
+    for _ in range(4):
+        pitch = body.pose[3]
+        if abs(pitch - target) < 1.0:
+            return True
+        yield Action(ActionName.LookDown if pitch < target else ActionName.LookUp)
+    return abs(body.pose[3] - target) < 1.0
+
+
+def face_point(body: Body, point: np.ndarray) -> Skill:
+    """Turn and tilt the camera so that the start-frame ``point`` is as central as possible."""
+    x, y, _, _ = body.pose
+    yield from rotate_to(body, math.degrees(math.atan2(point[1] - y, point[0] - x)))
+    assert body.obs is not None
+    cam_z = float(body.obs.camera_pose[2, 3])
+    horizontal = max(math.hypot(point[0] - x, point[1] - y), 1e-3)
+    return (yield from pitch_to(body, math.degrees(math.atan2(cam_z - point[2], horizontal))))
+
+
+def look_around(body: Body, pitches: tuple[float, ...] = (30.0, 0.0)) -> Skill:
+    """Rotate a full turn at each pitch (the paper's initial look-around)."""
+    for p in pitches:
+        yield from pitch_to(body, p)
+        for _ in range(4):
+            if body.steps_left() <= 1:
+                return False
+            yield Action(ActionName.RotateLeft)
+    return True
+
+
+# --- finding things in view -----------------------------------------------------------------
+
+@dataclass
+class Sighting:
+    """A tracked object seen in the current frame: the detection and the pixel to act on."""
+
+    detection: Detection
+    u: int
+    v: int
+    distance: float        # eye-to-surface distance along the ray at (u, v), metres
+    point: np.ndarray      # start-frame 3D point at (u, v)
+
+    def action(self, name: ActionName, shape: tuple[int, int]) -> Action:
+        h, w = shape
+        return Action(name, x=(self.u + 0.5) / w, y=(self.v + 0.5) / h)
+
+
+def _pixel_points(obs: Observation, us: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(start-frame points Nx3, ray lengths N) for pixels (us, vs) from the depth image."""
+    k = obs.intrinsics
+    z = obs.depth[vs, us].astype(np.float64)
+    xc = (us - k[0, 2]) / k[0, 0] * z
+    yc = (vs - k[1, 2]) / k[1, 1] * z
+    cam = np.stack([xc, yc, z], axis=1)
+    pts = cam @ obs.camera_pose[:3, :3].T + obs.camera_pose[:3, 3]
+    return pts, np.linalg.norm(cam, axis=1)
+
+
+def find_in_view(body: Body, obj: TrackedObject, max_pixel_gap: float = 0.15) -> Sighting | None:
+    """The current detection of ``obj`` (same label, nearest its projected centroid), if any."""
+    obs = body.obs
+    assert obs is not None
+    h, w = obs.depth.shape
+    u, v, z = project(obj.centroid[None, :], obs.intrinsics, obs.camera_pose)
+    u0, v0 = float(u[0]), float(v[0])
+    best: tuple[float, Detection] | None = None
+    for det in body.detections:
+        if det.label != obj.label:
+            continue
+        ys, xs = np.nonzero(det.region((h, w)))
+        if len(xs) == 0:
+            continue
+        gap = float(np.min(np.hypot(xs - u0, ys - v0))) if z[0] > 0 else float("inf")
+        if gap <= max_pixel_gap * w and (best is None or gap < best[0]):
+            best = (gap, det)
+    if best is None:
+        return None
+    return sighting_of(body, best[1])
+
+
+def sighting_of(body: Body, det: Detection, prefer_top: bool = False) -> Sighting | None:
+    """The pixel of a detection to act on: its region's most central pixel with valid depth.
+
+    ``prefer_top``: for putting things on a receptacle, prefer pixels whose 3D point lies near
+    the top of the region's points (the surface something can rest on), within reach.
+    """
+    obs = body.obs
+    assert obs is not None
+    h, w = obs.depth.shape
+    region = det.region((h, w)) & (obs.depth > 0.05) & np.isfinite(obs.depth)
+    ys, xs = np.nonzero(region)
+    if len(xs) == 0:
+        return None
+    pts, dist = _pixel_points(obs, xs, ys)
+    weight = np.hypot(xs - xs.mean(), ys - ys.mean())
+    if prefer_top:
+        top = np.percentile(pts[:, 2], 90)
+        reach = dist <= 1.4
+        keep = (pts[:, 2] >= top - 0.08) & reach
+        if not keep.any():
+            keep = reach if reach.any() else np.ones(len(xs), bool)
+        cx, cy = xs[keep].mean(), ys[keep].mean()
+        weight = np.where(keep, np.hypot(xs - cx, ys - cy), np.inf)
+    k = int(np.argmin(weight))
+    return Sighting(det, int(xs[k]), int(ys[k]), float(dist[k]), pts[k])
+
+
+def receptacle_in_view(body: Body, labels: frozenset[str]) -> Detection | None:
+    """The largest detection of any of ``labels`` in the current frame."""
+    obs = body.obs
+    assert obs is not None
+    shape = obs.depth.shape
+    best = None
+    for det in body.detections:
+        if det.label in labels:
+            area = int(det.region(shape).sum())
+            if best is None or area > best[0]:
+                best = (area, det)
+    return best[1] if best else None

@@ -1,0 +1,360 @@
+"""Algorithm 1 of the paper: map the room, find out-of-place objects, put them away.
+
+``TidyPolicy.run()`` is one generator for the whole episode; it reads like the paper's
+pseudo code::
+
+    map the scene                     (look around, then unexplored goals until < A unexplored)
+    while an OOP object is found within k search goals:
+        navigate to it, PickupObject
+        receptacle classes <- placement model (CommonMemory, rGCN, ...)
+        if one is in the object memory: navigate there, PutObject (open it first if closed)
+        else: search for it (exploration / visual search network), PutObject
+        after m failed tries per class: drop the object where the agent stands
+    Done
+
+Every decision reads the agent's own maps and detections; events go to ``on_event``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Generator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from tidee.agent.classes import PICKUPABLE, PLACEABLE_RECEPTACLES
+from tidee.agent.config import AgentConfig
+from tidee.agent.mapping.memory import TrackedObject
+from tidee.agent.navigation.explore import (FrontierExplorer, sample_reachable_goal, sample_unexplored_goal,
+                                            unexplored_fraction)
+from tidee.agent.navigation.fmm import FMMPlanner
+from tidee.agent.policy.skills import (AGENT_RADIUS, Body, face_point, find_in_view, goal_mask_near_box,
+                                       look_around, navigate, pitch_to, receptacle_in_view, sighting_of)
+from tidee.agent.reasoning.oop import OOPDetector
+from tidee.agent.reasoning.placement import PlacementModel
+from tidee.protocol.messages import Action, ActionName
+
+Gen = Generator[Action, None, Any]
+FLOOR = "Floor"
+
+
+@dataclass
+class PolicyState:
+    """What the policy is doing, for telemetry and logs."""
+
+    phase: str = "idle"
+    target: TrackedObject | None = None
+    target_receptacle: str | None = None
+    predictions: list[tuple[str, float]] = field(default_factory=list)
+    objects_fixed: int = 0
+    oop_found: int = 0
+    message: str = ""
+    end_reason: str = ""
+
+
+class TidyPolicy:
+    def __init__(self, config: AgentConfig, body: Body, oop: OOPDetector, placement: PlacementModel | None,
+                 room_type: str, on_event: Callable[..., None] = lambda **kw: None) -> None:
+        self.cfg, self.p = config, config.policy
+        self.body, self.oop, self.placement = body, oop, placement
+        self.room_type = room_type
+        self.rng = np.random.default_rng(config.seed)
+        self.state = PolicyState()
+        self.on_event = on_event
+        self.placed: list[tuple[str, np.ndarray]] = []   # (label, xy) of objects this agent put away
+        self.flagged: set[int] = set()
+        self.frontier = FrontierExplorer(body.mapper.grid)
+        self._rescore = True
+        self._last_put_xy = np.zeros(2)
+
+    # ------------------------------------------------------------------ bookkeeping
+    def event(self, kind: str, **fields: Any) -> None:
+        self.state.message = f"{kind}: " + ", ".join(f"{k}={v}" for k, v in fields.items() if k != "centroid")
+        self.on_event(kind=kind, **fields)
+
+    def score_objects(self, touched: list[TrackedObject] | None = None) -> None:
+        """Run the OOP detector over the pickupable objects in memory.
+
+        Not while mapping (Algorithm 1 detects OOP objects after the map is built, when the
+        receptacles under them are known); afterwards whenever the memory changed.
+        """
+        if self.state.phase in ("idle", "mapping") or (touched is not None and not touched
+                                                         and not self._rescore):
+            return
+        self._rescore = False
+        objs = list(self.body.mapper.memory)
+        targets = [o for o in objs if o.label in PICKUPABLE]
+        probs = self.oop.score_all(targets, objs, self.room_type)
+        for o in targets:
+            o.oop_prob = float(probs[o.id])
+            o.out_of_place = o.oop_prob >= self.p.oop_threshold and not self._is_placed(o)
+            if o.out_of_place and o.id not in self.flagged:
+                self.flagged.add(o.id)
+                self.state.oop_found += 1
+                self.event("oop_found", label=o.label, track_id=o.id, oop_prob=round(o.oop_prob, 3),
+                           support=o.meta.get("support"),
+                           centroid=[round(float(v), 3) for v in o.centroid])
+
+    def _is_placed(self, o: TrackedObject) -> bool:
+        return any(lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 0.6 for lbl, xy in self.placed)
+
+    def _candidates(self) -> list[TrackedObject]:
+        xy = self.body.xy
+        objs = [o for o in self.body.mapper.memory if o.out_of_place and not o.meta.get("give_up")]
+        return sorted(objs, key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
+
+    def _reachable(self) -> np.ndarray:
+        planner = FMMPlanner(self.body.mapper.traversible(AGENT_RADIUS), self.body.mapper.grid)
+        return planner.reachable_from(tuple(self.body.xy))
+
+    # ------------------------------------------------------------------ Algorithm 1
+    def run(self) -> Gen:
+        self.state.phase = "mapping"
+        yield from look_around(self.body)
+        yield from self.map_room()
+        self.event("mapped", steps=self.body.obs.step, objects=len(self.body.mapper.memory))
+        self.state.phase = "searching"
+        self._rescore = True
+        self.score_objects()
+        empty_goals = 0
+        while self.body.steps_left() > self.p.reserve_steps:
+            candidates = self._candidates()
+            if candidates:
+                empty_goals = 0
+                yield from self.tidy_object(candidates[0])
+                self.state.phase = "searching"
+                continue
+            if empty_goals >= self.p.k_empty_goals:
+                self.state.end_reason = f"no out-of-place object found after {empty_goals} search goals"
+                break
+            goal = sample_reachable_goal(self._reachable(), self.body.mapper.grid, self.rng, tuple(self.body.xy))
+            empty_goals += 1
+            if goal is None:
+                continue
+            yield from navigate(self.body, goal_xy=goal, budget=self.p.goal_step_budget)
+            yield from look_around(self.body, pitches=(30.0,))
+        else:
+            self.state.end_reason = "step budget"
+        self.state.phase = "done"
+        self.event("done", reason=self.state.end_reason, fixed=self.state.objects_fixed)
+        yield Action(ActionName.Done)
+
+    def map_room(self) -> Gen:
+        start = self.body.obs.step
+        while self.body.obs.step - start < self.p.mapping_step_budget and self.body.steps_left() > 1:
+            reachable = self._reachable()
+            mapper = self.body.mapper
+            if unexplored_fraction(mapper.explored, reachable) < self.p.explore_unexplored_stop:
+                break
+            if self.cfg.explorer == "frontier":
+                planner = FMMPlanner(mapper.traversible(AGENT_RADIUS), mapper.grid)
+                planner.set_goal(tuple(self.body.xy))
+                known = mapper.explored | (mapper.occupancy_grid() > 0)
+                goal = self.frontier.next_goal(mapper.occupancy_grid() == 1, known, mapper.obstacle, planner,
+                                               tuple(self.body.xy))
+            else:
+                goal = sample_unexplored_goal(mapper.explored, reachable, mapper.grid, self.rng, tuple(self.body.xy))
+            if goal is None:
+                break
+            yield from pitch_to(self.body, 30.0)
+            yield from navigate(self.body, goal_xy=goal, budget=self.p.goal_step_budget)
+
+    # ------------------------------------------------------------------ one object
+    def tidy_object(self, obj: TrackedObject) -> Gen:
+        st = self.state
+        st.target, st.target_receptacle, st.predictions = obj, None, []
+        st.phase = "approaching"
+        sighting = yield from self.approach(obj, self.p.approach_m)
+        if sighting is None:
+            obj.meta["give_up"] = "could not get it in view within reach"
+            self.event("unreachable", label=obj.label, track_id=obj.id)
+            return
+        st.phase = "picking"
+        yield sighting.action(ActionName.PickupObject, self.body.obs.depth.shape)
+        obs = self.body.obs
+        if not obs.success:
+            obj.meta["pick_fails"] = obj.meta.get("pick_fails", 0) + 1
+            if obj.meta["pick_fails"] >= 2:
+                obj.meta["give_up"] = f"pickup failed: {obs.error}"
+            self.event("pick_failed", label=obj.label, error=obs.error, message=obs.message)
+            return
+        self.body.mapper.memory.remove(obj.id)
+        self.event("picked", label=obj.label, track_id=obj.id, held_id=obs.held_id,
+                   oop_prob=round(obj.oop_prob or 0.0, 3))
+        st.phase = "inferring"
+        placed = yield from self.put_away(obj)
+        if not placed:
+            st.phase = "dropping"
+            placed = yield from self.drop()
+            if placed:
+                self.event("dropped", label=obj.label)
+        st.target = None
+
+    def approach(self, obj: TrackedObject, radius: float) -> Gen:
+        """Walk next to a tracked object and get it in view within reach; its Sighting or None."""
+        for attempt in range(3):
+            mask = goal_mask_near_box(self.body.mapper, obj.box_min, obj.box_max, radius + 0.15 * attempt)
+            yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
+            for pitch_try in range(2):
+                yield from face_point(self.body, obj.centroid)
+                sighting = find_in_view(self.body, obj)
+                if sighting is not None and sighting.distance <= self.p.interact_m:
+                    return sighting
+                if sighting is not None:
+                    break        # seen but too far: walk closer
+                if pitch_try == 0:  # not seen: try the neighbouring pitch
+                    yield from pitch_to(self.body, self.body.pose[3] + (30.0 if self.body.pose[3] < 60 else -30.0))
+            if self.body.steps_left() <= 2:
+                break
+        return None
+
+    # ------------------------------------------------------------------ placing
+    def put_away(self, obj: TrackedObject) -> Gen:
+        st = self.state
+        if self.placement is None:          # RandomReceptacle
+            st.predictions = []
+            return (yield from self.put_on_first_found(obj.label))
+        ranked = self.placement.predict(obj, self.body.mapper.memory, self.room_type)
+        st.predictions = ranked[:5]
+        self.event("predicted", label=obj.label, top=[[r, round(p, 3)] for r, p in ranked[:5]])
+        st.phase = "placing"
+        tried = 0
+        missing: list[str] = []
+        for label, _ in ranked:
+            if tried >= self.p.max_receptacle_classes or self.body.steps_left() <= 2:
+                break
+            if label == FLOOR:
+                st.target_receptacle = FLOOR
+                tried += 1
+                if (yield from self.drop()):
+                    return self._placed(obj.label, FLOOR)
+                continue
+            instances = self._instances(label)
+            if not instances:
+                missing.append(label)
+                continue
+            tried += 1
+            st.target_receptacle = label
+            for rec in instances[:2]:
+                if (yield from self.put_on(rec)):
+                    return self._placed(obj.label, label)
+        # Receptacles the model wants but the memory lacks: search for them.
+        st.phase = "searching_receptacle"
+        for label in missing[: self.p.max_receptacle_classes]:
+            st.target_receptacle = label
+            for _ in range(self.p.search_goals):
+                if self._instances(label) or self.body.steps_left() <= self.p.reserve_steps:
+                    break
+                goal = self.search_goal(label)
+                if goal is None:
+                    break
+                yield from navigate(self.body, goal_xy=goal, budget=self.p.goal_step_budget)
+                yield from look_around(self.body, pitches=(30.0,))
+            for rec in self._instances(label)[:1]:
+                st.phase = "placing"
+                if (yield from self.put_on(rec)):
+                    return self._placed(obj.label, label)
+        return False
+
+    def search_goal(self, label: str) -> tuple[float, float] | None:
+        """Where to look for a receptacle not in memory (non-learned: unexplored, else random)."""
+        mapper, reachable = self.body.mapper, self._reachable()
+        goal = sample_unexplored_goal(mapper.explored, reachable, mapper.grid, self.rng, tuple(self.body.xy))
+        return goal or sample_reachable_goal(reachable, mapper.grid, self.rng, tuple(self.body.xy))
+
+    def _instances(self, label: str) -> list[TrackedObject]:
+        xy = self.body.xy
+        return sorted((o for o in self.body.mapper.memory.of_label(label) if not o.meta.get("full")),
+                      key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
+
+    def _placed(self, label: str, receptacle: str) -> bool:
+        self.state.objects_fixed += 1
+        self.placed.append((label, self.body.xy.copy() if receptacle == FLOOR else self._last_put_xy))
+        self._rescore = True
+        self.event("placed", label=label, receptacle=receptacle)
+        return True
+
+    def put_on(self, rec: TrackedObject) -> Gen:
+        """Go to a receptacle and put the held object on/in it (opening it first if needed)."""
+        shape = self.body.obs.depth.shape
+        for attempt in range(self.p.m_place_tries):
+            if self.body.steps_left() <= 2:
+                return False
+            mask = goal_mask_near_box(self.body.mapper, rec.box_min, rec.box_max, (0.5, 0.35, 0.75)[attempt % 3])
+            yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
+            top = rec.centroid.copy()
+            top[2] = rec.box_max[2]
+            yield from face_point(self.body, top)
+            det = self._detection_of(rec)
+            if det is None:
+                continue
+            sighting = sighting_of(self.body, det, prefer_top=True)
+            if sighting is None or sighting.distance > self.p.interact_m + 0.1:
+                continue           # not within reach from here: walk again, closer
+            yield sighting.action(ActionName.PutObject, shape)
+            obs = self.body.obs
+            if obs.success:
+                self._last_put_xy = sighting.point[:2].copy()
+                return True
+            if obs.error == "receptacle_closed":
+                yield sighting.action(ActionName.OpenObject, shape)
+                if self.body.obs.success:
+                    yield sighting.action(ActionName.PutObject, shape)
+                    if self.body.obs.success:
+                        self._last_put_xy = sighting.point[:2].copy()
+                        yield sighting.action(ActionName.CloseObject, shape)
+                        return True
+                elif self.body.obs.error == "blocked":
+                    yield Action(ActionName.MoveBack)
+            elif obs.error == "no_free_space":
+                rec.meta["full_tries"] = rec.meta.get("full_tries", 0) + 1
+                if rec.meta["full_tries"] >= 2:
+                    rec.meta["full"] = True
+                    return False
+            self.event("put_failed", receptacle=rec.label, error=obs.error, message=obs.message)
+        return False
+
+    def _detection_of(self, rec: TrackedObject):
+        s = find_in_view(self.body, rec, max_pixel_gap=0.3)
+        return s.detection if s is not None else None
+
+    def put_on_first_found(self, label: str) -> Gen:
+        """RandomReceptacle: walk to random places; put on the first receptacle in view."""
+        shape = self.body.obs.depth.shape
+        self.state.phase = "searching_receptacle"
+        for _ in range(self.p.search_goals + 2):
+            goal = sample_reachable_goal(self._reachable(), self.body.mapper.grid, self.rng, tuple(self.body.xy))
+            if goal is not None:
+                yield from navigate(self.body, goal_xy=goal, budget=self.p.goal_step_budget)
+            yield from pitch_to(self.body, 30.0)
+            for _ in range(4):
+                det = receptacle_in_view(self.body, PLACEABLE_RECEPTACLES)
+                if det is not None:
+                    sighting = sighting_of(self.body, det, prefer_top=True)
+                    if sighting is not None and sighting.distance <= 1.45:
+                        self.state.phase, self.state.target_receptacle = "placing", det.label
+                        yield sighting.action(ActionName.PutObject, shape)
+                        if self.body.obs.success:
+                            self._last_put_xy = sighting.point[:2].copy()
+                            return self._placed(label, det.label)
+                if self.body.steps_left() <= 2:
+                    return False
+                yield Action(ActionName.RotateLeft)
+        return False
+
+    def drop(self) -> Gen:
+        """Put the held object on the floor in front of the agent (or beside it)."""
+        yield from pitch_to(self.body, 60.0)
+        for _ in range(4):
+            if self.body.steps_left() <= 1:
+                return False
+            for u, v in ((0.5, 0.85), (0.3, 0.9), (0.7, 0.9)):
+                yield Action(ActionName.PutObject, x=u, y=v)
+                if self.body.obs.success:
+                    return True
+                if self.body.obs.error in ("hands_empty", "episode_over"):
+                    return False
+            yield Action(ActionName.RotateLeft)
+        return False

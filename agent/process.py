@@ -1,0 +1,110 @@
+"""``tidee agent``: the agent as its own process, talking to a server over Zenoh.
+
+It opens one Zenoh session, uses it for the simulator client (reset/step) and for the
+telemetry publisher (viewers), and plays episodes: the one given on the command line,
+then, with ``--serve``, whatever a viewer asks for (``new_episode`` commands) until
+interrupted. Episode logs go to ``--log-dir``.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import time
+import uuid
+from dataclasses import dataclass
+
+import zenoh
+
+from tidee.agent.config import AgentConfig
+from tidee.agent.runner import EpisodeRunner
+from tidee.agent.telemetry import TelemetryPublisher
+from tidee.protocol.client import SimClient
+from tidee.protocol.messages import AgentCommand, EpisodeSpec
+from tidee.protocol.zenoh_config import make_config
+
+log = logging.getLogger("tidee.agent")
+
+
+@dataclass
+class AgentProcessConfig:
+    agent: AgentConfig
+    spec: EpisodeSpec
+    endpoint: str | None = None
+    router: str | None = None
+    server_id: str = "sim0"
+    session: str | None = None
+    episodes: int = 1               # consecutive mess indices from spec.mess_index
+    serve: bool = False             # after them, wait for viewers' new_episode commands
+    log_dir: str | None = "runs"
+    connect_timeout: float = 60.0
+
+
+def run_agent_process(cfg: AgentProcessConfig) -> int:
+    session = cfg.session or f"agent-{uuid.uuid4().hex[:8]}"
+    stop = {"flag": False}
+
+    def _sigterm(*_: object) -> None:
+        stop["flag"] = True
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _sigterm)
+    z = zenoh.open(make_config(False, cfg.endpoint, cfg.router))
+    publisher = None
+    try:
+        client = SimClient(cfg.endpoint, cfg.router, server_id=cfg.server_id, session=session, timeout=120.0,
+                           zsession=z, connect_timeout=cfg.connect_timeout)
+        publisher = TelemetryPublisher(z, session)
+        runner = EpisodeRunner(cfg.agent, client, session=session, publisher=publisher, log_dir=cfg.log_dir)
+        print(f"agent: session {session}, variant {cfg.agent.variant}, perception {cfg.agent.perception}"
+              f"{' (ORACLE)' if cfg.agent.perception == 'oracle' else ''}; logs in {cfg.log_dir}", flush=True)
+        queue: list[EpisodeSpec] = []
+        base = cfg.spec
+        for k in range(cfg.episodes):
+            mess = None if base.mess_index is None else base.mess_index + k
+            queue.append(EpisodeSpec(**{**base.__dict__, "mess_index": mess}))
+        while not stop["flag"]:
+            if not queue:
+                if not cfg.serve:
+                    break
+                cmd = _wait_for_new_episode(publisher, runner)
+                queue.append(_spec_from(cmd, base))
+            spec = queue.pop(0)
+            res = runner.run(spec)
+            print(f"agent: {spec.room_type} seed {spec.seed} mess {spec.mess_index}: {res.steps} steps, "
+                  f"{res.wall_s:.1f} s, {res.objects_fixed} objects put away ({res.end_reason})", flush=True)
+            if res.aborted_by is not None:
+                queue.insert(0, _spec_from(res.aborted_by, base))
+        client.close()
+        return 0
+    except KeyboardInterrupt:
+        return 0 if stop["flag"] else 130
+    finally:
+        if publisher is not None:
+            publisher.close()
+        z.close()
+
+
+def _spec_from(cmd: AgentCommand, base: EpisodeSpec) -> EpisodeSpec:
+    return EpisodeSpec(**{**base.__dict__, "room_type": cmd.room_type or base.room_type,
+                          "seed": base.seed if cmd.seed is None else cmd.seed,
+                          "mess_index": cmd.mess_index})
+
+
+def _wait_for_new_episode(publisher: TelemetryPublisher, runner: EpisodeRunner) -> AgentCommand:
+    """Idle until a viewer asks for an episode; other commands are acknowledged."""
+    from tidee.protocol.messages import CommandAck
+
+    while True:
+        for cmd in publisher.commands():
+            if isinstance(cmd, str):
+                log.warning(cmd)
+                continue
+            if cmd.kind == "new_episode":
+                publisher.offer("ack", lambda c=cmd: CommandAck(publisher.session_id, c.command_id, c.kind, True,
+                                                                "starting"), force=True)
+                return cmd
+            publisher.offer("ack", lambda c=cmd: CommandAck(publisher.session_id, c.command_id, c.kind, False,
+                                                            "no episode is running; start one first"), force=True)
+        time.sleep(0.1)
+

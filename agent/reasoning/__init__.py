@@ -1,0 +1,1 @@
+"""Reasoning: object relations, out-of-place detection and placement."""

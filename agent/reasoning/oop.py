@@ -1,0 +1,90 @@
+"""Out-of-place detection: which tracked objects are not where they belong.
+
+Every OOP detector scores a tracked object given the other tracked objects and the room
+type, returning P(out of place). The non-learned twin here reads the placement
+statistics of the training rooms; the learned visual / language / fused classifiers
+(issues 5 and 6) implement the same ``OOPDetector`` protocol.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from tidee.agent.classes import RECEPTACLES
+from tidee.agent.mapping.memory import TrackedObject
+from tidee.agent.reasoning.relations import ObjectRef, supported_by
+from tidee.agent.reasoning.stats import PlacementStats
+
+FLOOR = "Floor"
+
+
+def as_ref(o: TrackedObject) -> ObjectRef:
+    return ObjectRef(id=o.id, label=o.label, centroid=o.centroid, box_min=o.box_min, box_max=o.box_max,
+                     receptacle=o.label in RECEPTACLES)
+
+
+def support_label(obj: TrackedObject, others: list[TrackedObject]) -> str:
+    """The receptacle type the object rests on, from the agent's own 3D estimates."""
+    return support_labels([obj], others)[obj.id]
+
+
+def support_labels(targets: list[TrackedObject], objects: list[TrackedObject]) -> dict[int, str]:
+    """``support_label`` for many targets, building each object's reference once.
+
+    The x, y margin is wide (0.7 m) because the agent's boxes of big receptacles come from
+    the surfaces it saw: a counter seen from the front is a thin slab at its front edge,
+    while the knife on it lies 0.4 m further back. The height rule picks the right one.
+    """
+    recs = [as_ref(o) for o in objects if o.label in RECEPTACLES]
+    out = {}
+    for t in targets:
+        sup = supported_by(as_ref(t), [r for r in recs if r.id != t.id], xy_margin_m=0.7)
+        out[t.id] = sup if isinstance(sup, str) else sup.label
+    return out
+
+
+class OOPDetector(Protocol):
+    name: str
+
+    def score_all(self, targets: list[TrackedObject], objects: list[TrackedObject],
+                  room_type: str) -> dict[int, float]:
+        """P(out of place) for each target (by id), given every tracked object."""
+        ...
+
+
+class RelationStatsOOP:
+    """Out of place when the supporting receptacle is rare for the category (training rooms).
+
+    ``rarity`` = count(receptacle) / count(most common receptacle) for the category in
+    this room type; P(OOP) = 1 - min(rarity / (2 * rare), 1), so P >= 0.5 exactly when
+    rarity <= ``rare`` (0.1: the same relative rule the catalog's plausibility uses).
+    """
+
+    name = "relation_stats"
+
+    def __init__(self, stats: PlacementStats | None = None, rare: float = 0.1) -> None:
+        self.stats = stats or PlacementStats.load()
+        self.rare = rare
+
+    def score_all(self, targets: list[TrackedObject], objects: list[TrackedObject],
+                  room_type: str) -> dict[int, float]:
+        supports = support_labels(targets, objects)
+        for t in targets:
+            t.meta["support"] = supports[t.id]     # for logs and the viewer
+        return {t.id: self.probability(t.label, supports[t.id], room_type) for t in targets}
+
+    def probability(self, label: str, support: str, room_type: str) -> float:
+        rarity = self.stats.rarity(label, support, room_type)
+        return 1.0 - min(rarity / (2 * self.rare), 1.0)
+
+
+OOP_DETECTORS = ("relation_stats", "visual", "language", "fused")
+
+
+def make_oop(name: str) -> OOPDetector:
+    if name == "relation_stats":
+        return RelationStatsOOP()
+    if name in OOP_DETECTORS:
+        raise NotImplementedError(f"the {name} OOP classifier is a learned model that is not built yet "
+                                  "(issues 5 and 6); use --oop relation_stats")
+    raise ValueError(f"unknown OOP detector {name!r}; choose one of {OOP_DETECTORS}")

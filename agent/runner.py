@@ -1,0 +1,290 @@
+"""The agent's episode loop: observation -> perception -> mapping -> policy -> action.
+
+``EpisodeRunner.run(spec)`` plays one tidy episode against any ``SimTransport`` (Zenoh
+client or in-process), publishes telemetry when a publisher is attached, writes an
+episode log when a log directory is given, and returns an ``EpisodeResult`` with
+per-step timings and, when ``evaluate=True``, the evaluation record (the only place that
+reads the server's privileged state: after the episode, for scoring).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tidee.agent.classes import CLASSES
+from tidee.agent.config import AgentConfig
+from tidee.agent.mapping.maps import SemanticMapper
+from tidee.agent.perception import make_perception
+from tidee.agent.policy.skills import Body
+from tidee.agent.policy.tidy import TidyPolicy
+from tidee.agent.reasoning.oop import make_oop
+from tidee.agent.reasoning.placement import CommonMemory
+from tidee.agent.telemetry import TelemetryPublisher
+from tidee.protocol.episode_log import LogWriter
+from tidee.protocol.messages import (Action, ActionName, AgentCommand, AgentFrame, AgentStatus, CommandAck,
+                                     Detection2D, EpisodeSpec, ObjectMemoryMsg, Observation, ReceptaclePrediction,
+                                     TrackedObjectMsg)
+from tidee.protocol.transport import SimTransport
+
+log = logging.getLogger("tidee.agent")
+
+
+@dataclass
+class EpisodeResult:
+    spec: EpisodeSpec
+    steps: int
+    wall_s: float
+    end_reason: str
+    objects_fixed: int
+    timings: dict[str, list[float]] = field(default_factory=dict)   # ms per step
+    record: dict[str, Any] | None = None                             # evaluation record
+    aborted_by: AgentCommand | None = None                           # a new_episode command
+
+
+class EpisodeRunner:
+    def __init__(self, config: AgentConfig, transport: SimTransport, session: str = "agent",
+                 publisher: TelemetryPublisher | None = None, log_dir: str | Path | None = None,
+                 on_step: Callable[[int], None] | None = None) -> None:
+        self.cfg = config
+        self.transport = transport
+        self.session = session
+        self.publisher = publisher
+        self.log_dir = Path(log_dir) if log_dir else None
+        self.on_step = on_step
+        self.perception = make_perception(config.perception)
+        self.oop = make_oop(config.oop)
+        self.placement = None if config.variant == "RandomReceptacle" else CommonMemory()
+        self.paused = False
+        self._single_steps = 0
+
+    # ------------------------------------------------------------------ the loop
+    def run(self, spec: EpisodeSpec, evaluate: bool = False, episode_name: str | None = None) -> EpisodeResult:
+        gt = self.perception.needs_ground_truth
+        t_start = time.perf_counter()
+        obs = self.transport.reset(spec, ground_truth=gt)
+        initial = self.transport.state() if evaluate else None
+        mapper = SemanticMapper(self.cfg.map, CLASSES)
+        body = Body(mapper)
+        writer = LogWriter(self.log_dir / (episode_name or self._name(spec))) if self.log_dir else None
+        events: list[dict[str, Any]] = []
+
+        def on_event(**kw: Any) -> None:
+            kw["step"] = body.obs.step if body.obs is not None else 0
+            events.append(kw)
+            if writer:
+                writer.event(**kw)
+
+        policy = TidyPolicy(self.cfg, body, self.oop, self.placement, spec.room_type, on_event=on_event)
+        gen = policy.run()
+        info = {"room_type": spec.room_type, "seed": spec.seed, "mess_index": spec.mess_index,
+                "variant": self.cfg.variant, "perception": self.cfg.perception, "oop": self.cfg.oop,
+                "explorer": self.cfg.explorer, "resolution": spec.resolution}
+        timings: dict[str, list[float]] = {"perception_ms": [], "mapping_ms": [], "planning_ms": [], "step_ms": [],
+                                           "sim_ms": []}
+        trajectory: list[tuple[float, float]] = []
+        picked: set[str] = set()
+        aborted: AgentCommand | None = None
+        action: Action | None = None
+        try:
+            while True:
+                t0 = time.perf_counter()
+                dets = self.perception.detect(obs)
+                t1 = time.perf_counter()
+                touched = mapper.update(obs, dets)
+                t2 = time.perf_counter()
+                body.obs, body.detections = obs, dets
+                policy.score_objects(touched)
+                if obs.last_action == ActionName.PickupObject.value and obs.success and obs.held_id:
+                    picked.add(obs.held_id)
+                trajectory.append((float(obs.agent_pose[0]), float(obs.agent_pose[1])))
+                if obs.done:
+                    action = None
+                else:
+                    try:
+                        action = next(gen)
+                    except StopIteration:
+                        action = Action(ActionName.Done)
+                t3 = time.perf_counter()
+                timings["perception_ms"].append((t1 - t0) * 1e3)
+                timings["mapping_ms"].append((t2 - t1) * 1e3)
+                timings["planning_ms"].append((t3 - t2) * 1e3)
+                self._emit(obs, dets, body, policy, info, trajectory, writer)
+                aborted = self._handle_commands(body, policy, info, trajectory, writer)
+                if aborted is not None or action is None:
+                    break
+                if writer:
+                    writer.event(kind="action", step=obs.step, action=action.name.value, x=action.x, y=action.y,
+                                 pose=list(obs.agent_pose))
+                t4 = time.perf_counter()
+                obs = self.transport.step(action, ground_truth=gt)
+                t5 = time.perf_counter()
+                timings["sim_ms"].append((t5 - t4) * 1e3)
+                timings["step_ms"].append((t3 - t0) * 1e3)
+                if self.on_step:
+                    self.on_step(obs.step)
+                if writer and not obs.success:
+                    writer.event(kind="action_failed", step=obs.step, action=obs.last_action, error=obs.error,
+                                 message=obs.message)
+        except Exception:
+            if writer:
+                writer.event(kind="crash", step=obs.step)
+                writer.close()   # the log stays readable: every record so far is complete
+            raise
+        wall = time.perf_counter() - t_start
+        end_reason = policy.state.end_reason or ("aborted" if aborted else "step cap")
+        record = None
+        if evaluate:
+            record = self.evaluation_record(spec, initial, self.transport.state(), events, picked, obs, wall,
+                                            end_reason)
+        result = EpisodeResult(spec, int(obs.step), wall, end_reason, policy.state.objects_fixed, timings, record,
+                               aborted)
+        if writer:
+            writer.finish({"episode": info, "steps": result.steps, "wall_s": round(wall, 2),
+                           "end_reason": end_reason, "objects_fixed": result.objects_fixed,
+                           "events": len(events), "record": record})
+        log.info("episode %s: %d steps, %.1f s, fixed %d (%s)", self._name(spec), result.steps, wall,
+                 result.objects_fixed, end_reason)
+        return result
+
+    @staticmethod
+    def _name(spec: EpisodeSpec) -> str:
+        mess = "tidy" if spec.mess_index is None else f"mess{spec.mess_index}"
+        return f"{spec.room_type}_{spec.seed}_{mess}"
+
+    # ------------------------------------------------------------------ telemetry
+    def _status(self, obs: Observation, body: Body, policy: TidyPolicy, info: dict,
+                trajectory: list[tuple[float, float]]) -> AgentStatus:
+        st = policy.state
+        traj = np.asarray(trajectory[-2000:], np.float32).reshape(-1, 2)
+        return AgentStatus(
+            session=self.session, step=int(obs.step), phase=st.phase, episode=info,
+            pose=tuple(float(v) for v in obs.agent_pose), paused=self.paused,
+            target_object=st.target.label if st.target else None, target_id=st.target.id if st.target else None,
+            target_receptacle=st.target_receptacle,
+            predictions=[ReceptaclePrediction(r, float(p)) for r, p in st.predictions[:5]],
+            held=obs.held, objects_fixed=st.objects_fixed, oop_found=st.oop_found, done=bool(obs.done),
+            message=st.message, trajectory=traj,
+            path=body.path if body.path is not None and len(body.path) else None,
+            goal=body.goal)
+
+    def _emit(self, obs: Observation, dets: list, body: Body, policy: TidyPolicy, info: dict,
+              trajectory: list[tuple[float, float]], writer: LogWriter | None) -> None:
+        if self.publisher is None and writer is None:
+            return
+        mapper = body.mapper
+        ids = mapper.last_track_ids
+
+        def frame() -> AgentFrame:
+            d2 = []
+            for k, d in enumerate(dets):
+                tid = ids[k] if k < len(ids) else None
+                tracked = mapper.memory.get(tid) if tid is not None else None
+                d2.append(Detection2D(d.label, float(d.score), tuple(float(v) for v in d.box),
+                                      oop_prob=tracked.oop_prob if tracked else d.oop_prob, track_id=tid))
+            return AgentFrame(self.session, int(obs.step), np.asarray(obs.rgb), np.asarray(obs.depth, np.float32),
+                              np.asarray(obs.camera_pose), np.asarray(obs.intrinsics), d2, self.perception.name)
+
+        def memory() -> ObjectMemoryMsg:
+            return ObjectMemoryMsg(self.session, int(obs.step), [
+                TrackedObjectMsg(o.id, o.label, float(o.score), tuple(map(float, o.centroid)),
+                                 tuple(map(float, o.box_min)), tuple(map(float, o.box_max)),
+                                 o.oop_prob, bool(o.out_of_place), False) for o in mapper.memory])
+
+        builders = {"status": lambda: self._status(obs, body, policy, info, trajectory), "frame": frame,
+                    "maps": lambda: mapper.snapshot(self.session, int(obs.step)), "memory": memory}
+        final = bool(obs.done)
+        for kind, build in builders.items():
+            msg = None
+            if self.publisher is not None:
+                msg = self.publisher.offer(kind, build, force=final)
+            if writer is not None:
+                # The log keeps every status, and the other kinds at most every 10th step.
+                if msg is None and (kind == "status" or obs.step % 10 == 0 or final):
+                    msg = build()
+                if msg is not None:
+                    writer.message(kind, msg)
+
+    # ------------------------------------------------------------------ commands
+    def _handle_commands(self, body: Body, policy: TidyPolicy, info: dict, trajectory: list,
+                         writer: LogWriter | None) -> AgentCommand | None:
+        if self.publisher is None:
+            return None
+        while True:
+            for cmd in self.publisher.commands():
+                if isinstance(cmd, str):
+                    log.warning(cmd)
+                    self._ack(AgentCommand(kind="pause", command_id="?"), False, cmd)
+                    continue
+                if cmd.kind == "pause":
+                    self.paused = True
+                    self._ack(cmd, True, "paused")
+                elif cmd.kind == "resume":
+                    self.paused, self._single_steps = False, 0
+                    self._ack(cmd, True, "resumed")
+                elif cmd.kind == "step":
+                    self.paused, self._single_steps = True, self._single_steps + 1
+                    self._ack(cmd, True, "one step")
+                elif cmd.kind == "new_episode":
+                    self._ack(cmd, True, f"starting {cmd.room_type} seed {cmd.seed} mess {cmd.mess_index}")
+                    return cmd
+                elif cmd.kind == "preference":
+                    if writer:
+                        writer.event(kind="preference", text=cmd.text)
+                    self._ack(cmd, True, f"noted preference {cmd.text!r}; the language OOP model that learns from "
+                                         "it is not built yet (issue 6), so placements do not change")
+            if not self.paused:
+                return None
+            if self._single_steps > 0:
+                self._single_steps -= 1
+                return None
+            self.publisher.offer("status", lambda: self._status(body.obs, body, policy, info, trajectory), force=True)
+            time.sleep(0.05)
+
+    def _ack(self, cmd: AgentCommand, ok: bool, message: str) -> None:
+        assert self.publisher is not None
+        self.publisher.offer("ack", lambda: CommandAck(self.session, cmd.command_id, cmd.kind, ok, message),
+                             force=True)
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluation_record(self, spec: EpisodeSpec, initial: dict | None, final: dict, events: list[dict[str, Any]],
+                          picked: set[str], obs: Observation, wall: float, end_reason: str) -> dict[str, Any]:
+        """Score the episode against the server's privileged state (evaluation only)."""
+        assert initial is not None
+        mess = {m["id"]: m for m in initial.get("mess", [])}
+        start = final["start"]
+        c, s = math.cos(math.radians(start["yaw_deg"])), math.sin(math.radians(start["yaw_deg"]))
+
+        def to_world(p: list[float]) -> np.ndarray:
+            return np.array([start["x"] + c * p[0] - s * p[1], start["y"] + s * p[0] + c * p[1]])
+
+        flagged = [(e["label"], to_world(e["centroid"])) for e in events if e["kind"] == "oop_found"]
+        init_objs = {o["id"]: o for o in initial["objects"]}
+        objects = []
+        for o in final["objects"]:
+            if not o["pickupable"] or o["id"] not in init_objs:
+                continue
+            first = init_objs[o["id"]]
+            moved = o["id"] in mess
+            pos0 = np.asarray(first["position"][:2])
+            found = o["id"] in picked or (moved and any(
+                lbl == o["type"] and float(np.linalg.norm(xy - pos0)) < 0.75 for lbl, xy in flagged))
+            objects.append({
+                "id": o["id"], "type": o["type"], "variant": o.get("variant"), "moved": moved,
+                "found": bool(found), "picked": o["id"] in picked,
+                "original_parent_type": mess[o["id"]]["original_parent_type"] if moved else first["parent_type"],
+                "messy_parent_type": first["parent_type"],
+                "final_parent_type": o["parent_type"]})
+        receptacles = sorted({o["type"] for o in final["objects"] if o.get("receptacle") and not o.get("pickupable")})
+        return {"variant": self.cfg.variant, "perception": self.cfg.perception, "oop": self.cfg.oop,
+                "split": None, "room_type": spec.room_type, "seed": spec.seed, "mess_index": spec.mess_index,
+                "steps": int(obs.step), "wall_s": round(wall, 2), "end_reason": end_reason,
+                "present_receptacles": receptacles, "objects": objects}
+

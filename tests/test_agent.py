@@ -1,0 +1,148 @@
+"""The agent's non-learned modules: oracle perception, statistics, OOP, placement, logs, telemetry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.fixtures import spec, table_room
+from tidee.agent.classes import CLASSES, PICKUPABLE, RECEPTACLES
+from tidee.agent.config import AgentConfig, PolicyConfig
+from tidee.agent.evaluation.tidy_eval import select_configs
+from tidee.agent.mapping.memory import ObjectMemory
+from tidee.agent.perception import make_perception
+from tidee.agent.reasoning.oop import RelationStatsOOP, support_label
+from tidee.agent.reasoning.placement import CommonMemory
+from tidee.agent.reasoning.stats import PlacementStats, build_stats
+from tidee.agent.telemetry import RateLimiter
+from tidee.protocol.episode_log import LogReader, LogWriter
+from tidee.protocol.messages import AgentStatus, ReceptaclePrediction
+
+
+def _memory_with(*entries: tuple[str, tuple, tuple, tuple]) -> ObjectMemory:
+    mem = ObjectMemory()
+    for label, c, lo, hi in entries:
+        mem.add_or_merge(label, 1.0, np.array(c, float), np.array(lo, float), np.array(hi, float), step=0)
+    return mem
+
+
+def test_class_list_is_the_catalog_minus_structure() -> None:
+    assert "Floor" not in CLASSES and "Wall" not in CLASSES
+    assert {"Mug", "DiningTable", "Fridge", "AlarmClock"} <= set(CLASSES)
+    assert "Mug" in PICKUPABLE and "DiningTable" in RECEPTACLES and "Mug" not in RECEPTACLES
+
+
+def test_oracle_perception_sees_the_table_mug_and_fridge() -> None:
+    from tidee.server.episode import Episode
+
+    ep = Episode(renderer="tiny")
+    try:
+        obs = ep.load(table_room(), spec(128), agent_xy=(2.0, 0.6), yaw_deg=90.0, ground_truth=True)
+        obs = ep.step(__import__("tidee.protocol.messages", fromlist=["Action"]).Action("LookDown"), ground_truth=True)
+    finally:
+        ep.close()
+    dets = make_perception("oracle").detect(obs)
+    by_label = {d.label: d for d in dets}
+    assert {"DiningTable", "Mug"} <= set(by_label), sorted(by_label)
+    mug, table = by_label["Mug"], by_label["DiningTable"]
+    assert mug.source == "oracle" and mug.score == 1.0 and mug.mask.sum() > 0
+    x0, y0, x1, y1 = mug.box
+    assert 0 <= x0 < x1 <= 128 and 0 <= y0 < y1 <= 128
+    # The mug stands on the table: its box is inside the table's columns and above its bottom.
+    assert table.box[0] <= x0 and x1 <= table.box[2] and y1 <= table.box[3]
+    # Without ground truth the oracle refuses, saying why.
+    obs.ground_truth = None
+    with pytest.raises(ValueError, match="ground truth"):
+        make_perception("oracle").detect(obs)
+
+
+def test_learned_modules_not_built_say_so() -> None:
+    with pytest.raises(NotImplementedError, match="issue 5"):
+        make_perception("learned")
+    with pytest.raises(NotImplementedError, match="issue 6"):
+        AgentConfig(variant="TIDEE")
+    with pytest.raises(ValueError, match="unknown variant"):
+        AgentConfig(variant="Tidy")
+    with pytest.raises(ValueError, match="oop_threshold"):
+        PolicyConfig(oop_threshold=0.0)
+
+
+def test_shipped_statistics_come_from_training_rooms_only() -> None:
+    stats = PlacementStats.load()
+    assert stats.meta["split"] == "train"
+    assert stats.meta["rooms"] >= 80
+    # Mugs rest on tables and counters in training rooms, never on the floor.
+    mug = stats.table("Mug", "Kitchen")
+    assert sum(mug.values()) >= 5 and mug.get("Floor", 0) == 0
+    with pytest.raises(ValueError, match="val/test"):
+        build_stats([0, 200])
+
+
+def test_relation_stats_oop_flags_a_mug_on_the_floor_not_on_the_counter() -> None:
+    oop = RelationStatsOOP()
+    mem = _memory_with(
+        ("CounterTop", (1.0, 0.0, 0.45), (0.5, -0.3, 0.0), (1.5, 0.3, 0.9)),
+        ("Mug", (1.0, 0.1, 0.95), (0.95, 0.05, 0.9), (1.05, 0.15, 1.0)),      # on the counter
+        ("Mug", (-1.5, 1.0, 0.05), (-1.55, 0.95, 0.0), (-1.45, 1.05, 0.1)),   # on the floor
+    )
+    objs = list(mem)
+    on_counter, on_floor = objs[1], objs[2]
+    assert support_label(on_counter, objs) == "CounterTop"
+    assert support_label(on_floor, objs) == "Floor"
+    probs = oop.score_all([on_counter, on_floor], objs, "Kitchen")
+    assert probs[on_counter.id] < 0.5
+    assert probs[on_floor.id] == pytest.approx(1.0)
+
+
+def test_common_memory_ranks_by_training_frequency_whatever_the_room() -> None:
+    stats = PlacementStats.load()
+    mem = _memory_with(("Mug", (0, 0, 0.05), (0, 0, 0), (0.1, 0.1, 0.1)))
+    ranked = CommonMemory(stats).predict(next(iter(mem)), mem, "Bedroom")
+    assert ranked and abs(sum(p for _, p in ranked) - 1.0) < 0.05
+    table = stats.table("Mug")
+    assert ranked[0][0] == max(table, key=table.get)
+    assert [p for _, p in ranked] == sorted((p for _, p in ranked), reverse=True)
+    # Category only: the same ranking in every room type.
+    assert ranked == CommonMemory(stats).predict(next(iter(mem)), mem, "Kitchen")
+
+
+def test_select_configs_spreads_over_room_types() -> None:
+    configs = select_configs("test", 8)
+    assert len(configs) == 8
+    assert {c.room_type for c in configs} == {"Kitchen", "LivingRoom", "Bedroom", "Bathroom"}
+    assert all(c.seed in range(200, 205) for c in configs)
+    assert len(select_configs("test", None)) == 100
+
+
+def test_rate_limiter_keeps_to_its_rate() -> None:
+    now = [0.0]
+    lim = RateLimiter({"maps": 4.0}, clock=lambda: now[0])
+    sent = 0
+    for _ in range(100):           # 10 s at 10 Hz offered
+        sent += lim.due("maps")
+        now[0] += 0.1
+    assert 38 <= sent <= 41
+
+
+def _status(step: int) -> AgentStatus:
+    return AgentStatus(session="s", step=step, phase="mapping", episode={"room_type": "Kitchen"},
+                       pose=(0.1 * step, 0.0, 0.0, 30.0), predictions=[ReceptaclePrediction("Desk", 0.5)],
+                       trajectory=np.zeros((step + 1, 2), np.float32))
+
+
+def test_episode_log_round_trip_and_truncated_tail(tmp_path) -> None:
+    with LogWriter(tmp_path / "ep") as w:
+        for step in range(5):
+            w.message("status", _status(step))
+            w.event(kind="action", step=step, action="MoveAhead")
+    r = LogReader(tmp_path / "ep")
+    msgs = list(r.messages())
+    assert [m.step for _, m in msgs] == [0, 1, 2, 3, 4] and not r.truncated
+    assert r.summary() is None                 # never finished: no summary
+    assert len(r.events()) == 5
+    # A crash mid-write leaves a torn last record: the reader keeps the complete ones.
+    path = tmp_path / "ep" / "telemetry.tlog"
+    path.write_bytes(path.read_bytes()[:-7])
+    r2 = LogReader(tmp_path / "ep")
+    assert [m.step for _, m in r2.messages()] == [0, 1, 2, 3] and r2.truncated
+    assert "truncated" in r2.corrupt_message

@@ -1,0 +1,70 @@
+"""``tidee run``: server, agent and viewer as separate processes on embedded Zenoh.
+
+The server listens on a free loopback port (the rendezvous endpoint); the agent and the
+viewer connect to it. Prints the viewer's URL, waits for the agent's episodes to end,
+keeps everything up for ``linger`` seconds so a person can look around, then stops the
+processes in reverse order. Nothing here imports torch or pybullet.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@dataclass
+class RunConfig:
+    agent_args: list[str] = field(default_factory=list)   # passed through to `tidee agent`
+    viewer: bool = True
+    host: str = "127.0.0.1"
+    port: int = 8080
+    linger: float = 30.0
+    renderer: str = "auto"
+    endpoint: str | None = None
+
+
+def _tidee(*args: str) -> list[str]:
+    return [sys.executable, "-m", "tidee.cli", *args]
+
+
+def run_all(cfg: RunConfig) -> int:
+    endpoint = cfg.endpoint or f"tcp/127.0.0.1:{free_port()}"
+    procs: list[tuple[str, subprocess.Popen]] = []
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    try:
+        procs.append(("server", subprocess.Popen(_tidee("server", "--endpoint", endpoint, "--renderer", cfg.renderer),
+                                                 env=env)))
+        print(f"run: server on {endpoint}", flush=True)
+        if cfg.viewer:
+            procs.append(("viewer", subprocess.Popen(_tidee("viewer", "--endpoint", endpoint, "--host", cfg.host,
+                                                            "--port", str(cfg.port)), env=env)))
+            print(f"run: viewer at http://{cfg.host}:{cfg.port}  (open it in a browser)", flush=True)
+        agent = subprocess.Popen(_tidee("agent", "--endpoint", endpoint, *cfg.agent_args), env=env)
+        procs.append(("agent", agent))
+        rc = agent.wait()
+        print(f"run: agent finished (exit {rc})", flush=True)
+        if cfg.viewer and cfg.linger > 0:
+            print(f"run: keeping the viewer up for {cfg.linger:.0f} s (Ctrl-C to stop now)", flush=True)
+            time.sleep(cfg.linger)
+        return rc
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        for name, p in reversed(procs):
+            if p.poll() is None:
+                p.terminate()
+        for name, p in reversed(procs):
+            try:
+                p.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                p.kill()
