@@ -104,7 +104,9 @@ def _wait_for_new_episode(publisher: TelemetryPublisher, runner: EpisodeRunner) 
                 publisher.offer("ack", lambda c=cmd: CommandAck(publisher.session_id, c.command_id, c.kind, True,
                                                                 "starting"), force=True)
                 return cmd
-            publisher.offer("ack", lambda c=cmd: CommandAck(publisher.session_id, c.command_id, c.kind, False,
-                                                            "no episode is running; start one first"), force=True)
+            ok = cmd.kind in ("pause", "resume", "step")   # harmless while idle; a preference needs an episode
+            publisher.offer("ack", lambda c=cmd, ok=ok: CommandAck(
+                publisher.session_id, c.command_id, c.kind, ok,
+                "idle: no episode is running" if ok else "no episode is running; start one first"), force=True)
         time.sleep(0.1)
 

@@ -17,6 +17,9 @@ if [ ${#need_pkgs[@]} -gt 0 ] && command -v apt-get >/dev/null 2>&1; then
     || echo "setup: could not install ${need_pkgs[*]}; the simulator will use the TinyRenderer"
 fi
 
+# Debian's chromium, for the viewer's end-to-end browser test (skipped without it); not fatal.
+bash scripts/install_chromium.sh || true
+
 if [ ! -x "$VENV/bin/python" ]; then
   python3 -m venv "$VENV"
 fi

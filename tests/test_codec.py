@@ -12,7 +12,9 @@ import pytest
 
 from tidee.protocol.codec import (ALIGN, DEFAULT_MAX_BYTES, MAGIC, MESSAGE_TYPES, ProtocolError, decode,
                                   encode)
-from tidee.protocol.messages import (PROTOCOL_VERSION, Action, ActionName, CloseReply, CloseRequest,
+from tidee.protocol.messages import (AgentCommand, AgentFrame, AgentStatus, CommandAck, Detection2D,
+                                     MapSnapshot, ObjectMemoryMsg, ReceptaclePrediction, SearchHeatmap,
+                                     TrackedObjectMsg, PROTOCOL_VERSION, Action, ActionName, CloseReply, CloseRequest,
                                      EpisodeSpec, ErrorCode, ErrorReply, GroundTruth, Observation,
                                      ResetRequest, StateReply, StateRequest, StepRequest)
 
@@ -55,6 +57,24 @@ EXAMPLES: list[Any] = [
     CloseRequest("s1"),
     CloseReply("s1", closed=True),
     ErrorReply(ErrorCode.server_busy, "full", session=None),
+    ReceptaclePrediction("Desk", 0.4),
+    AgentStatus(session="s1", step=7, phase="placing", episode={"room_type": "Bedroom", "seed": 201},
+                pose=(0.5, -0.25, 90.0, 30.0), target_object="AlarmClock", target_id=3, target_receptacle="Desk",
+                predictions=[ReceptaclePrediction("Desk", 0.6), ReceptaclePrediction("SideTable", 0.3)],
+                held="AlarmClock", objects_fixed=1, oop_found=2, trajectory=np.zeros((3, 2), np.float32),
+                path=np.ones((4, 2), np.float32), goal=(1.0, 2.0)),
+    Detection2D("Mug", 0.9, (1.0, 2.0, 10.0, 12.0), oop_prob=0.8, track_id=4),
+    AgentFrame("s1", 7, np.zeros((8, 8, 3), np.uint8), np.ones((8, 8), np.float32), np.eye(4),
+               np.eye(3), [Detection2D("Mug", 0.9, (1.0, 2.0, 5.0, 6.0))]),
+    MapSnapshot("s1", 7, (-6.4, -6.4), 0.05, np.zeros((6, 5), np.uint8), np.zeros((6, 5), bool), 0.1,
+                np.zeros((3, 3), np.float32), np.array([-1, 0, 5], np.int16), ["Mug", "Desk"]),
+    TrackedObjectMsg(2, "Mug", 1.0, (1.0, 0.0, 0.9), (0.9, -0.1, 0.85), (1.1, 0.1, 0.95), 0.7, True),
+    ObjectMemoryMsg("s1", 7, [TrackedObjectMsg(2, "Mug", 1.0, (1.0, 0.0, 0.9), (0.9, -0.1, 0.85),
+                                               (1.1, 0.1, 0.95))]),
+    SearchHeatmap("s1", 7, "Desk", (-6.4, -6.4), 0.1, np.zeros((4, 4), np.float32),
+                  np.zeros((2, 2), np.float32)),
+    AgentCommand(kind="preference", command_id="c1", text="I want my alarm clock on the desk"),
+    CommandAck("s1", "c1", "preference", True, "noted"),
 ]
 
 

@@ -1,0 +1,427 @@
+"""The viewer process: a viser server fed by live Zenoh telemetry or by a saved log.
+
+One update worker thread does all decoding and drawing, at most ``rate_hz`` times a
+second, applying only the newest message of each kind (latest wins), every batch inside
+``server.atomic()``. GUI callbacks (viser's thread pool) only record what was asked or
+put a command on Zenoh. Memory stays flat: no list grows with the episode (the live plot
+is a bounded deque; the trajectory arrives whole in each status message).
+
+``run_viewer(config)`` starts it in-process and returns a handle (``.url``, ``.stop()``);
+``serve(config)`` runs it until SIGINT/SIGTERM (``tidee viewer``).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import viser
+from tidee.protocol import keys
+from tidee.protocol.messages import AgentCommand, AgentFrame, AgentStatus, MapSnapshot, SearchHeatmap
+from tidee.viewer import geometry, images, palette
+from tidee.viewer.feed import OBSERVATION, LiveFeed
+from tidee.viewer.panels import Panels
+from tidee.viewer.replay import ReplayLog
+from tidee.viewer.scene_view import SceneView, oracle_objects
+
+log = logging.getLogger("tidee.viewer")
+
+HISTORY_POINTS = 600             # live plot: (step, fixed, OOP found) rows kept
+SESSION_REFRESH_S = 1.0
+
+
+@dataclass
+class ViewerConfig:
+    endpoint: str | None = None          # peer mode: the rendezvous to connect to (default loopback:7447)
+    router: str | None = None            # or client mode through this Zenoh router
+    host: str = "127.0.0.1"              # loopback by default: the viewer can send commands to agents
+    port: int = 8080                     # 0: any free port (the handle's url says which)
+    session: str | None = None           # pin one session; None follows the newest
+    replay: str | None = None            # a log directory to play back instead of live telemetry
+    rate_hz: float = 10.0                # scene/panel updates per second, at most (per kind)
+    max_points: int = 200_000            # voxel points sent to the browser, at most
+    oracle_period_s: float = 1.0         # ground-truth layer: how often to ask the server
+
+    def __post_init__(self) -> None:
+        if not 0 <= int(self.port) <= 65535:
+            raise ValueError(f"port must be in [0, 65535], got {self.port}")
+        if not 0 < float(self.rate_hz) <= 60:
+            raise ValueError(f"rate_hz must be in (0, 60], got {self.rate_hz}")
+        if int(self.max_points) < 1:
+            raise ValueError(f"max_points must be >= 1, got {self.max_points}")
+        if self.session is not None:
+            keys.check_id("session", self.session)
+        if self.replay is not None and not os.path.isdir(self.replay):
+            raise FileNotFoundError(f"--replay {self.replay!r} is not a directory (expected an episode log "
+                                    f"directory holding telemetry.tlog)")
+        if self.endpoint and self.router:
+            raise ValueError("give either endpoint (peer mode) or router (client mode), not both")
+
+
+@dataclass
+class ViewerStats:
+    """What the update worker has done (read by tests and the benchmark)."""
+
+    updates: int = 0                     # worker cycles that drew something
+    applied: dict[str, int] = field(default_factory=lambda: collections.defaultdict(int))
+    last_step: int = -1
+    started: float = field(default_factory=time.monotonic)
+
+
+class ViewerApp:
+    def __init__(self, config: ViewerConfig) -> None:
+        self.config = config
+        self.replay = ReplayLog(config.replay) if config.replay else None
+        self.feed: LiveFeed | None = None
+        self.stats = ViewerStats()
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._lock = threading.Lock()             # guards the requests below (GUI threads -> worker)
+        self._requests: dict[str, Any] = {}
+        self._history: collections.deque[tuple[float, float, float]] = collections.deque(maxlen=HISTORY_POINTS)
+        self._session_shown: str | None = None
+        self._camera_aimed = False                # at the first map of each session
+        self._latest: dict[str, Any] = {}         # the newest message of each kind on screen
+        self._agent_frames = False                # this session sends AgentFrames (else observations fill in)
+        self._oracle_on = False
+        self._oracle_thread: threading.Thread | None = None
+        self._replay_step = self.replay.first_step if self.replay else 0
+        self._replay_playing, self._replay_rate = False, 10.0
+        self._replay_shown: dict[str, int | None] = {}
+
+        port = config.port or _free_port(config.host)
+        self.server = viser.ViserServer(host=config.host, port=port, label="tidee", verbose=False)
+        self.url = f"http://{_display_host(config.host)}:{self.server.get_port()}"
+        try:
+            self.scene = SceneView(self.server, max_points=config.max_points)
+            steps = (self.replay.first_step, self.replay.last_step) if self.replay else None
+            self.panels = Panels(self.server, self, steps, initial_session=config.session)
+            if self.replay is None:
+                self.feed = LiveFeed(config.endpoint, config.router, config.session)
+        except BaseException:
+            self.server.stop()
+            raise
+        self._worker = threading.Thread(target=self._run, daemon=True, name="tidee-viewer-update")
+
+    # --- lifecycle ------------------------------------------------------------------------
+    def start(self) -> ViewerApp:
+        self._worker.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._worker.is_alive():
+            self._worker.join(timeout=10)
+        if self._oracle_thread is not None:
+            self._oracle_thread.join(timeout=5)
+        if self.feed is not None:
+            self.feed.close()
+        self.server.stop()
+
+    # --- the update worker -----------------------------------------------------------------------
+    def _run(self) -> None:
+        """Requests from the GUI are handled as soon as they come (a wake-up); telemetry is
+        drawn at most ``rate_hz`` times a second, however often the worker wakes."""
+        period = 1.0 / self.config.rate_hz
+        next_draw = next_sessions = 0.0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            try:
+                self._handle_requests()
+                if now >= next_draw:
+                    next_draw = now + period
+                    if self.replay is not None:
+                        self._replay_tick(period)
+                    else:
+                        self._live_tick()
+                if self.feed is not None and now >= next_sessions:
+                    self._refresh_sessions()
+                    next_sessions = now + SESSION_REFRESH_S
+            except Exception:  # a bad message must not end the viewer
+                log.exception("viewer update failed")
+            self._wake.wait(max(0.0, next_draw - time.monotonic()))
+            self._wake.clear()
+
+    def _live_tick(self) -> None:
+        assert self.feed is not None
+        msgs = self.feed.poll()
+        selected = self.feed.selected
+        if selected != self._session_shown:
+            self._switch_session(selected)
+            # a choice made during the poll: keep only the new session's messages
+            msgs = {k: m for k, m in msgs.items() if getattr(m, "session", selected) == selected}
+        if msgs:
+            self._draw(msgs)
+
+    def _switch_session(self, session: str | None) -> None:
+        with self.server.atomic():
+            self.scene.clear()
+        self._session_shown, self._latest, self._agent_frames = session, {}, False
+        self._camera_aimed = False
+        self._history.clear()
+        self.panels.show_title(self._title())
+        log.info("viewer: showing session %s", session)
+
+    def _draw(self, msgs: dict[str, Any]) -> None:
+        """Apply one batch (at most one message per kind) to the scene and panels."""
+        status, shown = msgs.get("status"), self._latest.get("status")
+        if status is not None and shown is not None and status.step < shown.step:
+            self._switch_session(self._session_shown)  # a new episode: drop the old one's layers
+        with self.server.atomic():
+            for kind in ("maps", "memory", "search", "frame", OBSERVATION, "status", "ack"):
+                msg = msgs.get(kind)
+                if msg is None:
+                    continue
+                self._apply(kind, msg)
+                self.stats.applied[kind] += 1
+            if "maps" in msgs or "status" in msgs or "search" in msgs:
+                self._draw_map()
+        self.stats.updates += 1
+        self.panels.show_title(self._title())
+
+    def _apply(self, kind: str, msg: Any) -> None:
+        if kind == "ack":
+            self.panels.show_ack(msg)
+            return
+        if kind == OBSERVATION:
+            if self._agent_frames:
+                return  # the agent's own frames (with detections) take precedence
+            self.scene.apply_frame(msg)
+            self.panels.show_camera(images.upscale(np.asarray(msg.rgb), 512)[0], images.colorize_depth(msg.depth))
+            return
+        self._latest[kind] = msg
+        self.scene.apply(kind, msg)
+        if isinstance(msg, MapSnapshot):
+            self._show_legend(msg)
+            if not self._camera_aimed and self.scene.plane is not None:
+                self._aim_camera(self.scene.plane)
+                self._camera_aimed = True
+        elif isinstance(msg, AgentFrame):
+            self._agent_frames = True
+            self.panels.show_camera(images.draw_detections(msg.rgb, msg.detections), images.colorize_depth(msg.depth))
+        elif isinstance(msg, AgentStatus):
+            self.stats.last_step = msg.step
+            self.panels.show_status(msg)
+            if self._history and msg.step < self._history[-1][0]:
+                self._history.clear()  # a new episode started
+            if not self._history or msg.step > self._history[-1][0]:
+                self._history.append((float(msg.step), float(msg.objects_fixed), float(msg.oop_found)))
+            if self.replay is None:
+                self.panels.show_plot(np.array(self._history))
+
+    def _show_legend(self, msg: MapSnapshot) -> None:
+        labels = np.asarray(msg.point_labels)
+        valid = labels[(labels >= 0) & (labels < len(msg.classes))].astype(np.int64)
+        counts = np.bincount(valid, minlength=len(msg.classes))
+        self.panels.show_legend(palette.legend_html(msg.classes, counts))
+
+    def _draw_map(self) -> None:
+        maps: MapSnapshot | None = self._latest.get("maps")
+        if maps is None or maps.occupancy.size == 0 or maps.cell <= 0:
+            return
+        status: AgentStatus | None = self._latest.get("status")
+        search: SearchHeatmap | None = self._latest.get("search")
+        img = images.occupancy_image(
+            maps.occupancy, maps.explored, maps.origin, maps.cell,
+            pose=status.pose if status else None, trajectory=status.trajectory if status else None,
+            path=status.path if status else None, goal=status.goal if status else None,
+            search_points=search.points if search is not None else None)
+        self.panels.show_map(img)
+
+    def _title(self) -> str:
+        if self.replay is not None:
+            return (f"**tidee viewer** · replay of `{os.path.basename(os.path.abspath(self.replay.directory))}` "
+                    f"· session {self.replay.session or '?'}")
+        assert self.feed is not None
+        session = self._session_shown or "none yet"
+        mode = "pinned" if self.feed.pinned else "newest"
+        err = f" · **{self.feed.decode_errors} undecodable**" if self.feed.decode_errors else ""
+        step = f" · step {self.stats.last_step}" if self.stats.last_step >= 0 else ""
+        return f"**tidee viewer** · session `{session}` ({mode}){step} · via {self.feed.where}{err}"
+
+    def _refresh_sessions(self) -> None:
+        assert self.feed is not None
+        self.panels.show_sessions(self.feed.sessions(), self.feed.selected if self.feed.pinned else None)
+
+    def _aim_camera(self, plane: geometry.FloorPlane) -> None:
+        view = geometry.overview_camera(plane)
+        self.server.initial_camera.position = view.position
+        self.server.initial_camera.look_at = view.look_at
+        for client in self.server.get_clients().values():
+            try:
+                with client.atomic():
+                    client.camera.position = view.position
+                    client.camera.look_at = view.look_at
+            except (AssertionError, ValueError):
+                pass  # the client has not reported its camera yet; it gets the initial camera
+
+    # --- replay ----------------------------------------------------------------------------------
+    def _replay_tick(self, period: float) -> None:
+        assert self.replay is not None
+        with self._lock:
+            if self._replay_playing:
+                advance = max(1, round(self._replay_rate * period))
+                self._replay_step = min(self.replay.last_step, self._replay_step + advance)
+                if self._replay_step >= self.replay.last_step:
+                    self._replay_playing = False
+            step = self._replay_step
+        current = {kind: self.replay.index_at(kind, step) for kind in ("status", "frame", "maps", "memory", "search")}
+        changed = [k for k, i in current.items() if i != self._replay_shown.get(k, -1)]
+        if not changed:
+            return
+        msgs = {k: v for k, v in self.replay.at(step).items() if k in changed}
+        if any(current[k] is None and self._replay_shown.get(k) is not None for k in changed):
+            with self.server.atomic():  # slid back before a kind's first message: start clean
+                self.scene.clear()
+            self._latest, self._agent_frames = {}, False
+            msgs = self.replay.at(step)
+        self._replay_shown = current
+        if msgs:
+            self._draw(msgs)
+        self.panels.show_plot(self.replay.history(step))
+        trunc = f" · **log truncated** ({self.replay.corrupt_message})" if self.replay.truncated else ""
+        self.panels.show_replay_step(step, f"step {step} of {self.replay.first_step}–{self.replay.last_step} · "
+                                           f"{self.replay.messages} messages{trunc}")
+
+    # --- PanelActions (viser's thread pool) -------------------------------------------------------
+    def select_session(self, session: str | None) -> None:
+        if self.feed is not None:
+            self.feed.select(session)
+            self._wake.set()
+
+    def command(self, kind: str, **fields: object) -> None:
+        if self.feed is None:
+            return
+        try:
+            cmd = AgentCommand(kind=kind, command_id=uuid.uuid4().hex[:12], **fields)  # type: ignore[arg-type]
+            target = self.feed.send(cmd)
+        except (ValueError, RuntimeError) as e:
+            self.panels.show_sent(f"**not sent**: {e}")
+            return
+        self.panels.show_sent(f"**{kind}** sent to `{target}` (id {cmd.command_id}); waiting for the agent's ack…")
+
+    def set_layer(self, layer: str, on: bool) -> None:
+        with self._lock:
+            self._requests[f"layer:{layer}"] = on
+        self._wake.set()
+
+    def set_occupancy_only(self, on: bool) -> None:
+        with self._lock:
+            self._requests["occupancy_only"] = on
+        self._wake.set()
+
+    def reset_view(self) -> None:
+        with self._lock:
+            self._requests["reset_view"] = True
+        self._wake.set()
+
+    def replay_seek(self, step: int) -> None:
+        with self._lock:
+            self._replay_step = int(step)  # drawn at the next tick (the slider also moves while playing)
+
+    def replay_play(self, playing: bool, steps_per_s: float) -> None:
+        with self._lock:
+            if playing and self.replay is not None and self._replay_step >= self.replay.last_step:
+                self._replay_step = self.replay.first_step  # play again from the start
+            self._replay_playing, self._replay_rate = playing, max(0.1, float(steps_per_s))
+        self._wake.set()
+
+    def _handle_requests(self) -> None:
+        with self._lock:
+            requests, self._requests = self._requests, {}
+        if not requests:
+            return
+        with self.server.atomic():
+            for name, value in requests.items():
+                if name.startswith("layer:"):
+                    layer = name.split(":", 1)[1]
+                    self.scene.set_layer(layer, bool(value))
+                    if layer == "oracle":
+                        self._set_oracle(bool(value))
+                elif name == "occupancy_only":
+                    self.scene.set_occupancy_only(bool(value))
+                elif name == "reset_view" and self.scene.plane is not None:
+                    self._aim_camera(self.scene.plane)
+                elif name == "oracle_objects" and self._oracle_on:
+                    self.scene.apply_oracle(value)
+
+    # --- oracle ------------------------------------------------------------------------------------
+    def _set_oracle(self, on: bool) -> None:
+        self._oracle_on = on
+        if on and self.feed is not None and (self._oracle_thread is None or not self._oracle_thread.is_alive()):
+            self._oracle_thread = threading.Thread(target=self._oracle_loop, daemon=True, name="tidee-viewer-oracle")
+            self._oracle_thread.start()
+
+    def _oracle_loop(self) -> None:
+        """While the oracle layer is on: ask the session's server for its true state now and then."""
+        assert self.feed is not None
+        last_error = ""
+        while self._oracle_on and not self._stop.is_set():
+            session = self._session_shown
+            if session is not None:
+                try:
+                    objects = oracle_objects(self.feed.fetch_state(session))
+                    with self._lock:
+                        self._requests["oracle_objects"] = objects
+                    last_error = ""
+                except (LookupError, TimeoutError, RuntimeError, ValueError, KeyError) as e:
+                    if str(e) != last_error:
+                        log.warning("oracle layer: %s", e)
+                        last_error = str(e)
+            self._stop.wait(self.config.oracle_period_s)
+
+
+def _free_port(host: str) -> int:
+    with socket.socket() as s:
+        s.bind((host if host not in ("0.0.0.0", "") else "127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _display_host(host: str) -> str:
+    return "127.0.0.1" if host in ("0.0.0.0", "") else host
+
+
+class ViewerHandle:
+    """A running viewer: ``url``, ``app`` (its scene and stats), ``stop()``."""
+
+    def __init__(self, app: ViewerApp) -> None:
+        self.app = app
+        self.url = app.url
+
+    def stop(self) -> None:
+        self.app.stop()
+
+    def __enter__(self) -> ViewerHandle:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def run_viewer(config: ViewerConfig | None = None) -> ViewerHandle:
+    """Start a viewer in this process (threads only); returns at once with its handle."""
+    return ViewerHandle(ViewerApp(config or ViewerConfig()).start())
+
+
+def serve(config: ViewerConfig) -> None:
+    """``tidee viewer``: run until SIGINT or SIGTERM, printing the URL first."""
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    handle = run_viewer(config)
+    print(f"viewer: {handle.url}", flush=True)
+    try:
+        stop.wait()
+    finally:
+        handle.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

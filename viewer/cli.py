@@ -1,0 +1,31 @@
+"""``tidee viewer``: argument parsing only (viser is imported when the command runs)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("viewer", help="the live web viewer (viser): watch and steer agents in a browser")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--endpoint", default=None,
+                       help="Zenoh rendezvous to connect to (peer mode; default: TIDEE_ZENOH_ENDPOINT or "
+                            "tcp/127.0.0.1:7447)")
+    where.add_argument("--router", default=None, help="connect through this Zenoh router instead (client mode)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to serve the page on (default: loopback only; 0.0.0.0 exposes the agent "
+                        "controls to the network)")
+    p.add_argument("--port", type=int, default=8080, help="HTTP port (0: any free port); the URL is printed")
+    p.add_argument("--session", default=None, help="show this session (default: follow the newest)")
+    p.add_argument("--replay", default=None, metavar="LOGDIR",
+                   help="play back a saved episode log with a time slider instead of live telemetry")
+    p.add_argument("--rate", type=float, default=10.0, help="scene updates per second, at most (default 10)")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from tidee.viewer.app import ViewerConfig, serve
+
+    serve(ViewerConfig(endpoint=args.endpoint, router=args.router, host=args.host, port=args.port,
+                       session=args.session, replay=args.replay, rate_hz=args.rate))
+    return 0

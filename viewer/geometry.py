@@ -1,0 +1,173 @@
+"""Telemetry -> 3D geometry for the scene: boxes, polylines, frusta, floor planes, camera.
+
+Everything is in the episode's start frame (x forward, y left, z up, metres), which is
+also the viewer's world frame (viser is told +z is up). Pure numpy; no viser.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+# The 12 edges of a box whose 8 corners are indexed by bits (x: 1, y: 2, z: 4) of
+# the corner number: corner k takes max along an axis where its bit is set.
+BOX_EDGES = np.array([(a, a | bit) for bit in (1, 2, 4) for a in range(8) if not a & bit], dtype=np.int64)
+_CORNER_BITS = np.array([[(k >> axis) & 1 for axis in range(3)] for k in range(8)], dtype=bool)
+
+
+def box_corners(box_min: Sequence[float], box_max: Sequence[float]) -> np.ndarray:
+    """``8x3`` corners of an axis-aligned box; corner k has bit a set where it takes max on axis a."""
+    lo, hi = np.asarray(box_min, np.float64), np.asarray(box_max, np.float64)
+    if lo.shape != (3,) or hi.shape != (3,):
+        raise ValueError(f"box_min and box_max must be 3 numbers each, got {lo.shape} and {hi.shape}")
+    return np.where(_CORNER_BITS, hi, lo)
+
+
+def boxes_segments(box_mins: np.ndarray, box_maxs: np.ndarray) -> np.ndarray:
+    """``(12 N)x2x3`` wireframe segments of N axis-aligned boxes (N x 3 mins and maxes)."""
+    lo = np.asarray(box_mins, np.float32).reshape(-1, 3)
+    hi = np.asarray(box_maxs, np.float32).reshape(-1, 3)
+    if lo.shape != hi.shape:
+        raise ValueError(f"box mins and maxes differ in shape: {lo.shape} vs {hi.shape}")
+    corners = np.where(_CORNER_BITS[None], hi[:, None, :], lo[:, None, :])   # N x 8 x 3
+    return corners[:, BOX_EDGES].reshape(-1, 2, 3)
+
+
+def oriented_box_segments(center: Sequence[float], size: Sequence[float], rotation: np.ndarray) -> np.ndarray:
+    """``12x2x3`` segments of a box of ``size`` centred at ``center``, rotated by ``rotation`` (3x3)."""
+    half = np.asarray(size, np.float64) / 2.0
+    local = np.where(_CORNER_BITS, half, -half)
+    corners = local @ np.asarray(rotation, np.float64).T + np.asarray(center, np.float64)
+    return corners[BOX_EDGES].astype(np.float32)
+
+
+def polyline_segments(points: np.ndarray | None, z: float = 0.02) -> np.ndarray:
+    """``(N-1)x2x3`` segments joining N points (``Nx2`` at height ``z``, or ``Nx3``)."""
+    if points is None:
+        return np.zeros((0, 2, 3), np.float32)
+    pts = np.asarray(points, np.float32)
+    if pts.ndim != 2 or pts.shape[1] not in (2, 3):
+        raise ValueError(f"a polyline must be Nx2 or Nx3, got shape {pts.shape}")
+    if pts.shape[1] == 2:
+        pts = np.concatenate([pts, np.full((len(pts), 1), z, np.float32)], axis=1)
+    if len(pts) < 2:
+        return np.zeros((0, 2, 3), np.float32)
+    return np.stack([pts[:-1], pts[1:]], axis=1)
+
+
+def rotation_to_wxyz(rotation: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit quaternion (w, x, y, z) of a 3x3 rotation matrix (Shepperd's method, stable)."""
+    m = np.asarray(rotation, np.float64)
+    if m.shape != (3, 3):
+        raise ValueError(f"a rotation must be 3x3, got {m.shape}")
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0:
+        s = 2.0 * math.sqrt(trace + 1.0)
+        q = (0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s)
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = ((m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s)
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = ((m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s)
+    else:
+        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = ((m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s)
+    arr = np.asarray(q)
+    arr /= np.linalg.norm(arr)
+    if arr[0] < 0:
+        arr = -arr
+    return float(arr[0]), float(arr[1]), float(arr[2]), float(arr[3])
+
+
+def quat_xyzw_to_matrix(q: Sequence[float]) -> np.ndarray:
+    """3x3 rotation of a quaternion given as (x, y, z, w) (PyBullet's and the scene export's order)."""
+    x, y, z, w = (float(v) for v in q)
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if n == 0:
+        raise ValueError("a zero quaternion is not a rotation")
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+@dataclass(frozen=True)
+class Frustum:
+    """What viser's camera frustum needs: vertical fov (rad), aspect (w/h), pose in the world."""
+
+    fov: float
+    aspect: float
+    wxyz: tuple[float, float, float, float]
+    position: tuple[float, float, float]
+
+
+def frustum(camera_pose: np.ndarray, intrinsics: np.ndarray, width: int, height: int) -> Frustum:
+    """A frustum from an OpenCV camera (optical frame -> start frame pose, 3x3 intrinsics).
+
+    viser's frusta use the OpenCV convention too, so the pose's rotation is used as is.
+    """
+    pose, k = np.asarray(camera_pose, np.float64), np.asarray(intrinsics, np.float64)
+    if pose.shape != (4, 4) or k.shape != (3, 3):
+        raise ValueError(f"camera_pose must be 4x4 and intrinsics 3x3, got {pose.shape} and {k.shape}")
+    if width <= 0 or height <= 0 or k[1, 1] <= 0:
+        raise ValueError(f"need a positive image size and focal length, got {width}x{height}, fy={k[1, 1]}")
+    fov = 2.0 * math.atan(height / (2.0 * k[1, 1]))
+    pos = pose[:3, 3]
+    return Frustum(fov, width / height, rotation_to_wxyz(pose[:3, :3]), (float(pos[0]), float(pos[1]), float(pos[2])))
+
+
+def camera_pose_from_agent(x: float, y: float, yaw_deg: float, pitch_deg: float, height: float) -> np.ndarray:
+    """4x4 optical (x right, y down, z forward) -> start frame, for a camera at (x, y, height)
+    looking along ``yaw_deg`` (counter-clockwise from +x) and pitched *down* by ``pitch_deg``."""
+    yaw, pitch = math.radians(yaw_deg), math.radians(pitch_deg)
+    forward = np.array([math.cos(yaw) * math.cos(pitch), math.sin(yaw) * math.cos(pitch), -math.sin(pitch)])
+    right = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, (x, y, height)
+    return pose
+
+
+def start_from_world(start_x: float, start_y: float, start_yaw_deg: float) -> np.ndarray:
+    """4x4 transform from the world frame to the episode start frame (a yaw about z plus a shift)."""
+    yaw = math.radians(start_yaw_deg)
+    c, s = math.cos(yaw), math.sin(yaw)
+    t = np.eye(4)
+    t[:3, :3] = [[c, s, 0], [-s, c, 0], [0, 0, 1]]   # R(-yaw)
+    t[:3, 3] = t[:3, :3] @ np.array([-start_x, -start_y, 0.0])
+    return t
+
+
+@dataclass(frozen=True)
+class FloorPlane:
+    """Where a top-down grid lies on the floor: its centre and its extent along x and y."""
+
+    center: tuple[float, float, float]
+    size_x: float
+    size_y: float
+
+
+def grid_plane(origin: Sequence[float], cell: float, shape: tuple[int, ...], z: float = 0.01) -> FloorPlane:
+    """The floor rectangle a top-down grid (axis 0 along +x, axis 1 along +y) covers."""
+    if cell <= 0 or len(shape) < 2 or shape[0] <= 0 or shape[1] <= 0:
+        raise ValueError(f"need a positive cell and a non-empty 2D grid, got cell={cell}, shape={shape}")
+    sx, sy = shape[0] * cell, shape[1] * cell
+    return FloorPlane((float(origin[0]) + sx / 2.0, float(origin[1]) + sy / 2.0, z), sx, sy)
+
+
+@dataclass(frozen=True)
+class CameraView:
+    position: tuple[float, float, float]
+    look_at: tuple[float, float, float]
+
+
+def overview_camera(plane: FloorPlane) -> CameraView:
+    """A view a person can read at once: from behind the start pose (-x), a little to the
+    right (-y), high enough to see the whole map, looking at its centre."""
+    cx, cy, _ = plane.center
+    extent = max(plane.size_x, plane.size_y, 2.0)
+    return CameraView((cx - 0.85 * extent, cy - 0.5 * extent, 1.0 * extent), (cx, cy, 0.0))

@@ -1,0 +1,247 @@
+"""The GUI around the 3D scene: camera and map panels, episode status, plot, controls.
+
+``Panels`` builds every widget once and exposes ``show_*`` methods that assign to the
+widgets' handles. What a person does (pick a session, pause, type a preference, move the
+replay slider) goes to a ``PanelActions`` implementation (the app), called on viser's
+thread pool.
+"""
+
+from __future__ import annotations
+
+import html
+from collections.abc import Sequence
+from typing import Protocol
+
+import numpy as np
+import viser
+from tidee.protocol.messages import ROOM_TYPES, AgentStatus, CommandAck
+from tidee.viewer import images, palette
+from tidee.viewer.feed import SessionInfo
+from tidee.viewer.scene_view import LAYERS
+
+AUTO_SESSION = "(follow newest)"
+LAYER_LABELS = {"voxels": "Voxel map", "objects": "Object memory", "agent": "Agent (camera, paths)",
+                "search": "Search heatmap", "oracle": "Ground truth (oracle)"}
+LAYER_HINTS = {"oracle": "Privileged: the server's true object boxes (moved objects in red), fetched "
+                         "about once a second from the server's state. Not what the agent knows."}
+
+
+class PanelActions(Protocol):
+    def select_session(self, session: str | None) -> None: ...
+    def command(self, kind: str, **fields: object) -> None: ...
+    def set_layer(self, layer: str, on: bool) -> None: ...
+    def set_occupancy_only(self, on: bool) -> None: ...
+    def reset_view(self) -> None: ...
+    def replay_seek(self, step: int) -> None: ...
+    def replay_play(self, playing: bool, steps_per_s: float) -> None: ...
+
+
+class Panels:
+    def __init__(self, server: viser.ViserServer, actions: PanelActions, replay_steps: tuple[int, int] | None,
+                 initial_session: str | None = None) -> None:
+        gui = server.gui
+        self.server, self.actions = server, actions
+        self.replay = replay_steps is not None
+        gui.configure_theme(control_width="medium", show_share_button=False, brand_color=(40, 90, 220))
+
+        # --- left: what the agent sees, and its 2D map -----------------------------------------
+        self.view_panel = gui.add_panel()
+        with self.view_panel.add_tab("Camera", viser.Icon.CAMERA):
+            self.rgb = gui.add_image(images.placeholder("waiting for the agent's camera", 512, 512),
+                                     label="RGB + detections (orange: out of place)", format="jpeg", jpeg_quality=85)
+        with self.view_panel.add_tab("Depth", viser.Icon.RULER_MEASURE):
+            self.depth = gui.add_image(images.placeholder("waiting for depth", 512, 512), label="Depth",
+                                       format="jpeg", jpeg_quality=85)
+        self.view_panel.dock_left()
+        self.view_panel.set_width(330)
+        self.map_panel = gui.add_panel()
+        with self.map_panel.add_tab("2D map", viser.Icon.MAP_2):
+            self.map = gui.add_image(images.placeholder("waiting for the map", 360, 300), label=None, format="png")
+            gui.add_html(_map_key_html())
+        self.map_panel.dock_below(self.view_panel)
+
+        # --- right: status, controls, layers (docked, so the 3D view is not under it) -----------
+        gui.main_panel.dock_right()
+        gui.main_panel.set_width(330)
+        self.title = gui.add_markdown("**tidee viewer** · connecting…")
+        with gui.add_folder("Episode"):
+            self.status = gui.add_markdown("_no status yet_")
+            self.predictions = gui.add_html("")
+            self.plot = gui.add_uplot(
+                (np.zeros(1), np.zeros(1), np.zeros(1)),
+                ({"label": "step"}, {"label": "objects fixed", "stroke": palette.css(palette.WARNING_RGB), "width": 2},
+                 {"label": "OOP found", "stroke": palette.css(palette.TRAJECTORY_RGB), "width": 1.5}),
+                title="progress", scales={"x": {"time": False}}, height=140)
+        if self.replay:
+            assert replay_steps is not None
+            self._build_replay(gui, *replay_steps)
+        else:
+            self._build_controls(gui, initial_session)
+        with gui.add_folder("Layers", expand_by_default=not self.replay):
+            self.layer_boxes = {}
+            for layer in LAYERS:
+                box = gui.add_checkbox(LAYER_LABELS[layer], initial_value=layer != "oracle",
+                                       hint=LAYER_HINTS.get(layer))
+                box.on_update(lambda e, layer=layer: actions.set_layer(layer, bool(e.target.value)))
+                self.layer_boxes[layer] = box
+            self.occupancy_only = gui.add_checkbox("Occupancy only (colour by height)", initial_value=False)
+            self.occupancy_only.on_update(lambda e: actions.set_occupancy_only(bool(e.target.value)))
+            gui.add_button("Reset view", icon=viser.Icon.FOCUS_CENTERED).on_click(lambda _: actions.reset_view())
+            gui.add_markdown("**Classes** (voxel colours)")
+            self.legend = gui.add_html(palette.legend_html([], np.zeros(0)))
+            gui.add_html(_object_key_html())
+
+    def _build_controls(self, gui: viser.GuiApi, initial_session: str | None) -> None:
+        actions = self.actions
+        with gui.add_folder("Agent"):
+            options = (AUTO_SESSION,) if initial_session is None else (AUTO_SESSION, initial_session)
+            self.session = gui.add_dropdown("Session", options, initial_value=initial_session or AUTO_SESSION,
+                                            hint="Live sessions (liveliness) and sessions publishing telemetry")
+            self.session.on_update(lambda e: actions.select_session(
+                None if e.target.value == AUTO_SESSION else str(e.target.value)))
+            self.sessions_info = gui.add_html("")
+            run = gui.add_button_group("Run", ("Pause", "Resume", "Step"))
+            kinds = {"Pause": "pause", "Resume": "resume", "Step": "step"}
+            run.on_click(lambda e: actions.command(kinds[e.target.value]))
+            self.ack = gui.add_markdown("_no command sent yet_")
+        with gui.add_folder("New episode", expand_by_default=False):
+            room = gui.add_dropdown("Room type", ROOM_TYPES, initial_value="LivingRoom")
+            seed = gui.add_number("Seed", 0, min=0, step=1)
+            mess = gui.add_number("Mess index", 0, min=0, step=1)
+            gui.add_button("Start new episode", icon=viser.Icon.PLAYER_PLAY).on_click(
+                lambda _: actions.command("new_episode", room_type=room.value, seed=int(seed.value),
+                                          mess_index=int(mess.value)))
+        with gui.add_folder("Placement preference", expand_by_default=False):
+            text = gui.add_text("Preference", "", hint='In plain language, e.g. "I want my alarm clock on the desk"')
+            gui.add_button("Send to the agent", icon=viser.Icon.SEND).on_click(
+                lambda _: actions.command("preference", text=text.value))
+
+    def _build_replay(self, gui: viser.GuiApi, first: int, last: int) -> None:
+        actions = self.actions
+        with gui.add_folder("Replay"):
+            self.slider = gui.add_slider("Step", min=first, max=max(last, first + 1), step=1, initial_value=first)
+            self.slider.on_update(lambda e: actions.replay_seek(int(e.target.value)))
+            self.speed = gui.add_slider("Steps / s", min=1, max=100, step=1, initial_value=10)
+            self.play = gui.add_button("Play", icon=viser.Icon.PLAYER_PLAY)
+            self._playing = False
+
+            def toggle(_: object) -> None:
+                self._playing = not self._playing
+                self.play.label = "Pause" if self._playing else "Play"
+                self.play.icon = viser.Icon.PLAYER_PAUSE if self._playing else viser.Icon.PLAYER_PLAY
+                actions.replay_play(self._playing, float(self.speed.value))
+
+            self.play.on_click(toggle)
+            self.speed.on_update(lambda e: actions.replay_play(self._playing, float(e.target.value)))
+            self.replay_info = gui.add_markdown("")
+
+    # --- updates (from the update worker) -------------------------------------------------------
+    def show_title(self, text: str) -> None:
+        if self.title.content != text:
+            self.title.content = text
+
+    def show_status(self, s: AgentStatus) -> None:
+        ep = s.episode or {}
+        mess = ep.get("mess_index")
+        room = f"{ep.get('room_type', '?')} seed {ep.get('seed', '?')}"
+        room += f" mess {mess}" if mess is not None else " (tidy)"
+        lines = [
+            f"**{html.escape(s.phase)}** · step **{s.step}**" + (" · **PAUSED**" if s.paused else "")
+            + (" · **DONE**" if s.done else ""),
+            f"{html.escape(room)} · {html.escape(str(ep.get('variant', '')))} "
+            f"{html.escape(str(ep.get('perception', '')))}",
+            f"target: **{html.escape(s.target_object or '–')}** → {html.escape(s.target_receptacle or '–')}",
+            f"holding: {html.escape(s.held or '–')} · fixed **{s.objects_fixed}** · OOP found {s.oop_found}",
+        ]
+        if s.message:
+            lines.append(f"_{html.escape(s.message)}_")
+        self.status.content = "  \n".join(lines)
+        self.predictions.content = predictions_html([(p.label, p.prob) for p in s.predictions[:5]])
+
+    def show_plot(self, history: np.ndarray) -> None:
+        if len(history) == 0:
+            return
+        self.plot.data = (history[:, 0].copy(), history[:, 1].copy(), history[:, 2].copy())
+
+    def show_camera(self, rgb: np.ndarray, depth: np.ndarray | None) -> None:
+        self.rgb.image = rgb
+        if depth is not None:
+            self.depth.image = depth
+
+    def show_map(self, img: np.ndarray) -> None:
+        self.map.image = img
+
+    def show_legend(self, content: str) -> None:
+        if self.legend.content != content:
+            self.legend.content = content
+
+    def show_ack(self, ack: CommandAck) -> None:
+        if self.replay:
+            return
+        mark = "agent: ok" if ack.ok else "agent: **refused**"
+        self.ack.content = f"{mark} · **{html.escape(ack.kind)}**: {html.escape(ack.message or 'done')}"
+
+    def show_sent(self, text: str) -> None:
+        if not self.replay:
+            self.ack.content = text
+
+    def show_sessions(self, sessions: Sequence[SessionInfo], pinned: str | None) -> None:
+        """Session ids as the dropdown's options (stable strings, so a choice stays valid
+        while its state changes); each one's state in the line below."""
+        if self.replay:
+            return
+        ids = [s.session for s in sessions]
+        if pinned is not None and pinned not in ids:
+            ids.append(pinned)
+        opts = (AUTO_SESSION, *ids)
+        if tuple(self.session.options) != opts:
+            self.session.options = opts
+        text = ", ".join(html.escape(s.describe()) for s in sessions[:8]) or "none seen yet"
+        more = f" and {len(sessions) - 8} more" if len(sessions) > 8 else ""
+        content = f"<div style='font-size:0.8em;color:#666'>sessions: {text}{more}</div>"
+        if self.sessions_info.content != content:
+            self.sessions_info.content = content
+
+    def show_replay_step(self, step: int, info: str) -> None:
+        if int(self.slider.value) != step:
+            self.slider.value = step
+        if self.replay_info.content != info:
+            self.replay_info.content = info
+
+
+def predictions_html(preds: Sequence[tuple[str, float]]) -> str:
+    """Top receptacle predictions as labelled probability bars."""
+    if not preds:
+        return ""
+    rows = []
+    for label, prob in preds:
+        pct = max(0.0, min(1.0, float(prob))) * 100
+        rows.append(
+            "<div style='display:flex;align-items:center;font-size:0.8em;margin:1px 0'>"
+            "<span style='width:38%;overflow:hidden;text-overflow:ellipsis;white-space:nowrap'>"
+            f"{html.escape(label)}</span>"
+            "<span style='flex:1;background:#e6e6e6;border-radius:3px;height:10px;margin:0 6px'>"
+            f"<span style='display:block;width:{pct:.0f}%;height:10px;border-radius:3px;"
+            f"background:{palette.css(palette.PATH_RGB)}'></span></span>"
+            f"<span style='width:3.2em;text-align:right'>{prob:.2f}</span></div>")
+    return "<div style='font-size:0.8em;color:#666'>where it belongs (top 5)</div>" + "".join(rows)
+
+
+def _swatch(rgb: palette.RGB, text: str) -> str:
+    return (f"<span style='white-space:nowrap;margin-right:8px'><span style='display:inline-block;width:10px;"
+            f"height:10px;border-radius:2px;background:{palette.css(rgb)};margin-right:3px'></span>{text}</span>")
+
+
+def _object_key_html() -> str:
+    items = [(palette.TRACKED_RGB, "tracked"), (palette.WARNING_RGB, "out of place"), (palette.HELD_RGB, "held"),
+             (palette.TRAJECTORY_RGB, "trajectory"), (palette.PATH_RGB, "planned path"),
+             (palette.SEARCH_POINT_RGB, "search points"), (palette.FRUSTUM_RGB, "camera"),
+             (palette.ORACLE_MOVED_RGB, "oracle: moved")]
+    return "<div style='font-size:0.8em;line-height:1.6'>" + "".join(_swatch(c, t) for c, t in items) + "</div>"
+
+
+def _map_key_html() -> str:
+    items = [(images.FREE_RGB, "free, explored"), (images.SEEN_FREE_RGB, "seen"), (images.OBSTACLE_RGB, "obstacle"),
+             (images.UNKNOWN_RGB, "unknown"), (images.AGENT_RGB, "agent"), (palette.PATH_RGB, "path")]
+    return ("<div style='font-size:0.8em;line-height:1.6'>+x (start heading) is up. "
+            + "".join(_swatch(c, t) for c, t in items) + "</div>")
