@@ -146,3 +146,17 @@ def test_episode_log_round_trip_and_truncated_tail(tmp_path) -> None:
     r2 = LogReader(tmp_path / "ep")
     assert [m.step for _, m in r2.messages()] == [0, 1, 2, 3] and r2.truncated
     assert "truncated" in r2.corrupt_message
+
+
+def test_tidee_run_forwards_agent_options(monkeypatch) -> None:
+    import tidee.launch
+    from tidee import cli
+
+    seen = {}
+    monkeypatch.setattr(tidee.launch, "run_all", lambda cfg: seen.setdefault("cfg", cfg) and 0)
+    args = cli.build_parser().parse_args(["run", "--variant", "RandomReceptacle", "--pose-noise", "--seed", "201",
+                                          "--linger", "0"])
+    cli._cmd_run(args)
+    fwd = seen["cfg"].agent_args
+    assert fwd[fwd.index("--variant") + 1] == "RandomReceptacle" and "--pose-noise" in fwd
+    assert fwd[fwd.index("--seed") + 1] == "201" and "--server-id" not in fwd and "--depth-noise" not in fwd

@@ -122,10 +122,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     forwarded: list[str] = []
     for flag, kw in AGENT_OPTIONS:
+        if flag == "--server-id":       # tidee run starts its own server under the default id
+            continue
         value = getattr(args, flag[2:].replace("-", "_"))
         if kw.get("action") == "store_true":
             forwarded += [flag] if value else []
-        elif value is not None and flag != "--server-id":
+        elif value is not None:
             forwarded += [flag, str(value)]
     return run_all(RunConfig(agent_args=forwarded, viewer=not args.no_viewer, host=args.host, port=args.port,
                              linger=args.linger, renderer=args.renderer))
