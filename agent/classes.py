@@ -14,13 +14,6 @@ CLASSES: tuple[str, ...] = tuple(sorted(n for n in CATEGORIES if n not in _STRUC
 CLASS_INDEX: dict[str, int] = {n: i for i, n in enumerate(CLASSES)}
 RECEPTACLES: frozenset[str] = frozenset(n for n in CLASSES if CATEGORIES[n].receptacle)
 PICKUPABLE: frozenset[str] = frozenset(n for n in CLASSES if CATEGORIES[n].pickupable)
-OPENABLE: frozenset[str] = frozenset(n for n in CLASSES if CATEGORIES[n].openable)
 # Receptacles an object is put *on or in*, in the order the agent prefers to try them.
 PLACEABLE_RECEPTACLES: frozenset[str] = RECEPTACLES - PICKUPABLE
 
-
-def class_index(label: str) -> int:
-    try:
-        return CLASS_INDEX[label]
-    except KeyError:
-        raise ValueError(f"unknown class {label!r}; the agent knows {len(CLASSES)} catalog categories") from None

@@ -18,7 +18,6 @@ AI2THORPlacement and MessyPlacement are reference rows built from the episode re
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 
 from tidee.agent.mapping.maps import MapConfig
@@ -82,6 +81,3 @@ class AgentConfig:
             raise ValueError(f"perception must be one of {PERCEPTIONS}, got {self.perception!r}")
         if self.explorer not in EXPLORERS:
             raise ValueError(f"explorer must be one of {EXPLORERS}, got {self.explorer!r}")
-
-    def describe(self) -> dict:
-        return dataclasses.asdict(self)

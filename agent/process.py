@@ -67,7 +67,7 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
             if not queue:
                 if not cfg.serve:
                     break
-                cmd = _wait_for_new_episode(publisher, runner)
+                cmd = _wait_for_new_episode(publisher)
                 queue.append(_spec_from(cmd, base))
             spec = queue.pop(0)
             res = runner.run(spec)
@@ -91,22 +91,18 @@ def _spec_from(cmd: AgentCommand, base: EpisodeSpec) -> EpisodeSpec:
                           "mess_index": cmd.mess_index})
 
 
-def _wait_for_new_episode(publisher: TelemetryPublisher, runner: EpisodeRunner) -> AgentCommand:
+def _wait_for_new_episode(publisher: TelemetryPublisher) -> AgentCommand:
     """Idle until a viewer asks for an episode; other commands are acknowledged."""
-    from tidee.protocol.messages import CommandAck
-
     while True:
         for cmd in publisher.commands():
             if isinstance(cmd, str):
                 log.warning(cmd)
                 continue
             if cmd.kind == "new_episode":
-                publisher.offer("ack", lambda c=cmd: CommandAck(publisher.session_id, c.command_id, c.kind, True,
-                                                                "starting"), force=True)
+                publisher.ack(cmd.command_id, cmd.kind, True, "starting")
                 return cmd
             ok = cmd.kind in ("pause", "resume", "step")   # harmless while idle; a preference needs an episode
-            publisher.offer("ack", lambda c=cmd, ok=ok: CommandAck(
-                publisher.session_id, c.command_id, c.kind, ok,
-                "idle: no episode is running" if ok else "no episode is running; start one first"), force=True)
+            publisher.ack(cmd.command_id, cmd.kind, ok,
+                          "idle: no episode is running" if ok else "no episode is running; start one first")
         time.sleep(0.1)
 

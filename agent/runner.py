@@ -29,7 +29,7 @@ from tidee.agent.reasoning.oop import make_oop
 from tidee.agent.reasoning.placement import CommonMemory
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.protocol.episode_log import LogWriter
-from tidee.protocol.messages import (Action, ActionName, AgentCommand, AgentFrame, AgentStatus, CommandAck,
+from tidee.protocol.messages import (Action, ActionName, AgentCommand, AgentFrame, AgentStatus,
                                      Detection2D, EpisodeSpec, ObjectMemoryMsg, Observation, ReceptaclePrediction,
                                      TrackedObjectMsg)
 from tidee.protocol.transport import SimTransport
@@ -221,24 +221,24 @@ class EpisodeRunner:
             for cmd in self.publisher.commands():
                 if isinstance(cmd, str):
                     log.warning(cmd)
-                    self._ack(AgentCommand(kind="pause", command_id="?"), False, cmd)
+                    self.publisher.ack("", "malformed", False, cmd)
                     continue
                 if cmd.kind == "pause":
                     self.paused = True
-                    self._ack(cmd, True, "paused")
+                    self.publisher.ack(cmd.command_id, cmd.kind, True, "paused")
                 elif cmd.kind == "resume":
                     self.paused, self._single_steps = False, 0
-                    self._ack(cmd, True, "resumed")
+                    self.publisher.ack(cmd.command_id, cmd.kind, True, "resumed")
                 elif cmd.kind == "step":
                     self.paused, self._single_steps = True, self._single_steps + 1
-                    self._ack(cmd, True, "one step")
+                    self.publisher.ack(cmd.command_id, cmd.kind, True, "one step")
                 elif cmd.kind == "new_episode":
-                    self._ack(cmd, True, f"starting {cmd.room_type} seed {cmd.seed} mess {cmd.mess_index}")
+                    self.publisher.ack(cmd.command_id, cmd.kind, True, f"starting {cmd.room_type} seed {cmd.seed} mess {cmd.mess_index}")
                     return cmd
                 elif cmd.kind == "preference":
                     if writer:
                         writer.event(kind="preference", text=cmd.text)
-                    self._ack(cmd, True, f"noted preference {cmd.text!r}; the language OOP model that learns from "
+                    self.publisher.ack(cmd.command_id, cmd.kind, True, f"noted preference {cmd.text!r}; the language OOP model that learns from "
                                          "it is not built yet (issue 6), so placements do not change")
             if not self.paused:
                 return None
@@ -247,11 +247,6 @@ class EpisodeRunner:
                 return None
             self.publisher.offer("status", lambda: self._status(body.obs, body, policy, info, trajectory), force=True)
             time.sleep(0.05)
-
-    def _ack(self, cmd: AgentCommand, ok: bool, message: str) -> None:
-        assert self.publisher is not None
-        self.publisher.offer("ack", lambda: CommandAck(self.session, cmd.command_id, cmd.kind, ok, message),
-                             force=True)
 
     # ------------------------------------------------------------------ evaluation
     def evaluation_record(self, spec: EpisodeSpec, initial: dict | None, final: dict, events: list[dict[str, Any]],

@@ -17,7 +17,7 @@ from typing import Any
 
 from tidee.protocol import codec, keys
 from tidee.protocol.codec import ProtocolError
-from tidee.protocol.messages import AgentCommand
+from tidee.protocol.messages import AgentCommand, CommandAck
 
 log = logging.getLogger("tidee.agent.telemetry")
 
@@ -77,6 +77,10 @@ class TelemetryPublisher:
             self._slots[kind] = msg
             self._cv.notify()
         return msg
+
+    def ack(self, command_id: str, kind: str, ok: bool, message: str) -> None:
+        """Answer a viewer's command (always sent, whatever the rate limits)."""
+        self.offer("ack", lambda: CommandAck(self.session_id, command_id, kind, ok, message), force=True)
 
     def commands(self) -> list[AgentCommand | str]:
         """Commands received since the last call; a malformed one comes back as an error string."""

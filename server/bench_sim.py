@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import time
@@ -65,14 +64,10 @@ def run_sim_bench(resolution: int, steps: int, out_path: str, renderer: str = "a
 
 def write_report(out_path: str, result: dict, title: str) -> None:
     """JSON plus a Markdown table beside it, both written atomically."""
+    from tidee.protocol.episode_log import write_atomic, write_json_atomic
+
     os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
-    tmp = out_path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(result, f, indent=1)
-    os.replace(tmp, out_path)
-    md = os.path.splitext(out_path)[0] + ".md"
+    write_json_atomic(out_path, result)
     lines = [f"# {title}", "", "| metric | value |", "|---|---|"]
     lines += [f"| {k} | {v} |" for k, v in result.items()]
-    with open(md + ".tmp", "w") as f:
-        f.write("\n".join(lines) + "\n")
-    os.replace(md + ".tmp", md)
+    write_atomic(os.path.splitext(out_path)[0] + ".md", ("\n".join(lines) + "\n").encode())

@@ -9,7 +9,6 @@ objects circled. It prints every file it wrote.
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -17,19 +16,14 @@ import time
 import cv2
 import numpy as np
 
+from tidee.launch import free_port
 from tidee.protocol.client import SimClient
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def run_demo(out_dir: str, room_type: str = "LivingRoom", seed: int = 200, mess: int = 0) -> int:
     os.makedirs(out_dir, exist_ok=True)
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     server = subprocess.Popen([sys.executable, "-m", "tidee.cli", "server", "--endpoint", endpoint])
     print(f"demo: started tidee server (pid {server.pid}) on {endpoint}")
     try:

@@ -27,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import queue
-import signal
 import threading
 import zlib
 from collections import OrderedDict
@@ -356,12 +355,10 @@ class SimServer:
 
 def serve(config: ServerConfig, episode_factory: Callable[[], EpisodeLike] | None = None) -> None:
     """Run a server until SIGINT or SIGTERM, then shut it down cleanly."""
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    from tidee.launch import wait_for_signal
+
     server = SimServer(config, episode_factory).start()
     try:
-        stop.wait()
+        wait_for_signal()
     finally:
         server.stop()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)

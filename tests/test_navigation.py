@@ -14,17 +14,18 @@ from tidee.agent.navigation.explore import (
     sample_unexplored_goal,
     unexplored_fraction,
 )
-from tidee.agent.navigation.fmm import FMMPlanner, Grid2D, NavStatus
+from tidee.agent.mapping.geometry import GridSpec
+from tidee.agent.navigation.fmm import FMMPlanner, NavStatus
 from tidee.protocol.messages import ActionName as A
 
-GRID = Grid2D.centred(256, 0.05)  # origin (-6.4, -6.4)
+GRID = GridSpec.centred(256, 0.05)  # origin (-6.4, -6.4)
 
 
-def cells_x(g: Grid2D, x0: float, x1: float) -> slice:
+def cells_x(g: GridSpec, x0: float, x1: float) -> slice:
     return slice(g.to_cell((x0, 0.0))[0], g.to_cell((x1, 0.0))[0])
 
 
-def cells_y(g: Grid2D, y0: float, y1: float) -> slice:
+def cells_y(g: GridSpec, y0: float, y1: float) -> slice:
     return slice(g.to_cell((0.0, y0))[1], g.to_cell((0.0, y1))[1])
 
 
@@ -298,7 +299,7 @@ def test_unexplored_fraction() -> None:
 
 
 def test_sample_unexplored_goal_is_reachable_unexplored_and_seeded() -> None:
-    g = Grid2D(origin=(0.0, 0.0), cell=0.1, shape=(40, 40))
+    g = GridSpec(origin=(0.0, 0.0), cell=0.1, shape=(40, 40))
     reachable = np.zeros(g.shape, bool)
     reachable[5:35, 5:35] = True
     explored = np.zeros(g.shape, bool)
@@ -325,7 +326,7 @@ def test_sample_unexplored_goal_is_reachable_unexplored_and_seeded() -> None:
 
 
 def test_sample_unexplored_goal_falls_back_without_border() -> None:
-    g = Grid2D(origin=(0.0, 0.0), cell=0.1, shape=(20, 20))
+    g = GridSpec(origin=(0.0, 0.0), cell=0.1, shape=(20, 20))
     reachable = np.zeros(g.shape, bool)
     reachable[10:15, 10:15] = True
     explored = np.zeros(g.shape, bool)  # nothing explored yet: no border cells
@@ -334,7 +335,7 @@ def test_sample_unexplored_goal_falls_back_without_border() -> None:
 
 
 def test_sample_reachable_goal() -> None:
-    g = Grid2D(origin=(0.0, 0.0), cell=0.1, shape=(30, 30))
+    g = GridSpec(origin=(0.0, 0.0), cell=0.1, shape=(30, 30))
     reachable = np.zeros(g.shape, bool)
     reachable[0:30, 0:3] = True
     agent = (0.15, 0.15)
@@ -346,13 +347,13 @@ def test_sample_reachable_goal() -> None:
     assert sample_reachable_goal(reachable, g, np.random.default_rng(0), agent, min_dist_m=5.0) is None
 
 
-def frontier_map() -> tuple[Grid2D, np.ndarray, np.ndarray, np.ndarray]:
+def frontier_map() -> tuple[GridSpec, np.ndarray, np.ndarray, np.ndarray]:
     """Known free room x in [0, 3), y in [0, 3) with walls, two doorways to unknown space.
 
     West doorway (near the agent, long path) vs east doorway (farther in a straight line but
     a shorter geodesic is arranged by an inner wall), plus a 2-cell speck that is dropped.
     """
-    g = Grid2D(origin=(0.0, 0.0), cell=0.1, shape=(50, 50))
+    g = GridSpec(origin=(0.0, 0.0), cell=0.1, shape=(50, 50))
     known = np.zeros(g.shape, bool)
     known[0:31, 0:31] = True
     obstacle = np.zeros(g.shape, bool)

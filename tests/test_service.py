@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -25,15 +24,14 @@ from tidee.protocol.messages import (Action, ActionName, EpisodeSpec, ErrorCode,
                                      ResetRequest, StepRequest)
 from tidee.protocol.zenoh_config import make_config
 from tidee.server.service import ServerConfig, SimServer
+from tidee.launch import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 SPEC = EpisodeSpec(resolution=32, max_steps=50)
 
 
 def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    return f"tcp/127.0.0.1:{free_port()}"
 
 
 def wait_until(predicate: Callable[[], bool], timeout: float = 5.0) -> bool:

@@ -7,7 +7,6 @@ import math
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -16,18 +15,10 @@ from tidee.protocol.messages import AgentCommand, Detection2D
 from tidee.viewer import geometry, images, palette
 from tidee.viewer.synthetic import CLASSES, SyntheticEpisode, write_synthetic_log
 
+from tests.test_service import wait_until
 from tests.viewer_fakes import synthetic_source
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def wait_until(predicate, timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.05)
-    return True
 
 
 # --- colours ------------------------------------------------------------------------------
@@ -325,13 +316,13 @@ def test_live_feed_discovers_the_session_decodes_telemetry_and_commands_it():
         feed = LiveFeed(endpoint=src.endpoint)
         try:
             seen: dict = {}
-            assert wait_until(lambda: seen.update(feed.poll()) or {"status", "maps", "memory", "frame"} <= set(seen))
+            assert wait_until(lambda: seen.update(feed.poll()) or {"status", "maps", "memory", "frame"} <= set(seen), 10.0)
             assert feed.selected == src.session
-            assert wait_until(lambda: any(s.alive and s.server_id == src.server_id for s in feed.sessions()))
+            assert wait_until(lambda: any(s.alive and s.server_id == src.server_id for s in feed.sessions()), 10.0)
             feed.send(AgentCommand(kind="pause", command_id="c1"))
             acks: list = []
             assert wait_until(lambda: acks.append(feed.poll().get("ack"))
-                              or any(a and a.command_id == "c1" for a in acks))
+                              or any(a and a.command_id == "c1" for a in acks), 10.0)
             assert src.agent is not None and src.agent.paused
             with pytest.raises(LookupError, match="no server known"):
                 feed.fetch_state("nobody")

@@ -7,7 +7,6 @@ run them against the real system, give it a twin that starts ``tidee server`` an
 
 from __future__ import annotations
 
-import socket
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -15,11 +14,7 @@ from dataclasses import dataclass
 
 from tidee.viewer.synthetic import SyntheticAgent
 
-
-def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+from tests.test_service import free_endpoint
 
 
 @dataclass

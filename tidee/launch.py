@@ -9,17 +9,20 @@ processes in reverse order. Nothing here imports torch or pybullet.
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 
 
-def free_port() -> int:
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on ``host`` right now (a wildcard host is probed on loopback)."""
     with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+        s.bind((host if host not in ("0.0.0.0", "") else "127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 @dataclass
@@ -31,6 +34,17 @@ class RunConfig:
     linger: float = 30.0
     renderer: str = "auto"
     endpoint: str | None = None
+
+
+def wait_for_signal() -> None:
+    """Block until SIGINT or SIGTERM (a service's main thread), then restore the handlers."""
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        stop.wait()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _tidee(*args: str) -> list[str]:

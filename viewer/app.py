@@ -15,8 +15,6 @@ from __future__ import annotations
 import collections
 import logging
 import os
-import signal
-import socket
 import threading
 import time
 import uuid
@@ -25,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import viser
+from tidee.launch import free_port, wait_for_signal
 from tidee.protocol import keys
 from tidee.protocol.messages import AgentCommand, AgentFrame, AgentStatus, MapSnapshot, SearchHeatmap
 from tidee.viewer import geometry, images, palette
@@ -98,7 +97,7 @@ class ViewerApp:
         self._replay_playing, self._replay_rate = False, 10.0
         self._replay_shown: dict[str, int | None] = {}
 
-        port = config.port or _free_port(config.host)
+        port = config.port or free_port(config.host)
         self.server = viser.ViserServer(host=config.host, port=port, label="tidee", verbose=False)
         self.url = f"http://{_display_host(config.host)}:{self.server.get_port()}"
         try:
@@ -381,12 +380,6 @@ class ViewerApp:
             self._stop.wait(self.config.oracle_period_s)
 
 
-def _free_port(host: str) -> int:
-    with socket.socket() as s:
-        s.bind((host if host not in ("0.0.0.0", "") else "127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _display_host(host: str) -> str:
     return "127.0.0.1" if host in ("0.0.0.0", "") else host
 
@@ -415,13 +408,9 @@ def run_viewer(config: ViewerConfig | None = None) -> ViewerHandle:
 
 def serve(config: ViewerConfig) -> None:
     """``tidee viewer``: run until SIGINT or SIGTERM, printing the URL first."""
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     handle = run_viewer(config)
     print(f"viewer: {handle.url}", flush=True)
     try:
-        stop.wait()
+        wait_for_signal()
     finally:
         handle.stop()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)

@@ -30,13 +30,14 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.stats import binomtest
+
+from tidee.protocol.episode_log import write_atomic
 
 from .judge import (DEFAULT_PLAUSIBILITY, REFERENCE_VARIANTS, judge_score, plausible, prefer,
                     reference_records)
@@ -412,19 +413,6 @@ def format_markdown(report: Mapping[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.chmod(tmp, 0o644)                   # mkstemp makes 0600; reports are meant to be read
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def _png(fig: Any) -> bytes:
     import io
 
@@ -578,8 +566,8 @@ def write_report(records: Iterable[Mapping[str, Any]], out_dir: str | os.PathLik
     }
     report = _clean(report)
     text = json.dumps(report, indent=1, allow_nan=False, default=_json_default)
-    _atomic_write(out / "report.md", format_markdown(report).encode())
-    _atomic_write(out / "metrics.png", _plot_metrics(metrics, title))
-    _atomic_write(out / "pairwise.png", _plot_pairwise(table, title))
-    _atomic_write(out / "report.json", (text + "\n").encode())
+    write_atomic(out / "report.md", format_markdown(report).encode())
+    write_atomic(out / "metrics.png", _plot_metrics(metrics, title))
+    write_atomic(out / "pairwise.png", _plot_pairwise(table, title))
+    write_atomic(out / "report.json", (text + "\n").encode())
     return report

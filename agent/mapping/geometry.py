@@ -147,6 +147,22 @@ class GridSpec:
         q = (p[:, :2] - np.asarray(self.origin)) / self.cell
         return np.floor(q).astype(np.int64)
 
+    @staticmethod
+    def centred(size: int = 256, cell: float = 0.05) -> "GridSpec":
+        """A ``size`` x ``size`` grid of ``cell`` metres centred on the start pose."""
+        half = size * cell / 2.0
+        return GridSpec((-half, -half), cell, (size, size))
+
+    def to_cell(self, xy) -> tuple[int, int]:
+        """Cell (i, j) containing one world point ``xy``; may be out of bounds."""
+        i, j = self.world_to_cell(np.asarray(xy, dtype=np.float64)[:2])[0]
+        return int(i), int(j)
+
+    def to_world(self, ij) -> tuple[float, float]:
+        """World centre (x, y) metres of one cell ``ij``."""
+        x, y = self.cell_to_world(np.asarray(ij)[:2])[0]
+        return float(x), float(y)
+
     def cell_to_world(self, ij: np.ndarray) -> np.ndarray:
         """float64 Nx2: the start-frame (x, y) centres of cells ij (Nx2)."""
         c = np.asarray(ij, dtype=np.float64)

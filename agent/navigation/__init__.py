@@ -7,12 +7,10 @@ from tidee.agent.navigation.explore import (
     sample_unexplored_goal,
     unexplored_fraction,
 )
-from tidee.agent.navigation.fmm import FMMPlanner, Grid2D, GridLike, NavStatus
+from tidee.agent.navigation.fmm import FMMPlanner, NavStatus
 
 __all__ = [
     "FMMPlanner",
-    "Grid2D",
-    "GridLike",
     "NavStatus",
     "FrontierCluster",
     "FrontierExplorer",

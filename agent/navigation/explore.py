@@ -20,7 +20,8 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from tidee.agent.navigation.fmm import FMMPlanner, GridLike, cells_to_world
+from tidee.agent.mapping.geometry import GridSpec
+from tidee.agent.navigation.fmm import FMMPlanner
 
 __all__ = [
     "unexplored_fraction",
@@ -46,7 +47,7 @@ def _check_grids(shape: tuple[int, int] | None, **grids: np.ndarray) -> tuple[in
     return (int(shape[0]), int(shape[1]))
 
 
-def _far_enough(shape: tuple[int, int], grid: GridLike, agent_xy: Sequence[float],
+def _far_enough(shape: tuple[int, int], grid: GridSpec, agent_xy: Sequence[float],
                 min_dist_m: float) -> np.ndarray:
     """bool grid: cells whose centres are at least ``min_dist_m`` metres from the agent."""
     x = grid.origin[0] + (np.arange(shape[0]) + 0.5) * grid.cell - float(agent_xy[0])
@@ -54,11 +55,11 @@ def _far_enough(shape: tuple[int, int], grid: GridLike, agent_xy: Sequence[float
     return np.hypot(x[:, None], y[None, :]) >= min_dist_m
 
 
-def _pick(candidates: np.ndarray, grid: GridLike, rng: np.random.Generator) -> tuple[float, float]:
+def _pick(candidates: np.ndarray, grid: GridSpec, rng: np.random.Generator) -> tuple[float, float]:
     idx = np.flatnonzero(candidates)  # row-major order: deterministic for a given rng state
     k = int(idx[int(rng.integers(len(idx)))])
     i, j = divmod(k, candidates.shape[1])
-    p = cells_to_world(np.array([[i, j]]), grid.origin, grid.cell)[0]
+    p = grid.cell_to_world(np.array([[i, j]]))[0]
     return (float(p[0]), float(p[1]))
 
 
@@ -71,7 +72,7 @@ def unexplored_fraction(explored: np.ndarray, reachable: np.ndarray) -> float:
     return float((reachable & ~explored).sum()) / n
 
 
-def sample_unexplored_goal(explored: np.ndarray, reachable: np.ndarray, grid: GridLike,
+def sample_unexplored_goal(explored: np.ndarray, reachable: np.ndarray, grid: GridSpec,
                            rng: np.random.Generator, agent_xy: Sequence[float],
                            min_dist_m: float = 0.5) -> tuple[float, float] | None:
     """A random reachable, unexplored cell centre (x, y) metres at least ``min_dist_m`` away.
@@ -88,7 +89,7 @@ def sample_unexplored_goal(explored: np.ndarray, reachable: np.ndarray, grid: Gr
     return _pick(border if border.any() else candidates, grid, rng)
 
 
-def sample_reachable_goal(reachable: np.ndarray, grid: GridLike, rng: np.random.Generator,
+def sample_reachable_goal(reachable: np.ndarray, grid: GridSpec, rng: np.random.Generator,
                           agent_xy: Sequence[float],
                           min_dist_m: float = 1.0) -> tuple[float, float] | None:
     """A random reachable cell centre (x, y) metres at least ``min_dist_m`` from the agent, or None."""
@@ -127,7 +128,7 @@ class FrontierExplorer:
             the agent are skipped by ``next_goal``: going there teaches nothing new.
     """
 
-    def __init__(self, grid: GridLike, min_cluster_cells: int = 5,
+    def __init__(self, grid: GridSpec, min_cluster_cells: int = 5,
                  min_goal_dist_m: float = 0.25) -> None:
         if min_cluster_cells < 1:
             raise ValueError(f"min_cluster_cells must be >= 1, got {min_cluster_cells}")
@@ -167,7 +168,7 @@ class FrontierExplorer:
                 continue
             k = order[starts[lab]:starts[lab + 1]]
             cells = np.stack(np.divmod(k, self.shape[1]), axis=1)
-            pts = cells_to_world(cells, self.grid.origin, self.grid.cell)
+            pts = self.grid.cell_to_world(cells)
             c = pts.mean(axis=0)
             nearest = int(np.argmin(np.hypot(pts[:, 0] - c[0], pts[:, 1] - c[1])))
             clusters.append(FrontierCluster(

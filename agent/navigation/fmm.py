@@ -10,7 +10,7 @@ dependency on it): a grid has an ``origin`` (x0, y0) in metres in the start fram
 square ``cell`` size in metres and a ``shape`` (nx, ny). Axis 0 runs along +x, axis 1
 along +y; cell (i, j) covers [x0 + i c, x0 + (i+1) c) x [y0 + j c, y0 + (j+1) c) and its
 world point is its centre. Any object with ``origin``, ``cell`` and ``shape`` attributes
-works (e.g. the mapper's ``GridSpec``); :class:`Grid2D` is a minimal local one.
+works; the planner keeps it as the mapper's :class:`GridSpec`.
 
 Agent kinematics (start frame, x forward, y left, metres, yaw in degrees counter-clockwise
 from +x): MoveAhead moves ``step_m`` along (cos yaw, sin yaw); RotateLeft adds 90 degrees;
@@ -20,95 +20,21 @@ RotateRight subtracts 90 degrees.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from enum import Enum
-from typing import Protocol, Sequence
+from typing import Sequence
 
 import numpy as np
 import skfmm
 from scipy import ndimage
 
+from tidee.agent.mapping.geometry import GridSpec
 from tidee.protocol.messages import ActionName
 
 __all__ = [
-    "GridLike",
-    "Grid2D",
-    "world_to_cell",
-    "cell_to_world",
-    "world_to_cells",
-    "cells_to_world",
     "NavStatus",
+    "wrap_deg",
     "FMMPlanner",
 ]
-
-
-class GridLike(Protocol):
-    """Anything with a grid's geometry (the mapper's ``GridSpec`` qualifies)."""
-
-    @property
-    def origin(self) -> tuple[float, float]: ...
-
-    @property
-    def cell(self) -> float: ...
-
-    @property
-    def shape(self) -> tuple[int, int]: ...
-
-
-def world_to_cell(xy: Sequence[float], origin: Sequence[float], cell: float) -> tuple[int, int]:
-    """Cell (i, j) containing world point ``xy`` (metres, start frame); may be out of bounds."""
-    return (int(math.floor((float(xy[0]) - float(origin[0])) / cell)),
-            int(math.floor((float(xy[1]) - float(origin[1])) / cell)))
-
-
-def cell_to_world(ij: Sequence[int], origin: Sequence[float], cell: float) -> tuple[float, float]:
-    """World point (x, y) in metres of the centre of cell (i, j)."""
-    return (float(origin[0]) + (int(ij[0]) + 0.5) * cell,
-            float(origin[1]) + (int(ij[1]) + 0.5) * cell)
-
-
-def world_to_cells(xy: np.ndarray, origin: Sequence[float], cell: float) -> np.ndarray:
-    """int64 Nx2 cells containing the world points ``xy`` (float Nx2, metres)."""
-    pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    return np.floor((pts - np.asarray(origin, dtype=np.float64)) / cell).astype(np.int64)
-
-
-def cells_to_world(ij: np.ndarray, origin: Sequence[float], cell: float) -> np.ndarray:
-    """float64 Nx2 world centres (metres) of the cells ``ij`` (int Nx2)."""
-    cells = np.asarray(ij, dtype=np.float64).reshape(-1, 2)
-    return np.asarray(origin, dtype=np.float64) + (cells + 0.5) * cell
-
-
-@dataclass(frozen=True)
-class Grid2D:
-    """Minimal grid geometry: ``origin`` (x0, y0) metres, ``cell`` metres, ``shape`` (nx, ny)."""
-
-    origin: tuple[float, float]
-    cell: float
-    shape: tuple[int, int]
-
-    def __post_init__(self) -> None:
-        if not self.cell > 0:
-            raise ValueError(f"Grid2D.cell must be > 0 metres, got {self.cell!r}")
-        if len(self.shape) != 2 or min(self.shape) <= 0:
-            raise ValueError(f"Grid2D.shape must be two positive ints, got {self.shape!r}")
-
-    @staticmethod
-    def centred(size: int = 256, cell: float = 0.05) -> "Grid2D":
-        """A ``size`` x ``size`` grid of ``cell`` metres centred on the start pose."""
-        half = size * cell / 2.0
-        return Grid2D(origin=(-half, -half), cell=cell, shape=(size, size))
-
-    def to_cell(self, xy: Sequence[float]) -> tuple[int, int]:
-        """Cell (i, j) containing world point ``xy``; may be out of bounds."""
-        return world_to_cell(xy, self.origin, self.cell)
-
-    def to_world(self, ij: Sequence[int]) -> tuple[float, float]:
-        """World centre (x, y) metres of cell ``ij``."""
-        return cell_to_world(ij, self.origin, self.cell)
-
-    def in_bounds(self, ij: Sequence[int]) -> bool:
-        return 0 <= ij[0] < self.shape[0] and 0 <= ij[1] < self.shape[1]
 
 
 class NavStatus(str, Enum):
@@ -139,7 +65,7 @@ def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
     return (int(ii[0]), int(ii[-1]) + 1, int(jj[0]), int(jj[-1]) + 1)
 
 
-def _wrap_deg(a: float) -> float:
+def wrap_deg(a: float) -> float:
     """Angle in degrees wrapped to (-180, 180]."""
     w = math.fmod(a + 180.0, 360.0)
     if w <= 0.0:
@@ -176,7 +102,7 @@ class FMMPlanner:
     plan and the status of the last ``next_action``; it holds no global state.
     """
 
-    def __init__(self, traversible: np.ndarray, grid: GridLike, step_m: float = 0.25,
+    def __init__(self, traversible: np.ndarray, grid: GridSpec, step_m: float = 0.25,
                  known: np.ndarray | None = None, crop_margin_m: float = 1.0,
                  goal_snap_max_m: float = 1.5, goal_snap_slack_m: float = 0.25) -> None:
         shape = (int(grid.shape[0]), int(grid.shape[1]))
@@ -193,9 +119,8 @@ class FMMPlanner:
             raise ValueError(f"step_m must be > 0 metres, got {step_m!r}")
         self.traversible = trav
         self.known = known
-        self.origin = (float(grid.origin[0]), float(grid.origin[1]))
-        self.cell = float(grid.cell)
-        self.shape = shape
+        self.grid = GridSpec(grid.origin, grid.cell, shape)
+        self.origin, self.cell, self.shape = self.grid.origin, self.grid.cell, shape
         self.step_m = float(step_m)
         self.crop_margin_m = float(crop_margin_m)
         self.goal_snap_max_m = float(goal_snap_max_m)
@@ -210,10 +135,10 @@ class FMMPlanner:
 
     # ------------------------------------------------------------------ grid helpers
     def to_cell(self, xy: Sequence[float]) -> tuple[int, int]:
-        return world_to_cell(xy, self.origin, self.cell)
+        return self.grid.to_cell(xy)
 
     def to_world(self, ij: Sequence[int]) -> tuple[float, float]:
-        return cell_to_world(ij, self.origin, self.cell)
+        return self.grid.to_world(ij)
 
     def _in_bounds(self, i: int, j: int) -> bool:
         return 0 <= i < self.shape[0] and 0 <= j < self.shape[1]
@@ -249,7 +174,7 @@ class FMMPlanner:
         if not win.any():
             return None
         ii, jj = np.nonzero(win)
-        centres = cells_to_world(np.stack([ii + i0, jj + j0], axis=1), self.origin, self.cell)
+        centres = self.grid.cell_to_world(np.stack([ii + i0, jj + j0], axis=1))
         d = np.hypot(centres[:, 0] - float(xy[0]), centres[:, 1] - float(xy[1]))
         k = int(np.argmin(d))  # first minimum in row-major order: deterministic
         if d[k] > snap_m:
@@ -402,7 +327,7 @@ class FMMPlanner:
         n = max(2, int(math.ceil(length / (self.cell / 2.0))) + 1)
         t = np.linspace(0.0, 1.0, n)[1:]
         pts = np.stack([x0 + t * (x1 - x0), y0 + t * (y1 - y0)], axis=1)
-        cells = world_to_cells(pts, self.origin, self.cell)
+        cells = self.grid.world_to_cell(pts)
         start = np.array(self.to_cell((x0, y0)))
         cells = cells[np.any(cells != start, axis=1)]
         if cells.size == 0:
@@ -418,7 +343,7 @@ class FMMPlanner:
         x, y, yaw = pose
         for a in seq:
             if a in _ROT:
-                yaw = _wrap_deg(yaw + _ROT[a])
+                yaw = wrap_deg(yaw + _ROT[a])
             elif a is ActionName.MoveAhead:
                 r = math.radians(yaw)
                 nx_, ny_ = x + self.step_m * math.cos(r), y + self.step_m * math.sin(r)
@@ -458,7 +383,7 @@ class FMMPlanner:
         """
         if self._dist is None:
             raise RuntimeError("no goal set: call set_goal or set_goal_mask first")
-        pose = (float(x), float(y), _wrap_deg(float(yaw_deg)))
+        pose = (float(x), float(y), wrap_deg(float(yaw_deg)))
         d0 = self._start_distance(pose[0], pose[1])
         self.stuck_reason = ""
         if not math.isfinite(d0):
@@ -474,7 +399,7 @@ class FMMPlanner:
         if self._plan:
             action, expected = self._plan.pop(0)
             if (math.hypot(expected[0] - pose[0], expected[1] - pose[1]) < 1e-3
-                    and abs(_wrap_deg(expected[2] - pose[2])) < 1.0):
+                    and abs(wrap_deg(expected[2] - pose[2])) < 1.0):
                 self.status = NavStatus.detour
                 return action
             self._plan = []  # the world did not follow the plan: replan
@@ -525,7 +450,7 @@ class FMMPlanner:
         tx, ty = self.to_world((bi + i0, bj + j0))
         if not math.isfinite(float(win[bi, bj])) or (tx, ty) == self.to_world((i, j)):
             return ActionName.RotateLeft
-        delta = _wrap_deg(math.degrees(math.atan2(ty - pose[1], tx - pose[0])) - pose[2])
+        delta = wrap_deg(math.degrees(math.atan2(ty - pose[1], tx - pose[0])) - pose[2])
         return ActionName.RotateLeft if delta >= 0.0 else ActionName.RotateRight
 
     @property
@@ -568,7 +493,7 @@ class FMMPlanner:
                 break
             i, j = best
             cells.append(best)
-        pts = cells_to_world(np.array(cells), self.origin, self.cell)
+        pts = self.grid.cell_to_world(np.array(cells))
         if len(pts) > max_points:
             keep = np.unique(np.round(np.linspace(0, len(pts) - 1, max_points)).astype(int))
             pts = pts[keep]

@@ -25,12 +25,6 @@ class Detection:
     oop_prob: float | None = None            # P(out of place) from a detector with an OOP head
     source: str = "oracle"                   # which perception produced it
 
-    def pixels(self) -> np.ndarray:
-        """bool HxW: the mask, or the box when there is no mask (needs ``shape``)."""
-        if self.mask is None:
-            raise ValueError("this detection has no mask; use box_mask(shape)")
-        return self.mask
-
     def box_mask(self, shape: tuple[int, int]) -> np.ndarray:
         m = np.zeros(shape, bool)
         x0, y0, x1, y1 = self.box

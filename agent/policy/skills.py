@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tidee.agent.mapping.geometry import project
+from tidee.agent.mapping.geometry import project, unproject
 from tidee.agent.mapping.maps import SemanticMapper
 from tidee.agent.mapping.memory import TrackedObject
-from tidee.agent.navigation.fmm import FMMPlanner, NavStatus
+from tidee.agent.navigation.fmm import FMMPlanner, NavStatus, wrap_deg
 from tidee.agent.perception.base import Detection
 from tidee.protocol.messages import Action, ActionName, Observation
 
@@ -25,10 +25,6 @@ Skill = Generator[Action, None, bool]
 AGENT_RADIUS = 0.2            # metres (the server's collision radius)
 PITCHES = (-30.0, 0.0, 30.0, 60.0)
 MOVE_M = 0.25
-
-
-def wrap_deg(a: float) -> float:
-    return (a + 180.0) % 360.0 - 180.0
 
 
 @dataclass
@@ -78,6 +74,11 @@ def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: 
     agent keeps bumping into things.
     """
     bumps = 0
+    if goal_mask is not None:    # shown to viewers: the centre of the goal region
+        body.goal = body.mapper.grid.to_world(np.argwhere(goal_mask).mean(0)) if goal_mask.any() else None
+    else:
+        assert goal_xy is not None
+        body.goal = (float(goal_xy[0]), float(goal_xy[1]))
     for _ in range(budget):
         if body.steps_left() <= 1:
             return False
@@ -85,12 +86,8 @@ def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: 
         planner = FMMPlanner(body.mapper.traversible(AGENT_RADIUS), body.mapper.grid)
         if goal_mask is not None:
             ok = planner.set_goal_mask(goal_mask, start_xy=(x, y))
-            body.goal = tuple(float(v) for v in np.argwhere(goal_mask).mean(0) * planner.cell
-                              + np.array(planner.origin)) if goal_mask.any() else None
         else:
-            assert goal_xy is not None
             ok = planner.set_goal(goal_xy, radius_m=radius, start_xy=(x, y))
-            body.goal = (float(goal_xy[0]), float(goal_xy[1]))
         if not ok:
             return False
         action = planner.next_action(x, y, yaw, stop_radius_m=stop_radius)
@@ -169,17 +166,6 @@ class Sighting:
         return Action(name, x=(self.u + 0.5) / w, y=(self.v + 0.5) / h)
 
 
-def _pixel_points(obs: Observation, us: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(start-frame points Nx3, ray lengths N) for pixels (us, vs) from the depth image."""
-    k = obs.intrinsics
-    z = obs.depth[vs, us].astype(np.float64)
-    xc = (us - k[0, 2]) / k[0, 0] * z
-    yc = (vs - k[1, 2]) / k[1, 1] * z
-    cam = np.stack([xc, yc, z], axis=1)
-    pts = cam @ obs.camera_pose[:3, :3].T + obs.camera_pose[:3, 3]
-    return pts, np.linalg.norm(cam, axis=1)
-
-
 def find_in_view(body: Body, obj: TrackedObject, max_pixel_gap: float = 0.15) -> Sighting | None:
     """The current detection of ``obj`` (same label, nearest its projected centroid), if any."""
     obs = body.obs
@@ -202,27 +188,27 @@ def find_in_view(body: Body, obj: TrackedObject, max_pixel_gap: float = 0.15) ->
     return sighting_of(body, best[1])
 
 
-def sighting_of(body: Body, det: Detection, prefer_top: bool = False) -> Sighting | None:
+def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: float = 1.4) -> Sighting | None:
     """The pixel of a detection to act on: its region's most central pixel with valid depth.
 
     ``prefer_top``: for putting things on a receptacle, prefer pixels whose 3D point lies near
-    the top of the region's points (the surface something can rest on), within reach.
+    the top of the region's points (the surface something can rest on), within ``reach`` metres.
     """
     obs = body.obs
     assert obs is not None
     h, w = obs.depth.shape
-    region = det.region((h, w)) & (obs.depth > 0.05) & np.isfinite(obs.depth)
-    ys, xs = np.nonzero(region)
-    if len(xs) == 0:
+    pts, index = unproject(obs.depth, obs.intrinsics, obs.camera_pose, mask=det.region((h, w)))
+    if len(index) == 0:
         return None
-    pts, dist = _pixel_points(obs, xs, ys)
+    ys, xs = np.divmod(index, w)
+    dist = np.linalg.norm(pts - obs.camera_pose[:3, 3], axis=1)
     weight = np.hypot(xs - xs.mean(), ys - ys.mean())
     if prefer_top:
         top = np.percentile(pts[:, 2], 90)
-        reach = dist <= 1.4
-        keep = (pts[:, 2] >= top - 0.08) & reach
+        near = dist <= reach
+        keep = (pts[:, 2] >= top - 0.08) & near
         if not keep.any():
-            keep = reach if reach.any() else np.ones(len(xs), bool)
+            keep = near if near.any() else np.ones(len(xs), bool)
         cx, cy = xs[keep].mean(), ys[keep].mean()
         weight = np.where(keep, np.hypot(xs - cx, ys - cy), np.inf)
     k = int(np.argmin(weight))

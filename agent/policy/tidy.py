@@ -290,7 +290,7 @@ class TidyPolicy:
             det = self._detection_of(rec)
             if det is None:
                 continue
-            sighting = sighting_of(self.body, det, prefer_top=True)
+            sighting = sighting_of(self.body, det, prefer_top=True, reach=self.p.interact_m)
             if sighting is None or sighting.distance > self.p.interact_m + 0.1:
                 continue           # not within reach from here: walk again, closer
             yield sighting.action(ActionName.PutObject, shape)
@@ -332,8 +332,8 @@ class TidyPolicy:
             for _ in range(4):
                 det = receptacle_in_view(self.body, PLACEABLE_RECEPTACLES)
                 if det is not None:
-                    sighting = sighting_of(self.body, det, prefer_top=True)
-                    if sighting is not None and sighting.distance <= 1.45:
+                    sighting = sighting_of(self.body, det, prefer_top=True, reach=self.p.interact_m)
+                    if sighting is not None and sighting.distance <= self.p.interact_m + 0.1:
                         self.state.phase, self.state.target_receptacle = "placing", det.label
                         yield sighting.action(ActionName.PutObject, shape)
                         if self.body.obs.success:
