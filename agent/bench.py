@@ -22,14 +22,17 @@ from tidee.protocol.transport import InProcessTransport
 
 
 def run_agent_bench(out: str, episodes: int = 3, resolution: int = 256, variant: str = "CommonMemory",
-                    max_steps: int = 1000, one_core: bool = True) -> dict[str, Any]:
+                    max_steps: int = 1000, one_core: bool = True, perception: str = "learned") -> dict[str, Any]:
     from tidee.server.bench_sim import write_report
 
     pinned = False
     if one_core and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
         pinned = True
-    cfg = AgentConfig(variant=variant)
+        import torch
+
+        torch.set_num_threads(1)
+    cfg = AgentConfig(variant=variant, perception=perception)
     per: dict[str, list[float]] = {}
     walls, steps = [], []
     with InProcessTransport(renderer="auto") as transport:
@@ -46,7 +49,7 @@ def run_agent_bench(out: str, episodes: int = 3, resolution: int = 256, variant:
     med = {k: round(float(np.median(v)), 2) for k, v in per.items() if v}
     p90 = {k: round(float(np.percentile(v, 90)), 2) for k, v in per.items() if v}
     result = {
-        "resolution": resolution, "episodes": len(walls), "variant": variant, "perception": "oracle",
+        "resolution": resolution, "episodes": len(walls), "variant": variant, "perception": perception,
         "pinned_to_one_core": pinned,
         "perception_ms_median": med.get("perception_ms"),
         "mapping_ms_median": med.get("mapping_ms"),
@@ -57,8 +60,9 @@ def run_agent_bench(out: str, episodes: int = 3, resolution: int = 256, variant:
         "sim_step_ms_median": med.get("sim_ms"),
         "episode_wall_s_median": round(float(np.median(walls)), 1),
         "episode_steps_median": float(np.median(steps)),
-        "targets": {"mapping_plus_planning_ms": 20.0, "episode_wall_s": 60.0},
-        "command": f"tidee bench agent --episodes {episodes} --resolution {resolution} --out {out}",
+        "targets": {"mapping_plus_planning_ms": 20.0, "episode_wall_s": 60.0, "perception_ms": 30.0},
+        "command": f"tidee bench agent --episodes {episodes} --resolution {resolution} --perception {perception} "
+                   f"--out {out}",
     }
-    write_report(out, result, "Agent benchmark (oracle perception, in-process simulator)")
+    write_report(out, result, f"Agent benchmark ({perception} perception, in-process simulator, one core)")
     return result

@@ -65,10 +65,14 @@ class PolicyConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
 
 
+DEPTH_SOURCES = ("sensor", "estimated")
+
+
 @dataclass
 class AgentConfig:
     variant: str = "CommonMemory"
-    perception: str = "oracle"
+    perception: str = "learned"             # the shipped RGB-D detector; "oracle" reads the segmentation
+    depth: str = "sensor"                   # "estimated": depth from RGB by the shipped depth network
     oop: str = "relation_stats"
     explorer: str = "random"                # how unexplored space is mapped: random goals | frontier
     seed: int = 0                           # the agent's own random draws (goal sampling, RandomReceptacle)
@@ -81,3 +85,7 @@ class AgentConfig:
             raise ValueError(f"perception must be one of {PERCEPTIONS}, got {self.perception!r}")
         if self.explorer not in EXPLORERS:
             raise ValueError(f"explorer must be one of {EXPLORERS}, got {self.explorer!r}")
+        if self.depth not in DEPTH_SOURCES:
+            raise ValueError(f"depth must be one of {DEPTH_SOURCES}, got {self.depth!r}")
+        if self.oop == "visual" and self.perception != "learned":
+            raise ValueError("--oop visual reads the learned detector's OOP head: it needs --perception learned")

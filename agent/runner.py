@@ -9,6 +9,8 @@ reads the server's privileged state: after the episode, for scoring).
 
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import math
 import time
@@ -60,6 +62,11 @@ class EpisodeRunner:
         self.log_dir = Path(log_dir) if log_dir else None
         self.on_step = on_step
         self.perception = make_perception(config.perception)
+        self.depth_net = None
+        if config.depth == "estimated":
+            from tidee.agent.perception.depth_net import DepthEstimator
+
+            self.depth_net = DepthEstimator.load()
         self.oop = make_oop(config.oop)
         self.placement = None if config.variant == "RandomReceptacle" else CommonMemory()
         self.paused = False
@@ -86,7 +93,7 @@ class EpisodeRunner:
         gen = policy.run()
         info = {"room_type": spec.room_type, "seed": spec.seed, "mess_index": spec.mess_index,
                 "variant": self.cfg.variant, "perception": self.cfg.perception, "oop": self.cfg.oop,
-                "explorer": self.cfg.explorer, "resolution": spec.resolution}
+                "depth": self.cfg.depth, "explorer": self.cfg.explorer, "resolution": spec.resolution}
         timings: dict[str, list[float]] = {"perception_ms": [], "mapping_ms": [], "planning_ms": [], "step_ms": [],
                                            "sim_ms": []}
         trajectory: list[tuple[float, float]] = []
@@ -96,6 +103,8 @@ class EpisodeRunner:
         try:
             while True:
                 t0 = time.perf_counter()
+                if self.depth_net is not None:      # the "+est. depth" agent never reads the depth sensor
+                    obs = dataclasses.replace(obs, depth=self.depth_net.predict(obs.rgb))
                 dets = self.perception.detect(obs)
                 t1 = time.perf_counter()
                 touched = mapper.update(obs, dets)

@@ -57,8 +57,12 @@ def test_oracle_perception_sees_the_table_mug_and_fridge() -> None:
 
 
 def test_learned_modules_not_built_say_so() -> None:
-    with pytest.raises(NotImplementedError, match="issue 5"):
-        make_perception("learned")
+    from tidee.agent.reasoning.oop import make_oop
+
+    with pytest.raises(NotImplementedError, match="issue 6"):
+        make_oop("language")
+    with pytest.raises(ValueError, match="needs --perception learned"):
+        AgentConfig(perception="oracle", oop="visual")
     with pytest.raises(NotImplementedError, match="issue 6"):
         AgentConfig(variant="TIDEE")
     with pytest.raises(ValueError, match="unknown variant"):

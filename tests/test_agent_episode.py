@@ -52,7 +52,8 @@ def test_tidy_episode_over_zenoh_with_telemetry_and_log(real_server: SimServer, 
         client = SimClient(endpoint, server_id=server_id, session=session, zsession=agent_z, timeout=60,
                            connect_timeout=30)
         publisher = TelemetryPublisher(agent_z, session)
-        cfg = AgentConfig(variant="CommonMemory", policy=PolicyConfig(mapping_step_budget=120))
+        cfg = AgentConfig(variant="CommonMemory", perception="oracle",
+                          policy=PolicyConfig(mapping_step_budget=120))
         runner = EpisodeRunner(cfg, client, session=session, publisher=publisher, log_dir=tmp_path)
         # A viewer's preference arrives mid-episode and is acknowledged.
         sent = {"done": False}

@@ -78,7 +78,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 AGENT_OPTIONS: list[tuple[str, dict]] = [
     ("--variant", {"default": "CommonMemory",
                    "help": "TIDEE | WithoutMemex | 3DSmntMap2Place | CommonMemory | RandomReceptacle"}),
-    ("--perception", {"default": "oracle", "help": "oracle (reads the simulator's segmentation) | learned"}),
+    ("--perception", {"default": "learned",
+                      "help": "learned (the shipped RGB-D detector) | oracle (reads the simulator's segmentation)"}),
+    ("--depth", {"default": "sensor", "choices": ("sensor", "estimated"),
+                 "help": "estimated: depth from RGB by the shipped depth network (the paper's +est. depth)"}),
     ("--oop", {"default": "relation_stats", "help": "relation_stats | visual | language | fused"}),
     ("--explorer", {"default": "random", "choices": ("random", "frontier")}),
     ("--room-type", {"default": "LivingRoom", "choices": ROOM_TYPES}),
@@ -101,7 +104,7 @@ def _agent_config(args: argparse.Namespace):
     from tidee.agent.config import AgentConfig
 
     return AgentConfig(variant=args.variant, perception=args.perception, oop=args.oop, explorer=args.explorer,
-                       seed=args.agent_seed)
+                       seed=args.agent_seed, depth=args.depth)
 
 
 def _cmd_agent(args: argparse.Namespace) -> int:
@@ -139,7 +142,7 @@ def _cmd_eval_tidy(args: argparse.Namespace) -> int:
     report = run_tidy_eval(args.out, split=args.split, episodes=args.episodes, variants=args.variants.split(","),
                            perception=args.perception, oop=args.oop, explorer=args.explorer,
                            resolution=args.resolution, max_steps=args.max_steps, workers=args.workers,
-                           renderer=args.renderer, keep_logs=args.keep_logs)
+                           renderer=args.renderer, keep_logs=args.keep_logs, depth=args.depth)
     print((Path(args.out) / "report.md").read_text())
     return 0 if report else 1
 
@@ -148,7 +151,7 @@ def _cmd_bench_agent(args: argparse.Namespace) -> int:
     from tidee.agent.bench import run_agent_bench
 
     result = run_agent_bench(args.out, episodes=args.episodes, resolution=args.resolution,
-                             variant=args.variant, max_steps=args.max_steps)
+                             variant=args.variant, max_steps=args.max_steps, perception=args.perception)
     print(json.dumps(result, indent=1))
     return 0
 
@@ -162,6 +165,19 @@ def _cmd_gen_stats(args: argparse.Namespace) -> int:
         seeds += list(range(int(lo), int(hi or lo) + 1))
     data = build_stats(seeds, args.out or DEFAULT_PATH, command=f"tidee gen stats --seeds {args.seeds}")
     print(json.dumps(data["meta"], indent=1))
+    return 0
+
+
+def _cmd_gen_detection(args: argparse.Namespace) -> int:
+    from tidee.agent.perception.dataset import GenConfig, describe, generate
+
+    cfg = GenConfig(rooms_per_type=args.rooms_per_type, messes_per_room=args.messes, walks_per_config=args.walks,
+                    frames_per_walk=args.frames_per_walk, resolution=args.resolution, seed=args.seed,
+                    shard_size=args.shard_size)
+    print(describe(cfg), file=sys.stderr)
+    command = "tidee gen detection " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else "tidee gen detection"
+    manifest = generate(cfg, args.out, command=command, workers=args.workers)
+    print(json.dumps({k: v for k, v in manifest.items() if k not in ("shards", "rooms", "classes")}, indent=1))
     return 0
 
 
@@ -241,7 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split", choices=("val", "test"), default="test")
     p.add_argument("--episodes", type=int, default=None, help="configurations (default: all; test has 100)")
     p.add_argument("--variants", default="CommonMemory,RandomReceptacle,AI2THORPlacement,MessyPlacement")
-    p.add_argument("--perception", default="oracle")
+    p.add_argument("--perception", default="learned", choices=("learned", "oracle"))
+    p.add_argument("--depth", default="sensor", choices=("sensor", "estimated"))
     p.add_argument("--oop", default="relation_stats")
     p.add_argument("--explorer", default="random", choices=("random", "frontier"))
     p.add_argument("--resolution", type=int, default=256)
@@ -256,6 +273,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=3)
     p.add_argument("--resolution", type=int, default=256)
     p.add_argument("--variant", default="CommonMemory")
+    p.add_argument("--perception", default="learned", choices=("learned", "oracle"))
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--out", default="bench/agent.json")
     p.set_defaults(func=_cmd_bench_agent)
@@ -265,6 +283,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", default="0-19,10000-10179", help="training seeds, e.g. 0-19,10000-10179")
     p.add_argument("--out", default=None, help="default: agent/data/placement_stats.json")
     p.set_defaults(func=_cmd_gen_stats)
+    p = gen.add_parser("detection", help="RGB-D frames + instance targets from random walks in training rooms")
+    p.add_argument("--out", default="data/detection", help="directory of shards (default: data/detection)")
+    p.add_argument("--rooms-per-type", type=int, default=60, help="training rooms per type: seeds 0-19, then the pool")
+    p.add_argument("--messes", type=int, default=2, help="messy configurations per room (plus the tidy one)")
+    p.add_argument("--walks", type=int, default=2, help="random walks per configuration")
+    p.add_argument("--frames-per-walk", type=int, default=6)
+    p.add_argument("--resolution", type=int, default=256)
+    p.add_argument("--shard-size", type=int, default=256)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=2)
+    p.set_defaults(func=_cmd_gen_detection)
+
+    train = sub.add_parser("train", help="train the agent's learned models (GPU if present, else CPU)")
+    train_sub = train.add_subparsers(dest="train_cmd", required=True)
+    from tidee.agent.perception.commands import register as register_perception  # argparse only: no torch
+
+    register_perception(train_sub, ev)
+
+    from tidee.agent.evaluation.detection import register as register_detection_eval
+
+    register_detection_eval(ev)
 
     from tidee.viewer.cli import register as register_viewer  # argparse only: no viser import here
 

@@ -45,7 +45,7 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
         transport = _TRANSPORT
     except NameError:
         transport = _TRANSPORT = InProcessTransport(renderer=job["renderer"])
-    cfg = AgentConfig(variant=job["variant"], perception=job["perception"], oop=job["oop"],
+    cfg = AgentConfig(variant=job["variant"], perception=job["perception"], oop=job["oop"], depth=job["depth"],
                       explorer=job["explorer"], seed=job["agent_seed"])
     spec = EpisodeSpec(room_type=job["room_type"], seed=job["seed"], mess_index=job["mess_index"],
                        resolution=job["resolution"], max_steps=job["max_steps"])
@@ -59,9 +59,10 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = None,
-                  variants: list[str] | None = None, perception: str = "oracle", oop: str = "relation_stats",
+                  variants: list[str] | None = None, perception: str = "learned", oop: str = "relation_stats",
                   explorer: str = "random", resolution: int = 256, max_steps: int = 1000, workers: int = 1,
-                  renderer: str = "auto", keep_logs: bool = False, progress: bool = True) -> dict[str, Any]:
+                  renderer: str = "auto", keep_logs: bool = False, progress: bool = True,
+                  depth: str = "sensor") -> dict[str, Any]:
     from tqdm import tqdm
 
     from tidee.agent.evaluation.report import with_references, write_report
@@ -78,7 +79,7 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     configs = select_configs(split, episodes)
-    jobs = [{"variant": v, "perception": perception, "oop": oop, "explorer": explorer, "agent_seed": c.index,
+    jobs = [{"variant": v, "perception": perception, "oop": oop, "depth": depth, "explorer": explorer, "agent_seed": c.index,
              "room_type": c.room_type, "seed": c.seed, "mess_index": c.mess_index, "split": split,
              "resolution": resolution, "max_steps": max_steps, "renderer": renderer,
              "log_dir": str(out / "logs") if keep_logs else None}
@@ -106,9 +107,10 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
     notes = [f"split={split}, {len(configs)} messy configurations x {len(agents)} agents, "
              f"resolution {resolution}, max {max_steps} steps, OOP detector '{oop}', explorer '{explorer}'",
              f"perception: {perception}" + (" (ORACLE: detections from the simulator's segmentation)"
-                                           if perception == "oracle" else ""),
+                                           if perception == "oracle" else " (the shipped RGB-D detector)")
+             + f", depth: {depth}",
              f"median per-step agent time (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in timing.items()),
              f"command: tidee eval tidy --split {split} --episodes {len(configs)} --variants {','.join(variants)} "
-             f"--perception {perception} --out {out}",
+             f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} --out {out}",
              f"total wall time {time.time() - t0:.0f} s with {workers} worker(s)"]
     return write_report(all_records, out, title=f"Tidy evaluation ({split} rooms)", notes=notes)

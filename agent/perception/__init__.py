@@ -13,8 +13,9 @@ def make_perception(name: str) -> Perception:
 
         return OraclePerception()
     if name == "learned":
-        raise NotImplementedError("learned perception (the RGB-D detector with an OOP head) is not built yet "
-                                  "(issue 5); use --perception oracle")
+        from tidee.agent.perception.learned import LearnedPerception
+
+        return LearnedPerception.load()
     raise ValueError(f"unknown perception {name!r}; choose one of {PERCEPTIONS}")
 
 

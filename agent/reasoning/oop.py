@@ -78,13 +78,30 @@ class RelationStatsOOP:
         return 1.0 - min(rarity / (2 * self.rare), 1.0)
 
 
+class VisualOOP:
+    """The detector's OOP head (dDETR-OOP): the running mean of the per-view P(out of place)
+    the learned detector attached to each detection merged into the tracked object."""
+
+    name = "visual"
+
+    def score_all(self, targets: list[TrackedObject], objects: list[TrackedObject],
+                  room_type: str) -> dict[int, float]:
+        missing = [t.label for t in targets if t.oop_prob is None]
+        if missing:
+            raise ValueError(f"visual OOP needs learned perception (detections with an OOP head); "
+                             f"{missing[0]} has no oop_prob")
+        return {t.id: float(t.oop_prob) for t in targets}  # type: ignore[arg-type]
+
+
 OOP_DETECTORS = ("relation_stats", "visual", "language", "fused")
 
 
 def make_oop(name: str) -> OOPDetector:
     if name == "relation_stats":
         return RelationStatsOOP()
+    if name == "visual":
+        return VisualOOP()
     if name in OOP_DETECTORS:
         raise NotImplementedError(f"the {name} OOP classifier is a learned model that is not built yet "
-                                  "(issues 5 and 6); use --oop relation_stats")
+                                  "(issue 6); use --oop relation_stats or visual")
     raise ValueError(f"unknown OOP detector {name!r}; choose one of {OOP_DETECTORS}")

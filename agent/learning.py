@@ -1,0 +1,126 @@
+"""What every trained model of the agent shares: device choice, resumable checkpoints,
+loss curves and the manifest that ships beside the weights.
+
+A shipped model is ``agent/weights/<name>.pt`` (a state dict plus its architecture
+config) and ``agent/weights/<name>.json``: the command that trained it, the data and its
+seeds, the held-out metrics and the sha256 of the weights file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+
+
+def pick_device(requested: str = "auto") -> str:
+    import torch
+
+    if requested == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if requested == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda asked for, but torch sees no GPU")
+    return requested
+
+
+def sha256_file(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def save_checkpoint(path: str | Path, **state: Any) -> None:
+    """Atomic torch.save (a crash mid-write never leaves a torn checkpoint)."""
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
+    import torch
+
+    path = Path(path)
+    if not path.exists():
+        return None
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def save_loss_curve(history: list[dict[str, float]], path: str | Path, title: str) -> None:
+    """PNG of every loss term in ``history`` (one dict per logged step, with a "step" key)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not history:
+        return
+    keys = [k for k in history[0] if k != "step"]
+    fig, ax = plt.subplots(figsize=(7, 4), dpi=100)
+    steps = [h["step"] for h in history]
+    for k in keys:
+        ax.plot(steps, [h.get(k, float("nan")) for h in history], label=k, lw=1.2)
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def write_manifest(weights: str | Path, command: str, data: dict[str, Any], metrics: dict[str, Any],
+                   **extra: Any) -> dict[str, Any]:
+    """``<weights>.json`` beside the weights: command, data seeds, metrics, checksum."""
+    weights = Path(weights)
+    manifest = {"weights": weights.name, "sha256": sha256_file(weights), "bytes": weights.stat().st_size,
+                "command": command, "data": data, "metrics": metrics,
+                "written": time.strftime("%Y-%m-%dT%H:%M:%S"), **extra}
+    tmp = weights.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(manifest, indent=1))
+    os.replace(tmp, weights.with_suffix(".json"))
+    return manifest
+
+
+def read_manifest(weights: str | Path, verify: bool = True) -> dict[str, Any]:
+    """The manifest of shipped weights; with ``verify``, the checksum must match the file."""
+    weights = Path(weights)
+    man_path = weights.with_suffix(".json")
+    if not weights.exists():
+        raise FileNotFoundError(f"no weights at {weights}; train them (see the README) or pass another path")
+    if not man_path.exists():
+        raise FileNotFoundError(f"{weights} has no manifest {man_path.name}")
+    manifest = json.loads(man_path.read_text())
+    if verify and manifest.get("sha256") != sha256_file(weights):
+        raise ValueError(f"{weights} does not match the sha256 in {man_path.name}: the weights were changed "
+                         "without retraining through the repo's command")
+    return manifest
+
+
+def update_manifest_metrics(weights: str | Path, metrics: dict[str, Any]) -> dict[str, Any]:
+    """Merge held-out metrics (from an eval command) into a shipped manifest."""
+    weights = Path(weights)
+    man_path = weights.with_suffix(".json")
+    manifest = json.loads(man_path.read_text())
+    manifest.setdefault("metrics", {}).update(metrics)
+    tmp = man_path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(manifest, indent=1))
+    os.replace(tmp, man_path)
+    return manifest
+
+
+__all__ = ["WEIGHTS_DIR", "pick_device", "sha256_file", "save_checkpoint", "load_checkpoint", "save_loss_curve",
+           "write_manifest", "read_manifest", "update_manifest_metrics"]

@@ -1,0 +1,109 @@
+"""The perception models' commands: ``tidee train detector``, ``tidee train depth``,
+``tidee eval depth``. Argparse only at import: the handlers import torch when they run, so
+``tidee server`` and ``tidee viewer`` work on an install without torch."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+
+def _cmd_train_detector(args: argparse.Namespace) -> int:
+    from tidee.agent.perception.train_detector import TrainConfig, train_detector
+
+    cfg = TrainConfig(data=args.data, out=args.out, work_dir=args.work_dir, steps=args.steps,
+                      batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
+                      threads=args.threads, limit_frames=args.limit_frames)
+    command = "tidee train detector " + " ".join(sys.argv[3:])
+    result = train_detector(cfg, resume=not args.no_resume, command=command.strip())
+    last = result["history"][-1] if result["history"] else {}
+    print(json.dumps({"steps": result["steps"], "seconds": result["seconds"], "device": result["device"],
+                      "final_losses": last, "weights": result.get("out")}, indent=1))
+    return 0
+
+
+def register(train_sub: argparse._SubParsersAction, eval_sub: argparse._SubParsersAction) -> None:
+    """``tidee train detector``, ``tidee train depth`` and ``tidee eval depth``."""
+    p = train_sub.add_parser("detector", help="the RGB-D detector with its OOP head, on `tidee gen detection` data")
+    p.add_argument("--data", default="data/detection")
+    p.add_argument("--out", default="agent/weights/detector.pt", help="shipped weights (+ .json manifest)")
+    p.add_argument("--work-dir", default="runs/detector", help="checkpoints and the loss curve (resumable)")
+    p.add_argument("--steps", type=int, default=5500)
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    p.add_argument("--threads", type=int, default=0, help="CPU threads (0: torch's default)")
+    p.add_argument("--limit-frames", type=int, default=None, help="train on the first N frames only (smoke runs)")
+    p.add_argument("--no-resume", action="store_true", help="ignore a checkpoint in --work-dir")
+    p.set_defaults(func=_cmd_train_detector)
+
+    p = train_sub.add_parser("depth", help="the depth-from-RGB network (the '+est. depth' setting)")
+    p.add_argument("--data", default="data/detection", help="frames from `tidee gen detection`")
+    p.add_argument("--out", default=None,
+                   help="weights file, default agent/weights/depth.pt (its manifest .json goes beside it)")
+    p.add_argument("--steps", type=int, default=1200)
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    p.add_argument("--work-dir", default="runs/depth", help="checkpoint and loss curve")
+    p.add_argument("--resume", action="store_true", help="continue from the checkpoint in --work-dir")
+    p.add_argument("--checkpoint-every", type=int, default=100)
+    p.set_defaults(func=_cmd_train_depth)
+
+    p = eval_sub.add_parser("depth", help="depth network on held-out rooms: abs rel, RMSE, delta<1.25")
+    p.add_argument("--split", default="test", help="test or val (held-out rooms only)")
+    p.add_argument("--weights", default=None, help="default: agent/weights/depth.pt")
+    p.add_argument("--rooms-per-type", type=int, default=5)
+    p.add_argument("--messes", type=int, default=1,
+                   help="messy configurations per room (plus the tidy one)")
+    p.add_argument("--frames-per-walk", type=int, default=5)
+    p.add_argument("--out", required=True, help="directory for depth.json, depth.md, depth_examples.png")
+    p.set_defaults(func=_cmd_eval_depth)
+
+
+def _cmd_train_depth(args: argparse.Namespace) -> int:
+    from tidee.agent.perception.depth_net import DEFAULT_WEIGHTS, DOCS_LOSS_PNG, train_depth
+
+    command = (f"tidee train depth --data {args.data} --steps {args.steps} --batch-size {args.batch_size} "
+               f"--lr {args.lr} --seed {args.seed}" + (f" --out {args.out}" if args.out else ""))
+    out = Path(args.out) if args.out else DEFAULT_WEIGHTS
+    # The docs show the curve of the shipped weights only; a run writing elsewhere leaves them alone.
+    shipped = out.resolve() == DEFAULT_WEIGHTS.resolve()
+    result = train_depth(args.data, out, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
+                         seed=args.seed, device=args.device, resume=args.resume, command=command,
+                         work_dir=args.work_dir, checkpoint_every=args.checkpoint_every,
+                         docs_png=DOCS_LOSS_PNG if shipped else None)
+    print(json.dumps(result, indent=1))
+    return 0
+
+
+def _cmd_eval_depth(args: argparse.Namespace) -> int:
+    from tidee.agent.perception.depth_net import (DEFAULT_WEIGHTS, DepthEstimator, EvalSet, evaluate_depth,
+                                                  heldout_frames, metrics_markdown, save_examples,
+                                                  time_inference)
+
+    if args.split not in ("val", "test"):
+        raise ValueError(f"tidee eval depth scores held-out rooms: --split must be test or val, got "
+                         f"{args.split!r} (training rooms would measure memorisation)")
+    eval_set = EvalSet(rooms_per_type=args.rooms_per_type, messes=args.messes,
+                       frames_per_walk=args.frames_per_walk)
+    weights = Path(args.weights) if args.weights else DEFAULT_WEIGHTS
+    estimator = DepthEstimator.load(weights)
+    frames = heldout_frames(args.split, eval_set)
+    command = (f"tidee eval depth --split {args.split} --rooms-per-type {args.rooms_per_type} "
+               f"--messes {args.messes} --frames-per-walk {args.frames_per_walk} --out {args.out}"
+               + (f" --weights {args.weights}" if args.weights else ""))
+    result = {"split": args.split, "weights": str(weights), "command": command, "eval_set": asdict(eval_set),
+              "metrics": evaluate_depth(estimator, frames), "speed": time_inference(estimator)}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "depth.json").write_text(json.dumps(result, indent=1))
+    (out / "depth.md").write_text(metrics_markdown(result))
+    save_examples(estimator, frames, out / "depth_examples.png")
+    print(metrics_markdown(result))
+    return 0

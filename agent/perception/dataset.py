@@ -1,0 +1,265 @@
+"""Detector data: RGB-D frames from random walks through rooms, with instance targets.
+
+``tidee gen detection`` walks an agent at random through tidy and messy configurations of
+*training* rooms (seeds 0-19 and the training pool; never val or test) and writes shards of
+frames with the simulator's instance masks, classes and in/out-of-place labels. The same
+generator, called by the evaluation commands with ``split="test"``, builds held-out frames
+from the test rooms on the fly; those are never written next to training data.
+
+A shard ``shard_00012.npz`` holds N frames:
+  rgb    uint8   N x H x W x 3
+  depth  float16 N x H x W       metres
+  inst   int16   N x H x W       per-frame instance index (-1: none / not a class)
+  and one row per visible instance (M rows in all):
+  obj_frame int32 (frame index in the shard), obj_cls int16 (``CLASSES`` index),
+  obj_box float32 x0,y0,x1,y1 (half-open pixels), obj_oop uint8 (1: moved by the mess-up),
+  obj_pix int32 (visible pixels), obj_inst int16 (value in ``inst``), obj_id str (scene object id).
+``manifest.json`` records the command, the rooms, seeds and counts.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from tidee.agent.classes import CLASS_INDEX, CLASSES
+from tidee.server.splits import MESSES_PER_ROOM, ROOM_TYPES, SPLIT_SEEDS, TRAIN_POOL, split_of
+
+# A random walk: mostly forward, with turns and looks, like an exploring agent.
+WALK_ACTIONS = ("MoveAhead", "MoveAhead", "MoveAhead", "RotateLeft", "RotateRight", "MoveLeft", "MoveRight",
+                "LookDown", "LookUp")
+MIN_PIXELS = 12          # at 256^2 (scaled with resolution): smaller instances are not targets
+
+
+@dataclass
+class GenConfig:
+    split: str = "train"                 # "train" (train seeds + pool) or "test" (evaluation only)
+    rooms_per_type: int = 60             # train: seeds 0-19 first, then the pool 10000...
+    messes_per_room: int = 2             # messy configurations per room (plus the tidy one)
+    walks_per_config: int = 2
+    frames_per_walk: int = 6             # frames kept per walk (every ``stride``-th step)
+    stride: int = 3
+    resolution: int = 256
+    seed: int = 0
+    shard_size: int = 256
+    room_types: tuple[str, ...] = ROOM_TYPES
+    oop_views_only: bool = False         # keep only messy frames with an out-of-place object in view
+    tidy: bool = True                    # include the tidy configuration of each room
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def room_seeds(split: str, rooms_per_type: int) -> list[int]:
+    if split == "train":
+        seeds = list(SPLIT_SEEDS["train"]) + list(TRAIN_POOL)
+    elif split in ("val", "test"):
+        seeds = list(SPLIT_SEEDS[split])
+    else:
+        raise ValueError(f"split must be train, val or test, got {split!r}")
+    if rooms_per_type > len(seeds):
+        raise ValueError(f"{split} has {len(seeds)} rooms per type; asked for {rooms_per_type}")
+    return seeds[:rooms_per_type]
+
+
+def configs(cfg: GenConfig) -> list[tuple[str, int, int | None]]:
+    """(room type, seed, mess index or None) for every configuration the generator visits."""
+    out: list[tuple[str, int, int | None]] = []
+    limit = MESSES_PER_ROOM["train" if cfg.split == "train" else cfg.split]
+    if cfg.messes_per_room > limit:
+        raise ValueError(f"{cfg.split} rooms have {limit} messy configurations; asked for {cfg.messes_per_room}")
+    for seed in room_seeds(cfg.split, cfg.rooms_per_type):
+        for rt in cfg.room_types:
+            if cfg.tidy:
+                out.append((rt, seed, None))
+            out += [(rt, seed, m) for m in range(cfg.messes_per_room)]
+    return out
+
+
+def frame_targets(inst_seg: np.ndarray, objects: list[dict], depth: np.ndarray,
+                  min_pixels: int = MIN_PIXELS) -> tuple[np.ndarray, list[dict]]:
+    """(inst int16 HxW, one dict per visible instance) from the simulator's segmentation."""
+    h = inst_seg.shape[0]
+    min_px = max(4, int(min_pixels * (h / 256.0) ** 2))
+    inst = np.full(inst_seg.shape, -1, np.int16)
+    valid = (inst_seg >= 0) & (depth > 0.05)
+    ids, counts = np.unique(inst_seg[valid], return_counts=True)
+    rows = []
+    for k, n in zip(ids.tolist(), counts.tolist()):
+        o = objects[k]
+        if o["type"] not in CLASS_INDEX or n < min_px:
+            continue
+        m = (inst_seg == k) & valid
+        ys, xs = np.nonzero(m)
+        j = len(rows)
+        inst[m] = j
+        rows.append({"cls": CLASS_INDEX[o["type"]], "box": [xs.min(), ys.min(), xs.max() + 1, ys.max() + 1],
+                     "oop": int(bool(o.get("moved"))), "pix": int(n), "inst": j, "id": o["id"]})
+    return inst, rows
+
+
+def iter_frames(cfg: GenConfig, jobs: list[tuple[str, int, int | None]] | None = None,
+                progress: bool = True) -> Iterator[dict]:
+    """Frames with targets, deterministic in ``cfg`` (one Episode, rooms in order)."""
+    from tqdm import tqdm
+
+    from tidee.protocol.messages import Action, EpisodeSpec
+    from tidee.server.episode import Episode
+
+    jobs = configs(cfg) if jobs is None else jobs
+    for _, seed, _ in jobs:
+        if cfg.split == "train" and split_of(seed) not in ("train", "train_pool"):
+            raise ValueError(f"seed {seed} is a {split_of(seed)} room: detector training data only comes from "
+                             "training rooms")
+    ep = Episode()
+    try:
+        for j, (rt, seed, mess) in enumerate(tqdm(jobs, desc=f"{cfg.split} configurations", disable=not progress)):
+            rng = np.random.default_rng([cfg.seed, seed, ROOM_TYPES.index(rt), 0 if mess is None else mess + 1])
+            for w in range(cfg.walks_per_config):
+                spec = EpisodeSpec(room_type=rt, seed=seed, mess_index=mess, resolution=cfg.resolution,
+                                   start_seed=int(rng.integers(1 << 30)), max_steps=10_000)
+                obs = ep.reset(spec, ground_truth=True)
+                kept = 0
+                for t in range(cfg.frames_per_walk * cfg.stride * 3):
+                    if t % cfg.stride == cfg.stride - 1:
+                        inst, rows = frame_targets(obs.ground_truth.instance_seg, obs.ground_truth.objects,
+                                                   obs.depth)
+                        keep = bool(rows) and (not cfg.oop_views_only or any(r["oop"] for r in rows))
+                        if keep:
+                            kept += 1
+                            yield {"rgb": obs.rgb, "depth": obs.depth, "inst": inst, "objects": rows,
+                                   "room_type": rt, "seed": seed, "mess_index": mess, "walk": w,
+                                   "pose": obs.agent_pose}
+                            if kept >= cfg.frames_per_walk:
+                                break
+                    name = WALK_ACTIONS[int(rng.integers(len(WALK_ACTIONS)))]
+                    if name == "LookUp" and obs.agent_pose[3] <= 0:
+                        name = "LookDown"          # the agent rarely looks above the horizon
+                    obs = ep.step(Action(name=name), ground_truth=True)
+                    if not obs.success and name == "MoveAhead":
+                        obs = ep.step(Action(name="RotateLeft" if rng.random() < 0.5 else "RotateRight"),
+                                      ground_truth=True)
+    finally:
+        ep.close()
+
+
+def pack(frames: list[dict]) -> dict[str, np.ndarray]:
+    rows = [(i, r) for i, f in enumerate(frames) for r in f["objects"]]
+    return {
+        "rgb": np.stack([f["rgb"] for f in frames]),
+        "depth": np.stack([f["depth"] for f in frames]).astype(np.float16),
+        "inst": np.stack([f["inst"] for f in frames]),
+        "obj_frame": np.array([i for i, _ in rows], np.int32),
+        "obj_cls": np.array([r["cls"] for _, r in rows], np.int16),
+        "obj_box": np.array([r["box"] for _, r in rows], np.float32).reshape(-1, 4),
+        "obj_oop": np.array([r["oop"] for _, r in rows], np.uint8),
+        "obj_pix": np.array([r["pix"] for _, r in rows], np.int32),
+        "obj_inst": np.array([r["inst"] for _, r in rows], np.int16),
+        "obj_id": np.array([r["id"] for _, r in rows], dtype=str),
+        "frame_room": np.array([f"{f['room_type']}:{f['seed']}:{f['mess_index']}" for f in frames]),
+    }
+
+
+def _generate_part(cfg: GenConfig, jobs: list, out: Path, prefix: str, progress: bool) -> dict:
+    buf: list[dict] = []
+    shards: list[str] = []
+    counts = {"frames": 0, "instances": 0, "oop_instances": 0}
+
+    def flush() -> None:
+        name = f"shard_{prefix}{len(shards):04d}.npz"
+        tmp = out / (name + ".tmp")
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **pack(buf))
+        tmp.replace(out / name)
+        shards.append(name)
+        buf.clear()
+
+    for fr in iter_frames(cfg, jobs, progress=progress):
+        buf.append(fr)
+        counts["frames"] += 1
+        counts["instances"] += len(fr["objects"])
+        counts["oop_instances"] += sum(r["oop"] for r in fr["objects"])
+        if len(buf) >= cfg.shard_size:
+            flush()
+    if buf:
+        flush()
+    return {"shards": shards, **counts}
+
+
+def _part_worker(a: tuple) -> dict:
+    cfg, jobs, out, prefix = a
+    return _generate_part(cfg, jobs, out, prefix, progress=prefix == "p0_")
+
+
+def generate(cfg: GenConfig, out: str | Path, command: str = "", progress: bool = True, workers: int = 1) -> dict:
+    """Write shards + manifest.json under ``out`` (``workers`` processes); returns the manifest."""
+    if cfg.split != "train":
+        raise ValueError("tidee gen detection writes training data only (split train); evaluation builds "
+                         "its test frames itself")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    jobs = configs(cfg)
+    if workers <= 1:
+        parts = [_generate_part(cfg, jobs, out, "p0_", progress)]
+    else:
+        import multiprocessing as mp
+
+        args = [(cfg, jobs[i::workers], out, f"p{i}_") for i in range(workers)]
+        with mp.get_context("spawn").Pool(workers) as pool:
+            parts = pool.map(_part_worker, args)
+    manifest = {"command": command, "config": asdict(cfg), "classes": list(CLASSES),
+                "shards": [s for p in parts for s in p["shards"]],
+                "frames": sum(p["frames"] for p in parts), "instances": sum(p["instances"] for p in parts),
+                "oop_instances": sum(p["oop_instances"] for p in parts),
+                "rooms": sorted({f"{rt}:{s}" for rt, s, _ in jobs}), "configurations": len(jobs),
+                "seconds": round(time.time() - t0, 1)}
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    return manifest
+
+
+def load_shards(root: str | Path, with_inst: bool = False, limit: int | None = None) -> dict[str, np.ndarray]:
+    """All shards listed in ``root/manifest.json``, concatenated (object frame indices rebased)."""
+    root = Path(root)
+    manifest = json.loads((root / "manifest.json").read_text())
+    if manifest.get("classes") != list(CLASSES):
+        raise ValueError(f"{root} was generated for a different class list; regenerate it")
+    parts: dict[str, list[np.ndarray]] = {}
+    base = 0
+    for name in manifest["shards"]:
+        with np.load(root / name) as z:
+            keys = [k for k in z.files if with_inst or k != "inst"]
+            d = {k: z[k] for k in keys}
+        d["obj_frame"] = d["obj_frame"] + base
+        base += len(d["rgb"])
+        for k, v in d.items():
+            parts.setdefault(k, []).append(v)
+        if limit is not None and base >= limit:
+            break
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def test_frames(n_rooms_per_type: int = 5, messes: int = 2, frames_per_walk: int = 5, walks: int = 1,
+                seed: int = 7, oop_views_only: bool = False, tidy: bool = True, progress: bool = True,
+                resolution: int = 256) -> dict[str, np.ndarray]:
+    """Held-out frames from the *test* rooms, packed like a shard (evaluation only)."""
+    cfg = GenConfig(split="test", rooms_per_type=n_rooms_per_type, messes_per_room=messes,
+                    walks_per_config=walks, frames_per_walk=frames_per_walk, seed=seed,
+                    oop_views_only=oop_views_only, tidy=tidy, resolution=resolution)
+    frames = list(iter_frames(cfg, progress=progress))
+    if not frames:
+        raise ValueError("no test frames with objects in view")
+    return pack(frames)
+
+
+def describe(cfg: GenConfig) -> str:
+    n = len(configs(cfg))
+    return (f"{n} configurations x {cfg.walks_per_config} walks x up to {cfg.frames_per_walk} frames "
+            f"= at most {n * cfg.walks_per_config * cfg.frames_per_walk} frames at {cfg.resolution}^2")
+
+
+__all__ = ["GenConfig", "configs", "frame_targets", "iter_frames", "generate", "load_shards", "test_frames",
+           "pack", "describe", "room_seeds", "MIN_PIXELS"]

@@ -1,0 +1,147 @@
+"""Learned perception: the shipped RGB-D detector behind the ``Perception`` interface.
+
+Each detection carries the detector's class, score, box, its out-of-place probability (the
+OOP head: the paper's dDETR-OOP) and a feature vector (the neck at the object's centre
+cell, L2-normalised) for the downstream classifiers. The detector predicts boxes, not
+masks; the mask handed to mapping is grown from the depth at the box centre: the pixels of
+the box whose depth lies within the object's own extent of it, so the median-depth
+centroid is the object's and not the wall behind it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tidee.agent.classes import CLASSES
+from tidee.agent.learning import read_manifest
+from tidee.agent.perception.base import Detection
+from tidee.agent.perception.detector import CenterDetector, DetectorConfig, decode, preprocess
+from tidee.protocol.messages import Observation
+
+
+def depth_mask(depth: np.ndarray, box: tuple[int, int, int, int], focal: float,
+               min_tol: float = 0.08, max_tol: float = 1.0) -> np.ndarray | None:
+    """bool HxW: box pixels within the object's depth range around the centre's depth."""
+    x0, y0, x1, y1 = box
+    if x1 <= x0 or y1 <= y0:
+        return None
+    patch = depth[y0:y1, x0:x1]
+    h, w = patch.shape
+    cy, cx = h // 2, w // 2
+    r = max(1, min(h, w) // 6)
+    core = patch[max(cy - r, 0):cy + r + 1, max(cx - r, 0):cx + r + 1]
+    core = core[core > 0.05]
+    if core.size == 0:
+        return None
+    dc = float(np.median(core))
+    extent = max(w, h) * dc / focal                  # the object's size in metres, from the box
+    tol = float(np.clip(0.6 * extent, min_tol, max_tol))
+    m = np.zeros(depth.shape, bool)
+    m[y0:y1, x0:x1] = (np.abs(patch - dc) <= tol) & (patch > 0.05)
+    return m if m.any() else None
+
+
+def nms(boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray, iou: float) -> np.ndarray:
+    """Indices kept by greedy per-class non-maximum suppression (a large object can raise
+    several heatmap peaks; the 3x3 peak pooling alone keeps them all)."""
+    order = np.argsort(-scores, kind="stable")
+    keep: list[int] = []
+    area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    for i in order:
+        ok = True
+        for j in keep:
+            if classes[j] != classes[i]:
+                continue
+            w = min(boxes[i, 2], boxes[j, 2]) - max(boxes[i, 0], boxes[j, 0])
+            h = min(boxes[i, 3], boxes[j, 3]) - max(boxes[i, 1], boxes[j, 1])
+            if w > 0 and h > 0 and w * h / (area[i] + area[j] - w * h) > iou:
+                ok = False
+                break
+        if ok:
+            keep.append(int(i))
+    return np.array(keep, int)
+
+
+class LearnedPerception:
+    """The trained detector. ``threshold`` is the score below which detections are dropped."""
+
+    name = "learned"
+    needs_ground_truth = False
+
+    def __init__(self, model: CenterDetector, manifest: dict | None = None, threshold: float = 0.3,
+                 max_detections: int = 50, path: Path | None = None, nms_iou: float = 0.5) -> None:
+        self.model = model.eval()
+        self.path = path                    # the weights file (its manifest is beside it)
+        self.cfg = model.cfg
+        self.manifest = manifest or {}
+        self.threshold = threshold
+        self.max_detections = max_detections
+        self.nms_iou = nms_iou
+
+    @staticmethod
+    def load(path: str | Path | None = None, threshold: float = 0.3, verify: bool = True) -> "LearnedPerception":
+        from tidee.agent.perception.train_detector import DEFAULT_WEIGHTS
+
+        path = Path(path) if path else DEFAULT_WEIGHTS
+        manifest = read_manifest(path, verify=verify)
+        blob = torch.load(path, map_location="cpu", weights_only=False)
+        cfg = DetectorConfig.from_dict(blob["config"])
+        if cfg.num_classes != len(CLASSES):
+            raise ValueError(f"{path} predicts {cfg.num_classes} classes; the catalog has {len(CLASSES)}: retrain")
+        model = CenterDetector(cfg)
+        model.load_state_dict(blob["state_dict"])
+        return LearnedPerception(model, manifest, threshold, path=path)
+
+    @property
+    def sha256(self) -> str | None:
+        return self.manifest.get("sha256")
+
+    def detect(self, obs: Observation) -> list[Detection]:
+        return self.detect_batch(obs.rgb[None], obs.depth[None])[0]
+
+    @torch.inference_mode()
+    def detect_batch(self, rgbs: np.ndarray, depths: np.ndarray, threshold: float | None = None) -> list[list[Detection]]:
+        rgbs = np.asarray(rgbs)
+        depths = np.asarray(depths, dtype=np.float32)
+        if rgbs.ndim != 4 or rgbs.shape[-1] != 3 or depths.shape != rgbs.shape[:3]:
+            raise ValueError(f"expected rgb BxHxWx3 and depth BxHxW, got {rgbs.shape} and {depths.shape}")
+        n, h, w = depths.shape
+        size = self.cfg.input_size
+        if (h, w) != (size, size):
+            import cv2
+
+            rgb_in = np.stack([cv2.resize(r, (size, size), interpolation=cv2.INTER_AREA) for r in rgbs])
+            depth_in = np.stack([cv2.resize(d, (size, size), interpolation=cv2.INTER_NEAREST) for d in depths])
+        else:
+            rgb_in, depth_in = rgbs, depths
+        out = self.model(preprocess(rgb_in, depth_in, self.cfg.use_depth))
+        thr = self.threshold if threshold is None else threshold
+        raw = decode(out, k=self.max_detections, threshold=thr, stride=self.cfg.stride)
+        feat = torch.nn.functional.normalize(out["feat"], dim=1)
+        sx, sy = w / size, h / size
+        focal = (w / 2) / np.tan(np.radians(45.0))
+        result: list[list[Detection]] = []
+        for i, dets in enumerate(raw):
+            frame = []
+            if len(dets) > 1 and self.nms_iou < 1.0:
+                keep = nms(np.array([d.box for d in dets]), np.array([d.score for d in dets]),
+                           np.array([d.cls for d in dets]), self.nms_iou)
+                dets = [dets[k] for k in sorted(keep)]
+            for d in dets:
+                x0 = int(np.clip(np.floor(d.box[0] * sx), 0, w - 1))
+                y0 = int(np.clip(np.floor(d.box[1] * sy), 0, h - 1))
+                x1 = int(np.clip(np.ceil(d.box[2] * sx), x0 + 1, w))
+                y1 = int(np.clip(np.ceil(d.box[3] * sy), y0 + 1, h))
+                box = (x0, y0, x1, y1)
+                frame.append(Detection(
+                    label=CLASSES[d.cls], score=float(d.score), box=box, mask=depth_mask(depths[i], box, focal),
+                    feature=feat[i, :, d.cell[0], d.cell[1]].numpy().astype(np.float32),
+                    oop_prob=float(d.oop_prob), source=self.name))
+            result.append(frame)
+        return result
+
+
+__all__ = ["LearnedPerception", "depth_mask"]
