@@ -82,7 +82,8 @@ AGENT_OPTIONS: list[tuple[str, dict]] = [
                       "help": "learned (the shipped RGB-D detector) | oracle (reads the simulator's segmentation)"}),
     ("--depth", {"default": "sensor", "choices": ("sensor", "estimated"),
                  "help": "estimated: depth from RGB by the shipped depth network (the paper's +est. depth)"}),
-    ("--oop", {"default": "relation_stats", "help": "relation_stats | visual | language | fused"}),
+    ("--oop", {"default": "auto", "help": "auto (visual with learned perception, relation_stats with oracle) | "
+                                          "relation_stats | visual | language | fused"}),
     ("--explorer", {"default": "random", "choices": ("random", "frontier")}),
     ("--room-type", {"default": "LivingRoom", "choices": ROOM_TYPES}),
     ("--seed", {"type": int, "default": 200, "help": "room seed (200-204 are test rooms)"}),
@@ -259,7 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--variants", default="CommonMemory,RandomReceptacle,AI2THORPlacement,MessyPlacement")
     p.add_argument("--perception", default="learned", choices=("learned", "oracle"))
     p.add_argument("--depth", default="sensor", choices=("sensor", "estimated"))
-    p.add_argument("--oop", default="relation_stats")
+    p.add_argument("--oop", default="auto", help="auto | relation_stats | visual")
     p.add_argument("--explorer", default="random", choices=("random", "frontier"))
     p.add_argument("--resolution", type=int, default=256)
     p.add_argument("--max-steps", type=int, default=1000)

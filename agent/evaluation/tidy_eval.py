@@ -45,6 +45,10 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
         transport = _TRANSPORT
     except NameError:
         transport = _TRANSPORT = InProcessTransport(renderer=job["renderer"])
+        if job.get("workers", 1) > 1:
+            import torch
+
+            torch.set_num_threads(1)     # one core per worker: torch's default would oversubscribe
     cfg = AgentConfig(variant=job["variant"], perception=job["perception"], oop=job["oop"], depth=job["depth"],
                       explorer=job["explorer"], seed=job["agent_seed"])
     spec = EpisodeSpec(room_type=job["room_type"], seed=job["seed"], mess_index=job["mess_index"],
@@ -59,7 +63,7 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = None,
-                  variants: list[str] | None = None, perception: str = "learned", oop: str = "relation_stats",
+                  variants: list[str] | None = None, perception: str = "learned", oop: str = "auto",
                   explorer: str = "random", resolution: int = 256, max_steps: int = 1000, workers: int = 1,
                   renderer: str = "auto", keep_logs: bool = False, progress: bool = True,
                   depth: str = "sensor") -> dict[str, Any]:
@@ -67,6 +71,8 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
 
     from tidee.agent.evaluation.report import with_references, write_report
 
+    if oop == "auto":
+        oop = "visual" if perception == "learned" else "relation_stats"
     variants = variants or list(BUILT_VARIANTS)
     agents = [v for v in variants if v not in REFERENCE_VARIANTS]
     for v in agents:
@@ -84,6 +90,8 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
              "resolution": resolution, "max_steps": max_steps, "renderer": renderer,
              "log_dir": str(out / "logs") if keep_logs else None}
             for c in configs for v in agents]
+    for job in jobs:
+        job["workers"] = workers
     t0 = time.time()
     records: list[dict[str, Any]] = []
     bar = tqdm(total=len(jobs), desc="tidy episodes", disable=not progress)
