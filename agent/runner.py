@@ -72,6 +72,21 @@ class EpisodeRunner:
         self.paused = False
         self._single_steps = 0
 
+    def _apply_preference(self, text: str) -> tuple[bool, str]:
+        """A placement preference in plain language: the language OOP head learns it (seconds)."""
+        classifier = getattr(self.oop, "classifier", None)
+        if classifier is None:
+            return True, (f"noted preference {text!r}; only the language / fused OOP classifiers learn from "
+                          f"instructions (this agent runs --oop {self.cfg.oop})")
+        from tidee.agent.reasoning.language_oop import apply_instruction
+
+        try:
+            report = apply_instruction(classifier, text)
+        except ValueError as e:
+            return False, f"could not use {text!r}: {e}"
+        return True, f"learned {text!r}: " + ", ".join(f"{k}={v}" for k, v in report.items()
+                                                      if isinstance(v, (int, float, str)))[:300]
+
     # ------------------------------------------------------------------ the loop
     def run(self, spec: EpisodeSpec, evaluate: bool = False, episode_name: str | None = None) -> EpisodeResult:
         gt = self.perception.needs_ground_truth
@@ -247,8 +262,8 @@ class EpisodeRunner:
                 elif cmd.kind == "preference":
                     if writer:
                         writer.event(kind="preference", text=cmd.text)
-                    self.publisher.ack(cmd.command_id, cmd.kind, True, f"noted preference {cmd.text!r}; the language OOP model that learns from "
-                                         "it is not built yet (issue 6), so placements do not change")
+                    ok, msg = self._apply_preference(cmd.text)
+                    self.publisher.ack(cmd.command_id, cmd.kind, ok, msg)
             if not self.paused:
                 return None
             if self._single_steps > 0:

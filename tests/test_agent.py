@@ -164,3 +164,19 @@ def test_tidee_run_forwards_agent_options(monkeypatch) -> None:
     fwd = seen["cfg"].agent_args
     assert fwd[fwd.index("--variant") + 1] == "RandomReceptacle" and "--pose-noise" in fwd
     assert fwd[fwd.index("--seed") + 1] == "201" and "--server-id" not in fwd and "--depth-noise" not in fwd
+
+
+def test_a_preference_on_the_command_channel_retrains_the_language_oop_head() -> None:
+    from tidee.agent.config import AgentConfig
+    from tidee.agent.runner import EpisodeRunner
+
+    runner = EpisodeRunner(AgentConfig(perception="oracle", oop="language"), transport=None)  # type: ignore[arg-type]
+    clf = runner.oop.classifier
+    para = ["The alarm clock is supported by the desk."]
+    before = float(clf.predict(para)[0])
+    ok, msg = runner._apply_preference("the alarm clock on the desk is out of place")
+    after = float(clf.predict(para)[0])
+    assert ok and "learned" in msg
+    assert after > before and after >= 0.7, (before, after)
+    ok, msg = runner._apply_preference("I want my zzz on the qqq")
+    assert not ok and "could not use" in msg

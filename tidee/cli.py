@@ -305,6 +305,9 @@ def build_parser() -> argparse.ArgumentParser:
     from tidee.agent.evaluation.detection import register as register_detection_eval
 
     register_detection_eval(ev)
+    from tidee.agent.reasoning.language_oop import register as register_language_oop
+
+    register_language_oop(train_sub, ev)
 
     from tidee.viewer.cli import register as register_viewer  # argparse only: no viser import here
 

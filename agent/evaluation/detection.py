@@ -747,11 +747,22 @@ def _cmd_eval_detector(args: Any) -> int:
     return 0
 
 
+def _language_rows() -> dict[str, OopRowFn | None]:
+    """The language, fused and oracle-language rows (issue 6), from the shipped language heads."""
+    from tidee.agent.reasoning.language_oop import (DEFAULT_FUSED_WEIGHTS, LanguageOOPClassifier, language_row,
+                                                    oracle_language_row)
+
+    clf = LanguageOOPClassifier.load()
+    fused = LanguageOOPClassifier.load(DEFAULT_FUSED_WEIGHTS, encoder=clf.encoder)
+    return {"BERT-OOP (language)": language_row(clf), "dDETR+BERT-OOP (fused)": language_row(fused),
+            "Oracle-language": oracle_language_row(clf)}
+
+
 def _cmd_eval_oop(args: Any) -> int:
     det = _load_detector(args.weights)
     r = run_oop_eval(det, args.out, views_per_config=args.views, messes=args.messes,
                      rooms_per_type=args.rooms_per_type, seed=args.seed, split=args.split, walks=args.walks,
-                     batch=args.batch)
+                     batch=args.batch, extra_rows=None if args.visual_only else _language_rows())
     if args.record:
         _record_in_manifest(det, {"oop_visual": r["rows"][VISUAL_ROW], "oop_eval_command": r["command"]})
     print((Path(args.out) / "oop.md").read_text())
@@ -785,4 +796,5 @@ def register(eval_sub: Any) -> None:
     p.add_argument("--seed", type=int, default=11)
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--record", action="store_true", help="merge the visual row into the weights' manifest")
+    p.add_argument("--visual-only", action="store_true", help="skip the language, fused and oracle-language rows")
     p.set_defaults(func=_cmd_eval_oop)

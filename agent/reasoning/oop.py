@@ -101,6 +101,14 @@ def make_oop(name: str) -> OOPDetector:
         return RelationStatsOOP()
     if name == "visual":
         return VisualOOP()
+    if name == "language":
+        from tidee.agent.reasoning.language_oop import LanguageOOP
+
+        return LanguageOOP()
+    if name == "fused":
+        from tidee.agent.reasoning.language_oop import FusedLanguageOOP
+
+        return FusedLanguageOOP()
     if name in OOP_DETECTORS:
         raise NotImplementedError(f"the {name} OOP classifier is a learned model that is not built yet "
                                   "(issue 6); use --oop relation_stats or visual")

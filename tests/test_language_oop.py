@@ -1,0 +1,221 @@
+"""The language out-of-place classifier (BERT-OOP), its Table-3 rows and instructions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("transformers")
+
+from tidee.agent.learning import WEIGHTS_DIR
+from tidee.agent.mapping.memory import TrackedObject
+from tidee.agent.perception.base import Detection
+from tidee.agent.reasoning import language_oop as lo
+
+torch.set_num_threads(1)
+
+# Hand-written paragraphs in the paper's form: where things belong, and where they do not.
+SAMPLES = [
+    ("The mug is next to the counter top. The mug is supported by the counter top. The mug is closest to the bowl.", 0),
+    ("The mug is supported by the floor. The mug is closest to the pillow.", 1),
+    ("The bowl is next to the counter top. The bowl is supported by the counter top. The bowl is closest to the mug.", 0),
+    ("The bowl is next to the bed. The bowl is supported by the bed. The bowl is closest to the pillow.", 1),
+    ("The pillow is next to the bed. The pillow is supported by the bed. The pillow is closest to the cell phone.", 0),
+    ("The pillow is next to the sink. The pillow is supported by the counter top. The pillow is closest to the mug.", 1),
+    ("The alarm clock is next to the side table. The alarm clock is supported by the side table.", 0),
+    ("The alarm clock is next to the toilet. The alarm clock is supported by the floor.", 1),
+    ("The soap bar is next to the sink. The soap bar is supported by the sink. The soap bar is closest to the cloth.", 0),
+    ("The soap bar is next to the sofa. The soap bar is supported by the sofa.", 1),
+    ("The laptop is next to the desk. The laptop is supported by the desk. The laptop is closest to the pen.", 0),
+    ("The laptop is next to the stove burner. The laptop is supported by the counter top.", 1),
+]
+
+
+def _category(paragraph: str) -> str:
+    name = paragraph.split(" is ")[0].removeprefix("The ")
+    return {lo.words(c): c for c in lo.PICKUPABLE}[name]
+
+
+@pytest.fixture(scope="module")
+def encoder() -> lo.TextEncoder:
+    return lo.TextEncoder()
+
+
+@pytest.fixture(scope="module")
+def trained(encoder: lo.TextEncoder) -> lo.LanguageOOPClassifier:
+    """A head trained briefly on SAMPLES (not the shipped weights)."""
+    samples = [lo.OOPSample(p, y, "Kitchen", _category(p)) for p, y in SAMPLES]
+    emb = encoder.encode([s.paragraph for s in samples])
+    y = np.array([s.label for s in samples], np.float32)
+    torch.manual_seed(0)
+    head = lo.LanguageOOPHead()
+    lo.fit_head(head, emb, y, steps=150, batch_size=12, lr=1e-3, weight_decay=0.01, seed=0, device="cpu",
+                progress=False)
+    return lo.LanguageOOPClassifier(head, encoder, lo.replay_set(samples, emb, 8, np.random.default_rng(0)))
+
+
+# ----------------------------------------------------------------------------- encoder and head
+def test_embedding_shape_norm_and_determinism(encoder: lo.TextEncoder) -> None:
+    texts = [SAMPLES[0][0], SAMPLES[1][0], SAMPLES[0][0]]
+    a = encoder.encode(texts)
+    assert a.shape == (3, lo.EMBED_DIM) and a.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-5)   # sentence-transformers' Normalize
+    np.testing.assert_array_equal(a[0], a[2])
+    fresh = lo.TextEncoder(encoder.path)
+    fresh._model, fresh._tokenizer = encoder._model, encoder._tokenizer      # same weights, empty cache
+    np.testing.assert_allclose(fresh.encode(texts[:2]), a[:2], atol=1e-5)
+    assert encoder.encode([]).shape == (0, lo.EMBED_DIM)
+
+
+def test_encoder_path_must_be_a_model_folder(tmp_path) -> None:
+    with pytest.raises(FileNotFoundError, match="config.json"):
+        lo.TextEncoder(tmp_path)
+
+
+def test_training_steps_reduce_the_loss(encoder: lo.TextEncoder) -> None:
+    emb = encoder.encode([p for p, _ in SAMPLES])
+    y = np.array([label for _, label in SAMPLES], np.float32)
+    torch.manual_seed(0)
+    head = lo.LanguageOOPHead()
+    hist = lo.fit_head(head, emb, y, steps=60, batch_size=12, lr=1e-3, weight_decay=0.01, seed=0, device="cpu",
+                       log_every=10, progress=False)
+    assert hist[-1]["bce"] < 0.7 * hist[0]["bce"]
+
+
+def test_fused_head_starts_blind_to_the_visual_feature() -> None:
+    torch.manual_seed(0)
+    head = lo.FusedOOPHead().eval()
+    text = torch.randn(4, lo.EMBED_DIM)
+    with torch.no_grad():
+        a = head(text, torch.randn(4, lo.VISUAL_DIM))
+        b = head(text, None)
+    torch.testing.assert_close(a, b)
+    assert lo.make_head(head.config()).config() == head.config()
+
+
+# ----------------------------------------------------------------------------- instructions
+@pytest.mark.parametrize("text, expected", [
+    ("I want my alarm clock on the desk", ("AlarmClock", "Desk", "in_place")),
+    ("alarm clock on the desk is out of place", ("AlarmClock", "Desk", "out_of_place")),
+    ("put the towel on the towel holder", ("Towel", "TowelHolder", "in_place")),
+    ("The pillows belong on the bed.", ("Pillow", "Bed", "in_place")),
+    ("Don't leave the laptop on the bed", ("Laptop", "Bed", "out_of_place")),
+    ("soap bottle on the countertop is misplaced", ("SoapBottle", "CounterTop", "out_of_place")),
+])
+def test_parse_instruction(text: str, expected: tuple[str, str, str]) -> None:
+    assert tuple(lo.parse_instruction(text)) == expected
+
+
+def test_parse_instruction_says_what_is_missing() -> None:
+    with pytest.raises(ValueError, match="no object category"):
+        lo.parse_instruction("put it on the desk")
+    with pytest.raises(ValueError, match="no receptacle"):
+        lo.parse_instruction("I like my alarm clock")
+
+
+def test_instruction_moves_probability_the_asked_way(trained: lo.LanguageOOPClassifier) -> None:
+    para = ("The mug is next to the counter top. The mug is supported by the counter top. "
+            "The mug is closest to the bowl.")
+    clf = trained.copy()
+    before = float(clf.predict([para])[0])
+    report = lo.apply_instruction(clf, "the mug on the counter top is out of place", steps=50)
+    after = float(clf.predict([para])[0])
+    assert report["instruction"]["polarity"] == "out_of_place"
+    assert after > before + 0.2 and after > 0.5
+    assert float(trained.predict([para])[0]) == pytest.approx(before)       # the copy was tuned, not the original
+
+    floor = "The alarm clock is next to the toilet. The alarm clock is supported by the floor."
+    clf = trained.copy()
+    before = float(clf.predict([floor])[0])
+    lo.apply_instruction(clf, "I want my alarm clock on the floor", steps=50)
+    assert float(clf.predict([floor])[0]) < before - 0.2
+
+
+# ----------------------------------------------------------------------------- paragraphs, rows, agent
+def _records() -> list[dict]:
+    def rec(oid, typ, lo_, hi, moved=False):
+        c = [(a + b) / 2 for a, b in zip(lo_, hi)]
+        return {"id": oid, "type": typ, "moved": moved, "centroid": c, "box_min": list(lo_), "box_max": list(hi)}
+
+    return [rec("CounterTop_0", "CounterTop", (0, 0, 0), (2, 0.6, 0.9)),
+            rec("Mug_0", "Mug", (0.5, 0.2, 0.9), (0.6, 0.3, 1.0)),
+            rec("Mug_1", "Mug", (3.0, 2.0, 0.0), (3.1, 2.1, 0.1), moved=True)]
+
+
+def test_config_paragraphs_from_ground_truth_boxes() -> None:
+    paras = lo.config_paragraphs(_records())
+    assert set(paras) == {"Mug_0", "Mug_1"}
+    assert "The mug is supported by the counter top." in paras["Mug_0"][0] and paras["Mug_0"][1] == 0
+    assert "The mug is supported by the floor." in paras["Mug_1"][0] and paras["Mug_1"][1] == 1
+    assert lo.paragraph_support(paras["Mug_1"][0]) == "Floor"
+
+
+def test_training_and_evaluation_refuse_the_wrong_rooms() -> None:
+    with pytest.raises(ValueError, match="held-out"):
+        lo.evaluate_language_oop(None, split="train")                      # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="val or test|train, val or test"):
+        lo.split_seeds("pool", 1)
+
+
+class _FloorStub:
+    """P(oop) = 0.9 for anything on the floor, else 0.1; records what it was asked."""
+
+    visual_dim = 0
+
+    def __init__(self) -> None:
+        self.seen: list[str] = []
+
+    def predict(self, paragraphs, visual=None):
+        self.seen += list(paragraphs)
+        return np.array([0.9 if "supported by the floor" in p else 0.1 for p in paragraphs])
+
+
+def test_oracle_language_row_matches_detections_to_ground_truth() -> None:
+    frames = {"obj_frame": np.array([0, 0, 1]), "obj_box": np.array([[10, 10, 30, 30], [50, 50, 60, 60],
+                                                                      [0, 0, 5, 5]], np.float32),
+              "obj_id": np.array(["Mug_0", "Mug_1", "Mug_0"]), "frame_room": np.array(["Kitchen:200:0"] * 2)}
+    dets = [[Detection("Mug", 0.9, (11, 10, 30, 30)), Detection("Mug", 0.8, (50, 50, 60, 61)),
+             Detection("Mug", 0.5, (100, 100, 120, 120))], []]
+    stub = _FloorStub()
+    row = lo.oracle_language_row(stub, scenes={"Kitchen:200:0": _records()}, cache_dir=None)  # type: ignore[arg-type]
+    assert row(frames, dets) == [[0.1, 0.9, 0.5], []]
+
+
+def test_language_oop_scores_tracked_objects() -> None:
+    def obj(i, label, lo_, hi):
+        lo_, hi = np.array(lo_, float), np.array(hi, float)
+        return TrackedObject(id=i, label=label, score=1.0, centroid=(lo_ + hi) / 2, box_min=lo_, box_max=hi)
+
+    objects = [obj(0, "CounterTop", (0, 0, 0), (2, 0.6, 0.9)), obj(1, "Mug", (0.5, 0.2, 0.9), (0.6, 0.3, 1.0)),
+               obj(2, "Mug", (3, 2, 0), (3.1, 2.1, 0.1))]
+    oop = lo.LanguageOOP(classifier=_FloorStub())                            # type: ignore[arg-type]
+    probs = oop.score_all(objects[1:], objects, "Kitchen")
+    assert probs == {1: 0.1, 2: 0.9}
+    assert objects[2].meta["paragraph"].startswith("The mug")
+
+
+def _floor_depth(pitch_deg: float, n: int = 64) -> np.ndarray:
+    """z-depth of a camera 0.9015 m above an endless floor, pitched down by ``pitch_deg``."""
+    f, c = n / 2, (n - 1) / 2
+    v = (np.arange(n) - c) / f
+    th = math.radians(pitch_deg)
+    down = v * math.cos(th) + math.sin(th)          # downward component of the ray (z = 1)
+    d = np.where(down > 1e-3, lo.CAMERA_HEIGHT_M / np.maximum(down, 1e-3), 0.0)
+    return np.repeat(np.minimum(d, 20.0)[:, None], n, 1).astype(np.float32)
+
+
+@pytest.mark.parametrize("pitch", [0.0, 30.0, 60.0])
+def test_pitch_is_recovered_from_a_floor(pitch: float) -> None:
+    assert lo.estimate_pitch(_floor_depth(pitch)) == pitch
+
+
+# ----------------------------------------------------------------------------- shipped weights
+@pytest.mark.skipif(not (WEIGHTS_DIR / "language_oop.pt").exists(), reason="no shipped language OOP weights")
+def test_shipped_weights_oracle_language_ap() -> None:
+    clf = lo.LanguageOOPClassifier.load(WEIGHTS_DIR / "language_oop.pt")
+    res = lo.evaluate_language_oop(clf, "test", rooms_per_type=1, messes_per_room=1, progress=False)
+    assert res["samples"] > 50 and res["n_out_of_place"] >= 10
+    assert res["map"] >= 0.8, res
