@@ -57,10 +57,6 @@ def test_oracle_perception_sees_the_table_mug_and_fridge() -> None:
 
 
 def test_learned_modules_not_built_say_so() -> None:
-    from tidee.agent.reasoning.oop import make_oop
-
-    with pytest.raises(NotImplementedError, match="issue 6"):
-        make_oop("language")
     with pytest.raises(ValueError, match="needs --perception learned"):
         AgentConfig(perception="oracle", oop="visual")
     with pytest.raises(NotImplementedError, match="issue 6"):

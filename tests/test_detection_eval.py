@@ -271,7 +271,7 @@ def test_cli_handlers_run_and_return_zero(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(de, "_load_detector", lambda weights: GTDetector(frames, jitter=0.5, seed=5))
     parser = argparse.ArgumentParser(prog="tidee")
     de.register(parser.add_subparsers(dest="eval_cmd"))
-    for argv in (["detector", "--out", str(tmp_path / "d")], ["oop", "--out", str(tmp_path / "o"), "--views", "3"]):
+    for argv in (["detector", "--out", str(tmp_path / "d")], ["oop", "--out", str(tmp_path / "o"), "--views", "3", "--visual-only"]):
         args = parser.parse_args(argv)
         assert args.func(args) == 0
     assert "mAP@0.5" in capsys.readouterr().out

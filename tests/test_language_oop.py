@@ -213,7 +213,6 @@ def test_pitch_is_recovered_from_a_floor(pitch: float) -> None:
 
 
 # ----------------------------------------------------------------------------- shipped weights
-@pytest.mark.skipif(not (WEIGHTS_DIR / "language_oop.pt").exists(), reason="no shipped language OOP weights")
 def test_shipped_weights_oracle_language_ap() -> None:
     clf = lo.LanguageOOPClassifier.load(WEIGHTS_DIR / "language_oop.pt")
     res = lo.evaluate_language_oop(clf, "test", rooms_per_type=1, messes_per_room=1, progress=False)

@@ -53,7 +53,7 @@ def telemetry_source(tmp_path) -> Iterator[TelemetrySource]:
     server = subprocess.Popen(tidee + ["server", "--endpoint", endpoint, "--renderer", "tiny"])
     agent = subprocess.Popen(tidee + ["agent", "--endpoint", endpoint, "--session", session,
                                       "--room-type", "LivingRoom", "--seed", "200", "--mess-index", "0",
-                                      "--resolution", "128", "--max-steps", "800", "--serve",
+                                      "--resolution", "128", "--max-steps", "800", "--serve", "--perception", "oracle",
                                       "--log-dir", str(tmp_path / "runs")])
     try:
         yield TelemetrySource(endpoint, session)
