@@ -96,14 +96,15 @@ class CenterDetector(nn.Module):
 
 def preprocess(rgb: np.ndarray, depth: np.ndarray | None, use_depth: bool = True) -> torch.Tensor:
     """uint8 BxHxWx3 (+ float BxHxW metres) -> float tensor Bx(3|4)xHxW."""
-    x = torch.from_numpy(np.ascontiguousarray(rgb)).permute(0, 3, 1, 2).float().div_(255.0)
+    # copies: frames decoded from messages are read-only buffers, which torch must not alias
+    x = torch.from_numpy(np.array(rgb, dtype=np.uint8)).permute(0, 3, 1, 2).float().div_(255.0)
     mean = torch.tensor(RGB_MEAN).view(1, 3, 1, 1)
     std = torch.tensor(RGB_STD).view(1, 3, 1, 1)
     x = (x - mean) / std
     if use_depth:
         if depth is None:
             raise ValueError("this detector was trained on RGB-D; pass depth")
-        d = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32)).unsqueeze(1) / DEPTH_SCALE
+        d = torch.from_numpy(np.array(depth, dtype=np.float32)).unsqueeze(1) / DEPTH_SCALE
         x = torch.cat([x, d.clamp_(0, 2)], 1)
     return x
 
