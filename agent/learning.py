@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from tidee.protocol.episode_log import write_json_atomic
+
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 
 
@@ -89,9 +91,7 @@ def write_manifest(weights: str | Path, command: str, data: dict[str, Any], metr
     manifest = {"weights": weights.name, "sha256": sha256_file(weights), "bytes": weights.stat().st_size,
                 "command": command, "data": data, "metrics": metrics,
                 "written": time.strftime("%Y-%m-%dT%H:%M:%S"), **extra}
-    tmp = weights.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(manifest, indent=1))
-    os.replace(tmp, weights.with_suffix(".json"))
+    write_json_atomic(weights.with_suffix(".json"), manifest)
     return manifest
 
 
@@ -116,9 +116,7 @@ def update_manifest_metrics(weights: str | Path, metrics: dict[str, Any]) -> dic
     man_path = weights.with_suffix(".json")
     manifest = json.loads(man_path.read_text())
     manifest.setdefault("metrics", {}).update(metrics)
-    tmp = man_path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(manifest, indent=1))
-    os.replace(tmp, man_path)
+    write_json_atomic(man_path, manifest)
     return manifest
 
 

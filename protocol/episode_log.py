@@ -52,8 +52,19 @@ def write_atomic(path: str | os.PathLike, data: bytes) -> None:
 
 
 def write_json_atomic(path: str | os.PathLike, data: Any) -> None:
-    """``write_atomic`` of ``data`` as indented JSON (numpy values become plain numbers)."""
-    write_atomic(path, json.dumps(data, indent=1, default=_json_default).encode())
+    """``write_atomic`` of ``data`` as strict, indented JSON (numpy values become plain
+    numbers, NaN becomes null)."""
+    write_atomic(path, (json.dumps(_strict(data), indent=1, default=_json_default) + "\n").encode())
+
+
+def _strict(x: Any) -> Any:
+    if isinstance(x, float) and x != x:
+        return None
+    if isinstance(x, dict):
+        return {k: _strict(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_strict(v) for v in x]
+    return x
 
 
 def _json_default(x: Any) -> Any:

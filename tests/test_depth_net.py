@@ -182,9 +182,9 @@ def test_eval_refuses_training_rooms(tmp_path):
 
 
 def test_shipped_weights_on_test_rooms():
-    from tidee.agent.perception.dataset import test_frames
+    from tidee.agent.perception.dataset import held_out_frames
 
-    frames = test_frames(n_rooms_per_type=1, messes=0, frames_per_walk=1, progress=False)
+    frames = held_out_frames("test", rooms_per_type=1, messes=0, frames_per_walk=1, progress=False)
     metrics = evaluate_depth(DepthEstimator.load(), frames)
     assert metrics["frames"] == 4
     assert metrics["abs_rel"] < 0.28, metrics      # shipped weights: 0.21; a constant 1 m scores 0.36

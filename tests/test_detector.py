@@ -135,10 +135,10 @@ def shipped():
 
 @pytest.fixture(scope="module")
 def test_room_frames() -> dict[str, np.ndarray]:
-    from tidee.agent.perception.dataset import test_frames
+    from tidee.agent.perception.dataset import held_out_frames
 
     # one test room per type, its tidy and first messy configuration, 3 frames each: 24 frames
-    return test_frames(n_rooms_per_type=1, messes=1, frames_per_walk=3, seed=7, progress=False)
+    return held_out_frames("test", rooms_per_type=1, messes=1, frames_per_walk=3, seed=7, progress=False)
 
 
 def test_shipped_detector_manifest_is_complete(shipped) -> None:

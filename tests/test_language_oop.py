@@ -157,7 +157,7 @@ def test_training_and_evaluation_refuse_the_wrong_rooms() -> None:
     with pytest.raises(ValueError, match="held-out"):
         lo.evaluate_language_oop(None, split="train")                      # type: ignore[arg-type]
     with pytest.raises(ValueError, match="val or test|train, val or test"):
-        lo.split_seeds("pool", 1)
+        lo.room_seeds("pool", 1)
 
 
 class _FloorStub:

@@ -39,13 +39,14 @@ import numpy as np
 
 from tidee.agent.classes import CLASS_INDEX, CLASSES, PICKUPABLE
 from tidee.agent.perception.base import Detection
-from tidee.protocol.episode_log import write_atomic
+from tidee.agent.perception.dataset import held_out_frames
+from tidee.protocol.episode_log import write_atomic, write_json_atomic
 from tidee.server.splits import ROOM_TYPES
 
 __all__ = [
     "FrameDetector", "COCO_IOUS", "OOP_IOUS", "OOP_ROWS", "PAPER_TABLE3", "SIZE_RANGES",
     "average_precision", "box_iou", "match_detections", "evaluate_boxes", "evaluate_oop",
-    "oop_table_markdown", "held_out_frames", "save_detection_examples",
+    "oop_table_markdown", "save_detection_examples",
     "run_detector_eval", "run_oop_eval", "register",
 ]
 
@@ -378,38 +379,6 @@ def oop_table_markdown(result: Mapping[str, Any], paper: bool = True) -> str:
 # ------------------------------------------------------------------------- frames
 
 
-def held_out_frames(split: str = "test", rooms_per_type: int = 5, messes: int = 2, walks: int = 1,
-                    frames_per_walk: int = 5, seed: int = 7, oop_views_only: bool = False, tidy: bool = True,
-                    per_config: int | None = None, resolution: int = 256,
-                    progress: bool = True) -> dict[str, np.ndarray]:
-    """Frames of the val or test rooms, packed like a shard (``test_frames`` for either split).
-
-    The same frames as ``dataset.test_frames`` with the same arguments, but generated one
-    configuration at a time so that a configuration stops rendering once it has
-    ``per_config`` frames (its walks are still the same deterministic walks).
-    """
-    from tqdm import tqdm
-
-    from tidee.agent.perception.dataset import GenConfig, configs, iter_frames, pack
-
-    if split not in ("val", "test"):
-        raise ValueError(f"evaluation frames come from the val or test rooms, not {split!r}")
-    cfg = GenConfig(split=split, rooms_per_type=rooms_per_type, messes_per_room=messes, walks_per_config=walks,
-                    frames_per_walk=frames_per_walk, seed=seed, oop_views_only=oop_views_only, tidy=tidy,
-                    resolution=resolution)
-    kept: list[dict] = []
-    for job in tqdm(configs(cfg), desc=f"{split} configurations", disable=not progress):
-        gen = iter_frames(cfg, [job], progress=False)
-        for n, fr in enumerate(gen, 1):
-            kept.append(fr)
-            if per_config is not None and n >= per_config:
-                break
-        gen.close()                           # closes this configuration's simulator
-    if not kept:
-        raise ValueError(f"no {split} frames with objects in view")
-    return pack(kept)
-
-
 def _config_counts(frames: Mapping[str, np.ndarray]) -> dict[str, int]:
     names, counts = np.unique(np.asarray(frames["frame_room"]), return_counts=True)
     return {str(k): int(v) for k, v in zip(names, counts)}
@@ -521,19 +490,6 @@ def save_detection_examples(frames: Mapping[str, np.ndarray], detections_per_fra
     return idx
 
 
-def _write_json(path: Path, data: Mapping[str, Any]) -> None:
-    def clean(x: Any) -> Any:                 # nan -> null: strict JSON
-        if isinstance(x, float) and math.isnan(x):
-            return None
-        if isinstance(x, dict):
-            return {k: clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        return x
-
-    write_atomic(path, (json.dumps(clean(data), indent=1) + "\n").encode())
-
-
 def _frames_summary(frames: Mapping[str, np.ndarray]) -> dict[str, Any]:
     counts = _config_counts(frames)
     return {"frames": len(frames["rgb"]), "configurations": len(counts),
@@ -559,7 +515,7 @@ def run_detector_eval(detector: FrameDetector, out_dir: str | Path, rooms_per_ty
                        **_frames_summary(frames)},
               **metrics}
     save_detection_examples(frames, dets, out / "detector_examples.png")
-    _write_json(out / "detector.json", report)
+    write_json_atomic(out / "detector.json", report)
     write_atomic(out / "detector.md", _detector_markdown(report).encode())
     return report
 
@@ -676,7 +632,7 @@ def run_oop_eval(detector: FrameDetector, out_dir: str | Path, views_per_config:
               "paper_ai2thor": {k: list(v) for k, v in PAPER_TABLE3.items()},
               **metrics}
     save_detection_examples(frames, dets, out / "oop_examples.png")
-    _write_json(out / "oop.json", report)
+    write_json_atomic(out / "oop.json", report)
     write_atomic(out / "oop.md", _oop_markdown(report).encode())
     return report
 

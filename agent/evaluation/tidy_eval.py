@@ -45,10 +45,6 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
         transport = _TRANSPORT
     except NameError:
         transport = _TRANSPORT = InProcessTransport(renderer=job["renderer"])
-        if job.get("workers", 1) > 1:
-            import torch
-
-            torch.set_num_threads(1)     # one core per worker: torch's default would oversubscribe
     cfg = AgentConfig(variant=job["variant"], perception=job["perception"], oop=job["oop"], depth=job["depth"],
                       explorer=job["explorer"], seed=job["agent_seed"])
     spec = EpisodeSpec(room_type=job["room_type"], seed=job["seed"], mess_index=job["mess_index"],
@@ -60,6 +56,13 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
     record = dict(res.record, split=job["split"])
     record["timing_ms"] = {k: float(np.median(v)) if v else None for k, v in res.timings.items()}
     return record
+
+
+def _one_torch_thread() -> None:
+    """Each worker process gets one core: torch's default thread count would oversubscribe."""
+    import torch
+
+    torch.set_num_threads(1)
 
 
 def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = None,
@@ -90,8 +93,6 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
              "resolution": resolution, "max_steps": max_steps, "renderer": renderer,
              "log_dir": str(out / "logs") if keep_logs else None}
             for c in configs for v in agents]
-    for job in jobs:
-        job["workers"] = workers
     t0 = time.time()
     records: list[dict[str, Any]] = []
     bar = tqdm(total=len(jobs), desc="tidy episodes", disable=not progress)
@@ -100,7 +101,7 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
             records.append(_run_one(job))
             bar.update()
     else:
-        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_one_torch_thread) as pool:
             for rec in pool.map(_run_one, jobs):
                 records.append(rec)
                 bar.update()

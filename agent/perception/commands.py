@@ -86,6 +86,7 @@ def _cmd_eval_depth(args: argparse.Namespace) -> int:
     from tidee.agent.perception.depth_net import (DEFAULT_WEIGHTS, DepthEstimator, EvalSet, evaluate_depth,
                                                   heldout_frames, metrics_markdown, save_examples,
                                                   time_inference)
+    from tidee.protocol.episode_log import write_json_atomic
 
     if args.split not in ("val", "test"):
         raise ValueError(f"tidee eval depth scores held-out rooms: --split must be test or val, got "
@@ -102,7 +103,7 @@ def _cmd_eval_depth(args: argparse.Namespace) -> int:
               "metrics": evaluate_depth(estimator, frames), "speed": time_inference(estimator)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "depth.json").write_text(json.dumps(result, indent=1))
+    write_json_atomic(out / "depth.json", result)
     (out / "depth.md").write_text(metrics_markdown(result))
     save_examples(estimator, frames, out / "depth_examples.png")
     print(metrics_markdown(result))

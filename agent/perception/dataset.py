@@ -49,6 +49,7 @@ class GenConfig:
     shard_size: int = 256
     room_types: tuple[str, ...] = ROOM_TYPES
     oop_views_only: bool = False         # keep only messy frames with an out-of-place object in view
+    per_config: int | None = None        # stop a configuration once it has this many frames
     tidy: bool = True                    # include the tidy configuration of each room
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -60,7 +61,7 @@ def room_seeds(split: str, rooms_per_type: int) -> list[int]:
         seeds = list(SPLIT_SEEDS[split])
     else:
         raise ValueError(f"split must be train, val or test, got {split!r}")
-    if rooms_per_type > len(seeds):
+    if not 1 <= rooms_per_type <= len(seeds):
         raise ValueError(f"{split} has {len(seeds)} rooms per type; asked for {rooms_per_type}")
     return seeds[:rooms_per_type]
 
@@ -118,7 +119,10 @@ def iter_frames(cfg: GenConfig, jobs: list[tuple[str, int, int | None]] | None =
     try:
         for j, (rt, seed, mess) in enumerate(tqdm(jobs, desc=f"{cfg.split} configurations", disable=not progress)):
             rng = np.random.default_rng([cfg.seed, seed, ROOM_TYPES.index(rt), 0 if mess is None else mess + 1])
+            in_config = 0
             for w in range(cfg.walks_per_config):
+                if cfg.per_config is not None and in_config >= cfg.per_config:
+                    break
                 spec = EpisodeSpec(room_type=rt, seed=seed, mess_index=mess, resolution=cfg.resolution,
                                    start_seed=int(rng.integers(1 << 30)), max_steps=10_000)
                 obs = ep.reset(spec, ground_truth=True)
@@ -130,10 +134,11 @@ def iter_frames(cfg: GenConfig, jobs: list[tuple[str, int, int | None]] | None =
                         keep = bool(rows) and (not cfg.oop_views_only or any(r["oop"] for r in rows))
                         if keep:
                             kept += 1
+                            in_config += 1
                             yield {"rgb": obs.rgb, "depth": obs.depth, "inst": inst, "objects": rows,
                                    "room_type": rt, "seed": seed, "mess_index": mess, "walk": w,
                                    "pose": obs.agent_pose}
-                            if kept >= cfg.frames_per_walk:
+                            if kept >= cfg.frames_per_walk or in_config == cfg.per_config:
                                 break
                     name = WALK_ACTIONS[int(rng.integers(len(WALK_ACTIONS)))]
                     if name == "LookUp" and obs.agent_pose[3] <= 0:
@@ -242,16 +247,20 @@ def load_shards(root: str | Path, with_inst: bool = False, limit: int | None = N
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
-def test_frames(n_rooms_per_type: int = 5, messes: int = 2, frames_per_walk: int = 5, walks: int = 1,
-                seed: int = 7, oop_views_only: bool = False, tidy: bool = True, progress: bool = True,
-                resolution: int = 256) -> dict[str, np.ndarray]:
-    """Held-out frames from the *test* rooms, packed like a shard (evaluation only)."""
-    cfg = GenConfig(split="test", rooms_per_type=n_rooms_per_type, messes_per_room=messes,
-                    walks_per_config=walks, frames_per_walk=frames_per_walk, seed=seed,
-                    oop_views_only=oop_views_only, tidy=tidy, resolution=resolution)
+def held_out_frames(split: str = "test", rooms_per_type: int = 5, messes: int = 2, walks: int = 1,
+                    frames_per_walk: int = 5, seed: int = 7, oop_views_only: bool = False, tidy: bool = True,
+                    per_config: int | None = None, resolution: int = 256,
+                    progress: bool = True) -> dict[str, np.ndarray]:
+    """Frames of the val or test rooms, rendered now and packed like a shard (evaluation only;
+    never written next to training data). ``per_config`` caps the frames of a configuration."""
+    if split not in ("val", "test"):
+        raise ValueError(f"evaluation frames come from the val or test rooms, not {split!r}")
+    cfg = GenConfig(split=split, rooms_per_type=rooms_per_type, messes_per_room=messes, walks_per_config=walks,
+                    frames_per_walk=frames_per_walk, seed=seed, oop_views_only=oop_views_only, tidy=tidy,
+                    per_config=per_config, resolution=resolution)
     frames = list(iter_frames(cfg, progress=progress))
     if not frames:
-        raise ValueError("no test frames with objects in view")
+        raise ValueError(f"no {split} frames with objects in view")
     return pack(frames)
 
 
@@ -261,5 +270,5 @@ def describe(cfg: GenConfig) -> str:
             f"= at most {n * cfg.walks_per_config * cfg.frames_per_walk} frames at {cfg.resolution}^2")
 
 
-__all__ = ["GenConfig", "configs", "frame_targets", "iter_frames", "generate", "load_shards", "test_frames",
+__all__ = ["GenConfig", "configs", "frame_targets", "iter_frames", "generate", "load_shards", "held_out_frames",
            "pack", "describe", "room_seeds", "MIN_PIXELS"]

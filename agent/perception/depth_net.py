@@ -371,17 +371,11 @@ def time_inference(estimator: DepthEstimator, repeats: int = 30, threads: int = 
 # --- evaluation ----------------------------------------------------------------------------------
 
 def heldout_frames(split: str, eval_set: EvalSet, progress: bool = True) -> dict[str, np.ndarray]:
-    """Frames of the val or test rooms, rendered now (never written next to training data)."""
-    from tidee.agent.perception.dataset import GenConfig, iter_frames, pack
+    """The ``eval_set`` frames of the val or test rooms (``dataset.held_out_frames``)."""
+    from tidee.agent.perception.dataset import held_out_frames
 
-    if split not in ("val", "test"):
-        raise ValueError(f"depth evaluation runs on held-out rooms: split must be val or test, got {split!r}")
-    cfg = GenConfig(split=split, rooms_per_type=eval_set.rooms_per_type, messes_per_room=eval_set.messes,
-                    walks_per_config=1, frames_per_walk=eval_set.frames_per_walk, seed=eval_set.seed)
-    frames = list(iter_frames(cfg, progress=progress))
-    if not frames:
-        raise ValueError(f"no {split} frames rendered for {eval_set}")
-    return pack(frames)
+    return held_out_frames(split, rooms_per_type=eval_set.rooms_per_type, messes=eval_set.messes,
+                           frames_per_walk=eval_set.frames_per_walk, seed=eval_set.seed, progress=progress)
 
 
 def evaluate_depth(estimator: DepthModel, frames: dict[str, np.ndarray]) -> dict[str, Any]:

@@ -88,7 +88,6 @@ __all__ = [
     "run_instruct_eval",
     "run_language_eval",
     "split_configs",
-    "split_seeds",
     "train_language_oop",
 ]
 
@@ -198,13 +197,6 @@ def config_paragraphs(records: Sequence[Mapping[str, Any]], ids: Sequence[str] |
     return out
 
 
-def split_seeds(split: str, rooms_per_type: int) -> list[int]:
-    """Room seeds of a split: train = seeds 0-19 then the training pool; val / test their 5."""
-    if rooms_per_type < 1:
-        raise ValueError(f"rooms_per_type must be >= 1, got {rooms_per_type}")
-    return room_seeds(split, rooms_per_type)
-
-
 def split_configs(split: str, rooms_per_type: int, messes_per_room: int,
                   room_types: Sequence[str] = ROOM_TYPES) -> list[tuple[str, int, int]]:
     """(room type, seed, mess index) of the messy configurations, rooms in seed order."""
@@ -214,7 +206,7 @@ def split_configs(split: str, rooms_per_type: int, messes_per_room: int,
     bad = [rt for rt in room_types if rt not in ROOM_TYPES]
     if bad:
         raise ValueError(f"unknown room types {bad}; choose from {ROOM_TYPES}")
-    return [(rt, s, m) for s in split_seeds(split, rooms_per_type) for rt in room_types
+    return [(rt, s, m) for s in room_seeds(split, rooms_per_type) for rt in room_types
             for m in range(messes_per_room)]
 
 
@@ -614,7 +606,7 @@ def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oo
     from tidee.agent.reasoning.stats import _ranges
 
     t0 = time.time()
-    seeds = split_seeds("train", cfg.rooms_per_type)
+    seeds = room_seeds("train", cfg.rooms_per_type)
     held_out = sorted(set(seeds) & (set(SPLIT_SEEDS["val"]) | set(SPLIT_SEEDS["test"])))
     if held_out or any(split_of(s) not in ("train", "train_pool") for s in seeds):
         raise ValueError(f"seeds {held_out} are val/test rooms; the language OOP head trains on training rooms only")
@@ -706,15 +698,12 @@ def _show(path: str | Path) -> str:
         return str(p)
 
 
-def _pct(x: float | None) -> str:
-    return "--" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:.2f}"
-
-
 def run_language_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS, split: str = "test",
                       rooms_per_type: int = 5, messes_per_room: int = 5, encoder_path: str | Path | None = None,
                       cache_dir: str | Path | None = DEFAULT_CACHE_DIR, progress: bool = True) -> dict[str, Any]:
     """``tidee eval language-oop``: the Oracle-language AP table as language_oop.json + .md."""
-    from tidee.agent.evaluation.detection import PAPER_TABLE3, _write_json
+    from tidee.agent.evaluation.detection import PAPER_TABLE3, _pct
+    from tidee.protocol.episode_log import write_json_atomic
     from tidee.protocol.episode_log import write_atomic
 
     out = Path(out_dir)
@@ -731,7 +720,7 @@ def run_language_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
     report = {"command": command, "weights": _show(weights), "sha256": read_manifest(weights)["sha256"],
               "seconds": round(time.time() - t0, 1), **res,
               "paper_ai2thor_oracle_bert_oop_iou0.5": list(PAPER_TABLE3["Oracle-language"][3:])}
-    _write_json(out / "language_oop.json", report)
+    write_json_atomic(out / "language_oop.json", report)
     lines = [f"# Oracle-language out-of-place classification ({split} rooms)", "", f"`{command}`", "",
              f"- weights `{_show(weights)}` (sha256 `{report['sha256'][:16]}...`), text encoder MiniLM-L6 (frozen)",
              (f"- {res['samples']} pickupable objects ({res['n_out_of_place']} out of place) of "
@@ -1153,7 +1142,7 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
     X on the Y") for pairs the head calls out of place; forgetting = mean |change| of
     P(out of place) over the test paragraphs of ``n_unrelated`` frequent pairs of other
     categories. Writes instruct.json and instruct.md."""
-    from tidee.agent.evaluation.detection import _write_json
+    from tidee.protocol.episode_log import write_json_atomic
     from tidee.protocol.episode_log import write_atomic
 
     out = Path(out_dir)
@@ -1221,7 +1210,7 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
               "test_objects": len(samples), "unrelated_pairs": [list(cr) + [len(pairs[cr])] for cr in unrelated],
               "unrelated_examples": len(unrelated_idx), "rows": rows, "summary": summary,
               "seconds": round(time.time() - t0, 1)}
-    _write_json(out / "instruct.json", report)
+    write_json_atomic(out / "instruct.json", report)
     lines = ["# Altering placement priors by instruction (paper Table S2)", "", f"`{command}`", "",
              (f"- weights `{_show(weights)}`; each instruction fine-tunes a fresh copy of the head for {steps} steps "
              "(instructed relations + replay of training samples, L2 pull to the start weights)"),
