@@ -308,6 +308,9 @@ def build_parser() -> argparse.ArgumentParser:
     from tidee.agent.reasoning.language_oop import register as register_language_oop
 
     register_language_oop(train_sub, ev)
+    from tidee.agent.reasoning.rgcn_commands import register as register_rgcn
+
+    register_rgcn(train_sub, ev)
 
     from tidee.viewer.cli import register as register_viewer  # argparse only: no viser import here
 
