@@ -21,7 +21,7 @@ from tidee.protocol.messages import EpisodeSpec
 from tidee.protocol.transport import InProcessTransport
 
 
-def run_agent_bench(out: str, episodes: int = 3, resolution: int = 256, variant: str = "CommonMemory",
+def run_agent_bench(out: str, episodes: int = 3, resolution: int = 256, variant: str = "TIDEE",
                     max_steps: int = 1000, one_core: bool = True, perception: str = "learned") -> dict[str, Any]:
     from tidee.server.bench_sim import write_report
 

@@ -2,15 +2,21 @@
 
 ``AgentConfig.variant`` picks one of the paper's tidying agents (Table 1):
 
-=================  =====================================================  ==========
-variant            placement (where does it belong?) and receptacle search  built
-=================  =====================================================  ==========
-TIDEE              Memex + rGCN, visual search network                     issue 6
-WithoutMemex       rGCN on the scene graph only, visual search network     issue 6
-3DSmntMap2Place    search network conditioned on the object's own class    issue 6
-CommonMemory       most common receptacle for the category (training)      yes
-RandomReceptacle   first receptacle found by random exploration            yes
-=================  =====================================================  ==========
+=================  =========================================================
+variant            placement (where does it belong?) and receptacle search
+=================  =========================================================
+TIDEE              Memex + rGCN (``agent/weights/rgcn.pt``); receptacles not
+                   in memory are searched with the visual search network
+WithoutMemex       rGCN on the scene graph only (``rgcn_without_memex.pt``);
+                   visual search network
+3DSmntMap2Place    the search network conditioned on the object's own class
+                   proposes places; the first receptacle mapped near one
+CommonMemory       most common receptacle for the category (training rooms);
+                   receptacles not in memory: unexplored / random goals
+RandomReceptacle   first receptacle found by random exploration
+=================  =========================================================
+
+Out-of-place detection is its own choice (``oop``), the same for every variant.
 
 AI2THORPlacement and MessyPlacement are reference rows built from the episode record
 (``tidee.agent.evaluation``), not agents.
@@ -25,7 +31,8 @@ from tidee.agent.perception import PERCEPTIONS
 
 AGENT_VARIANTS = ("TIDEE", "WithoutMemex", "3DSmntMap2Place", "CommonMemory", "RandomReceptacle")
 REFERENCE_VARIANTS = ("AI2THORPlacement", "MessyPlacement")
-BUILT_VARIANTS = ("CommonMemory", "RandomReceptacle")
+BUILT_VARIANTS = AGENT_VARIANTS
+SEARCH_VARIANTS = ("TIDEE", "WithoutMemex", "3DSmntMap2Place")   # use the visual search network
 EXPLORERS = ("random", "frontier")
 
 
@@ -33,9 +40,6 @@ def check_variant_built(variant: str) -> None:
     if variant not in AGENT_VARIANTS:
         raise ValueError(f"unknown variant {variant!r}; agents: {AGENT_VARIANTS}, "
                          f"reference rows (evaluation only): {REFERENCE_VARIANTS}")
-    if variant not in BUILT_VARIANTS:
-        raise NotImplementedError(f"variant {variant} needs the Memex + rGCN and the visual search network, "
-                                  f"which are not built yet (issue 6); built variants: {BUILT_VARIANTS}")
 
 
 @dataclass
@@ -70,7 +74,7 @@ DEPTH_SOURCES = ("sensor", "estimated")
 
 @dataclass
 class AgentConfig:
-    variant: str = "CommonMemory"
+    variant: str = "TIDEE"                  # the paper's agent; see the table above
     perception: str = "learned"             # the shipped RGB-D detector; "oracle" reads the segmentation
     depth: str = "sensor"                   # "estimated": depth from RGB by the shipped depth network
     oop: str = "auto"                       # auto: the detector's OOP head (visual) with learned perception,

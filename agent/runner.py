@@ -28,12 +28,12 @@ from tidee.agent.perception import make_perception
 from tidee.agent.policy.skills import Body
 from tidee.agent.policy.tidy import TidyPolicy
 from tidee.agent.reasoning.oop import make_oop
-from tidee.agent.reasoning.placement import CommonMemory
+from tidee.agent.reasoning.placement import make_placement
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.protocol.episode_log import LogWriter
 from tidee.protocol.messages import (Action, ActionName, AgentCommand, AgentFrame, AgentStatus,
                                      Detection2D, EpisodeSpec, ObjectMemoryMsg, Observation, ReceptaclePrediction,
-                                     TrackedObjectMsg)
+                                     SearchHeatmap, TrackedObjectMsg)
 from tidee.protocol.transport import SimTransport
 
 log = logging.getLogger("tidee.agent")
@@ -68,7 +68,8 @@ class EpisodeRunner:
 
             self.depth_net = DepthEstimator.load()
         self.oop = make_oop(config.oop)
-        self.placement = None if config.variant == "RandomReceptacle" else CommonMemory()
+        self.placement, self.searcher = make_placement(config.variant)
+        self._search_sent: tuple[str, int] | None = None
         self.paused = False
         self._single_steps = 0
 
@@ -104,7 +105,8 @@ class EpisodeRunner:
             if writer:
                 writer.event(**kw)
 
-        policy = TidyPolicy(self.cfg, body, self.oop, self.placement, spec.room_type, on_event=on_event)
+        policy = TidyPolicy(self.cfg, body, self.oop, self.placement, spec.room_type, on_event=on_event,
+                            searcher=self.searcher)
         gen = policy.run()
         info = {"room_type": spec.room_type, "seed": spec.seed, "mess_index": spec.mess_index,
                 "variant": self.cfg.variant, "perception": self.cfg.perception, "oop": self.cfg.oop,
@@ -222,13 +224,26 @@ class EpisodeRunner:
                                  tuple(map(float, o.box_min)), tuple(map(float, o.box_max)),
                                  o.oop_prob, bool(o.out_of_place), False) for o in mapper.memory])
 
+        def search() -> SearchHeatmap:
+            view = policy.search_view
+            assert view is not None
+            grid = mapper.voxel_grid if view.heatmap.shape == mapper.voxel_grid.shape else mapper.grid
+            return SearchHeatmap(self.session, int(obs.step), view.label, tuple(grid.origin), float(grid.cell),
+                                 np.clip(view.heatmap, 0, 1).astype(np.float32),
+                                 np.asarray(view.points, np.float32).reshape(-1, 2))
+
         builders = {"status": lambda: self._status(obs, body, policy, info, trajectory), "frame": frame,
                     "maps": lambda: mapper.snapshot(self.session, int(obs.step)), "memory": memory}
+        view = policy.search_view
+        new_search = view is not None and (view.label, view.step) != self._search_sent
+        if new_search:
+            builders["search"] = search
+            self._search_sent = (view.label, view.step)
         final = bool(obs.done)
         for kind, build in builders.items():
             msg = None
             if self.publisher is not None:
-                msg = self.publisher.offer(kind, build, force=final)
+                msg = self.publisher.offer(kind, build, force=final or kind == "search")
             if writer is not None:
                 # The log keeps every status, and the other kinds at most every 10th step.
                 if msg is None and (kind == "status" or obs.step % 10 == 0 or final):

@@ -56,11 +56,9 @@ def test_oracle_perception_sees_the_table_mug_and_fridge() -> None:
         make_perception("oracle").detect(obs)
 
 
-def test_learned_modules_not_built_say_so() -> None:
+def test_bad_agent_configurations_say_what_is_wrong() -> None:
     with pytest.raises(ValueError, match="needs --perception learned"):
         AgentConfig(perception="oracle", oop="visual")
-    with pytest.raises(NotImplementedError, match="issue 6"):
-        AgentConfig(variant="TIDEE")
     with pytest.raises(ValueError, match="unknown variant"):
         AgentConfig(variant="Tidy")
     with pytest.raises(ValueError, match="oop_threshold"):

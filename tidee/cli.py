@@ -76,7 +76,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 # (flag, kwargs) of every option `tidee agent` takes; `tidee run` takes them too and passes them on.
 AGENT_OPTIONS: list[tuple[str, dict]] = [
-    ("--variant", {"default": "CommonMemory",
+    ("--variant", {"default": "TIDEE",
                    "help": "TIDEE | WithoutMemex | 3DSmntMap2Place | CommonMemory | RandomReceptacle"}),
     ("--perception", {"default": "learned",
                       "help": "learned (the shipped RGB-D detector) | oracle (reads the simulator's segmentation)"}),
@@ -257,7 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = ev.add_parser("tidy", help="tidy episodes on held-out rooms, scored by the simulated judge (Table 1)")
     p.add_argument("--split", choices=("val", "test"), default="test")
     p.add_argument("--episodes", type=int, default=None, help="configurations (default: all; test has 100)")
-    p.add_argument("--variants", default="CommonMemory,RandomReceptacle,AI2THORPlacement,MessyPlacement")
+    p.add_argument("--variants", default="TIDEE,WithoutMemex,3DSmntMap2Place,CommonMemory,RandomReceptacle,"
+                                         "AI2THORPlacement,MessyPlacement")
     p.add_argument("--perception", default="learned", choices=("learned", "oracle"))
     p.add_argument("--depth", default="sensor", choices=("sensor", "estimated"))
     p.add_argument("--oop", default="auto", help="auto | relation_stats | visual")
@@ -273,7 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = bench.add_parser("agent", help="agent mapping/planning/step time and episode wall time")
     p.add_argument("--episodes", type=int, default=3)
     p.add_argument("--resolution", type=int, default=256)
-    p.add_argument("--variant", default="CommonMemory")
+    p.add_argument("--variant", default="TIDEE")
     p.add_argument("--perception", default="learned", choices=("learned", "oracle"))
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--out", default="bench/agent.json")
@@ -311,6 +312,12 @@ def build_parser() -> argparse.ArgumentParser:
     from tidee.agent.reasoning.rgcn_commands import register as register_rgcn
 
     register_rgcn(train_sub, ev)
+    from tidee.agent.reasoning.search_commands import register as register_search
+
+    register_search(gen, train_sub)
+    from tidee.agent.evaluation.search_eval import register as register_search_eval
+
+    register_search_eval(ev)
 
     from tidee.viewer.cli import register as register_viewer  # argparse only: no viser import here
 

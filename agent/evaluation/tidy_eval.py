@@ -79,7 +79,7 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
     variants = variants or list(BUILT_VARIANTS)
     agents = [v for v in variants if v not in REFERENCE_VARIANTS]
     for v in agents:
-        check_variant_built(v)   # a clear error for TIDEE & co. until issue 6 lands
+        check_variant_built(v)
     unknown = [v for v in variants if v not in AGENT_VARIANTS + REFERENCE_VARIANTS]
     if unknown:
         raise ValueError(f"unknown variants {unknown}; choose from {AGENT_VARIANTS + REFERENCE_VARIANTS}")
@@ -120,6 +120,7 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
              + f", depth: {depth}",
              f"median per-step agent time (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in timing.items()),
              f"command: tidee eval tidy --split {split} --episodes {len(configs)} --variants {','.join(variants)} "
-             f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} --out {out}",
+             f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} "
+             f"--max-steps {max_steps} --resolution {resolution} --workers {workers} --out {out}",
              f"total wall time {time.time() - t0:.0f} s with {workers} worker(s)"]
     return write_report(all_records, out, title=f"Tidy evaluation ({split} rooms)", notes=notes)

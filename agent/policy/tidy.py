@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -40,6 +40,25 @@ Gen = Generator[Action, None, Any]
 FLOOR = "Floor"
 
 
+class Searcher(Protocol):
+    """Where to look for a class not in the object memory (the visual search network)."""
+
+    def heatmap(self, mapper: Any, label: str) -> np.ndarray: ...
+
+    def points(self, mapper: Any, label: str, agent_xy: tuple[float, float], k: int,
+               visited: list[tuple[float, float]] = ...) -> list[tuple[float, float]]: ...
+
+
+@dataclass
+class SearchView:
+    """One search prediction: the heatmap (on the voxel grid) and the ranked points."""
+
+    label: str
+    step: int
+    heatmap: np.ndarray
+    points: list[tuple[float, float]]
+
+
 @dataclass
 class PolicyState:
     """What the policy is doing, for telemetry and logs."""
@@ -56,9 +75,13 @@ class PolicyState:
 
 class TidyPolicy:
     def __init__(self, config: AgentConfig, body: Body, oop: OOPDetector, placement: PlacementModel | None,
-                 room_type: str, on_event: Callable[..., None] = lambda **kw: None) -> None:
+                 room_type: str, on_event: Callable[..., None] = lambda **kw: None,
+                 searcher: Searcher | None = None) -> None:
         self.cfg, self.p = config, config.policy
         self.body, self.oop, self.placement = body, oop, placement
+        self.searcher = searcher
+        self.search_view: SearchView | None = None       # the latest heatmap, for telemetry
+        self._visited: dict[str, list[tuple[float, float]]] = {}
         self.room_type = room_type
         self.rng = np.random.default_rng(config.seed)
         self.state = PolicyState()
@@ -213,6 +236,9 @@ class TidyPolicy:
     # ------------------------------------------------------------------ placing
     def put_away(self, obj: TrackedObject) -> Gen:
         st = self.state
+        if self.cfg.variant == "3DSmntMap2Place":
+            st.predictions = []
+            return (yield from self.put_near_proposals(obj.label))
         if self.placement is None:          # RandomReceptacle
             st.predictions = []
             return (yield from self.put_on_first_found(obj.label))
@@ -259,10 +285,64 @@ class TidyPolicy:
         return False
 
     def search_goal(self, label: str) -> tuple[float, float] | None:
-        """Where to look for a receptacle not in memory (non-learned: unexplored, else random)."""
+        """Where to look for a class not in memory: the visual search network's best point not
+        visited yet for this label; without a network, unexplored space, else a random place."""
+        if self.searcher is not None:
+            goal = self.searched_point(label)
+            if goal is not None:
+                return goal
         mapper, reachable = self.body.mapper, self._reachable()
         goal = sample_unexplored_goal(mapper.explored, reachable, mapper.grid, self.rng, tuple(self.body.xy))
         return goal or sample_reachable_goal(reachable, mapper.grid, self.rng, tuple(self.body.xy))
+
+    def searched_point(self, label: str) -> tuple[float, float] | None:
+        """The search network's best point for ``label`` at least 1 m from the points already
+        visited for it (re-predicted each time: the map grows as the agent walks)."""
+        assert self.searcher is not None
+        mapper = self.body.mapper
+        visited = self._visited.setdefault(label, [])
+        points = self.searcher.points(mapper, label, tuple(self.body.xy), 3, visited=list(visited))
+        self.search_view = SearchView(label, self.body.obs.step, self.searcher.heatmap(mapper, label), points)
+        for p in points:
+            if all(math.hypot(p[0] - v[0], p[1] - v[1]) >= 1.0 for v in visited):
+                visited.append(p)
+                self.event("search_point", label=label, x=round(p[0], 2), y=round(p[1], 2))
+                return p
+        return None
+
+    def put_near_proposals(self, label: str) -> Gen:
+        """3DSmntMap2Place: the search network conditioned on the object's own class proposes
+        where such objects are; put it on the first receptacle mapped near a proposal."""
+        self.state.phase = "searching_receptacle"
+        for _ in range(self.p.search_goals):
+            if self.body.steps_left() <= self.p.reserve_steps:
+                break
+            goal = self.searched_point(label) if self.searcher is not None else None
+            if goal is None:
+                break
+            for rec in self._receptacles_near(goal, 1.5)[:2]:
+                self.state.phase, self.state.target_receptacle = "placing", rec.label
+                if (yield from self.put_on(rec)):
+                    return self._placed(label, rec.label)
+            yield from navigate(self.body, goal_xy=goal, budget=self.p.goal_step_budget)
+            yield from look_around(self.body, pitches=(30.0,))
+            for rec in self._receptacles_near(goal, 1.5)[:1]:
+                self.state.phase, self.state.target_receptacle = "placing", rec.label
+                if (yield from self.put_on(rec)):
+                    return self._placed(label, rec.label)
+        return False
+
+    def _receptacles_near(self, xy: tuple[float, float], radius: float) -> list[TrackedObject]:
+        p = np.asarray(xy)
+        near = []
+        for o in self.body.mapper.memory:
+            if o.label not in PLACEABLE_RECEPTACLES or o.meta.get("full"):
+                continue
+            gap = np.maximum(0.0, np.maximum(o.box_min[:2] - p, p - o.box_max[:2]))
+            d = float(np.hypot(*gap))
+            if d <= radius:
+                near.append((d, o))
+        return [o for _, o in sorted(near, key=lambda t: t[0])]
 
     def _instances(self, label: str) -> list[TrackedObject]:
         xy = self.body.xy

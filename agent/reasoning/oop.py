@@ -109,7 +109,4 @@ def make_oop(name: str) -> OOPDetector:
         from tidee.agent.reasoning.language_oop import FusedLanguageOOP
 
         return FusedLanguageOOP()
-    if name in OOP_DETECTORS:
-        raise NotImplementedError(f"the {name} OOP classifier is a learned model that is not built yet "
-                                  "(issue 6); use --oop relation_stats or visual")
     raise ValueError(f"unknown OOP detector {name!r}; choose one of {OOP_DETECTORS}")

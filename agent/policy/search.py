@@ -1,0 +1,185 @@
+"""Object search (paper §3.4, Table 2): find an instance of a category and stop next to it.
+
+``search_object`` is a skill like those in ``skills.py``: look around, then repeatedly ask a
+*proposer* where to go (the visual search network's ranked points, or a frontier), walk
+there and look around, re-asking as the map grows. As soon as the detector has put an
+instance of the target in the object memory the agent walks to it, faces it and, when the
+detector sees it again, says ``Done`` (the benchmark's Stop). Decisions read only the
+agent's own maps and detections.
+
+``SkillDriver`` plays a skill against a transport outside the full ``EpisodeRunner`` (data
+generation and the search evaluation): perception -> mapping -> skill -> step.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from tidee.agent.classes import CLASSES
+from tidee.agent.mapping.maps import MapConfig, SemanticMapper
+from tidee.agent.mapping.memory import TrackedObject
+from tidee.agent.navigation.explore import FrontierExplorer, sample_reachable_goal
+from tidee.agent.navigation.fmm import FMMPlanner
+from tidee.agent.policy.skills import (AGENT_RADIUS, Body, Skill, face_point, find_in_view, goal_mask_near_box,
+                                       look_around, navigate, pitch_to)
+from tidee.protocol.messages import Action, ActionName, EpisodeSpec
+
+# Where to search next: (body, target label, search points already visited) -> ranked goals (x, y).
+Proposer = Callable[[Body, str, Sequence[tuple[float, float]]], list[tuple[float, float]]]
+
+
+class SkillDriver:
+    """Runs skills against a transport: each step detects, maps, then asks the skill for an action."""
+
+    def __init__(self, transport: Any, perception: Any, map_config: MapConfig | None = None,
+                 ground_truth: bool = False) -> None:
+        self.transport, self.perception = transport, perception
+        self.map_config = map_config
+        # Ground truth travels in the observations for oracle perception or for scoring only.
+        self.ground_truth = bool(ground_truth or perception.needs_ground_truth)
+        self.body: Body | None = None
+
+    def reset(self, spec: EpisodeSpec) -> Body:
+        obs = self.transport.reset(spec, ground_truth=self.ground_truth)
+        self.body = Body(SemanticMapper(self.map_config, CLASSES))
+        self._observe(obs)
+        return self.body
+
+    def _observe(self, obs: Any) -> None:
+        assert self.body is not None
+        dets = self.perception.detect(obs)
+        self.body.mapper.update(obs, dets)
+        self.body.obs, self.body.detections = obs, dets
+
+    def run(self, skill: Skill, on_step: Callable[[Body], None] | None = None) -> Any:
+        """Play ``skill`` until it returns or the episode ends; its return value (None if cut off)."""
+        body = self.body
+        assert body is not None, "reset() first"
+        while not body.obs.done:
+            try:
+                action = next(skill)
+            except StopIteration as stop:
+                return stop.value
+            self._observe(self.transport.step(action, ground_truth=self.ground_truth))
+            if on_step is not None:
+                on_step(body)
+        skill.close()
+        return None
+
+
+def reachable_mask(body: Body) -> np.ndarray:
+    """bool nav grid: cells the agent can reach from where it stands (unknown counts as free)."""
+    planner = FMMPlanner(body.mapper.traversible(AGENT_RADIUS), body.mapper.grid)
+    return planner.reachable_from(tuple(body.xy))
+
+
+def frontier_proposer(explorer: FrontierExplorer | None = None) -> Proposer:
+    """The Yamauchi baseline: the geodesically nearest frontier (Table 2's exploration agent)."""
+
+    def propose(body: Body, label: str, visited: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
+        mapper = body.mapper
+        ex = explorer or FrontierExplorer(mapper.grid)
+        planner = FMMPlanner(mapper.traversible(AGENT_RADIUS), mapper.grid)
+        planner.set_goal(tuple(body.xy))
+        occ = mapper.occupancy_grid()
+        known = mapper.explored | (occ > 0)
+        goal = ex.next_goal(occ == 1, known, mapper.obstacle, planner, tuple(body.xy))
+        return [] if goal is None else [goal]
+
+    return propose
+
+
+def _interruptible(body: Body, skill: Skill, stop: Callable[[], bool]) -> Skill:
+    """Play ``skill`` but end it (returning False) as soon as ``stop()`` holds."""
+    try:
+        while True:
+            if stop():
+                return False
+            try:
+                action = next(skill)
+            except StopIteration as done:
+                return bool(done.value)
+            yield action
+    finally:
+        skill.close()
+
+
+def _known(body: Body, label: str, rejected: set[int]) -> TrackedObject | None:
+    objs = [o for o in body.mapper.memory.of_label(label) if o.id not in rejected]
+    if not objs:
+        return None
+    xy = body.xy
+    return min(objs, key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
+
+
+def _in_view(body: Body, obj: TrackedObject) -> bool:
+    """The detector sees the object now: a detection of its label near its projection, or any
+    detection of the label within reach of the stop radius (the benchmark asks for the category)."""
+    if find_in_view(body, obj, max_pixel_gap=0.3) is not None:
+        return True
+    return any(d.label == obj.label for d in body.detections)
+
+
+def approach_and_verify(body: Body, obj: TrackedObject, radius: float = 1.0, budget: int = 40) -> Skill:
+    """Walk within ``radius`` of a tracked object's footprint, face it; True when it is detected in view."""
+    for attempt in range(2):
+        mask = goal_mask_near_box(body.mapper, obj.box_min, obj.box_max, radius + 0.25 * attempt)
+        yield from navigate(body, goal_mask=mask, stop_radius=0.05, budget=budget)
+        for pitch_try in range(2):
+            if body.steps_left() <= 1:
+                return False
+            yield from face_point(body, obj.centroid)
+            if _in_view(body, obj):
+                return True
+            if pitch_try == 0:
+                p = body.pose[3]
+                yield from pitch_to(body, p + (30.0 if p < 60 else -30.0))
+    return False
+
+
+def search_object(body: Body, label: str, propose: Proposer, rng: np.random.Generator,
+                  goal_budget: int = 40, approach_radius: float = 1.0, visit_radius: float = 1.0) -> Skill:
+    """Find an instance of ``label`` and stop near it with it in view (yields ``Done``); True on Stop.
+
+    The loop (paper: search points visited in rank order, re-predicted as the map grows):
+    look around; while steps remain: if the memory holds an untried instance, approach it
+    and stop when it is seen again (else reject it); otherwise walk to the best proposed
+    point not yet visited (a random reachable point when none), interrupting the walk the
+    moment the target is detected, and look around there.
+    """
+    rejected: set[int] = set()
+    visited: list[tuple[float, float]] = []
+
+    def seen() -> bool:
+        return _known(body, label, rejected) is not None
+
+    yield from _interruptible(body, look_around(body), seen)
+    while body.steps_left() > 1:
+        target = _known(body, label, rejected)
+        if target is not None:
+            if (yield from approach_and_verify(body, target, approach_radius, goal_budget)):
+                yield Action(ActionName.Done)
+                return True
+            rejected.add(target.id)
+            continue
+        goals = [g for g in propose(body, label, visited)
+                 if all(math.dist(g, v) > visit_radius for v in visited)]
+        if not goals:
+            g = sample_reachable_goal(reachable_mask(body), body.mapper.grid, rng, tuple(body.xy))
+            if g is None:
+                break
+            goals = [g]
+        goal = goals[0]
+        visited.append((float(goal[0]), float(goal[1])))
+        yield from _interruptible(body, navigate(body, goal_xy=goal, budget=goal_budget), seen)
+        if not seen():
+            yield from _interruptible(body, look_around(body, pitches=(30.0,)), seen)
+    return False
+
+
+__all__ = ["Proposer", "SkillDriver", "approach_and_verify", "frontier_proposer", "reachable_mask",
+           "search_object"]

@@ -1,0 +1,76 @@
+"""``tidee eval search`` (Table 2): arguments, validation, scoring summary and one short episode."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from tidee.agent.evaluation import search_eval as se
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="tidee")
+    sub = p.add_subparsers(dest="group", required=True)
+    se.register(sub.add_parser("eval").add_subparsers(dest="what", required=True))
+    return p
+
+
+def test_cli_parses_the_table_2_run():
+    args = _parser().parse_args(["eval", "search", "--split", "test", "--out", "x", "--categories-per-room", "3",
+                                 "--methods", "frontier,network", "--workers", "2"])
+    cfg = se.config_from_args(args)
+    assert cfg.split == "test" and cfg.methods == ("frontier", "network") and cfg.categories_per_room == 3
+    assert cfg.max_steps == 200 and cfg.radius == 1.5 and cfg.perception == "learned"
+    assert se.config_from_args(_parser().parse_args(["eval", "search", "--out", "x", "--categories-per-room", "0"])
+                               ).categories_per_room is None
+
+
+@pytest.mark.parametrize("argv", [
+    ["--split", "train"],                # training rooms would measure memorisation
+    ["--methods", "network,random"],
+    ["--categories-per-room", "-1"],
+    ["--categories-per-room", "two"],
+    ["--workers", "8"],
+    [],                                  # --out is required
+])
+def test_cli_refuses_bad_input(argv, capsys):
+    base = [] if argv == [] else ["--out", "x"]
+    with pytest.raises(SystemExit):
+        _parser().parse_args(["eval", "search", *base, *argv])
+    assert "error" in capsys.readouterr().err
+
+
+def test_config_validation_says_what_is_wrong():
+    with pytest.raises(ValueError, match="held-out"):
+        se.SearchEvalConfig(out="x", split="train")
+    with pytest.raises(ValueError, match="radius"):
+        se.SearchEvalConfig(out="x", radius=0)
+    with pytest.raises(ValueError, match="methods"):
+        se.SearchEvalConfig(out="x", methods=("bogus",))
+
+
+def test_summary_counts_failures_as_max_steps():
+    recs = [{"method": "network", "success": True, "stopped": True, "steps": 40, "steps_scored": 40},
+            {"method": "network", "success": False, "stopped": False, "steps": 199, "steps_scored": 200},
+            {"method": "frontier", "success": False, "stopped": True, "steps": 80, "steps_scored": 200}]
+    s = se.summarize(recs, ("network", "frontier"))
+    assert s["network"] == {"episodes": 2, "successes": 1, "success_pct": 50.0, "mean_steps_all": 120.0,
+                            "mean_steps_successes": 40.0, "stopped_pct": 50.0, "detected_pct": 0.0}
+    assert s["frontier"]["success_pct"] == 0.0 and s["frontier"]["mean_steps_successes"] is None
+
+
+def test_jobs_sample_categories_present_in_test_rooms():
+    cfg = se.SearchEvalConfig(out="x", rooms=2, categories_per_room=2, methods=("frontier",))
+    jobs = se.episodes(cfg)
+    assert len(jobs) == 4 and {(j["room_type"], j["seed"]) for j in jobs} == {("Kitchen", 200), ("Kitchen", 201)}
+    assert jobs == se.episodes(cfg)       # seeded
+
+
+@pytest.mark.slow
+def test_one_short_search_episode(tmp_path):
+    cfg = se.SearchEvalConfig(out=str(tmp_path), rooms=1, categories_per_room=1, methods=("frontier",),
+                              perception="oracle", max_steps=40, workers=1, examples=0)
+    res = se.run_search_eval(cfg, command="test", progress=False)
+    assert res["summary"]["frontier"]["episodes"] == 1
+    assert (tmp_path / "search.md").exists() and (tmp_path / "search.json").exists()

@@ -1,0 +1,92 @@
+"""The paper's agent variants (Table 1): what each one is made of, and the policy's use of the
+visual search network (searched points, 3DSmntMap2Place's receptacles near a proposal)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+
+from tidee.agent.classes import CLASSES  # noqa: E402
+from tidee.agent.config import AGENT_VARIANTS, AgentConfig  # noqa: E402
+from tidee.agent.mapping.maps import MapConfig, SemanticMapper  # noqa: E402
+from tidee.agent.policy.skills import Body  # noqa: E402
+from tidee.agent.policy.tidy import TidyPolicy  # noqa: E402
+from tidee.agent.reasoning.placement import CommonMemory, make_placement  # noqa: E402
+
+
+class FakeSearcher:
+    """Fixed ranked points; counts how often the policy asks (it re-predicts every time)."""
+
+    def __init__(self, points: list[tuple[float, float]]) -> None:
+        self.pts, self.calls = points, 0
+
+    def heatmap(self, mapper, label):
+        return np.full(mapper.voxel_grid.shape, 0.25, np.float32)
+
+    def points(self, mapper, label, agent_xy, k=3, visited=()):
+        self.calls += 1
+        self.visited = list(visited)
+        return list(self.pts)[:k]
+
+
+def _policy(searcher=None, variant="TIDEE"):
+    mapper = SemanticMapper(MapConfig(), CLASSES)
+    body = Body(mapper, obs=SimpleNamespace(step=7, agent_pose=(0.0, 0.0, 0.0, 30.0), steps_left=500))
+    events = []
+    policy = TidyPolicy(AgentConfig(variant=variant, perception="oracle"), body, oop=None, placement=None,
+                        room_type="Kitchen", on_event=lambda **kw: events.append(kw), searcher=searcher)
+    return policy, events
+
+
+def test_searched_points_are_visited_once_each_and_shown_to_the_viewer():
+    searcher = FakeSearcher([(1.0, 1.0), (1.5, 1.2), (3.0, 3.0)])
+    policy, events = _policy(searcher)
+    assert policy.search_goal("Fridge") == (1.0, 1.0)
+    view = policy.search_view
+    assert view is not None and view.label == "Fridge" and view.step == 7
+    assert view.heatmap.shape == policy.body.mapper.voxel_grid.shape and len(view.points) == 3
+    # (1.5, 1.2) is within 1 m of a visited point: skipped
+    assert policy.search_goal("Fridge") == (3.0, 3.0)
+    assert searcher.visited == [(1.0, 1.0)]          # the network is told where the agent has been
+    # another label has its own visited list
+    assert policy.search_goal("Sink") == (1.0, 1.0)
+    assert [e["label"] for e in events if e["kind"] == "search_point"] == ["Fridge", "Fridge", "Sink"]
+    assert searcher.calls == 3
+    # every point visited: the non-learned fallback (unexplored / reachable space) takes over
+    assert policy.searched_point("Fridge") is None
+
+
+def test_receptacles_near_a_proposal_are_placeable_and_sorted_by_distance():
+    policy, _ = _policy(FakeSearcher([]), variant="3DSmntMap2Place")
+    mem = policy.body.mapper.memory
+    far = mem.add_or_merge("CounterTop", 0.9, np.array([5.0, 0.0, 0.45]), np.array([4.5, -0.3, 0.0]),
+                           np.array([5.5, 0.3, 0.9]), 1)
+    near = mem.add_or_merge("DiningTable", 0.9, np.array([1.6, 0.0, 0.4]), np.array([1.2, -0.4, 0.0]),
+                            np.array([2.0, 0.4, 0.75]), 1)
+    nearer = mem.add_or_merge("Shelf", 0.9, np.array([0.5, 0.9, 0.4]), np.array([0.3, 0.7, 0.0]),
+                              np.array([0.7, 1.1, 0.9]), 1)
+    mem.add_or_merge("Mug", 0.9, np.array([0.4, 0.1, 0.05]), np.array([0.35, 0.05, 0.0]),
+                     np.array([0.45, 0.15, 0.1]), 1)
+    got = policy._receptacles_near((0.5, 0.2), 1.5)
+    assert [o.id for o in got] == [nearer.id, near.id]
+    assert far.id not in [o.id for o in policy._receptacles_near((0.5, 0.2), 3.0)]
+
+
+def test_every_variant_is_built_from_shipped_models():
+    from tidee.agent.reasoning.rgcn import RGCNPlacement
+    from tidee.agent.reasoning.search_net import VisualSearch
+
+    parts = {v: make_placement(v) for v in AGENT_VARIANTS}
+    assert isinstance(parts["TIDEE"][0], RGCNPlacement) and parts["TIDEE"][0].model.cfg.use_memex
+    assert isinstance(parts["WithoutMemex"][0], RGCNPlacement) and not parts["WithoutMemex"][0].model.cfg.use_memex
+    assert parts["3DSmntMap2Place"][0] is None
+    for v in ("TIDEE", "WithoutMemex", "3DSmntMap2Place"):
+        assert isinstance(parts[v][1], VisualSearch), v
+    assert isinstance(parts["CommonMemory"][0], CommonMemory) and parts["CommonMemory"][1] is None
+    assert parts["RandomReceptacle"] == (None, None)
+    with pytest.raises(ValueError, match="unknown variant"):
+        make_placement("Tidy")
