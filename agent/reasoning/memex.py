@@ -41,8 +41,9 @@ import numpy as np
 
 from tidee.agent.classes import CLASS_INDEX, CLASSES, PICKUPABLE, PLACEABLE_RECEPTACLES
 from tidee.agent.reasoning.relations import Box3D, box_relations
+from tidee.server.scene import quat_yaw
+from tidee.server.splits import ROOM_TYPES
 
-ROOM_TYPES = ("Kitchen", "LivingRoom", "Bedroom", "Bathroom")
 RELATIONS = ("above", "below", "supported_by", "next_to", "aligned_with", "facing")
 REL_INDEX = {r: i for i, r in enumerate(RELATIONS)}
 FLOOR = "Floor"
@@ -166,10 +167,6 @@ def make_graph(nodes: Sequence[GraphNode], edges: np.ndarray, room_type: str | N
 
 
 # --------------------------------------------------------------------- from the simulator (training)
-def _yaw_of(q: Sequence[float]) -> float:
-    return math.atan2(2 * (q[3] * q[2] + q[0] * q[1]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
-
-
 def scene_nodes(scene) -> tuple[list[GraphNode], list]:
     """GraphNodes of a ``server.scene.Scene``'s objects (privileged: training and evaluation only),
     with the scene objects they came from. Boxes are world-frame, floor at z = 0."""
@@ -177,7 +174,7 @@ def scene_nodes(scene) -> tuple[list[GraphNode], list]:
     for o in scene.objects:
         if o.type not in CLASS_INDEX:
             continue
-        yaw = _yaw_of(o.orientation)
+        yaw = quat_yaw(o.orientation)
         sx, sy, sz = (float(v) for v in o.size)
         c, s = abs(math.cos(yaw)), abs(math.sin(yaw))
         hx, hy = (c * sx + s * sy) / 2, (s * sx + c * sy) / 2

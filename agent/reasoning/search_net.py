@@ -50,6 +50,7 @@ from tidee.agent.classes import CLASS_INDEX, CLASSES
 from tidee.agent.learning import WEIGHTS_DIR
 from tidee.agent.mapping.geometry import GridSpec
 from tidee.agent.mapping.maps import SemanticMapper
+from tidee.server.scene import quat_yaw
 from tidee.server.splits import ROOM_TYPES, split_of
 
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "search_net.pt"
@@ -121,11 +122,6 @@ def out_grid(mapper_grid: GridSpec | None = None) -> GridSpec:
 
 
 # --------------------------------------------------------------------------- targets (ground truth)
-def _yaw_of(quat: Sequence[float]) -> float:
-    qx, qy, qz, qw = (float(v) for v in quat)
-    return math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
-
-
 def room_instances(state: dict[str, Any]) -> np.ndarray:
     """float32 [M, 6] rows (class index, cx, cy, half x, half y, yaw) of every object whose type is a
     detector class, in the episode's start frame. Reads the simulator's privileged state: for
@@ -140,7 +136,7 @@ def room_instances(state: dict[str, Any]) -> np.ndarray:
             continue
         dx, dy = o["position"][0] - start["x"], o["position"][1] - start["y"]
         sx, sy = float(o["size"][0]), float(o["size"][1])
-        rows.append((k, c * dx + s * dy, -s * dx + c * dy, sx / 2, sy / 2, _yaw_of(o["orientation"]) - t0))
+        rows.append((k, c * dx + s * dy, -s * dx + c * dy, sx / 2, sy / 2, quat_yaw(o["orientation"]) - t0))
     return np.asarray(rows, np.float32).reshape(-1, 6)
 
 
