@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
 import pytest
 
 from tidee.agent.evaluation import search_eval as se
@@ -74,3 +75,39 @@ def test_one_short_search_episode(tmp_path):
     res = se.run_search_eval(cfg, command="test", progress=False)
     assert res["summary"]["frontier"]["episodes"] == 1
     assert (tmp_path / "search.md").exists() and (tmp_path / "search.json").exists()
+
+
+def test_a_tracked_object_placed_in_the_frame_from_the_map():
+    from types import SimpleNamespace
+
+    from tidee.agent.mapping.memory import TrackedObject
+    from tidee.agent.policy.search import _in_frame_unoccluded
+
+    # camera 1.5 m up looking along +x (optical axes: x right = -y, y down = -z, z forward = +x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    pose[:3, 3] = (0.0, 0.0, 1.5)
+    k = np.array([[128.0, 0.0, 128.0], [0.0, 128.0, 128.0], [0.0, 0.0, 1.0]])
+
+    def body(depth: float):
+        obs = SimpleNamespace(depth=np.full((256, 256), depth, np.float32), intrinsics=k, camera_pose=pose)
+        return SimpleNamespace(obs=obs)
+
+    def obj(x, y, z=1.5):
+        c = np.array([x, y, z])
+        return TrackedObject(0, "Candle", 0.5, c, c - 0.05, c + 0.05)
+
+    assert _in_frame_unoccluded(body(3.0), obj(1.0, 0.0))            # ahead, 1 m, nothing in front
+    assert not _in_frame_unoccluded(body(0.5), obj(1.0, 0.0))        # something 0.5 m in front of it
+    assert not _in_frame_unoccluded(body(3.0), obj(2.0, 0.0))        # out of reach
+    assert not _in_frame_unoccluded(body(3.0), obj(1.0, 1.0))        # at the image edge (45 degrees left)
+    assert not _in_frame_unoccluded(body(3.0), obj(-1.0, 0.0))       # behind the camera
+
+    # Picking at the projected centroid (the tidy policy) also needs the ray to meet the object:
+    # the wall 3 m behind it is not the object; a surface at the centroid's depth is.
+    from tidee.agent.policy.skills import projected_sighting
+
+    assert projected_sighting(body(3.0), obj(1.0, 0.0)) is None
+    s = projected_sighting(body(1.05), obj(1.0, 0.0))
+    assert s is not None and s.detection is None and (s.u, s.v) == (128, 128)
+    assert abs(s.distance - 1.05) < 1e-3 and abs(s.point[0] - 1.05) < 1e-3

@@ -25,7 +25,7 @@ from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import FrontierExplorer, sample_reachable_goal
 from tidee.agent.navigation.fmm import FMMPlanner
 from tidee.agent.policy.skills import (AGENT_RADIUS, Body, Skill, face_point, find_in_view, goal_mask_near_box,
-                                       look_around, navigate, pitch_to)
+                                       look_around, navigate, pitch_to, projected_sighting)
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
 
 # Where to search next: (body, target label, search points already visited) -> ranked goals (x, y).
@@ -124,8 +124,16 @@ def _in_view(body: Body, obj: TrackedObject) -> bool:
     return any(d.label == obj.label for d in body.detections)
 
 
+def _in_frame_unoccluded(body: Body, obj: TrackedObject) -> bool:
+    """In the frame within reach (1.4 m) with nothing more than 0.25 m in front of it; what lies
+    behind does not matter here (Stop needs the object in view, not a pixel on it)."""
+    return projected_sighting(body, obj, reach=1.4, nearer_tol=0.25, farther_tol=math.inf) is not None
+
+
 def approach_and_verify(body: Body, obj: TrackedObject, radius: float = 1.0, budget: int = 40) -> Skill:
-    """Walk within ``radius`` of a tracked object's footprint, face it; True when it is detected in view."""
+    """Walk within ``radius`` of a tracked object's footprint, face it; True when the detector
+    sees it in view, or when an object the detector has seen at least twice lies in the frame,
+    within reach and unoccluded (small objects are often missed from up close)."""
     for attempt in range(2):
         mask = goal_mask_near_box(body.mapper, obj.box_min, obj.box_max, radius + 0.25 * attempt)
         yield from navigate(body, goal_mask=mask, stop_radius=0.05, budget=budget)
@@ -133,7 +141,7 @@ def approach_and_verify(body: Body, obj: TrackedObject, radius: float = 1.0, bud
             if body.steps_left() <= 1:
                 return False
             yield from face_point(body, obj.centroid)
-            if _in_view(body, obj):
+            if _in_view(body, obj) or (obj.n_obs >= 2 and _in_frame_unoccluded(body, obj)):
                 return True
             if pitch_try == 0:
                 p = body.pose[3]
@@ -146,12 +154,14 @@ def search_object(body: Body, label: str, propose: Proposer, rng: np.random.Gene
     """Find an instance of ``label`` and stop near it with it in view (yields ``Done``); True on Stop.
 
     The loop (paper: search points visited in rank order, re-predicted as the map grows):
-    look around; while steps remain: if the memory holds an untried instance, approach it
-    and stop when it is seen again (else reject it); otherwise walk to the best proposed
-    point not yet visited (a random reachable point when none), interrupting the walk the
-    moment the target is detected, and look around there.
+    look around; while steps remain: if the memory holds an instance not set aside, approach
+    it and stop when it is verified in view (else set it aside: after a first failed approach
+    until the next search point has been visited, for good after a second); otherwise walk to
+    the best proposed point not yet visited (a random reachable point when none),
+    interrupting the walk the moment the target is detected, and look around there.
     """
-    rejected: set[int] = set()
+    rejected: set[int] = set()        # failed twice, or deferred until the next search point
+    tries: dict[int, int] = {}
     visited: list[tuple[float, float]] = []
 
     def seen() -> bool:
@@ -164,6 +174,7 @@ def search_object(body: Body, label: str, propose: Proposer, rng: np.random.Gene
             if (yield from approach_and_verify(body, target, approach_radius, goal_budget)):
                 yield Action(ActionName.Done)
                 return True
+            tries[target.id] = tries.get(target.id, 0) + 1
             rejected.add(target.id)
             continue
         goals = [g for g in propose(body, label, visited)
@@ -178,6 +189,7 @@ def search_object(body: Body, label: str, propose: Proposer, rng: np.random.Gene
         yield from _interruptible(body, navigate(body, goal_xy=goal, budget=goal_budget), seen)
         if not seen():
             yield from _interruptible(body, look_around(body, pitches=(30.0,)), seen)
+        rejected = {i for i in rejected if tries.get(i, 0) >= 2}   # deferred ones: try again from here
     return False
 
 

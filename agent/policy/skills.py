@@ -153,9 +153,10 @@ def look_around(body: Body, pitches: tuple[float, ...] = (30.0, 0.0)) -> Skill:
 
 @dataclass
 class Sighting:
-    """A tracked object seen in the current frame: the detection and the pixel to act on."""
+    """A tracked object seen in the current frame: the detection and the pixel to act on
+    (``detection`` None: placed by projecting the tracked centroid, see ``projected_sighting``)."""
 
-    detection: Detection
+    detection: Detection | None
     u: int
     v: int
     distance: float        # eye-to-surface distance along the ray at (u, v), metres
@@ -186,6 +187,34 @@ def find_in_view(body: Body, obj: TrackedObject, max_pixel_gap: float = 0.15) ->
     if best is None:
         return None
     return sighting_of(body, best[1])
+
+
+def projected_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, margin: float = 0.1,
+                       nearer_tol: float = 0.15, farther_tol: float = 0.15) -> Sighting | None:
+    """``obj`` placed in the frame from the agent's own map, without a detection: its tracked
+    centroid projects at least ``margin`` inside the image, within ``reach`` of the camera,
+    and the depth at that pixel is at most ``nearer_tol`` nearer (nothing in front of it)
+    and at most ``farther_tol`` farther (the ray meets something where the object should
+    be, not the wall behind) than the centroid. Small objects are often missed by the
+    detector from up close; their tracks are not."""
+    obs = body.obs
+    assert obs is not None
+    h, w = obs.depth.shape
+    u, v, z = project(obj.centroid[None, :], obs.intrinsics, obs.camera_pose)
+    if not z[0] > 0 or not (margin * w <= u[0] < (1 - margin) * w and margin * h <= v[0] < (1 - margin) * h):
+        return None
+    cam = obs.camera_pose[:3, 3]
+    if float(np.linalg.norm(obj.centroid - cam)) > reach:
+        return None
+    ui, vi = int(u[0]), int(v[0])
+    d = float(obs.depth[vi, ui])
+    if not -nearer_tol <= d - float(z[0]) <= farther_tol:
+        return None
+    pts, _ = unproject(obs.depth, obs.intrinsics, obs.camera_pose,
+                       mask=np.eye(1, h * w, vi * w + ui, dtype=bool).reshape(h, w))
+    if len(pts) == 0:
+        return None
+    return Sighting(None, ui, vi, float(np.linalg.norm(pts[0] - cam)), pts[0])
 
 
 def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: float = 1.4) -> Sighting | None:

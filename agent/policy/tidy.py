@@ -31,7 +31,8 @@ from tidee.agent.navigation.explore import (FrontierExplorer, sample_reachable_g
                                             unexplored_fraction)
 from tidee.agent.navigation.fmm import FMMPlanner
 from tidee.agent.policy.skills import (AGENT_RADIUS, Body, face_point, find_in_view, goal_mask_near_box,
-                                       look_around, navigate, pitch_to, receptacle_in_view, sighting_of)
+                                       look_around, navigate, pitch_to, projected_sighting, receptacle_in_view,
+                                       sighting_of)
 from tidee.agent.reasoning.oop import OOPDetector
 from tidee.agent.reasoning.placement import PlacementModel
 from tidee.protocol.messages import Action, ActionName
@@ -223,6 +224,10 @@ class TidyPolicy:
             for pitch_try in range(2):
                 yield from face_point(self.body, obj.centroid)
                 sighting = find_in_view(self.body, obj)
+                if sighting is None and obj.n_obs >= 2:
+                    # not detected from here; a track seen twice can be picked at its projected
+                    # centroid when the depth there agrees (small objects are missed up close)
+                    sighting = projected_sighting(self.body, obj, reach=self.p.interact_m)
                 if sighting is not None and sighting.distance <= self.p.interact_m:
                     return sighting
                 if sighting is not None:
