@@ -27,8 +27,9 @@ class FakeSearcher:
     def heatmap(self, mapper, label):
         return np.full(mapper.voxel_grid.shape, 0.25, np.float32)
 
-    def points(self, mapper, label, agent_xy, k=3, visited=()):
+    def points(self, mapper, label, agent_xy, k=3, visited=(), heat=None):
         self.calls += 1
+        assert heat is not None and heat.shape == mapper.voxel_grid.shape   # the shown heatmap, not a second one
         self.visited = list(visited)
         return list(self.pts)[:k]
 

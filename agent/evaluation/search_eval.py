@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from tidee.agent.reasoning.search_commands import int_at_least
+
 METHODS = ("network", "frontier")
 PAPER = {"network": {"success_pct": 72.4, "mean_steps": 88.8}, "frontier": {"success_pct": 64.8, "mean_steps": 100.9}}
 MIN_VISIBLE_PIXELS = 12     # at 256 x 256 (scaled with the resolution)
@@ -287,29 +289,22 @@ def _methods(text: str) -> tuple[str, ...]:
     return ms
 
 
-def _count(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {v}")
-    return v
+_count_from_0 = int_at_least(0)
 
 
 def add_eval_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", default="test", choices=("test", "val"), help="held-out rooms only")
     p.add_argument("--out", required=True, help="directory for search.json, search.md, search_examples.png")
     p.add_argument("--methods", type=_methods, default=METHODS, help="comma list of network, frontier")
-    p.add_argument("--categories-per-room", type=_count, default=8,
+    p.add_argument("--categories-per-room", type=_count_from_0, default=8,
                    help="categories sampled per room (seeded); 0: every category present")
-    p.add_argument("--max-steps", type=_count, default=200)
+    p.add_argument("--max-steps", type=_count_from_0, default=200)
     p.add_argument("--radius", type=float, default=1.5, help="success radius, metres")
     p.add_argument("--perception", default="learned", choices=("learned", "oracle"))
     p.add_argument("--workers", type=int, default=2, choices=(1, 2))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--weights", default=None, help="default: agent/weights/search_net.pt")
-    p.add_argument("--rooms", type=_count, default=0, help="first N rooms of the split (0: all)")
+    p.add_argument("--rooms", type=_count_from_0, default=0, help="first N rooms of the split (0: all)")
     p.add_argument("--explored-discount", type=float, default=0.0,
                    help="network: scale heat by (1 - d * explored) before choosing search points (0: paper)")
     p.set_defaults(func=_cmd_eval_search)

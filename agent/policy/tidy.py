@@ -47,7 +47,8 @@ class Searcher(Protocol):
     def heatmap(self, mapper: Any, label: str) -> np.ndarray: ...
 
     def points(self, mapper: Any, label: str, agent_xy: tuple[float, float], k: int,
-               visited: list[tuple[float, float]] = ...) -> list[tuple[float, float]]: ...
+               visited: list[tuple[float, float]] = ..., heat: np.ndarray | None = ...
+               ) -> list[tuple[float, float]]: ...
 
 
 @dataclass
@@ -306,8 +307,9 @@ class TidyPolicy:
         assert self.searcher is not None
         mapper = self.body.mapper
         visited = self._visited.setdefault(label, [])
-        points = self.searcher.points(mapper, label, tuple(self.body.xy), 3, visited=list(visited))
-        self.search_view = SearchView(label, self.body.obs.step, self.searcher.heatmap(mapper, label), points)
+        heat = self.searcher.heatmap(mapper, label)
+        points = self.searcher.points(mapper, label, tuple(self.body.xy), 3, visited=list(visited), heat=heat)
+        self.search_view = SearchView(label, self.body.obs.step, heat, points)
         for p in points:
             if all(math.hypot(p[0] - v[0], p[1] - v[1]) >= 1.0 for v in visited):
                 visited.append(p)

@@ -38,14 +38,22 @@ def _cmd_train_search(args: argparse.Namespace) -> int:
     return 0
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {v}")
-    return v
+def int_at_least(minimum: int):
+    """An argparse type: a whole number >= ``minimum``, with an error that says which was wrong."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if v < minimum:
+            raise argparse.ArgumentTypeError(f"expected a number >= {minimum}, got {v}")
+        return v
+
+    return parse
+
+
+_positive_int = int_at_least(1)
 
 
 def register(gen_sub: argparse._SubParsersAction, train_sub: argparse._SubParsersAction) -> None:

@@ -326,13 +326,14 @@ class VisualSearch:
 
     def points(self, mapper: SemanticMapper, label: str, agent_xy: Sequence[float], k: int = 3,
                visited: Sequence[Sequence[float]] = (), visit_radius: float = 1.0,
-               agent_radius: float = 0.2) -> list[tuple[float, float]]:
+               agent_radius: float = 0.2, heat: np.ndarray | None = None) -> list[tuple[float, float]]:
         """Up to ``k`` navigation goals (start-frame metres), hottest first: search points of the
         heatmap away from ``visited`` points (within ``visit_radius``), each snapped to the nearest
         nav cell reachable from ``agent_xy``."""
         from tidee.agent.navigation.fmm import FMMPlanner
 
-        heat = self.heatmap(mapper, label)
+        if heat is None:        # a caller that also shows the heatmap passes it in: one inference
+            heat = self.heatmap(mapper, label)
         vg = mapper.voxel_grid
         if self.explored_discount > 0:   # prefer likely places the camera has not covered yet
             ex = mapper.explored
