@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from tidee.agent.perception import TRAINED_RENDERER
 from tidee.agent.config import AgentConfig
 from tidee.agent.evaluation.tidy_eval import select_configs
 from tidee.agent.runner import EpisodeRunner
@@ -35,7 +36,7 @@ def run_agent_bench(out: str, episodes: int = 3, resolution: int = 256, variant:
     cfg = AgentConfig(variant=variant, perception=perception)
     per: dict[str, list[float]] = {}
     walls, steps = [], []
-    with InProcessTransport(renderer="auto") as transport:
+    with InProcessTransport(renderer=TRAINED_RENDERER) as transport:
         runner = EpisodeRunner(cfg, transport, session="bench")
         for c in select_configs("test", episodes):
             spec = EpisodeSpec(room_type=c.room_type, seed=c.seed, mess_index=c.mess_index,

@@ -17,3 +17,6 @@ PICKUPABLE: frozenset[str] = frozenset(n for n in CLASSES if CATEGORIES[n].picku
 # Receptacles an object is put *on or in*, in the order the agent prefers to try them.
 PLACEABLE_RECEPTACLES: frozenset[str] = RECEPTACLES - PICKUPABLE
 
+# Categories with sub-category variants (a small vs a large vase): the look, and the size
+# that tells them apart, changes where they belong.
+WITH_VARIANTS: frozenset[str] = frozenset(n for n in CLASSES if CATEGORIES[n].variants)

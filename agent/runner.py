@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from tidee.agent.classes import CLASSES
+from tidee.agent.classes import CLASSES, PICKUPABLE
 from tidee.agent.config import AgentConfig
 from tidee.agent.mapping.maps import SemanticMapper
 from tidee.agent.perception import make_perception
@@ -94,7 +94,7 @@ class EpisodeRunner:
         t_start = time.perf_counter()
         obs = self.transport.reset(spec, ground_truth=gt)
         initial = self.transport.state() if evaluate else None
-        mapper = SemanticMapper(self.cfg.map, CLASSES)
+        mapper = SemanticMapper(self.cfg.map, CLASSES, passable=PICKUPABLE)
         body = Body(mapper)
         writer = LogWriter(self.log_dir / (episode_name or self._name(spec))) if self.log_dir else None
         events: list[dict[str, Any]] = []

@@ -5,6 +5,13 @@ draw calls, so a room of ~100 objects renders fast on a software renderer. Colou
 from a fixed 32-levels-per-channel texture atlas; every vertex of a part carries the UV
 of its colour's texel, so faces are flat-coloured and no mipmap blending can occur
 (constant UVs have zero derivatives).
+
+Every OBJ names the atlas through a shared MTL file (``map_Kd``), so both renderers take
+the texture from the mesh file itself. ``changeVisualShape(textureUniqueId=...)`` is not
+used: PyBullet's EGL plugin (3.2.x) applies it to the instancing renderer's shape whose
+*index* equals the body's graphics *instance* id. The two numberings agree only while no
+OBJ file is shared (the plugin caches shapes by file name), so after the first repeated
+mesh (two walls of the same size) every later body lost its texture and rendered white.
 """
 
 from __future__ import annotations
@@ -12,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import os
 import tempfile
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,6 +28,9 @@ from tidee.server.catalog.schema import Part
 
 LEVELS = 32
 ATLAS_W, ATLAS_H = 256, 128  # 32768 texels, one per quantised colour
+ATLAS_FILE = "tidee_palette_atlas_v1.png"  # beside the OBJ files, named by MATERIAL_FILE
+MATERIAL_FILE = "tidee_palette_v1.mtl"
+MATERIAL = "palette"
 
 
 def atlas_image() -> np.ndarray:
@@ -31,16 +42,30 @@ def atlas_image() -> np.ndarray:
     return np.round(img).astype(np.uint8)
 
 
-def atlas_path() -> str:
-    """Write the atlas PNG once per process (cached in the temp dir) and return its path."""
-    path = os.path.join(tempfile.gettempdir(), f"tidee_palette_atlas_v1_{os.getuid()}.png")
+def _write_once(path: str, data: bytes) -> None:
+    """Create a cache file atomically (processes and threads may race on it)."""
     if not os.path.exists(path):
+        tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.tmp"
+        with open(tmp, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+
+
+def mesh_dir() -> str:
+    """The cache dir of OBJ files, holding the atlas PNG and the MTL that names it.
+
+    The MTL's texture path is relative: PyBullet resolves it against the OBJ's folder.
+    """
+    folder = os.path.join(tempfile.gettempdir(), f"tidee_meshes_{os.getuid()}")
+    os.makedirs(folder, exist_ok=True)
+    atlas = os.path.join(folder, ATLAS_FILE)
+    if not os.path.exists(atlas):
         import cv2
 
-        tmp = f"{path}.{os.getpid()}.tmp.png"
-        cv2.imwrite(tmp, atlas_image()[:, :, ::-1])
-        os.replace(tmp, path)
-    return path
+        _write_once(atlas, cv2.imencode(".png", atlas_image()[:, :, ::-1])[1].tobytes())
+    _write_once(os.path.join(folder, MATERIAL_FILE),
+                f"newmtl {MATERIAL}\nKd 1 1 1\nmap_Kd {ATLAS_FILE}\n".encode())
+    return folder
 
 
 def hex_to_rgb(color: str) -> tuple[int, int, int]:
@@ -77,9 +102,10 @@ class Mesh:
         return not self.indices
 
     def obj_text(self) -> str:
-        """Wavefront OBJ with positions, UVs and normals (PyBullet's EGL renderer loads
-        meshes only from files, not from vertex lists)."""
-        lines = [f"v {x:.5f} {y:.5f} {z:.5f}" for x, y, z in self.vertices]
+        """Wavefront OBJ with positions, UVs and normals, textured by the palette MTL
+        (PyBullet's EGL renderer loads meshes only from files, not from vertex lists)."""
+        lines = [f"mtllib {MATERIAL_FILE}", f"usemtl {MATERIAL}"]
+        lines += [f"v {x:.5f} {y:.5f} {z:.5f}" for x, y, z in self.vertices]
         lines += [f"vt {u:.6f} {v:.6f}" for u, v in self.uvs]
         lines += [f"vn {x:.4f} {y:.4f} {z:.4f}" for x, y, z in self.normals]
         idx = self.indices
@@ -92,14 +118,8 @@ class Mesh:
         """Write the mesh to a content-addressed OBJ file in the cache dir; return its path."""
         text = self.obj_text()
         digest = hashlib.sha1(text.encode()).hexdigest()[:20]
-        folder = os.path.join(tempfile.gettempdir(), f"tidee_meshes_{os.getuid()}")
-        os.makedirs(folder, exist_ok=True)
-        path = os.path.join(folder, f"{digest}.obj")
-        if not os.path.exists(path):
-            tmp = f"{path}.{os.getpid()}.tmp"
-            with open(tmp, "w") as f:
-                f.write(text)
-            os.replace(tmp, path)
+        path = os.path.join(mesh_dir(), f"{digest}.obj")
+        _write_once(path, text.encode())
         return path
 
 

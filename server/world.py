@@ -4,10 +4,16 @@ One ``World`` owns one PyBullet DIRECT client. Furniture is static (mass 0) with
 and drawer fronts as jointed links; small objects are dynamic rigid bodies. Every object
 is one multibody whose unique id maps back to its scene id, so the segmentation buffer
 is an instance mask for free.
+
+Rendering goes through PyBullet's eglRenderer plugin (OpenGL; Mesa's llvmpipe without a
+GPU) when it loads, else through TinyRenderer; both draw the same palette-textured
+meshes (``tidee.server.meshes``). An EGL World must be used from the thread that made it.
 """
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import logging
 import math
 import pkgutil
@@ -18,7 +24,7 @@ import pybullet as pb
 
 from tidee.server.catalog import CATEGORIES
 from tidee.server.catalog.schema import Category, Part, Surface
-from tidee.server.meshes import Mesh, add_part, atlas_path, hex_to_rgb, part_geometry
+from tidee.server.meshes import Mesh, add_part, hex_to_rgb, part_geometry
 from tidee.server.scene import FLOOR_ID, Scene, SceneObject, quat_yaw
 
 log = logging.getLogger(__name__)
@@ -69,6 +75,49 @@ class RendererUnavailable(RuntimeError):
     pass
 
 
+@functools.cache
+def _libegl() -> ctypes.CDLL:
+    """libEGL, the library the eglRenderer plugin itself loads (so its handles are ours)."""
+    egl = ctypes.CDLL("libEGL.so.1")
+    egl.eglGetCurrentDisplay.restype = ctypes.c_void_p
+    egl.eglGetCurrentSurface.restype = ctypes.c_void_p
+    egl.eglGetCurrentSurface.argtypes = [ctypes.c_int]
+    egl.eglGetCurrentContext.restype = ctypes.c_void_p
+    egl.eglMakeCurrent.restype = ctypes.c_uint
+    egl.eglMakeCurrent.argtypes = [ctypes.c_void_p] * 4
+    return egl
+
+
+class EGLContext:
+    """The OpenGL context of one World's eglRenderer plugin.
+
+    The plugin makes its EGL context current once, when it loads, and never again. A
+    second EGL World on the same thread (a server holding several sessions on one worker)
+    takes over the current context, so the first one's shapes and frames would go to the
+    wrong context (wrong pictures, then a crash when that context is destroyed). A World
+    therefore captures its context right after loading the plugin and makes it current
+    again before every call that reaches OpenGL. A context can be current on one thread
+    only: the thread that created the World.
+    """
+
+    EGL_DRAW = 0x3059
+
+    def __init__(self) -> None:
+        egl = _libegl()
+        self.display = egl.eglGetCurrentDisplay()
+        self.surface = egl.eglGetCurrentSurface(self.EGL_DRAW)
+        self.context = egl.eglGetCurrentContext()
+        if not (self.display and self.surface and self.context):
+            raise RendererUnavailable("the eglRenderer plugin loaded but left no EGL context current")
+
+    def make_current(self) -> None:
+        egl = _libegl()
+        if egl.eglGetCurrentContext() != self.context and not egl.eglMakeCurrent(
+                self.display, self.surface, self.surface, self.context):
+            raise RuntimeError("cannot make this World's EGL context current: an EGL World must be "
+                               "used from the thread that created it")
+
+
 class World:
     """A PyBullet client holding one room."""
 
@@ -78,41 +127,53 @@ class World:
         self.client = pb.connect(pb.DIRECT)
         self.renderer = "tiny"
         self._egl_plugin = -1
-        # "auto" means TinyRenderer for now: with the EGL plugin our palette texture is
-        # lost on most furniture meshes (they render white), see docs/known-issues.md.
-        if renderer == "egl":
-            self._egl_plugin = self._load_egl()
-            if self._egl_plugin >= 0:
+        self._gl: EGLContext | None = None
+        # "auto" takes EGL (faster than TinyRenderer, even on llvmpipe) when the plugin
+        # loads, and falls back to TinyRenderer otherwise.
+        if renderer in ("auto", "egl"):
+            self._load_egl()
+            if self._gl is not None:
                 self.renderer = "egl"
             elif renderer == "egl":
                 pb.disconnect(self.client)
                 raise RendererUnavailable(
                     "EGL renderer requested but PyBullet's eglRenderer plugin did not load; "
                     "install Debian's libegl1 libegl-mesa0 libgl1-mesa-dri or use --renderer tiny")
+            else:
+                log.info("EGL renderer unavailable; using TinyRenderer")
         self.bodies: dict[str, BodyInfo] = {}
         self.uid_to_id: dict[int, str] = {}
         self.scene: Scene | None = None
-        self._texture = -1
 
     # ------------------------------------------------------------------ set-up
-    def _load_egl(self) -> int:
+    def _load_egl(self) -> None:
+        """Load the eglRenderer plugin and capture its context; on failure leave ``_gl`` None."""
         loader = pkgutil.get_loader("eglRenderer")
         if loader is None:
-            return -1
+            return
+        path = loader.get_filename()  # type: ignore[attr-defined]
         try:
-            plugin = pb.loadPlugin(loader.get_filename(), "_eglRendererPlugin",  # type: ignore[attr-defined]
-                                   physicsClientId=self.client)
+            self._egl_plugin = pb.loadPlugin(path, "_eglRendererPlugin", physicsClientId=self.client)
+            if self._egl_plugin >= 0:
+                self._gl = EGLContext()
         except Exception:  # pragma: no cover - depends on the machine's GL stack
-            return -1
-        return plugin
+            if self._egl_plugin >= 0:
+                pb.unloadPlugin(self._egl_plugin, physicsClientId=self.client)
+            self._egl_plugin = -1
+
+    def _use_gl(self) -> None:
+        """Before a call that reaches OpenGL: make this World's EGL context current."""
+        if self._gl is not None:
+            self._gl.make_current()
 
     def close(self) -> None:
         if self.client is not None and self.client >= 0:
             try:
                 if self._egl_plugin >= 0:
+                    self._use_gl()
                     pb.unloadPlugin(self._egl_plugin, physicsClientId=self.client)
                 pb.disconnect(self.client)
-            except pb.error:
+            except (pb.error, RuntimeError):  # a wrong thread: leak the client rather than crash
                 pass
             self.client = -1
 
@@ -125,11 +186,11 @@ class World:
     def build(self, scene: Scene) -> None:
         """(Re)create every body of the scene exactly as recorded."""
         c = self.client
+        self._use_gl()
         pb.resetSimulation(physicsClientId=c)
         pb.setGravity(0, 0, -9.81, physicsClientId=c)
         pb.setPhysicsEngineParameter(fixedTimeStep=1.0 / PHYSICS_HZ, numSolverIterations=30,
                                      deterministicOverlappingPairs=1, physicsClientId=c)
-        self._texture = pb.loadTexture(atlas_path(), physicsClientId=c)
         self.bodies.clear()
         self.uid_to_id.clear()
         self.scene = scene
@@ -185,10 +246,6 @@ class World:
             physicsClientId=c, **link_args)
         if uid < 0:
             raise RuntimeError(f"PyBullet could not create body for {obj.id}")
-        if base_vis >= 0:
-            pb.changeVisualShape(uid, -1, textureUniqueId=self._texture, physicsClientId=c)
-        for j in range(len(doors)):
-            pb.changeVisualShape(uid, j, textureUniqueId=self._texture, physicsClientId=c)
         if dynamic:
             pb.changeDynamics(uid, -1, lateralFriction=0.8, rollingFriction=0.002, spinningFriction=0.002,
                               linearDamping=0.05, angularDamping=0.2, physicsClientId=c)
@@ -211,6 +268,7 @@ class World:
         raise ValueError(f"unknown door kind {p.door!r}")
 
     def _visual(self, mesh: Mesh) -> int:
+        """A visual shape for the mesh; its OBJ file brings the palette texture along."""
         if mesh.empty:
             return -1
         return pb.createVisualShape(pb.GEOM_MESH, fileName=mesh.obj_file(), meshScale=[1, 1, 1],
@@ -397,6 +455,7 @@ class World:
     def render(self, eye: np.ndarray, forward: np.ndarray, up: np.ndarray, resolution: int,
                segmentation: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """RGB (uint8), metric z-depth (float32) and, if asked, the body-uid mask."""
+        self._use_gl()
         view = pb.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), up.tolist(), physicsClientId=self.client)
         proj = pb.computeProjectionMatrixFOV(FOV_DEG, 1.0, NEAR, FAR, physicsClientId=self.client)
         flags = 0 if segmentation else pb.ER_NO_SEGMENTATION_MASK

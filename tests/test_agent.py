@@ -160,6 +160,18 @@ def test_tidee_run_forwards_agent_options(monkeypatch) -> None:
     assert fwd[fwd.index("--seed") + 1] == "201" and "--server-id" not in fwd and "--depth-noise" not in fwd
 
 
+def test_the_agent_side_asks_for_the_renderer_its_detector_was_trained_on() -> None:
+    import tidee.launch
+    from tidee import cli
+    from tidee.agent.perception import TRAINED_RENDERER
+
+    assert tidee.launch.RunConfig().renderer == TRAINED_RENDERER
+    parser = cli.build_parser()
+    assert parser.parse_args(["run"]).renderer == TRAINED_RENDERER
+    assert parser.parse_args(["eval", "tidy", "--out", "x"]).renderer == TRAINED_RENDERER
+    assert parser.parse_args(["server"]).renderer == "auto"     # the simulator alone: the fastest that loads
+
+
 def test_a_preference_on_the_command_channel_retrains_the_language_oop_head() -> None:
     from tidee.agent.config import AgentConfig
     from tidee.agent.runner import EpisodeRunner

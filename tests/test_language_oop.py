@@ -218,3 +218,25 @@ def test_shipped_weights_oracle_language_ap() -> None:
     res = lo.evaluate_language_oop(clf, "test", rooms_per_type=1, messes_per_room=1, progress=False)
     assert res["samples"] > 50 and res["n_out_of_place"] >= 10
     assert res["map"] >= 0.8, res
+
+
+def test_size_sentence_only_for_categories_with_variants() -> None:
+    from tidee.agent.reasoning.relations import ObjectRef, relation_paragraph
+
+    floor_vase = ObjectRef("v", "Vase", (0, 0, 0.4), (-0.15, -0.15, 0.0), (0.15, 0.15, 0.85))
+    small_vase = ObjectRef("w", "Vase", (0, 0, 0.1), (-0.05, -0.05, 0.0), (0.05, 0.05, 0.2))
+    mug = ObjectRef("m", "Mug", (1, 0, 0.05), (0.95, -0.05, 0.0), (1.05, 0.05, 0.1))
+    assert lo.size_word(floor_vase) == "large" and lo.size_word(small_vase) == "small"
+    assert lo.size_word(ObjectRef("x", "Vase", (0, 0, 0))) is None          # no box: no size
+    assert lo.object_paragraph(floor_vase, [mug]).startswith("The vase is large. The vase is supported by the floor.")
+    assert lo.object_paragraph(small_vase, [mug]).startswith("The vase is small. ")
+    assert lo.object_paragraph(mug, [floor_vase]) == relation_paragraph(mug, [floor_vase])   # no variants: no size
+
+
+def test_shipped_head_reads_the_size_of_a_vase_on_the_floor() -> None:
+    """The catalog's large vase stands on the floor, a small one does not: the shipped head
+    tells them apart from the size sentence alone."""
+    clf = lo.LanguageOOPClassifier.load()
+    large, small = clf.predict(["The vase is large. The vase is supported by the floor.",
+                                "The vase is small. The vase is supported by the floor."])
+    assert large < 0.5 < small

@@ -288,6 +288,24 @@ def test_detection_centroid_is_the_median_depth_surface_point() -> None:
     assert len(m.memory) == 1 and o.n_obs == 2 and o.last_seen == 6
 
 
+def test_passable_detections_are_mapped_but_never_obstacles() -> None:
+    """A pickupable thing on the floor (here the box, detected as a "Dumbbell") is passed by
+    the body: its points fill voxels and the memory, not the obstacle map."""
+    world = World()
+    obs, hit = observe(world, 0.0, 0.0, 0.0, res=128)
+    mask = hit == 0
+    ys, xs = np.nonzero(mask)
+    det = Detection("Dumbbell", 0.9, (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1), mask=mask)
+    front = cells_of(SemanticMapper().grid, 0.99, 1.06, -0.35, 0.35)
+    blocked = SemanticMapper(MapConfig(), ["Dumbbell"])
+    blocked.update(obs, [det])
+    passed = SemanticMapper(MapConfig(), ["Dumbbell"], passable={"Dumbbell"})
+    passed.update(obs, [det])
+    assert blocked.obstacle[front].any() and not passed.obstacle[front].any()
+    assert passed.obstacle.sum() > 0                              # the walls still are obstacles
+    assert passed.occupancy.sum() == blocked.occupancy.sum() and len(passed.memory) == 1
+
+
 def test_detection_without_enough_depth_is_skipped() -> None:
     obs, _ = observe(World(), 0.0, 0.0, 0.0, res=64)
     obs.depth[:10, :10] = 0.0

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import pytest
-from tidee.viewer.browser import HeadlessChromium, distinct_colors, find_chromium, palette_pixels
-from tidee.viewer.palette import UNLABELLED_RGB, class_color
+from tidee.viewer.browser import (CANVAS, DISMISS_SOFTWARE_GL_NOTE, HEIGHT, WIDTH, HeadlessChromium,
+                                  distinct_colors, find_chromium, map_drawn)
 from tidee.agent.classes import CLASSES  # the agent's class list (plain data, no torch)
 
 from tests.test_service import free_endpoint
@@ -27,13 +27,6 @@ from tests.test_service import free_endpoint
 pytestmark = pytest.mark.skipif(find_chromium() is None,
                                 reason="no chromium binary (install Debian's chromium: scripts/install_chromium.sh)")
 
-# The 3D canvas lies between the left (camera/map) and right (controls) panels, 330 px each.
-WIDTH, HEIGHT = 1280, 800
-CANVAS = (slice(40, HEIGHT - 40), slice(360, WIDTH - 360))
-DISMISS_SOFTWARE_GL_NOTE = """(() => { let n = 0;
-  document.querySelectorAll('[class*="Notification-root"]').forEach(el => {
-    if (el.textContent.includes('Software WebGL')) { const b = el.querySelector('button'); if (b) { b.click(); n++; } }
-  }); return n; })()"""
 CLICK_BUTTON = """(label => {
   const b = [...document.querySelectorAll('button')].find(b => b.textContent.trim() === label);
   if (b) { b.click(); return true; } return false; })"""
@@ -75,15 +68,6 @@ def wait_until(predicate, timeout: float, what: str) -> None:
         time.sleep(0.1)
 
 
-def map_drawn(img: np.ndarray) -> bool:
-    """The voxel map (class colours, and the grey of voxels no detection labelled: walls,
-    floor) covers a real part of the 3D canvas, and some voxels carry class colours."""
-    colors = np.array([class_color(i) for i in range(len(CLASSES))])
-    labelled = palette_pixels(img[CANVAS], colors, tolerance=20)
-    grey = palette_pixels(img[CANVAS], np.array([UNLABELLED_RGB]), tolerance=30)
-    return labelled > 300 and labelled + grey > 3000
-
-
 def test_viewer_draws_the_map_and_objects_in_headless_chromium(telemetry_source: TelemetrySource, tmp_path):
     from tidee.viewer.app import ViewerConfig, run_viewer
 
@@ -101,7 +85,7 @@ def test_viewer_draws_the_map_and_objects_in_headless_chromium(telemetry_source:
             browser.navigate(viewer.url)
             wait_until(lambda: browser.evaluate("document.querySelectorAll('canvas').length") or False, 20,
                        "the page's canvas")
-            first = browser.wait_for(map_drawn, timeout=30)
+            first = browser.wait_for(lambda img: map_drawn(img, len(CLASSES)), timeout=30)
             assert distinct_colors(first[CANVAS]) > 500
 
             # the controls reach the agent, and its acknowledgement comes back to the page
@@ -123,7 +107,7 @@ def test_viewer_draws_the_map_and_objects_in_headless_chromium(telemetry_source:
 
         # and the browser drew it: a varied picture, not a blank page
         canvas = shot[CANVAS]
-        assert map_drawn(shot)
+        assert map_drawn(shot, len(CLASSES))
         assert float(canvas.astype(np.float32).std()) > 20.0
         assert distinct_colors(canvas) > 500 and distinct_colors(shot) > 2000
         path = os.environ.get("TIDEE_VIEWER_SCREENSHOT") or str(tmp_path / "viewer.png")

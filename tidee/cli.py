@@ -13,6 +13,11 @@ import sys
 from pathlib import Path
 from typing import Callable
 
+from tidee.agent.perception import TRAINED_RENDERER   # a constant (no torch)
+
+AGENT_RENDERER_HELP = (f"default {TRAINED_RENDERER}: the renderer the shipped detector was trained on (auto picks "
+                       "EGL when it loads: faster, but the detector scores lower on its frames)")
+
 ROOM_TYPES = ("Kitchen", "LivingRoom", "Bedroom", "Bathroom")
 
 
@@ -249,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1", help="viewer host (loopback by default)")
     p.add_argument("--port", type=int, default=8080, help="viewer port")
     p.add_argument("--linger", type=float, default=30.0, help="seconds to keep the viewer up after the episodes")
-    p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="auto")
+    p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default=TRAINED_RENDERER, help=AGENT_RENDERER_HELP)
     p.set_defaults(func=_cmd_run)
 
     ev = sub.add_parser("eval", help="evaluations that write JSON + Markdown + PNG").add_subparsers(
@@ -261,12 +266,12 @@ def build_parser() -> argparse.ArgumentParser:
                                          "AI2THORPlacement,MessyPlacement")
     p.add_argument("--perception", default="learned", choices=("learned", "oracle"))
     p.add_argument("--depth", default="sensor", choices=("sensor", "estimated"))
-    p.add_argument("--oop", default="auto", help="auto | relation_stats | visual")
+    p.add_argument("--oop", default="auto", help="auto | relation_stats | visual | language | fused")
     p.add_argument("--explorer", default="random", choices=("random", "frontier"))
     p.add_argument("--resolution", type=int, default=256)
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--workers", type=int, default=1, help="parallel simulator processes")
-    p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="auto")
+    p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default=TRAINED_RENDERER, help=AGENT_RENDERER_HELP)
     p.add_argument("--keep-logs", action="store_true", help="write every episode's log under OUT/logs")
     p.add_argument("--out", required=True)
     p.set_defaults(func=_cmd_eval_tidy)

@@ -32,7 +32,8 @@ class RunConfig:
     host: str = "127.0.0.1"
     port: int = 8080
     linger: float = 30.0
-    renderer: str = "auto"
+    renderer: str = "tiny"              # = agent.perception.TRAINED_RENDERER (the viewer imports this module,
+                                         # never the agent): what the shipped detector was trained on
     endpoint: str | None = None
 
 

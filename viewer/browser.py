@@ -22,6 +22,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from tidee.viewer.palette import UNLABELLED_RGB, class_color
 from websockets.sync.client import ClientConnection, connect
 
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
@@ -29,6 +30,17 @@ CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrom
 FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
          "--disable-component-update", "--disable-sync", "--disable-extensions", "--mute-audio",
          "--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--hide-scrollbars")
+
+
+# The viewer's page at the default window size: the 3D canvas lies between the left
+# (camera/map) and right (controls) panels, 330 px each.
+WIDTH, HEIGHT = 1280, 800
+CANVAS = (slice(40, HEIGHT - 40), slice(360, WIDTH - 360))
+# Chromium without a GPU shows a "Software WebGL" notification over the canvas: close it.
+DISMISS_SOFTWARE_GL_NOTE = """(() => { let n = 0;
+  document.querySelectorAll('[class*="Notification-root"]').forEach(el => {
+    if (el.textContent.includes('Software WebGL')) { const b = el.querySelector('button'); if (b) { b.click(); n++; } }
+  }); return n; })()"""
 
 
 def find_chromium() -> str | None:
@@ -46,7 +58,7 @@ def find_chromium() -> str | None:
 class HeadlessChromium:
     """One headless Chromium with a fresh profile and one page, driven over DevTools."""
 
-    def __init__(self, binary: str | None = None, width: int = 1280, height: int = 800,
+    def __init__(self, binary: str | None = None, width: int = WIDTH, height: int = HEIGHT,
                  start_timeout: float = 30.0) -> None:
         found = binary or find_chromium()
         if found is None:
@@ -173,3 +185,13 @@ def distinct_colors(img: np.ndarray) -> int:
     """Distinct RGB values in an image (a blank page has a handful)."""
     packed = img.reshape(-1, 3).astype(np.uint32)
     return int(len(np.unique(packed[:, 0] << 16 | packed[:, 1] << 8 | packed[:, 2])))
+
+
+def map_drawn(img: np.ndarray, n_classes: int) -> bool:
+    """The voxel map (the colours of ``n_classes`` classes, and the grey of voxels no
+    detection labelled: walls, floor) covers a real part of the 3D canvas, and some voxels
+    carry class colours."""
+    colors = np.array([class_color(i) for i in range(n_classes)])
+    labelled = palette_pixels(img[CANVAS], colors, tolerance=20)
+    grey = palette_pixels(img[CANVAS], np.array([UNLABELLED_RGB]), tolerance=30)
+    return labelled > 300 and labelled + grey > 3000

@@ -20,10 +20,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--replay", default=None, metavar="LOGDIR",
                    help="play back a saved episode log with a time slider instead of live telemetry")
     p.add_argument("--rate", type=float, default=10.0, help="scene updates per second, at most (default 10)")
+    p.add_argument("--screenshot", default=None, metavar="PNG",
+                   help="with --replay: write the page as headless Chromium draws it at --at, then exit")
+    p.add_argument("--at", default="end", help="with --screenshot: a step number, 'search' (the first search "
+                                               "heatmap) or 'end' (default)")
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.screenshot:
+        if not args.replay:
+            raise SystemExit("tidee viewer: --screenshot needs --replay LOGDIR")
+        from tidee.viewer.screenshot import screenshot_replay
+
+        step = screenshot_replay(args.replay, args.screenshot, at=args.at)
+        print(f"viewer: {args.screenshot} (step {step} of {args.replay})")
+        return 0
     from tidee.viewer.app import ViewerConfig, serve
 
     serve(ViewerConfig(endpoint=args.endpoint, router=args.router, host=args.host, port=args.port,

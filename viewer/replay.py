@@ -95,6 +95,10 @@ class ReplayLog:
     def count(self, kind: str) -> int:
         return len(self._tracks[kind].steps)
 
+    def steps(self, kind: str) -> list[int]:
+        """The steps at which the log holds a message of ``kind``."""
+        return list(self._tracks[kind].steps)
+
     def latest_status(self, step: int) -> AgentStatus | None:
         i = self._tracks["status"].index_at(step)
         return None if i is None else self._tracks["status"].items[i]

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from tidee.agent.perception import TRAINED_RENDERER
 from tidee.agent.reasoning.search_commands import int_at_least
 
 METHODS = ("network", "frontier")
@@ -80,7 +81,7 @@ def episodes(cfg: SearchEvalConfig) -> list[dict[str, Any]]:
 
     room_list = rooms(cfg.split)[: cfg.rooms]
     jobs = []
-    with InProcessTransport(renderer="tiny") as t:
+    with InProcessTransport(renderer=TRAINED_RENDERER) as t:
         for rt, seed in room_list:
             t.reset(EpisodeSpec(room_type=rt, seed=seed, resolution=32))
             present = sorted({o["type"] for o in t.state()["objects"] if o["type"] in CLASS_INDEX})
@@ -106,7 +107,7 @@ def _one_episode(job: dict[str, Any], cfg: SearchEvalConfig) -> dict[str, Any]:
     try:
         w = _WORKER
     except NameError:
-        w = _WORKER = {"transport": InProcessTransport(renderer="tiny"), "perception": make_perception(cfg.perception)}
+        w = _WORKER = {"transport": InProcessTransport(renderer=TRAINED_RENDERER), "perception": make_perception(cfg.perception)}
     if job["method"] == "network" and "search" not in w:
         w["search"] = VisualSearch.load(cfg.weights or DEFAULT_WEIGHTS, explored_discount=cfg.explored_discount)
     transport = w["transport"]
@@ -217,7 +218,7 @@ def save_examples(cfg: SearchEvalConfig, jobs: list[dict[str, Any]], path: Path)
         return
     vs = VisualSearch.load(cfg.weights or DEFAULT_WEIGHTS)
     fig, axes = plt.subplots(1, len(picks), figsize=(4 * len(picks), 4.2), dpi=90, squeeze=False)
-    with InProcessTransport(renderer="tiny") as t:
+    with InProcessTransport(renderer=TRAINED_RENDERER) as t:
         driver = SkillDriver(t, make_perception(cfg.perception))
         for ax, job in zip(axes[0], picks):
             body = driver.reset(EpisodeSpec(room_type=job["room_type"], seed=job["seed"], resolution=cfg.resolution,

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from tidee.agent.perception import TRAINED_RENDERER
 from tidee.agent.config import AGENT_VARIANTS, BUILT_VARIANTS, REFERENCE_VARIANTS, AgentConfig, check_variant_built
 
 
@@ -68,7 +69,7 @@ def _one_torch_thread() -> None:
 def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = None,
                   variants: list[str] | None = None, perception: str = "learned", oop: str = "auto",
                   explorer: str = "random", resolution: int = 256, max_steps: int = 1000, workers: int = 1,
-                  renderer: str = "auto", keep_logs: bool = False, progress: bool = True,
+                  renderer: str = TRAINED_RENDERER, keep_logs: bool = False, progress: bool = True,
                   depth: str = "sensor") -> dict[str, Any]:
     from tqdm import tqdm
 

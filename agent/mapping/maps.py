@@ -14,7 +14,10 @@ Per frame (``SemanticMapper.update``) the depth image is lifted to points (every
     ``floor_seen`` (a point below ``floor_z``), ``seen_count`` (frames that put a point
     in the cell) and ``explored`` (``seen_count >= explored_threshold``);
   * the cells around each believed agent position (radius ``agent_free_radius``) are
-    free: the agent stood there.
+    free: the agent stood there;
+  * points inside the pixels of a detection whose class is ``passable`` (the small
+    objects the body pushes past, not furniture) are mapped but never obstacles: a pen or
+    a dumbbell on the floor, or one the agent just put down at its feet, must not wall it in.
 Each detection becomes a 3D centroid (the point of the region's median-depth pixel, as
 in the paper) and box (5th-95th percentiles of the region's points) merged into the
 ``ObjectMemory``.
@@ -23,7 +26,7 @@ in the paper) and box (5th-95th percentiles of the region's points) merged into 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -145,11 +148,16 @@ class SemanticMapper:
 
     The array attributes (``obstacle``, ``floor_seen``, ``seen_count``, ``occupancy``,
     ``voxel_labels``, ...) are the live maps: read them, do not write them.
+
+    ``passable``: labels whose detected pixels never mark obstacles (the agent passes them:
+    the pickupable classes, whose objects do not block the body's moves).
     """
 
-    def __init__(self, config: MapConfig | None = None, classes: Sequence[str] = ()) -> None:
+    def __init__(self, config: MapConfig | None = None, classes: Sequence[str] = (),
+                 passable: Collection[str] = ()) -> None:
         self.config = config if config is not None else MapConfig()
         self.classes = list(classes)
+        self.passable = frozenset(passable)
         if len(set(self.classes)) != len(self.classes):
             dup = sorted({c for c in self.classes if self.classes.count(c) > 1})
             raise ValueError(f"classes must be unique; repeated: {dup}")
@@ -211,7 +219,18 @@ class SemanticMapper:
         pix = pix[keep]
         pts = (rays[keep] * d[keep, None]) @ rot.T + trans      # float64 Nx3, start frame
 
-        vflat = self._accumulate(pts)
+        regions = []
+        for det in detections:
+            region = np.asarray(det.region((h, w)), dtype=bool)
+            if region.shape != (h, w):
+                raise ValueError(f"detection {det.label!r}: region shape {region.shape} does not "
+                                 f"match the depth image {(h, w)}")
+            regions.append(region.reshape(-1))
+        passable = np.zeros(pix.shape[0], bool)
+        for det, region_flat in zip(detections, regions):
+            if det.label in self.passable:
+                passable |= region_flat[pix]
+        vflat = self._accumulate(pts, passable)
         self._mark_agent(obs.agent_pose)
 
         touched: list[TrackedObject] = []
@@ -221,12 +240,7 @@ class SemanticMapper:
             # ascending score: where detections overlap, the most confident labels the voxels last
             order = sorted(range(len(detections)), key=lambda i: float(detections[i].score))
             for i in order:
-                det = detections[i]
-                region = np.asarray(det.region((h, w)), dtype=bool)
-                if region.shape != (h, w):
-                    raise ValueError(f"detection {det.label!r}: region shape {region.shape} does not "
-                                     f"match the depth image {(h, w)}")
-                region_flat = region.reshape(-1)
+                det, region_flat = detections[i], regions[i]
                 stats = self._object_stats(region_flat, valid_full, depth_flat, k, rot, trans, w)
                 if stats is None:
                     continue
@@ -265,8 +279,9 @@ class SemanticMapper:
         inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny) & (iz >= 0) & (iz < nz)
         return np.where(inside, (ix * ny + iy) * nz + iz, -1)
 
-    def _accumulate(self, pts: np.ndarray) -> np.ndarray:
-        """Add start-frame points to the voxel and 2D maps; returns their flat voxel indices."""
+    def _accumulate(self, pts: np.ndarray, passable: np.ndarray) -> np.ndarray:
+        """Add start-frame points to the voxel and 2D maps (``passable`` points: not as
+        obstacles); returns their flat voxel indices."""
         cfg = self.config
         vflat = self._voxel_index(pts)
         self.occupancy.reshape(-1)[vflat[vflat >= 0]] = True
@@ -280,7 +295,7 @@ class SemanticMapper:
         hit[flat] = True
         seen = self.seen_count.reshape(-1)
         seen += hit & (seen < np.iinfo(np.uint16).max)
-        band = (z >= cfg.obstacle_z[0]) & (z < cfg.obstacle_z[1])
+        band = (z >= cfg.obstacle_z[0]) & (z < cfg.obstacle_z[1]) & ~passable[inside]
         self.obstacle.reshape(-1)[flat[band]] = True
         self.floor_seen.reshape(-1)[flat[z < cfg.floor_z]] = True
         return vflat

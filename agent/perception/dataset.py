@@ -27,6 +27,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from tidee.agent.perception import TRAINED_RENDERER
 from tidee.agent.classes import CLASS_INDEX, CLASSES
 from tidee.server.splits import MESSES_PER_ROOM, ROOM_TYPES, SPLIT_SEEDS, TRAIN_POOL, split_of
 
@@ -115,7 +116,7 @@ def iter_frames(cfg: GenConfig, jobs: list[tuple[str, int, int | None]] | None =
         if cfg.split == "train" and split_of(seed) not in ("train", "train_pool"):
             raise ValueError(f"seed {seed} is a {split_of(seed)} room: detector training data only comes from "
                              "training rooms")
-    ep = Episode()
+    ep = Episode(renderer=TRAINED_RENDERER)
     try:
         for j, (rt, seed, mess) in enumerate(tqdm(jobs, desc=f"{cfg.split} configurations", disable=not progress)):
             rng = np.random.default_rng([cfg.seed, seed, ROOM_TYPES.index(rt), 0 if mess is None else mess + 1])

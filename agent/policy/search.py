@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from tidee.agent.classes import CLASSES
+from tidee.agent.classes import CLASSES, PICKUPABLE
 from tidee.agent.mapping.maps import MapConfig, SemanticMapper
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import FrontierExplorer, sample_reachable_goal
@@ -45,7 +45,7 @@ class SkillDriver:
 
     def reset(self, spec: EpisodeSpec) -> Body:
         obs = self.transport.reset(spec, ground_truth=self.ground_truth)
-        self.body = Body(SemanticMapper(self.map_config, CLASSES))
+        self.body = Body(SemanticMapper(self.map_config, CLASSES, passable=PICKUPABLE))
         self._observe(obs)
         return self.body
 

@@ -2,7 +2,9 @@
 
 An object's spatial context is written as the paper's paragraph ("The alarm clock is next
 to the desk. The alarm clock is supported by the sofa. The alarm clock is closest to the
-mug."), embedded by a frozen sentence encoder (MiniLM-L6, 384-d, mean pooled and
+mug."), led, for the categories with sub-category variants, by a sentence on its size from
+its 3D box ("The vase is large."; a large vase stands on the floor, a small one does not),
+embedded by a frozen sentence encoder (MiniLM-L6, 384-d, mean pooled and
 L2-normalised as sentence-transformers does; the paper fine-tunes BERT's [CLS], which is
 far too slow for a CPU) and classified by a small MLP head: P(out of place).
 
@@ -41,7 +43,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from tidee.agent.classes import CLASSES, PICKUPABLE, RECEPTACLES
+from tidee.agent.classes import CLASSES, PICKUPABLE, RECEPTACLES, WITH_VARIANTS
 from tidee.agent.learning import WEIGHTS_DIR
 from tidee.agent.perception.dataset import room_seeds
 from tidee.agent.reasoning.relations import FLOOR, ObjectRef, relation_paragraph, words
@@ -79,6 +81,7 @@ __all__ = [
     "language_row",
     "make_head",
     "object_ap",
+    "object_paragraph",
     "object_refs",
     "oracle_language_row",
     "paragraph_support",
@@ -87,6 +90,7 @@ __all__ = [
     "replay_set",
     "run_instruct_eval",
     "run_language_eval",
+    "size_word",
     "split_configs",
     "train_language_oop",
 ]
@@ -180,6 +184,29 @@ def object_refs(records: Sequence[Mapping[str, Any]]) -> list[ObjectRef]:
                       box_max=r["box_max"], receptacle=r["type"] in RECEPTACLES) for r in records]
 
 
+# Size words from an object's largest box extent (metres): the bins separate the catalog's
+# variants that belong apart (small / large vase, figurine / sculpture, hand / bath towel).
+SIZE_WORDS: tuple[tuple[float, str], ...] = ((0.1, "tiny"), (0.3, "small"), (0.6, "medium"))
+LARGEST_SIZE_WORD = "large"
+
+
+def size_word(ref: ObjectRef) -> str | None:
+    """The size word of an object's box (None without a box)."""
+    if ref.box_min is None or ref.box_max is None:
+        return None
+    extent = max(hi - lo for lo, hi in zip(ref.box_min, ref.box_max))
+    return next((w for limit, w in SIZE_WORDS if extent < limit), LARGEST_SIZE_WORD)
+
+
+def object_paragraph(target: ObjectRef, others: Sequence[ObjectRef]) -> str:
+    """What the classifier reads: the paper's relation paragraph, led by the size sentence
+    for a category with variants (only there: for the others the size of an estimated box,
+    often grown by a merge, would only add noise)."""
+    para = relation_paragraph(target, others)
+    size = size_word(target) if target.label in WITH_VARIANTS else None
+    return para if size is None else f"The {words(target.label)} is {size}. {para}".rstrip()
+
+
 def config_paragraphs(records: Sequence[Mapping[str, Any]], ids: Sequence[str] | None = None
                       ) -> dict[str, tuple[str, int, str]]:
     """{object id: (paragraph, label, category)} with every other object as context.
@@ -193,7 +220,7 @@ def config_paragraphs(records: Sequence[Mapping[str, Any]], ids: Sequence[str] |
         if oid not in by_id:
             raise KeyError(f"object {oid!r} is not in this configuration")
         ref, rec = by_id[oid]
-        out[oid] = (relation_paragraph(ref, refs), int(rec["moved"]), ref.label)
+        out[oid] = (object_paragraph(ref, refs), int(rec["moved"]), ref.label)
     return out
 
 
@@ -756,7 +783,7 @@ class LanguageOOP:
         from tidee.agent.reasoning.oop import as_ref
 
         refs = [as_ref(o) for o in objects]
-        return [relation_paragraph(as_ref(t), refs) for t in targets]   # the target itself is skipped by id
+        return [object_paragraph(as_ref(t), refs) for t in targets]   # the target itself is skipped by id
 
     def _visual(self, targets: Sequence[TrackedObject]) -> np.ndarray | None:
         return None
@@ -950,7 +977,7 @@ def language_row(classifier: LanguageOOPClassifier, context_score: float = 0.3) 
             for k, r in enumerate(refs):
                 if r is None:
                     continue
-                paras.append(relation_paragraph(r, context))
+                paras.append(object_paragraph(r, context))
                 feats.append(ds[k].feature)
                 where.append((i, k))
         if paras:
@@ -1061,7 +1088,8 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
     """Fine-tune ``classifier`` in place so that it follows an instruction (paper §3.2, §4.6).
 
     Instructed samples, labelled as the instruction says: the bare relation ("The alarm
-    clock is supported by the desk.") and up to ``variants`` replay paragraphs of the
+    clock is supported by the desk.", also after each size sentence for a category with
+    variants) and up to ``variants`` replay paragraphs of the
     category whose supported-by sentence is rewritten to the instructed receptacle. For a
     preference (in place) the category's replay paragraphs on *other* receptacles become
     out-of-place samples (the paper's negatives). Replay samples that name the instructed
@@ -1080,7 +1108,10 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
     of_cat = [i for i, c in enumerate(cats) if c == inst.category]
     rng = np.random.default_rng(seed)
     pick = rng.permutation(of_cat)[:variants].tolist()
-    instructed = [inst.sentence()] + [_with_support(paras[i], inst) for i in pick]
+    # the bare relation, with each size sentence where the category's paragraphs lead with one
+    sizes = [w for _, w in SIZE_WORDS] + [LARGEST_SIZE_WORD] if inst.category in WITH_VARIANTS else []
+    bare = [inst.sentence()] + [f"The {words(inst.category)} is {w}. {inst.sentence()}" for w in sizes]
+    instructed = bare + [_with_support(paras[i], inst) for i in pick]
     inst_y = [inst.label] * len(instructed)
     replay_y = labels.copy()
     for i in of_cat:

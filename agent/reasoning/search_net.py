@@ -46,7 +46,8 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import ndimage
 
-from tidee.agent.classes import CLASS_INDEX, CLASSES
+from tidee.agent.classes import CLASS_INDEX, CLASSES, PICKUPABLE
+from tidee.agent.perception import TRAINED_RENDERER
 from tidee.agent.learning import WEIGHTS_DIR
 from tidee.agent.mapping.geometry import GridSpec
 from tidee.agent.mapping.maps import SemanticMapper
@@ -441,7 +442,7 @@ def snapshot_config(job: tuple[str, int, int | None], cfg: SearchGenConfig, tran
 
     rt, seed, mess = job
     rng = np.random.default_rng([cfg.seed, seed, ROOM_TYPES.index(rt), 0 if mess is None else mess + 1])
-    transport = transport or InProcessTransport(renderer="tiny")
+    transport = transport or InProcessTransport(renderer=TRAINED_RENDERER)
     perception = perception or make_perception(cfg.perception)
     driver = SkillDriver(transport, perception)
     spec = EpisodeSpec(room_type=rt, seed=seed, mess_index=mess, resolution=cfg.resolution,
@@ -475,7 +476,7 @@ def _gen_worker(args: tuple[tuple[str, int, int | None], SearchGenConfig]) -> di
     try:
         transport, perception = _WORKER
     except NameError:
-        transport, perception = _WORKER = (InProcessTransport(renderer="tiny"), make_perception(cfg.perception))
+        transport, perception = _WORKER = (InProcessTransport(renderer=TRAINED_RENDERER), make_perception(cfg.perception))
     return snapshot_config(job, cfg, transport, perception)
 
 
@@ -798,7 +799,7 @@ def time_inference(search: VisualSearch, repeats: int = 20) -> dict[str, float]:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        mapper = SemanticMapper(classes=CLASSES)
+        mapper = SemanticMapper(classes=CLASSES, passable=PICKUPABLE)
         search.heatmap(mapper, CLASSES[0])
         ts = []
         for _ in range(repeats):
