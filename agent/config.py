@@ -78,7 +78,7 @@ class AgentConfig:
     perception: str = "learned"             # the shipped RGB-D detector; "oracle" reads the segmentation
     depth: str = "sensor"                   # "estimated": depth from RGB by the shipped depth network
     oop: str = "auto"                       # auto: the detector's OOP head (visual) with learned perception,
-                                            # relation statistics with oracle perception
+                                            # the language classifier with oracle perception
     explorer: str = "random"                # how unexplored space is mapped: random goals | frontier
     seed: int = 0                           # the agent's own random draws (goal sampling, RandomReceptacle)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -93,6 +93,6 @@ class AgentConfig:
         if self.depth not in DEPTH_SOURCES:
             raise ValueError(f"depth must be one of {DEPTH_SOURCES}, got {self.depth!r}")
         if self.oop == "auto":
-            self.oop = "visual" if self.perception == "learned" else "relation_stats"
+            self.oop = "visual" if self.perception == "learned" else "language"
         if self.oop == "visual" and self.perception != "learned":
             raise ValueError("--oop visual reads the learned detector's OOP head: it needs --perception learned")

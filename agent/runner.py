@@ -245,8 +245,9 @@ class EpisodeRunner:
             if self.publisher is not None:
                 msg = self.publisher.offer(kind, build, force=final or kind == "search")
             if writer is not None:
-                # The log keeps every status, and the other kinds at most every 10th step.
-                if msg is None and (kind == "status" or obs.step % 10 == 0 or final):
+                # The log keeps every status and every new search heatmap, and the other kinds
+                # at most every 10th step.
+                if msg is None and (kind in ("status", "search") or obs.step % 10 == 0 or final):
                     msg = build()
                 if msg is not None:
                     writer.message(kind, msg)

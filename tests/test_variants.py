@@ -91,3 +91,23 @@ def test_every_variant_is_built_from_shipped_models():
     assert parts["RandomReceptacle"] == (None, None)
     with pytest.raises(ValueError, match="unknown variant"):
         make_placement("Tidy")
+
+
+def test_an_episode_log_keeps_every_search_heatmap(tmp_path):
+    """3DSmntMap2Place asks the search network where each picked object's class lives; every
+    heatmap it draws is in the log (a replay shows it), not only those on a 10th step."""
+    from tidee.agent.runner import EpisodeRunner
+    from tidee.protocol.episode_log import LogReader
+    from tidee.protocol.messages import EpisodeSpec
+    from tidee.protocol.transport import InProcessTransport
+
+    spec = EpisodeSpec(room_type="Kitchen", seed=200, mess_index=0, resolution=96, max_steps=120)
+    with InProcessTransport(renderer="tiny") as transport:
+        runner = EpisodeRunner(AgentConfig(variant="3DSmntMap2Place", perception="oracle"), transport,
+                               session="t", log_dir=tmp_path)
+        runner.run(spec, episode_name="ep")
+    log = LogReader(tmp_path / "ep")
+    points = {e["step"] for e in log.events() if e["kind"] == "search_point"}
+    heat_steps = {m.step for k, m in log.messages() if k == "search"}
+    assert points, "no searched point in the episode: nothing to check"
+    assert points <= heat_steps

@@ -47,6 +47,7 @@ def telemetry_source(tmp_path) -> Iterator[TelemetrySource]:
     agent = subprocess.Popen(tidee + ["agent", "--endpoint", endpoint, "--session", session,
                                       "--room-type", "LivingRoom", "--seed", "200", "--mess-index", "0",
                                       "--resolution", "128", "--max-steps", "800", "--serve", "--perception", "oracle",
+                                      "--oop", "relation_stats",   # flags the most: labels to see
                                       "--log-dir", str(tmp_path / "runs")])
     try:
         yield TelemetrySource(endpoint, session)

@@ -147,6 +147,15 @@ def test_grid_plane_and_overview_camera():
         geometry.grid_plane((0, 0), 0.0, (4, 4))
 
 
+def test_known_plane_frames_the_mapped_cells_only():
+    occ = np.zeros((256, 256), np.uint8)
+    assert geometry.known_plane((-6.4, -6.4), 0.05, occ) is None
+    occ[100:140, 120:180] = 1                                          # 2 m x 3 m mapped
+    plane = geometry.known_plane((-6.4, -6.4), 0.05, occ, margin=0.5)
+    assert plane.size_x == pytest.approx(3.0) and plane.size_y == pytest.approx(4.0)
+    assert plane.center[:2] == pytest.approx((-6.4 + 6.0, -6.4 + 7.5))
+
+
 # --- images -----------------------------------------------------------------------------------
 
 def test_heatmap_texture_is_the_transposed_grid_with_alpha():
@@ -296,6 +305,20 @@ def test_replay_gives_the_latest_message_of_each_kind_at_a_step(tmp_path):
     tlog.write_bytes(tlog.read_bytes()[:-100])
     cut = ReplayLog(tmp_path)
     assert cut.truncated and cut.last_step <= 22
+
+
+def test_screenshot_steps_resolve_against_the_log(tmp_path):
+    from tidee.viewer.replay import ReplayLog
+    from tidee.viewer.screenshot import resolve_step
+
+    write_synthetic_log(str(tmp_path), steps=23)
+    log = ReplayLog(tmp_path)
+    assert resolve_step(log, "end") == 22 and resolve_step(log, "7") == 7
+    assert resolve_step(log, "search") == log.steps("search")[0]
+    with pytest.raises(ValueError, match="outside the log's steps 0-22"):
+        resolve_step(log, "40")
+    with pytest.raises(ValueError, match="a step number, 'search' or 'end'"):
+        resolve_step(log, "middle")
 
 
 def test_replay_of_an_empty_log_says_so(tmp_path):

@@ -87,7 +87,7 @@ AGENT_OPTIONS: list[tuple[str, dict]] = [
                       "help": "learned (the shipped RGB-D detector) | oracle (reads the simulator's segmentation)"}),
     ("--depth", {"default": "sensor", "choices": ("sensor", "estimated"),
                  "help": "estimated: depth from RGB by the shipped depth network (the paper's +est. depth)"}),
-    ("--oop", {"default": "auto", "help": "auto (visual with learned perception, relation_stats with oracle) | "
+    ("--oop", {"default": "auto", "help": "auto (visual with learned perception, language with oracle) | "
                                           "relation_stats | visual | language | fused"}),
     ("--explorer", {"default": "random", "choices": ("random", "frontier")}),
     ("--room-type", {"default": "LivingRoom", "choices": ROOM_TYPES}),

@@ -202,8 +202,9 @@ class ViewerApp:
         self.scene.apply(kind, msg)
         if isinstance(msg, MapSnapshot):
             self._show_legend(msg)
-            if not self._camera_aimed and self.scene.plane is not None:
-                self._aim_camera(self.scene.plane)
+            known = geometry.known_plane(msg.origin, msg.cell, msg.occupancy, margin=1.5)
+            if not self._camera_aimed and known is not None:
+                self._aim_camera(known)       # at what has been mapped, not the whole (12.8 m) grid
                 self._camera_aimed = True
         elif isinstance(msg, AgentFrame):
             self._agent_frames = True

@@ -55,8 +55,24 @@ def _run_agent(endpoint: str, steps: int, work_ms: float, wait_viewer: float, ti
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def _attached_run(endpoint: str, steps: int, work_ms: float, timeout: float, browser: bool) -> dict[str, Any]:
-    handle = run_viewer(ViewerConfig(endpoint=endpoint, port=0, session="bench"))
+def _chromium_cpu_s(chromium: HeadlessChromium | None) -> float:
+    """CPU seconds used so far by the browser's process tree (Linux ``/proc``; 0 elsewhere)."""
+    if chromium is None:
+        return 0.0
+    total, tick = 0.0, os.sysconf("SC_CLK_TCK")
+    for pid in chromium.pids():
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / tick      # utime + stime
+        except (OSError, IndexError, ValueError):
+            pass
+    return total
+
+
+def _attached_run(endpoint: str, steps: int, work_ms: float, timeout: float, browser: bool,
+                  rate_hz: float) -> dict[str, Any]:
+    handle = run_viewer(ViewerConfig(endpoint=endpoint, port=0, session="bench", rate_hz=rate_hz))
     chromium = None
     try:
         if browser:
@@ -75,9 +91,10 @@ def _attached_run(endpoint: str, steps: int, work_ms: float, timeout: float, bro
         sampler = threading.Thread(target=sample, daemon=True)
         rss_before = _rss_mb()
         sampler.start()
-        t0, updates0 = time.monotonic(), stats.updates
+        t0, updates0, cpu0 = time.monotonic(), stats.updates, _chromium_cpu_s(chromium)
         agent = _run_agent(endpoint, steps, work_ms, wait_viewer=20.0, timeout=timeout)
         elapsed = time.monotonic() - t0
+        browser_cpu = _chromium_cpu_s(chromium) - cpu0
         done.set()
         sampler.join()
         updates = stats.updates - updates0
@@ -94,6 +111,7 @@ def _attached_run(endpoint: str, steps: int, work_ms: float, timeout: float, bro
             "rss_growth_mb": round((active[-1][1] if active else rss_before) - quarter[1], 1),
             "rss_max_mb": round(max((s[1] for s in samples), default=rss_before), 1),
             "viewer_matched": agent["viewer_matched"],
+            "browser_cpu_share": round(browser_cpu / elapsed, 3),   # cores the browser kept busy
         }
     finally:
         if chromium is not None:
@@ -101,7 +119,8 @@ def _attached_run(endpoint: str, steps: int, work_ms: float, timeout: float, bro
         handle.stop()
 
 
-def run_viewer_bench(steps: int, out_json: str, work_ms: float = 30.0, browser: bool | None = None) -> dict[str, Any]:
+def run_viewer_bench(steps: int, out_json: str, work_ms: float = 30.0, browser: bool | None = None,
+                     rate_hz: float = ViewerConfig.rate_hz) -> dict[str, Any]:
     """Measure, write ``out_json`` and a Markdown table beside it, and return the figures."""
     from tidee.server.bench_sim import write_report
 
@@ -110,9 +129,9 @@ def run_viewer_bench(steps: int, out_json: str, work_ms: float = 30.0, browser: 
     browser = find_chromium() is not None if browser is None else browser
     timeout = 120.0 + steps * (work_ms / 1000.0 + 0.05) * 4
     alone = _run_agent(_free_endpoint(), steps, work_ms, wait_viewer=0.0, timeout=timeout)
-    attached = _attached_run(_free_endpoint(), steps, work_ms, timeout, browser=False)
+    attached = _attached_run(_free_endpoint(), steps, work_ms, timeout, browser=False, rate_hz=rate_hz)
     result: dict[str, Any] = {
-        "steps": steps, "agent_work_ms_per_step": work_ms,
+        "steps": steps, "agent_work_ms_per_step": work_ms, "viewer_rate_hz": rate_hz,
         "agent_steps_per_s_alone": alone["steps_per_s"],
         "agent_steps_per_s_with_viewer": attached["agent_steps_per_s"],
         "agent_slowdown_pct_with_viewer": round(100 * (1 - attached["agent_steps_per_s"] / alone["steps_per_s"]), 1),
@@ -122,13 +141,14 @@ def run_viewer_bench(steps: int, out_json: str, work_ms: float = 30.0, browser: 
         "viewer_rss_growth_mb": attached["rss_growth_mb"],
     }
     if browser:
-        with_browser = _attached_run(_free_endpoint(), steps, work_ms, timeout, browser=True)
+        with_browser = _attached_run(_free_endpoint(), steps, work_ms, timeout, browser=True, rate_hz=rate_hz)
         result.update({
             "agent_steps_per_s_with_viewer_and_browser": with_browser["agent_steps_per_s"],
             "agent_slowdown_pct_with_viewer_and_browser": round(
                 100 * (1 - with_browser["agent_steps_per_s"] / alone["steps_per_s"]), 1),
             "viewer_updates_per_s_with_browser": with_browser["viewer_updates_per_s"],
             "viewer_rss_growth_mb_with_browser": with_browser["rss_growth_mb"],
+            "browser_cpu_share": with_browser["browser_cpu_share"],
         })
     result["machine"] = f"{platform.machine()} {os.cpu_count()} cores"
     write_report(out_json, result, "Viewer benchmark (`tidee.viewer.bench`)")
@@ -143,9 +163,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--work-ms", type=float, default=30.0, help="the synthetic agent's CPU time per step")
     p.add_argument("--no-browser", action="store_true", help="skip the run with headless Chromium")
+    p.add_argument("--rate", type=float, default=ViewerConfig.rate_hz, help="the viewer's updates per second, at most")
     p.add_argument("--out", default="bench/viewer.json")
     args = p.parse_args(argv)
-    result = run_viewer_bench(args.steps, args.out, work_ms=args.work_ms, browser=False if args.no_browser else None)
+    result = run_viewer_bench(args.steps, args.out, work_ms=args.work_ms, browser=False if args.no_browser else None,
+                              rate_hz=args.rate)
     print(json.dumps(result, indent=1))
     return 0
 

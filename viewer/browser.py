@@ -125,8 +125,34 @@ class HeadlessChromium:
                     raise RuntimeError(f"DevTools {method} failed: {reply['error']}")
                 return reply.get("result", {})
 
-    def navigate(self, url: str) -> None:
+    def pids(self) -> list[int]:
+        """The browser's process and its descendants (renderer, GPU, utility processes)."""
+        pids, frontier = [self._proc.pid], [self._proc.pid]
+        while frontier:
+            pid = frontier.pop()
+            try:
+                with open(f"/proc/{pid}/task/{pid}/children") as f:
+                    kids = [int(k) for k in f.read().split()]
+            except OSError:
+                kids = []
+            pids += kids
+            frontier += kids
+        return pids
+
+    def navigate(self, url: str, timeout: float = 30.0) -> None:
+        """Load ``url`` and wait until the document has loaded (while the page swaps
+        processes, DevTools answers "Not attached to an active page": retried)."""
         self.call("Page.navigate", {"url": url})
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                if self.evaluate("document.readyState") == "complete":
+                    return
+            except RuntimeError:
+                pass
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{url} did not load within {timeout} s")
+            time.sleep(0.1)
 
     def evaluate(self, expression: str) -> Any:
         result = self.call("Runtime.evaluate", {"expression": expression, "returnByValue": True})

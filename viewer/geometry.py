@@ -159,6 +159,19 @@ def grid_plane(origin: Sequence[float], cell: float, shape: tuple[int, ...], z: 
     return FloorPlane((float(origin[0]) + sx / 2.0, float(origin[1]) + sy / 2.0, z), sx, sy)
 
 
+def known_plane(origin: Sequence[float], cell: float, occupancy: np.ndarray, margin: float = 0.5,
+                z: float = 0.01) -> FloorPlane | None:
+    """The floor rectangle around a grid's known cells (occupancy > 0), ``margin`` metres
+    wider on each side; None when nothing is known yet."""
+    known = np.argwhere(np.asarray(occupancy) > 0)
+    if known.size == 0 or cell <= 0:
+        return None
+    lo = np.asarray(origin[:2], float) + known.min(axis=0) * cell - margin
+    hi = np.asarray(origin[:2], float) + (known.max(axis=0) + 1) * cell + margin
+    return FloorPlane((float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2, z), float(hi[0] - lo[0]),
+                      float(hi[1] - lo[1]))
+
+
 @dataclass(frozen=True)
 class CameraView:
     position: tuple[float, float, float]
@@ -167,7 +180,8 @@ class CameraView:
 
 def overview_camera(plane: FloorPlane) -> CameraView:
     """A view a person can read at once: from behind the start pose (-x), a little to the
-    right (-y), high enough to see the whole map, looking at its centre."""
+    right (-y), about 65 degrees above the floor (the floor layers, heatmap and paths, show
+    between the walls), far enough to see the whole map, looking at its centre."""
     cx, cy, _ = plane.center
     extent = max(plane.size_x, plane.size_y, 2.0)
-    return CameraView((cx - 0.85 * extent, cy - 0.5 * extent, 1.0 * extent), (cx, cy, 0.0))
+    return CameraView((cx - 0.55 * extent, cy - 0.35 * extent, 1.4 * extent), (cx, cy, 0.0))

@@ -27,6 +27,8 @@ MAX_ORACLE_LABELS = 48
 FRUSTUM_IMAGE_SIZE = 64
 STATUS_CAMERA_HEIGHT = 0.9015        # when only AgentStatus is known: the paper's camera height
 STATUS_FOV = 1.5707963267948966      # and its 90 degree field of view
+FLOOR_LAYER_TOP = 0.05               # unlabelled voxels below this are the floor: not drawn, so the
+                                     # grid, heatmap and paths on the floor stay visible
 
 
 @dataclass
@@ -194,6 +196,9 @@ class SceneView:
         points, labels = np.asarray(msg.points), np.asarray(msg.point_labels)
         if len(labels) != len(points):  # the codec checks each array, not that they agree
             labels = np.full(len(points), -1, np.int16)
+        if len(points):
+            above = (points[:, 2] >= FLOOR_LAYER_TOP) | (labels >= 0)
+            points, labels = points[above], labels[above]
         if len(points) > self.max_points:  # a deterministic stride keeps the whole map's shape
             idx = np.linspace(0, len(points) - 1, self.max_points).astype(np.int64)
             points, labels = points[idx], labels[idx]

@@ -75,8 +75,7 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
 
     from tidee.agent.evaluation.report import with_references, write_report
 
-    if oop == "auto":
-        oop = "visual" if perception == "learned" else "relation_stats"
+    oop = AgentConfig(perception=perception, oop=oop).oop      # "auto" resolved as the agent does
     variants = variants or list(BUILT_VARIANTS)
     agents = [v for v in variants if v not in REFERENCE_VARIANTS]
     for v in agents:
