@@ -240,3 +240,23 @@ def test_shipped_head_reads_the_size_of_a_vase_on_the_floor() -> None:
     large, small = clf.predict(["The vase is large. The vase is supported by the floor.",
                                 "The vase is small. The vase is supported by the floor."])
     assert large < 0.5 < small
+
+
+def test_fused_samples_are_matched_pickupable_detections_with_their_features() -> None:
+    from tidee.agent.reasoning.fused_oop import detection_samples, held_out_room
+
+    cls = {n: i for i, n in enumerate(lo.CLASSES)}
+    frames = {"depth": np.full((1, 128, 128), 2.0, np.float16), "frame_room": np.array(["Bedroom:19:0"]),
+              "obj_frame": np.array([0, 0, 0]), "obj_cls": np.array([cls["Mug"], cls["Book"], cls["Bed"]]),
+              "obj_box": np.array([[10, 10, 30, 30], [60, 60, 90, 90], [0, 90, 128, 128]], np.float32),
+              "obj_oop": np.array([1, 0, 0], np.uint8)}
+    feat = np.ones(64, np.float32)
+    dets = [[Detection("Mug", 0.9, (10, 10, 30, 31), feature=feat),          # matches the moved mug
+             Detection("Book", 0.8, (61, 60, 90, 90)),                        # the book, no feature
+             Detection("Pen", 0.7, (100, 10, 120, 30), feature=feat),         # nothing there: no sample
+             Detection("Bed", 0.9, (0, 90, 128, 128))]]                       # not pickupable: context only
+    s = detection_samples(frames, dets)
+    assert s["categories"] == ["Mug", "Book"] and s["labels"] == [1, 0]
+    assert s["features"].shape == (2, 64) and s["features"][0].sum() == 64 and s["features"][1].sum() == 0
+    assert all(p.startswith("The mug") for p in s["paragraphs"][:1]) and s["rooms"] == ["Bedroom:19:0"] * 2
+    assert held_out_room("Bedroom:19:0") and not held_out_room("Kitchen:10003:None")

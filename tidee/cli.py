@@ -314,6 +314,9 @@ def build_parser() -> argparse.ArgumentParser:
     from tidee.agent.reasoning.language_oop import register as register_language_oop
 
     register_language_oop(train_sub, ev)
+    from tidee.agent.reasoning.fused_oop import register as register_fused_oop
+
+    register_fused_oop(train_sub)
     from tidee.agent.reasoning.rgcn_commands import register as register_rgcn
 
     register_rgcn(train_sub, ev)

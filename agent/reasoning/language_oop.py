@@ -77,6 +77,7 @@ __all__ = [
     "estimate_pitch",
     "evaluate_language_oop",
     "fit_head",
+    "frame_paragraphs",
     "language_oop_samples",
     "language_row",
     "make_head",
@@ -953,6 +954,17 @@ def detection_refs(depth: np.ndarray, dets: Sequence[Detection], pitch_deg: floa
     return out
 
 
+def frame_paragraphs(depth: np.ndarray, dets: Sequence[Detection], context_score: float = 0.3
+                     ) -> list[tuple[int, str]]:
+    """(detection index, paragraph) of one frame's detections that have depth, with the
+    frame's detections of score >= ``context_score`` as context (:func:`language_row`)."""
+    if not dets:
+        return []
+    refs = detection_refs(depth, dets)
+    context = [r for r, d in zip(refs, dets) if r is not None and d.score >= context_score]
+    return [(k, object_paragraph(r, context)) for k, r in enumerate(refs) if r is not None]
+
+
 def language_row(classifier: LanguageOOPClassifier, context_score: float = 0.3) -> RowFn:
     """BERT-OOP (or the fused head, when ``classifier`` has one) from a frame's detections alone.
 
@@ -970,14 +982,8 @@ def language_row(classifier: LanguageOOPClassifier, context_score: float = 0.3) 
         feats: list[np.ndarray | None] = []
         where: list[tuple[int, int]] = []
         for i, ds in enumerate(dets):
-            if not ds:
-                continue
-            refs = detection_refs(np.asarray(frames["depth"][i], np.float32), ds)
-            context = [r for r, d in zip(refs, ds) if r is not None and d.score >= context_score]
-            for k, r in enumerate(refs):
-                if r is None:
-                    continue
-                paras.append(object_paragraph(r, context))
+            for k, para in frame_paragraphs(np.asarray(frames["depth"][i], np.float32), ds, context_score):
+                paras.append(para)
                 feats.append(ds[k].feature)
                 where.append((i, k))
         if paras:
