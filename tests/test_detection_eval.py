@@ -194,6 +194,18 @@ def test_oop_oracle_labels_perfect_inverted_low():
         assert inv["map"] <= r["rows"]["half"]["iou"][thr]["map"] < 1.0   # no better than a coin
 
 
+def test_oracle_label_ceiling_is_perfect_on_perfect_boxes_and_drops_with_missed_ones():
+    frames = oop_frames()
+    dets = perfect(frames, "half")                      # the detections' own P(oop) is ignored
+    r = de.evaluate_oop({de.CEILING_ROW: de.oracle_label_row(frames, dets)}, dets, frames)
+    assert r["rows"][de.CEILING_ROW]["iou"]["0.5"]["map"] == 1.0
+    shifted = [[Detection(d.label, d.score, (d.box[0] + 40, d.box[1], d.box[2] + 40, d.box[3]), oop_prob=0.5)
+                for d in ds] for ds in dets]            # every box misplaced: nothing matches
+    probs = de.oracle_label_row(frames, shifted)
+    assert all(p == 0.5 for ps in probs for p in ps)
+    assert de.evaluate_oop({"c": probs}, shifted, frames)["rows"]["c"]["iou"]["0.5"]["map"] < 0.5
+
+
 def test_oop_class_label_ignored():
     frames = make_frames([(0, PICK[0], (0, 0, 10, 10), 1)], 1)
     dets = [[Detection(PICK[1], 0.8, (0, 0, 10, 10), oop_prob=0.9)]]   # wrong class, right box

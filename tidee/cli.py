@@ -177,7 +177,8 @@ def _cmd_gen_stats(args: argparse.Namespace) -> int:
 def _cmd_gen_detection(args: argparse.Namespace) -> int:
     from tidee.agent.perception.dataset import GenConfig, describe, generate
 
-    cfg = GenConfig(rooms_per_type=args.rooms_per_type, messes_per_room=args.messes, walks_per_config=args.walks,
+    cfg = GenConfig(rooms_per_type=args.rooms_per_type, skip_rooms=args.skip_rooms, messes_per_room=args.messes,
+                    walks_per_config=args.walks,
                     frames_per_walk=args.frames_per_walk, resolution=args.resolution, seed=args.seed,
                     shard_size=args.shard_size)
     print(describe(cfg), file=sys.stderr)
@@ -293,6 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = gen.add_parser("detection", help="RGB-D frames + instance targets from random walks in training rooms")
     p.add_argument("--out", default="data/detection", help="directory of shards (default: data/detection)")
     p.add_argument("--rooms-per-type", type=int, default=60, help="training rooms per type: seeds 0-19, then the pool")
+    p.add_argument("--skip-rooms", type=int, default=0,
+                   help="start after this many rooms per type (e.g. 60: rooms the shipped detector never saw)")
     p.add_argument("--messes", type=int, default=2, help="messy configurations per room (plus the tidy one)")
     p.add_argument("--walks", type=int, default=2, help="random walks per configuration")
     p.add_argument("--frames-per-walk", type=int, default=6)

@@ -703,6 +703,33 @@ def _cmd_eval_detector(args: Any) -> int:
     return 0
 
 
+CEILING_ROW = "Oracle-label (ceiling)"
+
+
+def oracle_label_row(frames: Mapping[str, np.ndarray], dets: list[list[Detection]],
+                     iou_threshold: float = 0.5) -> list[list[float]]:
+    """ORACLE, the ceiling of any classifier over these detections: P(out of place) is the
+    ground truth of the instance a detection matches (IoU >= ``iou_threshold``, class-agnostic,
+    as the AP), 0.5 for a detection that matches none. What is left below 100 is the
+    detector's: missed and misplaced boxes."""
+    pick = np.asarray([CLASSES[c] in PICKUPABLE for c in np.asarray(frames["obj_cls"]).tolist()], bool)
+    obj_frame = np.asarray(frames["obj_frame"])
+    out: list[list[float]] = []
+    for i, ds in enumerate(dets):
+        probs = [0.5] * len(ds)
+        ks = [k for k, d in enumerate(ds) if d.label in PICKUPABLE]      # the detections the AP counts
+        gt = np.flatnonzero((obj_frame == i) & pick)
+        if ks and len(gt):
+            match = match_detections(np.asarray([ds[k].box for k in ks], np.float64),
+                                     np.asarray([ds[k].score for k in ks], np.float64),
+                                     np.asarray(frames["obj_box"])[gt], iou_threshold)
+            for k, g in zip(ks, match.tolist()):
+                if g >= 0:
+                    probs[k] = float(frames["obj_oop"][gt[g]])
+        out.append(probs)
+    return out
+
+
 def _language_rows() -> dict[str, OopRowFn | None]:
     """The language, fused and oracle-language rows (issue 6), from the shipped language heads."""
     from tidee.agent.reasoning.language_oop import (DEFAULT_FUSED_WEIGHTS, LanguageOOPClassifier, language_row,
@@ -711,7 +738,7 @@ def _language_rows() -> dict[str, OopRowFn | None]:
     clf = LanguageOOPClassifier.load()
     fused = LanguageOOPClassifier.load(DEFAULT_FUSED_WEIGHTS, encoder=clf.encoder)
     return {"BERT-OOP (language)": language_row(clf), "dDETR+BERT-OOP (fused)": language_row(fused),
-            "Oracle-language": oracle_language_row(clf)}
+            "Oracle-language": oracle_language_row(clf), CEILING_ROW: oracle_label_row}
 
 
 def _cmd_eval_oop(args: Any) -> int:

