@@ -706,28 +706,35 @@ def _cmd_eval_detector(args: Any) -> int:
 CEILING_ROW = "Oracle-label (ceiling)"
 
 
-def oracle_label_row(frames: Mapping[str, np.ndarray], dets: list[list[Detection]],
-                     iou_threshold: float = 0.5) -> list[list[float]]:
-    """ORACLE, the ceiling of any classifier over these detections: P(out of place) is the
-    ground truth of the instance a detection matches (IoU >= ``iou_threshold``, class-agnostic,
-    as the AP), 0.5 for a detection that matches none. What is left below 100 is the
-    detector's: missed and misplaced boxes."""
+def matched_oop_labels(frames: Mapping[str, np.ndarray], dets: list[list[Detection]],
+                       iou_threshold: float = 0.5) -> list[dict[int, int]]:
+    """Per frame, {detection index: out-of-place label of the ground-truth instance it
+    matches}: pickupable detections against pickupable instances, IoU >= ``iou_threshold``,
+    class-agnostic and greedy by score, as the Table 3 AP matches them."""
     pick = np.asarray([CLASSES[c] in PICKUPABLE for c in np.asarray(frames["obj_cls"]).tolist()], bool)
     obj_frame = np.asarray(frames["obj_frame"])
-    out: list[list[float]] = []
+    out: list[dict[int, int]] = []
     for i, ds in enumerate(dets):
-        probs = [0.5] * len(ds)
         ks = [k for k, d in enumerate(ds) if d.label in PICKUPABLE]      # the detections the AP counts
         gt = np.flatnonzero((obj_frame == i) & pick)
+        labels: dict[int, int] = {}
         if ks and len(gt):
             match = match_detections(np.asarray([ds[k].box for k in ks], np.float64),
                                      np.asarray([ds[k].score for k in ks], np.float64),
                                      np.asarray(frames["obj_box"])[gt], iou_threshold)
-            for k, g in zip(ks, match.tolist()):
-                if g >= 0:
-                    probs[k] = float(frames["obj_oop"][gt[g]])
-        out.append(probs)
+            labels = {k: int(frames["obj_oop"][gt[g]]) for k, g in zip(ks, match.tolist()) if g >= 0}
+        out.append(labels)
     return out
+
+
+def oracle_label_row(frames: Mapping[str, np.ndarray], dets: list[list[Detection]],
+                     iou_threshold: float = 0.5) -> list[list[float]]:
+    """ORACLE, the ceiling of any classifier over these detections: P(out of place) is the
+    ground truth of the instance a detection matches (:func:`matched_oop_labels`), 0.5 for a
+    detection that matches none. What is left below 100 is the detector's: missed and
+    misplaced boxes."""
+    return [[float(labels.get(k, 0.5)) for k in range(len(ds))]
+            for ds, labels in zip(dets, matched_oop_labels(frames, dets, iou_threshold))]
 
 
 def _language_rows() -> dict[str, OopRowFn | None]:

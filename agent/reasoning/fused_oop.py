@@ -24,10 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from tidee.agent.classes import CLASSES, PICKUPABLE
 from tidee.agent.reasoning.language_oop import (DEFAULT_CACHE_DIR, DEFAULT_FUSED_WEIGHTS, DEFAULT_WEIGHTS,
-                                                LanguageOOPClassifier, _head_classes, fit_head, frame_paragraphs,
-                                                object_ap)
+                                                VISUAL_DIM, LanguageOOPClassifier, _features, _head_classes,
+                                                fit_head, frame_paragraphs, object_ap)
 
 # Frames of training rooms the shipped detector never saw: `tidee gen detection --out
 # data/detection_unseen --rooms-per-type 20 --skip-rooms 60 --messes 2 --walks 2`.
@@ -83,31 +82,23 @@ def detection_samples(frames: dict[str, np.ndarray], detections: list[list[Any]]
                       match_iou: float = 0.5) -> dict[str, Any]:
     """One sample per pickupable detection matched to a pickupable ground-truth instance:
     paragraphs, features (N x 64, zero where missing), labels, categories, rooms."""
-    from tidee.agent.evaluation.detection import match_detections
+    from tidee.agent.evaluation.detection import matched_oop_labels
 
-    obj_frame = np.asarray(frames["obj_frame"])
-    pick = np.asarray([CLASSES[c] in PICKUPABLE for c in np.asarray(frames["obj_cls"]).tolist()], bool)
     rooms = frames.get("frame_room")
     out: dict[str, list] = {"paragraphs": [], "features": [], "labels": [], "categories": [], "rooms": []}
-    for i, dets in enumerate(detections):
-        ks = [k for k, d in enumerate(dets) if d.label in PICKUPABLE]
-        gt = np.flatnonzero((obj_frame == i) & pick)
-        if not ks or not len(gt):
+    for i, (dets, labels) in enumerate(zip(detections, matched_oop_labels(frames, detections, match_iou))):
+        if not labels:
             continue
         paras = dict(frame_paragraphs(np.asarray(frames["depth"][i], np.float32), dets, context_score))
-        match = match_detections(np.asarray([dets[k].box for k in ks], np.float64),
-                                 np.asarray([dets[k].score for k in ks], np.float64),
-                                 np.asarray(frames["obj_box"])[gt], match_iou)
-        for k, g in zip(ks, match.tolist()):
-            if g < 0 or k not in paras:
+        for k, label in labels.items():
+            if k not in paras:
                 continue
-            feat = dets[k].feature
             out["paragraphs"].append(paras[k])
-            out["features"].append(np.zeros(64, np.float32) if feat is None else np.asarray(feat, np.float32))
-            out["labels"].append(int(frames["obj_oop"][gt[g]]))
+            out["features"].append(dets[k].feature)
+            out["labels"].append(label)
             out["categories"].append(dets[k].label)
             out["rooms"].append(str(rooms[i]) if rooms is not None else "")
-    out["features"] = np.stack(out["features"]).astype(np.float32) if out["features"] else np.zeros((0, 64), np.float32)
+    out["features"] = _features(out["features"], VISUAL_DIM)
     return out
 
 
