@@ -288,3 +288,9 @@ def test_cli_handlers_run_and_return_zero(tmp_path, monkeypatch, capsys):
         assert args.func(args) == 0
     assert "mAP@0.5" in capsys.readouterr().out
     assert (tmp_path / "d" / "detector.json").exists() and (tmp_path / "o" / "oop.json").exists()
+
+
+def test_eval_detector_on_egl_frames_does_not_record_into_the_manifest():
+    args = argparse.Namespace(record=True, renderer="egl", weights=None)
+    with pytest.raises(SystemExit, match="drop --record with --renderer egl"):
+        de._cmd_eval_detector(args)

@@ -38,6 +38,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from tidee.agent.classes import CLASS_INDEX, CLASSES, PICKUPABLE
+from tidee.agent.perception import TRAINED_RENDERER
 from tidee.agent.perception.base import Detection
 from tidee.agent.perception.dataset import held_out_frames
 from tidee.protocol.episode_log import write_atomic, write_json_atomic
@@ -498,19 +499,20 @@ def _frames_summary(frames: Mapping[str, np.ndarray]) -> dict[str, Any]:
 
 def run_detector_eval(detector: FrameDetector, out_dir: str | Path, rooms_per_type: int = 5, messes: int = 2,
                       frames_per_walk: int = 5, walks: int = 1, seed: int = 7, batch: int = 16,
-                      split: str = "test", progress: bool = True) -> dict[str, Any]:
+                      split: str = "test", renderer: str = TRAINED_RENDERER, progress: bool = True) -> dict[str, Any]:
     """Box AP of ``detector`` on held-out frames; writes detector.json, detector.md, detector_examples.png."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     frames = held_out_frames(split, rooms_per_type=rooms_per_type, messes=messes, walks=walks,
-                             frames_per_walk=frames_per_walk, seed=seed, progress=progress)
+                             frames_per_walk=frames_per_walk, seed=seed, renderer=renderer, progress=progress)
     dets, timing = _detect_all(detector, frames, batch, progress)
     timing.update(_single_frame_latency(detector, frames))
     metrics = evaluate_boxes(dets, frames)
     command = (f"tidee eval detector --split {split} --rooms-per-type {rooms_per_type} --messes {messes} "
-               f"--walks {walks} --frames-per-walk {frames_per_walk} --seed {seed} --out {out}")
+               f"--walks {walks} --frames-per-walk {frames_per_walk} --seed {seed}"
+               + (f" --renderer {renderer}" if renderer != TRAINED_RENDERER else "") + f" --out {out}")
     report = {"command": command, "detector": _detector_info(detector), "timing": timing,
-              "data": {"split": split, "rooms_per_type": rooms_per_type, "messes_per_room": messes,
+              "data": {"split": split, "renderer": renderer, "rooms_per_type": rooms_per_type, "messes_per_room": messes,
                        "tidy": True, "walks": walks, "frames_per_walk": frames_per_walk, "seed": seed,
                        **_frames_summary(frames)},
               **metrics}
@@ -691,10 +693,13 @@ def _record_in_manifest(detector: FrameDetector, metrics: dict[str, Any]) -> Non
 
 
 def _cmd_eval_detector(args: Any) -> int:
+    if args.record and args.renderer != TRAINED_RENDERER:
+        raise SystemExit(f"tidee eval detector: --record keeps the manifest's figures on {TRAINED_RENDERER} frames, "
+                         f"the detector's own; drop --record with --renderer {args.renderer}")
     det = _load_detector(args.weights)
     r = run_detector_eval(det, args.out, rooms_per_type=args.rooms_per_type,
                           messes=args.messes, frames_per_walk=args.frames_per_walk, walks=args.walks, seed=args.seed,
-                          batch=args.batch, split=args.split)
+                          batch=args.batch, split=args.split, renderer=args.renderer)
     if args.record:
         _record_in_manifest(det, {"box_map50": r["map50"], "box_map50_95": r["map"],
                                   "box_eval": {"command": r["command"], "frames": r["data"]["frames"],
@@ -772,6 +777,8 @@ def register(eval_sub: Any) -> None:
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--record", action="store_true", help="merge the metrics into the weights' manifest")
+    p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default=TRAINED_RENDERER,
+                   help=f"who draws the test frames (default {TRAINED_RENDERER}: what the detector was trained on)")
     p.set_defaults(func=_cmd_eval_detector)
 
     p = eval_sub.add_parser("oop", help="in/out-of-place AP on messy held-out rooms (paper Table 3)")

@@ -53,6 +53,7 @@ class GenConfig:
     oop_views_only: bool = False         # keep only messy frames with an out-of-place object in view
     per_config: int | None = None        # stop a configuration once it has this many frames
     tidy: bool = True                    # include the tidy configuration of each room
+    renderer: str = TRAINED_RENDERER     # auto | egl | tiny
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -117,7 +118,7 @@ def iter_frames(cfg: GenConfig, jobs: list[tuple[str, int, int | None]] | None =
         if cfg.split == "train" and split_of(seed) not in ("train", "train_pool"):
             raise ValueError(f"seed {seed} is a {split_of(seed)} room: detector training data only comes from "
                              "training rooms")
-    ep = Episode(renderer=TRAINED_RENDERER)
+    ep = Episode(renderer=cfg.renderer)
     try:
         for j, (rt, seed, mess) in enumerate(tqdm(jobs, desc=f"{cfg.split} configurations", disable=not progress)):
             rng = np.random.default_rng([cfg.seed, seed, ROOM_TYPES.index(rt), 0 if mess is None else mess + 1])
@@ -251,7 +252,7 @@ def load_shards(root: str | Path, with_inst: bool = False, limit: int | None = N
 
 def held_out_frames(split: str = "test", rooms_per_type: int = 5, messes: int = 2, walks: int = 1,
                     frames_per_walk: int = 5, seed: int = 7, oop_views_only: bool = False, tidy: bool = True,
-                    per_config: int | None = None, resolution: int = 256,
+                    per_config: int | None = None, resolution: int = 256, renderer: str = TRAINED_RENDERER,
                     progress: bool = True) -> dict[str, np.ndarray]:
     """Frames of the val or test rooms, rendered now and packed like a shard (evaluation only;
     never written next to training data). ``per_config`` caps the frames of a configuration."""
@@ -259,7 +260,7 @@ def held_out_frames(split: str = "test", rooms_per_type: int = 5, messes: int = 
         raise ValueError(f"evaluation frames come from the val or test rooms, not {split!r}")
     cfg = GenConfig(split=split, rooms_per_type=rooms_per_type, messes_per_room=messes, walks_per_config=walks,
                     frames_per_walk=frames_per_walk, seed=seed, oop_views_only=oop_views_only, tidy=tidy,
-                    per_config=per_config, resolution=resolution)
+                    per_config=per_config, resolution=resolution, renderer=renderer)
     frames = list(iter_frames(cfg, progress=progress))
     if not frames:
         raise ValueError(f"no {split} frames with objects in view")
