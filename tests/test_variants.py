@@ -111,3 +111,39 @@ def test_an_episode_log_keeps_every_search_heatmap(tmp_path):
     heat_steps = {m.step for k, m in log.messages() if k == "search"}
     assert points, "no searched point in the episode: nothing to check"
     assert points <= heat_steps
+
+
+# ----------------------------------------------------------------------------- approach and drops
+def _with_camera(policy, height=0.9):
+    pose = np.eye(4)
+    pose[2, 3] = height
+    policy.body.obs.camera_pose = pose
+    return policy
+
+
+def test_the_agent_stands_nearer_to_a_floor_object_than_to_one_on_a_table():
+    policy, _ = _policy(variant="CommonMemory")
+    _with_camera(policy)
+    mem = policy.body.mapper.memory
+    on_floor = mem.add_or_merge("RemoteControl", 0.9, np.array([2.0, 0.0, 0.02]), np.array([1.95, -0.08, 0.0]),
+                                np.array([2.05, 0.08, 0.04]), 1)
+    on_table = mem.add_or_merge("Mug", 0.9, np.array([2.0, 1.0, 0.8]), np.array([1.95, 0.95, 0.75]),
+                                np.array([2.05, 1.05, 0.85]), 1)
+    floor_r, table_r = policy._reach_xy(on_floor), policy._reach_xy(on_table)
+    assert table_r > policy.p.approach_m > floor_r
+    # standing floor_r from the footprint still leaves the centroid within reach of the eye
+    d = floor_r + 0.5 * np.hypot(0.1, 0.16) + 0.125
+    assert np.hypot(d, 0.9 - 0.02) <= policy.p.interact_m + 1e-9
+
+
+def test_an_object_the_agent_dropped_is_not_picked_again():
+    policy, _ = _policy(variant="CommonMemory")
+    mem = policy.body.mapper.memory
+    pillow = mem.add_or_merge("Pillow", 0.9, np.array([0.6, 0.0, 0.1]), np.array([0.4, -0.2, 0.0]),
+                              np.array([0.8, 0.2, 0.2]), 1)
+    other = mem.add_or_merge("Pillow", 0.9, np.array([3.0, 2.0, 0.1]), np.array([2.8, 1.8, 0.0]),
+                             np.array([3.2, 2.2, 0.2]), 1)
+    pillow.out_of_place = other.out_of_place = True
+    assert [o.id for o in policy._candidates()] == [pillow.id, other.id]
+    policy.dropped.append(("Pillow", np.array([0.0, 0.0])))     # dropped here: its receptacle was full
+    assert [o.id for o in policy._candidates()] == [other.id]

@@ -217,11 +217,14 @@ def projected_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, margi
     return Sighting(None, ui, vi, float(np.linalg.norm(pts[0] - cam)), pts[0])
 
 
-def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: float = 1.4) -> Sighting | None:
+def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: float = 1.4,
+                avoid: list[np.ndarray] | None = None, avoid_m: float = 0.4) -> Sighting | None:
     """The pixel of a detection to act on: its region's most central pixel with valid depth.
 
     ``prefer_top``: for putting things on a receptacle, prefer pixels whose 3D point lies near
     the top of the region's points (the surface something can rest on), within ``reach`` metres.
+    ``avoid``: 3D points already tried (a put that found no free space there); pixels within
+    ``avoid_m`` of them are skipped while others remain.
     """
     obs = body.obs
     assert obs is not None
@@ -238,6 +241,10 @@ def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: flo
         keep = (pts[:, 2] >= top - 0.08) & near
         if not keep.any():
             keep = near if near.any() else np.ones(len(xs), bool)
+        if avoid:
+            far = np.min([np.linalg.norm(pts - a, axis=1) for a in avoid], axis=0) > avoid_m
+            if (keep & far).any():
+                keep &= far
         cx, cy = xs[keep].mean(), ys[keep].mean()
         weight = np.where(keep, np.hypot(xs - cx, ys - cy), np.inf)
     k = int(np.argmin(weight))

@@ -30,7 +30,7 @@ from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import (FrontierExplorer, sample_reachable_goal, sample_unexplored_goal,
                                             unexplored_fraction)
 from tidee.agent.navigation.fmm import FMMPlanner
-from tidee.agent.policy.skills import (AGENT_RADIUS, Body, face_point, find_in_view, goal_mask_near_box,
+from tidee.agent.policy.skills import (AGENT_RADIUS, MOVE_M, Body, face_point, find_in_view, goal_mask_near_box,
                                        look_around, navigate, pitch_to, projected_sighting, receptacle_in_view,
                                        sighting_of)
 from tidee.agent.reasoning.oop import OOPDetector
@@ -89,6 +89,7 @@ class TidyPolicy:
         self.state = PolicyState()
         self.on_event = on_event
         self.placed: list[tuple[str, np.ndarray]] = []   # (label, xy) of objects this agent put away
+        self.dropped: list[tuple[str, np.ndarray]] = []  # (label, agent xy) of objects it gave up on
         self.flagged: set[int] = set()
         self.frontier = FrontierExplorer(body.mapper.grid)
         self._rescore = True
@@ -119,15 +120,19 @@ class TidyPolicy:
                 self.flagged.add(o.id)
                 self.state.oop_found += 1
                 self.event("oop_found", label=o.label, track_id=o.id, oop_prob=round(o.oop_prob, 3),
-                           support=o.meta.get("support"),
+                           support=o.meta.get("support"), paragraph=o.meta.get("paragraph"),
                            centroid=[round(float(v), 3) for v in o.centroid])
 
     def _is_placed(self, o: TrackedObject) -> bool:
-        return any(lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 0.6 for lbl, xy in self.placed)
+        """Put there by this agent: never picked again (a dropped object, whose receptacle was
+        not found or was full, would otherwise be picked, carried and dropped in a loop)."""
+        return (any(lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 0.6 for lbl, xy in self.placed)
+                or any(lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 1.2 for lbl, xy in self.dropped))
 
     def _candidates(self) -> list[TrackedObject]:
         xy = self.body.xy
-        objs = [o for o in self.body.mapper.memory if o.out_of_place and not o.meta.get("give_up")]
+        objs = [o for o in self.body.mapper.memory
+                if o.out_of_place and not o.meta.get("give_up") and not self._is_placed(o)]
         return sorted(objs, key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
 
     def _reachable(self) -> np.ndarray:
@@ -214,14 +219,26 @@ class TidyPolicy:
             st.phase = "dropping"
             placed = yield from self.drop()
             if placed:
+                self.dropped.append((obj.label, self.body.xy.copy()))
+                self._rescore = True
                 self.event("dropped", label=obj.label)
         st.target = None
 
     def approach(self, obj: TrackedObject, radius: float) -> Gen:
-        """Walk next to a tracked object and get it in view within reach; its Sighting or None."""
+        """Walk next to a tracked object and get it in view within reach; its Sighting or None.
+
+        The first stop is within ``radius`` of the object's footprint, and near enough that
+        the eye-to-object distance can be within ``interact_m`` (a floor object is ~0.9 m
+        below the camera, so it must be nearer in (x, y) than a table top). Seen but too far:
+        the next try walks 0.25 m closer; not seen or no way there: the next try widens the
+        ring instead (another side of the object).
+        """
+        radius = min(radius, self._reach_xy(obj))
         for attempt in range(3):
-            mask = goal_mask_near_box(self.body.mapper, obj.box_min, obj.box_max, radius + 0.15 * attempt)
-            yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
+            mask = goal_mask_near_box(self.body.mapper, obj.box_min, obj.box_max, radius)
+            arrived = yield from navigate(self.body, goal_mask=mask, stop_radius=0.05,
+                                          budget=self.p.goal_step_budget)
+            seen_far = False
             for pitch_try in range(2):
                 yield from face_point(self.body, obj.centroid)
                 sighting = find_in_view(self.body, obj)
@@ -232,14 +249,25 @@ class TidyPolicy:
                 if sighting is not None and sighting.distance <= self.p.interact_m:
                     return sighting
                 if sighting is not None:
+                    seen_far = True
                     break        # seen but too far: walk closer
                 if pitch_try == 0:  # not seen: try the neighbouring pitch
                     yield from pitch_to(self.body, self.body.pose[3] + (30.0 if self.body.pose[3] < 60 else -30.0))
             if self.body.steps_left() <= 2:
                 break
+            radius = max(radius - MOVE_M, 0.25) if seen_far and arrived else radius + 0.15
         return None
 
-    # ------------------------------------------------------------------ placing
+    def _reach_xy(self, obj: TrackedObject) -> float:
+        """How far from the object's footprint, in (x, y), the agent can stand and still have
+        its centroid within ``interact_m`` of the eye (less one move step of slack: poses are
+        on a 0.25 m lattice and the footprint's edge is nearer than the centroid)."""
+        assert self.body.obs is not None
+        dz = float(self.body.obs.camera_pose[2, 3]) - float(obj.centroid[2])
+        reach = math.sqrt(max(self.p.interact_m ** 2 - dz ** 2, 0.0))
+        half = 0.5 * float(np.hypot(*(obj.box_max[:2] - obj.box_min[:2])))
+        return max(reach - half - MOVE_M / 2, 0.25)
+
     def put_away(self, obj: TrackedObject) -> Gen:
         st = self.state
         if self.cfg.variant == "3DSmntMap2Place":
@@ -366,10 +394,14 @@ class TidyPolicy:
     def put_on(self, rec: TrackedObject) -> Gen:
         """Go to a receptacle and put the held object on/in it (opening it first if needed)."""
         shape = self.body.obs.depth.shape
+        no_room: list[np.ndarray] = []     # points where a put found no free space: aim elsewhere
         for attempt in range(self.p.m_place_tries):
             if self.body.steps_left() <= 2:
                 return False
             mask = goal_mask_near_box(self.body.mapper, rec.box_min, rec.box_max, (0.5, 0.35, 0.75)[attempt % 3])
+            if no_room:     # no free space where it aimed: go round to another side of the receptacle
+                other = mask & ~self._near_cells([p[:2] for p in no_room], 0.9)
+                mask = other if other.any() else mask
             yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
             top = rec.centroid.copy()
             top[2] = rec.box_max[2]
@@ -377,7 +409,7 @@ class TidyPolicy:
             det = self._detection_of(rec)
             if det is None:
                 continue
-            sighting = sighting_of(self.body, det, prefer_top=True, reach=self.p.interact_m)
+            sighting = sighting_of(self.body, det, prefer_top=True, reach=self.p.interact_m, avoid=no_room)
             if sighting is None or sighting.distance > self.p.interact_m + 0.1:
                 continue           # not within reach from here: walk again, closer
             yield sighting.action(ActionName.PutObject, shape)
@@ -396,12 +428,23 @@ class TidyPolicy:
                 elif self.body.obs.error == "blocked":
                     yield Action(ActionName.MoveBack)
             elif obs.error == "no_free_space":
+                no_room.append(sighting.point)
                 rec.meta["full_tries"] = rec.meta.get("full_tries", 0) + 1
-                if rec.meta["full_tries"] >= 2:
+                if rec.meta["full_tries"] >= 3:
                     rec.meta["full"] = True
                     return False
             self.event("put_failed", receptacle=rec.label, error=obs.error, message=obs.message)
         return False
+
+    def _near_cells(self, points: list[np.ndarray], radius: float) -> np.ndarray:
+        """bool grid: map cells within ``radius`` (x, y) of any of ``points``."""
+        g = self.body.mapper.grid
+        xs = g.origin[0] + (np.arange(g.shape[0]) + 0.5) * g.cell
+        ys = g.origin[1] + (np.arange(g.shape[1]) + 0.5) * g.cell
+        near = np.zeros(g.shape[:2], bool)
+        for p in points:
+            near |= np.hypot(xs[:, None] - p[0], ys[None, :] - p[1]) <= radius
+        return near
 
     def _detection_of(self, rec: TrackedObject):
         s = find_in_view(self.body, rec, max_pixel_gap=0.3)
