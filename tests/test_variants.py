@@ -147,3 +147,30 @@ def test_an_object_the_agent_dropped_is_not_picked_again():
     assert [o.id for o in policy._candidates()] == [pillow.id, other.id]
     policy.dropped.append(("Pillow", np.array([0.0, 0.0])))     # dropped here: its receptacle was full
     assert [o.id for o in policy._candidates()] == [other.id]
+
+
+class _StubOOP:
+    """P(out of place) from a dict by track id."""
+
+    def __init__(self, probs):
+        self.probs = probs
+
+    def score_all(self, targets, objects, room_type):
+        return {t.id: self.probs[t.id] for t in targets}
+
+
+def test_a_target_that_reads_in_place_up_close_is_not_picked_and_twice_is_given_up():
+    policy, events = _policy(variant="CommonMemory")
+    mem = policy.body.mapper.memory
+    cup = mem.add_or_merge("Cup", 0.9, np.array([1.0, 0.0, 0.8]), np.array([0.95, -0.05, 0.75]),
+                           np.array([1.05, 0.05, 0.85]), 1)
+    cup.out_of_place = True
+    policy.oop = _StubOOP({cup.id: 0.9})
+    assert policy._still_out_of_place(cup) and cup.oop_prob == 0.9
+    policy.oop = _StubOOP({cup.id: 0.1})
+    assert not policy._still_out_of_place(cup)
+    assert not cup.out_of_place and "give_up" not in cup.meta
+    assert [e["kind"] for e in events] == ["oop_cleared"]
+    cup.out_of_place = True                   # flagged again by a later rescoring
+    assert not policy._still_out_of_place(cup)
+    assert cup.meta["give_up"] and cup not in policy._candidates()

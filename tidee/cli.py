@@ -326,6 +326,9 @@ def build_parser() -> argparse.ArgumentParser:
     from tidee.agent.reasoning.search_commands import register as register_search
 
     register_search(gen, train_sub)
+    from tidee.agent.reasoning.memory_oop_data import register as register_memory_oop
+
+    register_memory_oop(gen, ev)
     from tidee.agent.evaluation.search_eval import register as register_search_eval
 
     register_search_eval(ev)

@@ -201,6 +201,8 @@ class TidyPolicy:
             obj.meta["give_up"] = "could not get it in view within reach"
             self.event("unreachable", label=obj.label, track_id=obj.id)
             return
+        if not self._still_out_of_place(obj):
+            return
         st.phase = "picking"
         yield sighting.action(ActionName.PickupObject, self.body.obs.depth.shape)
         obs = self.body.obs
@@ -223,6 +225,23 @@ class TidyPolicy:
                 self._rescore = True
                 self.event("dropped", label=obj.label)
         st.target = None
+
+    def _still_out_of_place(self, obj: TrackedObject) -> bool:
+        """Re-score a target seen from up close before picking it: the walk there refined its
+        box and the receptacles around it, and a paragraph that now reads "in place" spares
+        an object the mess-up never moved. Cleared twice: never flagged again."""
+        objs = list(self.body.mapper.memory)
+        prob = float(self.oop.score_all([obj], objs, self.room_type)[obj.id])
+        obj.oop_prob = prob
+        if prob >= self.p.oop_threshold:
+            return True
+        obj.out_of_place = False
+        obj.meta["cleared"] = obj.meta.get("cleared", 0) + 1
+        if obj.meta["cleared"] >= 2:
+            obj.meta["give_up"] = "in place when seen up close, twice"
+        self.event("oop_cleared", label=obj.label, track_id=obj.id, oop_prob=round(prob, 3),
+                   paragraph=obj.meta.get("paragraph"))
+        return False
 
     def approach(self, obj: TrackedObject, radius: float) -> Gen:
         """Walk next to a tracked object and get it in view within reach; its Sighting or None.

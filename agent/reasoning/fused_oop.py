@@ -52,6 +52,8 @@ class FusedTrainConfig:
     cache_dir: str | None = str(DEFAULT_CACHE_DIR)
     loss_png: str = "docs/models/language_oop_fused_loss.png"
     log_every: int = 50
+    memory_data: str | None = None       # `tidee gen oop-memory --perception learned` samples added
+    eval_memory_data: str | None = None  # held-out memory samples (test rooms) scored in the manifest
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "log_every"):
@@ -102,6 +104,27 @@ def detection_samples(frames: dict[str, np.ndarray], detections: list[list[Any]]
     return out
 
 
+def add_memory_samples(samples: dict[str, Any], path: str | Path) -> dict[str, Any]:
+    """Append `tidee gen oop-memory` samples (paragraphs of tracked objects, their detector
+    features) to ``samples`` in place; their meta. Needs learned-perception samples: with
+    oracle perception the tracks have no features and the head would learn zeros."""
+    from tidee.agent.reasoning.memory_oop_data import load_memory_samples, memory_meta
+
+    meta = memory_meta(path)
+    if meta.get("perception") != "learned":
+        raise ValueError(f"{path} was made with {meta.get('perception')!r} perception; the fused head needs "
+                         "detector features (`tidee gen oop-memory --perception learned`)")
+    rows = load_memory_samples(path, split="train")
+    feats = _features([None if r["feature"] is None else np.asarray(r["feature"], np.float32) for r in rows],
+                      VISUAL_DIM)
+    samples["paragraphs"] += [r["paragraph"] for r in rows]
+    samples["features"] = np.concatenate([samples["features"], feats]) if len(samples["features"]) else feats
+    samples["labels"] += [int(r["label"]) for r in rows]
+    samples["categories"] += [r["category"] for r in rows]
+    samples["rooms"] += [r["config"] for r in rows]
+    return meta
+
+
 def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop",
                     progress: bool = True) -> dict[str, Any]:
     """Detect, build samples, train the fused head, write weights + manifest."""
@@ -124,6 +147,10 @@ def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop
     detector = LearnedPerception.load(threshold=cfg.detection_threshold)
     detections, det_timing = _detect_all(detector, frames, batch=16, progress=progress)
     samples = detection_samples(frames, detections, cfg.context_score, cfg.match_iou)
+    n_frame_samples = len(samples["labels"])
+    memory_meta = None
+    if cfg.memory_data:
+        memory_meta = add_memory_samples(samples, cfg.memory_data)
     if not samples["labels"]:
         raise ValueError("no detection matched a ground-truth instance: nothing to train on")
     t_data = time.time() - t0
@@ -151,11 +178,15 @@ def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop
     # learns to trust the feature more than it deserves on new rooms, and its validation
     # there is optimistic. Hence data from rooms the detector never saw (--skip-rooms).
     seen = detector_rooms(detector) & set(manifest.get("rooms", []))
-    metrics = {"train": ap(~val), "val_rooms": ap(val),
+    metrics: dict[str, Any] = {"train": ap(~val), "val_rooms": ap(val),
                "val_language_head_same_samples": object_ap(text_only.predict_embeddings(emb[val]), y[val]),
                "note": (f"{len(seen)} of the data's {len(manifest.get('rooms', []))} rooms were in the detector's "
                         "training frames" + (": validation optimistic" if seen else "")
                         + "; held-out figures: tidee eval oop on the test rooms (Table 3)")}
+    if cfg.eval_memory_data:
+        from tidee.agent.reasoning.memory_oop_data import evaluate_memory
+
+        metrics["test_agent_memory"] = evaluate_memory(clf, cfg.eval_memory_data)
     out = Path(cfg.out)
     clf.save(out)
     save_loss_curve(history, cfg.loss_png, "fused OOP head (text + detector feature): class-balanced BCE")
@@ -163,7 +194,8 @@ def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop
     data = {"split": "train", "source": f"{data_dir} ({manifest.get('command', 'tidee gen detection')})",
             "frames": int(len(frames["rgb"])), "samples": int(len(y)), "out_of_place": int(y.sum()),
             "val_rooms": "seed % 10 == 9", "val_samples": int(val.sum()), "rooms": len(rooms),
-            "rooms_in_detector_training": len(seen),
+            "rooms_in_detector_training": len(seen), "frame_samples": n_frame_samples,
+            "memory_samples": int(len(y)) - n_frame_samples, "memory_data": memory_meta,
             "detector": {"sha256": detector.sha256, "threshold": cfg.detection_threshold,
                          "ms_per_frame_median": det_timing["ms_per_frame_median"]}}
     timing = {"data_s": round(t_data, 1), "total_s": round(time.time() - t0, 1), "device": "cpu",
@@ -183,6 +215,10 @@ def register(train_sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=str(DEFAULT_FUSED_WEIGHTS))
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    p.add_argument("--memory-data", default=None,
+                   help="add the agent's own tracked objects: `tidee gen oop-memory --perception learned` output")
+    p.add_argument("--eval-memory-data", default=None,
+                   help="held-out memory samples (`tidee gen oop-memory --split test --perception learned`)")
     p.set_defaults(func=_cmd_train)
 
 
@@ -193,7 +229,7 @@ def _cmd_train(args: Any) -> int:
 
     torch.set_num_threads(max(1, args.threads))
     cfg = FusedTrainConfig(data=args.data, max_frames=args.max_frames, steps=args.steps, seed=args.seed,
-                           out=args.out)
+                           out=args.out, memory_data=args.memory_data, eval_memory_data=args.eval_memory_data)
     r = train_fused_oop(cfg, command="tidee " + " ".join(sys.argv[1:]))
     print(json.dumps({k: r[k] for k in ("weights", "metrics", "data", "timing")}, indent=1, default=str))
     return 0

@@ -540,6 +540,8 @@ class TrainConfig:
     eval_rooms_per_type: int = 5        # held-out test rooms for the manifest's metrics
     eval_messes: int = 5
     log_every: int = 50
+    memory_data: str | None = None      # `tidee gen oop-memory` samples (train split) added to the data
+    eval_memory_data: str | None = None  # held-out memory samples (`--split test`) for the manifest
 
     def __post_init__(self) -> None:
         for name in ("rooms_per_type", "messes_per_room", "steps", "batch_size", "log_every"):
@@ -638,6 +640,14 @@ def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oo
     device = pick_device(cfg.device)
     samples = language_oop_samples("train", cfg.rooms_per_type, cfg.messes_per_room, cache_dir=cfg.cache_dir,
                                    progress=progress)
+    n_truth = len(samples)
+    memory_meta = None
+    if cfg.memory_data:
+        from tidee.agent.reasoning.memory_oop_data import load_memory_samples, memory_meta as _meta
+
+        samples += [OOPSample(r["paragraph"], int(r["label"]), r["room_type"], r["category"])
+                    for r in load_memory_samples(cfg.memory_data, split="train")]
+        memory_meta = _meta(cfg.memory_data)
     t_data = time.time() - t0
     encoder = TextEncoder(cfg.encoder_path, device=device)
     encoder.load_cache(cfg.cache_dir)
@@ -655,7 +665,8 @@ def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oo
     data = {"split": "train", "room_types": list(ROOM_TYPES), "seeds": _ranges(seeds),
             "rooms_per_type": cfg.rooms_per_type, "messes_per_room": cfg.messes_per_room,
             "configurations": len(seeds) * len(ROOM_TYPES) * cfg.messes_per_room, "samples": len(samples),
-            "out_of_place": int(y.sum()), "distinct_paragraphs": len({s.paragraph for s in samples})}
+            "out_of_place": int(y.sum()), "distinct_paragraphs": len({s.paragraph for s in samples}),
+            "ground_truth_samples": n_truth, "memory_samples": len(samples) - n_truth, "memory_data": memory_meta}
     meta = {"encoder": encoder.path.name, "encoder_identity": encoder.identity, "train": {**data},
             "config": {k: v for k, v in vars(cfg).items()}}
     clf = LanguageOOPClassifier(head, encoder, replay, meta)
@@ -664,6 +675,10 @@ def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oo
     if cfg.eval_rooms_per_type:
         metrics["test_oracle_language"] = evaluate_language_oop(
             clf, "test", cfg.eval_rooms_per_type, cfg.eval_messes, cache_dir=cfg.cache_dir, progress=progress)
+    if cfg.eval_memory_data:
+        from tidee.agent.reasoning.memory_oop_data import evaluate_memory
+
+        metrics["test_agent_memory"] = evaluate_memory(clf, cfg.eval_memory_data)
         encoder.save_cache(cfg.cache_dir)
     out = Path(cfg.out)
     clf.save(out)
@@ -1278,7 +1293,8 @@ def _cmd_train(args: Any) -> int:
     cfg = TrainConfig(rooms_per_type=args.rooms_per_type, messes_per_room=args.messes, steps=args.steps,
                       seed=args.seed, device=args.device, encoder_path=args.encoder_path,
                       out=args.out or str(DEFAULT_WEIGHTS), cache_dir=args.cache_dir,
-                      loss_png=args.loss_png or TrainConfig.loss_png)
+                      loss_png=args.loss_png or TrainConfig.loss_png, memory_data=args.memory_data,
+                      eval_memory_data=args.eval_memory_data)
     command = "tidee train language-oop " + " ".join(sys.argv[3:])
     result = train_language_oop(cfg, command=command.strip())
     print(json.dumps({"weights": result["weights"], "data": result["data"], "timing": result["timing"],
@@ -1318,6 +1334,10 @@ def register(train_sub: Any, eval_sub: Any) -> None:
     p.add_argument("--device", default="cpu", help="auto | cpu | cuda (the head is tiny: cpu is fine)")
     p.add_argument("--out", default=None, help="weights (+ .json manifest); default agent/weights/language_oop.pt")
     p.add_argument("--loss-png", default=None, help="default docs/models/language_oop_loss.png")
+    p.add_argument("--memory-data", default=None,
+                   help="add paragraphs of the agent's own tracked objects (`tidee gen oop-memory`, train split)")
+    p.add_argument("--eval-memory-data", default=None,
+                   help="held-out memory samples (`tidee gen oop-memory --split test`) scored in the manifest")
     _common(p)
     p.set_defaults(func=_cmd_train)
 
