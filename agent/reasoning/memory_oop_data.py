@@ -118,7 +118,8 @@ def config_memory_samples(transport: Any, room_type: str, seed: int, mess_index:
             feat = None if t.feature is None else [round(float(v), 4) for v in np.asarray(t.feature).ravel()]
             samples.append({"paragraph": para, "label": int(o["moved"]), "category": t.label,
                             "room_type": room_type, "config": f"{room_type}:{seed}:{mess_index}",
-                            "object": o["id"], "snapshot": k, "feature": feat})
+                            "object": o["id"], "snapshot": k, "feature": feat,
+                            "visual_oop": None if t.oop_prob is None else round(float(t.oop_prob), 4)})
 
     def drive(gen: Any) -> None:
         nonlocal obs
@@ -253,7 +254,7 @@ def memory_meta(path: str | Path) -> dict[str, Any]:
 def evaluate_memory(classifier: Any, path: str | Path, split: str = "test") -> dict[str, Any]:
     """Object-level AP of a language / fused classifier on held-out memory samples: how well
     it separates moved from in-place objects as the agent describes them (per room type too)."""
-    from tidee.agent.reasoning.language_oop import _features, object_ap
+    from tidee.agent.reasoning.language_oop import _features
 
     rows = load_memory_samples(path, split=split)
     if not rows:
@@ -263,8 +264,14 @@ def evaluate_memory(classifier: Any, path: str | Path, split: str = "test") -> d
         visual = _features([None if r["feature"] is None else np.asarray(r["feature"], np.float32) for r in rows],
                            classifier.visual_dim)
     probs = classifier.predict([r["paragraph"] for r in rows], visual)
+    return {"data": str(path), "split": split, **_scores(probs, rows)}
+
+
+def _scores(probs: np.ndarray, rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    from tidee.agent.reasoning.language_oop import object_ap
+
     labels = np.array([r["label"] for r in rows])
-    out = {"data": str(path), "split": split, "samples": len(rows), **object_ap(probs, labels)}
+    out = {"samples": len(rows), **object_ap(probs, labels)}
     per: dict[str, Any] = {}
     for rt in sorted({r["room_type"] for r in rows}):
         idx = [i for i, r in enumerate(rows) if r["room_type"] == rt]
@@ -293,6 +300,10 @@ def run_memory_eval(out: str | Path, data: str | Path, weights: Sequence[str]) -
     out.mkdir(parents=True, exist_ok=True)
     meta = memory_meta(data)
     rows = {}
+    samples = load_memory_samples(data, split=meta["split"])
+    if samples and all(r.get("visual_oop") is not None for r in samples):
+        # learned perception: the detector's OOP head (running mean over the track's views)
+        rows["visual (detector OOP head)"] = _scores(np.array([r["visual_oop"] for r in samples]), samples)
     for w in weights:
         rows[Path(w).name] = evaluate_memory(LanguageOOPClassifier.load(w), data, split=meta["split"])
     report = {"data": meta, "classifiers": rows}
