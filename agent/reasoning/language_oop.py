@@ -572,13 +572,14 @@ def fit_head(head: Any, x: np.ndarray, y: np.ndarray, steps: int, batch_size: in
              weight_decay: float, seed: int, device: str, log_every: int = 50, progress: bool = True,
              anchor_weight: float = 0.0, pos_weight: float | None = None,
              fixed: tuple[np.ndarray, np.ndarray] | None = None,
-             fixed_share: float = 0.0) -> list[dict[str, float]]:
+             fixed_share: float = 0.0, anchor: list[Any] | None = None) -> list[dict[str, float]]:
     """Minibatch AdamW on class-balanced BCE; returns the logged history.
 
     ``pos_weight`` (default n_negative / n_positive of ``y``) balances the ~20% of
     out-of-place samples. ``fixed`` = (x, y) samples that make up ``fixed_share`` of every
     batch (an instruction's relations); ``anchor_weight`` pulls the weights towards their
-    starting values (L2-SP), which limits forgetting during a short fine-tune.
+    starting values (L2-SP), which limits forgetting during a short fine-tune (``anchor``:
+    other weights to pull towards, e.g. those before an earlier round of fine-tuning).
     """
     import torch
     from tqdm import tqdm
@@ -592,7 +593,10 @@ def fit_head(head: Any, x: np.ndarray, y: np.ndarray, steps: int, batch_size: in
         pos_weight = (len(yt) - n_pos) / max(n_pos, 1.0)
     loss_fn = torch.nn.BCEWithLogitsLoss(pos_weight=torch.tensor(float(pos_weight), device=device))
     opt = torch.optim.AdamW(head.parameters(), lr=lr, weight_decay=weight_decay)
-    anchor = [p.detach().clone() for p in head.parameters()] if anchor_weight > 0 else []
+    if anchor_weight <= 0:
+        anchor = []
+    elif anchor is None:
+        anchor = [p.detach().clone() for p in head.parameters()]
     n_fixed = 0
     if fixed is not None and fixed_share > 0:
         fx = torch.as_tensor(fixed[0], dtype=torch.float32, device=device)
@@ -1099,7 +1103,7 @@ def _with_support(paragraph: str, inst: Instruction) -> str:
 
 def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction, steps: int = 50,
                       lr: float = 1e-3, batch_size: int = 64, anchor_weight: float = 5e-2, variants: int = 24,
-                      seed: int = 0) -> dict[str, Any]:
+                      seed: int = 0, max_steps: int = 250, check_p: float = 0.85) -> dict[str, Any]:
     """Fine-tune ``classifier`` in place so that it follows an instruction (paper §3.2, §4.6).
 
     Instructed samples, labelled as the instruction says: the bare relation ("The alarm
@@ -1111,6 +1115,11 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
     relation are relabelled; the rest keep their labels and fill half of each batch, and an
     L2 pull towards the starting weights limits forgetting. The instructed samples join the
     replay set, so later instructions keep this one. Returns a short report.
+
+    ``steps`` at a time, up to ``max_steps``: a third of the rewritten paragraphs is held
+    back as a check, and training goes on until the head gives them the instructed label
+    with probability ``check_p`` (a relation the training rooms made certain, a pillow on a
+    bed, takes longer to unlearn than a rare one); then the check paragraphs join in.
     """
     t0 = time.time()
     inst = parse_instruction(text) if isinstance(text, str) else text
@@ -1126,7 +1135,14 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
     # the bare relation, with each size sentence where the category's paragraphs lead with one
     sizes = [w for _, w in SIZE_WORDS] + [LARGEST_SIZE_WORD] if inst.category in WITH_VARIANTS else []
     bare = [inst.sentence()] + [f"The {words(inst.category)} is {w}. {inst.sentence()}" for w in sizes]
-    instructed = bare + [_with_support(paras[i], inst) for i in pick]
+    # the category's replay paragraphs that already name the relation come first: written
+    # from real rooms, they are the best evidence of what such paragraphs look like
+    named = [paras[i] for i in of_cat if supports[i] == inst.receptacle]
+    rewritten = named + [_with_support(paras[i], inst) for i in pick if supports[i] != inst.receptacle]
+    rewritten = [rewritten[i] for i in rng.permutation(len(rewritten))]
+    n_check = len(rewritten) // 3
+    check, rewritten = rewritten[:n_check], rewritten[n_check:]
+    instructed = bare + rewritten
     inst_y = [inst.label] * len(instructed)
     replay_y = labels.copy()
     for i in of_cat:
@@ -1135,17 +1151,33 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
         elif inst.polarity == IN_PLACE:
             replay_y[i] = 1.0                        # "I want it on the desk": elsewhere is out of place
     inst_x = classifier.encoder.encode(instructed)
-    before = classifier.predict_embeddings(inst_x)
-    fit_head(classifier.head, rep["embeddings"], replay_y, steps, batch_size, lr, 0.0, seed, "cpu",
-         log_every=max(steps, 1), progress=False, anchor_weight=anchor_weight,
-         fixed=(inst_x, np.asarray(inst_y, np.float32)), fixed_share=0.5)
+    check_x = classifier.encoder.encode(check) if check else inst_x
+    before = classifier.predict_embeddings(np.concatenate([inst_x, check_x]) if check else inst_x)
+    anchor = [p.detach().clone() for p in classifier.head.parameters()]
+
+    def check_ok() -> bool:
+        p = classifier.predict_embeddings(check_x)
+        return bool(np.mean(p if inst.label else 1.0 - p) >= check_p)
+
+    done = 0
+    while done < max(steps, 1):
+        fit_head(classifier.head, rep["embeddings"], replay_y, steps, batch_size, lr, 0.0, seed + done, "cpu",
+                 log_every=max(steps, 1), progress=False, anchor_weight=anchor_weight, anchor=anchor,
+                 fixed=(inst_x, np.asarray(inst_y, np.float32)), fixed_share=0.5)
+        done += steps
+        if check_ok() or done + steps > max_steps:
+            break
+    if check:
+        instructed += check
+        inst_y += [inst.label] * len(check)
+        inst_x = np.concatenate([inst_x, check_x])
     after = classifier.predict_embeddings(inst_x)
     classifier.replay = {**rep, "paragraphs": paras + instructed, "labels": replay_y.astype(int).tolist() + inst_y,
                          "categories": cats + [inst.category] * len(instructed),
                          "room_types": list(rep.get("room_types", [""] * len(paras))) + [""] * len(instructed),
                          "embeddings": np.concatenate([rep["embeddings"], inst_x]).astype(np.float32)}
     classifier.meta.setdefault("instructions", []).append(str(text))
-    return {"text": str(text), "instruction": inst._asdict(), "steps": steps, "n_instructed": len(instructed),
+    return {"text": str(text), "instruction": inst._asdict(), "steps": done, "n_instructed": len(instructed),
             "n_replay": len(paras), "p_oop_before": float(np.mean(before)), "p_oop_after": float(np.mean(after)),
             "seconds": round(time.time() - t0, 2)}
 
