@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tidee.agent.classes import PICKUPABLE
 from tidee.agent.mapping.geometry import project, unproject
 from tidee.agent.mapping.maps import SemanticMapper
 from tidee.agent.mapping.memory import TrackedObject
@@ -195,8 +196,10 @@ def projected_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, margi
     centroid projects at least ``margin`` inside the image, within ``reach`` of the camera,
     and the depth at that pixel is at most ``nearer_tol`` nearer (nothing in front of it)
     and at most ``farther_tol`` farther (the ray meets something where the object should
-    be, not the wall behind) than the centroid. Small objects are often missed by the
-    detector from up close; their tracks are not."""
+    be, not the wall behind) than the centroid, and no detection of another pickupable class
+    covers that pixel (the detector's close view overrules a track that was a confusion: a tennis racket
+    tracked as a box). Small objects are often missed by the detector from up close; their
+    tracks are not."""
     obs = body.obs
     assert obs is not None
     h, w = obs.depth.shape
@@ -210,6 +213,9 @@ def projected_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, margi
     d = float(obs.depth[vi, ui])
     if not -nearer_tol <= d - float(z[0]) <= farther_tol:
         return None
+    for det in body.detections:       # seen up close as another small thing: the track was a confusion
+        if det.label != obj.label and det.label in PICKUPABLE and det.region((h, w))[vi, ui]:
+            return None
     pts, _ = unproject(obs.depth, obs.intrinsics, obs.camera_pose,
                        mask=np.eye(1, h * w, vi * w + ui, dtype=bool).reshape(h, w))
     if len(pts) == 0:
