@@ -197,9 +197,9 @@ def projected_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, margi
     and the depth at that pixel is at most ``nearer_tol`` nearer (nothing in front of it)
     and at most ``farther_tol`` farther (the ray meets something where the object should
     be, not the wall behind) than the centroid, and no detection of another pickupable class
-    covers that pixel (the detector's close view overrules a track that was a confusion: a tennis racket
-    tracked as a box). Small objects are often missed by the detector from up close; their
-    tracks are not."""
+    covers that pixel (the detector's close view overrules a track that was a confusion: a
+    tennis racket tracked as a box). Small objects are often missed by the detector from up
+    close; their tracks are not."""
     obs = body.obs
     assert obs is not None
     h, w = obs.depth.shape

@@ -287,6 +287,7 @@ class TidyPolicy:
         half = 0.5 * float(np.hypot(*(obj.box_max[:2] - obj.box_min[:2])))
         return max(reach - half - MOVE_M / 2, 0.25)
 
+    # ------------------------------------------------------------------ placing
     def put_away(self, obj: TrackedObject) -> Gen:
         st = self.state
         if self.cfg.variant == "3DSmntMap2Place":
