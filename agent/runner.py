@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 
 import logging
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -23,6 +22,7 @@ import numpy as np
 
 from tidee.agent.classes import CLASSES, PICKUPABLE
 from tidee.agent.config import AgentConfig
+from tidee.agent.mapping.geometry import start_to_world_xy
 from tidee.agent.mapping.maps import SemanticMapper
 from tidee.agent.perception import make_perception
 from tidee.agent.policy.skills import Body
@@ -295,12 +295,7 @@ class EpisodeRunner:
         assert initial is not None
         mess = {m["id"]: m for m in initial.get("mess", [])}
         start = final["start"]
-        c, s = math.cos(math.radians(start["yaw_deg"])), math.sin(math.radians(start["yaw_deg"]))
-
-        def to_world(p: list[float]) -> np.ndarray:
-            return np.array([start["x"] + c * p[0] - s * p[1], start["y"] + s * p[0] + c * p[1]])
-
-        flagged = [(e["label"], to_world(e["centroid"])) for e in events if e["kind"] == "oop_found"]
+        flagged = [(e["label"], start_to_world_xy(start, e["centroid"])) for e in events if e["kind"] == "oop_found"]
         init_objs = {o["id"]: o for o in initial["objects"]}
         objects = []
         for o in final["objects"]:

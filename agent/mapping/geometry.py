@@ -56,6 +56,14 @@ def pixel_rays(shape: tuple[int, int], intrinsics: np.ndarray,
     return rays, (vv * w + uu).ravel()
 
 
+def start_to_world_xy(start: dict, p) -> np.ndarray:
+    """(x, y) in the world of a start-frame point; ``start`` = the episode's start pose
+    ``{"x", "y", "yaw_deg"}`` in the world (the server's state)."""
+    t = np.radians(float(start["yaw_deg"]))
+    c, s = np.cos(t), np.sin(t)
+    return np.array([start["x"] + c * p[0] - s * p[1], start["y"] + s * p[0] + c * p[1]])
+
+
 def valid_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
     """bool mask of usable depths: finite, > MIN_DEPTH (0.05 m) and <= ``max_depth`` metres."""
     with np.errstate(invalid="ignore"):

@@ -420,7 +420,8 @@ class TidyPolicy:
                 return False
             mask = goal_mask_near_box(self.body.mapper, rec.box_min, rec.box_max, (0.5, 0.35, 0.75)[attempt % 3])
             if no_room:     # no free space where it aimed: go round to another side of the receptacle
-                other = mask & ~self._near_cells([p[:2] for p in no_room], 0.9)
+                near = np.logical_or.reduce([goal_mask_near_box(self.body.mapper, q, q, 0.9) for q in no_room])
+                other = mask & ~near
                 mask = other if other.any() else mask
             yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
             top = rec.centroid.copy()
@@ -455,16 +456,6 @@ class TidyPolicy:
                     return False
             self.event("put_failed", receptacle=rec.label, error=obs.error, message=obs.message)
         return False
-
-    def _near_cells(self, points: list[np.ndarray], radius: float) -> np.ndarray:
-        """bool grid: map cells within ``radius`` (x, y) of any of ``points``."""
-        g = self.body.mapper.grid
-        xs = g.origin[0] + (np.arange(g.shape[0]) + 0.5) * g.cell
-        ys = g.origin[1] + (np.arange(g.shape[1]) + 0.5) * g.cell
-        near = np.zeros(g.shape[:2], bool)
-        for p in points:
-            near |= np.hypot(xs[:, None] - p[0], ys[None, :] - p[1]) <= radius
-        return near
 
     def _detection_of(self, rec: TrackedObject):
         s = find_in_view(self.body, rec, max_pixel_gap=0.3)

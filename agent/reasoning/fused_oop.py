@@ -108,17 +108,15 @@ def add_memory_samples(samples: dict[str, Any], path: str | Path) -> dict[str, A
     """Append `tidee gen oop-memory` samples (paragraphs of tracked objects, their detector
     features) to ``samples`` in place; their meta. Needs learned-perception samples: with
     oracle perception the tracks have no features and the head would learn zeros."""
-    from tidee.agent.reasoning.memory_oop_data import load_memory_samples, memory_meta
+    from tidee.agent.reasoning.memory_oop_data import load_memory_samples, memory_features, memory_meta
 
     meta = memory_meta(path)
     if meta.get("perception") != "learned":
         raise ValueError(f"{path} was made with {meta.get('perception')!r} perception; the fused head needs "
                          "detector features (`tidee gen oop-memory --perception learned`)")
     rows = load_memory_samples(path, split="train")
-    feats = _features([None if r["feature"] is None else np.asarray(r["feature"], np.float32) for r in rows],
-                      VISUAL_DIM)
     samples["paragraphs"] += [r["paragraph"] for r in rows]
-    samples["features"] = np.concatenate([samples["features"], feats]) if len(samples["features"]) else feats
+    samples["features"] = np.concatenate([samples["features"], memory_features(rows, VISUAL_DIM)])
     samples["labels"] += [int(r["label"]) for r in rows]
     samples["categories"] += [r["category"] for r in rows]
     samples["rooms"] += [r["config"] for r in rows]

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import json
-import math
 import multiprocessing as mp
 import sys
 import time
@@ -32,14 +31,10 @@ from typing import Any
 import numpy as np
 
 from tidee.agent.classes import PICKUPABLE
+from tidee.agent.mapping.geometry import start_to_world_xy
 
 MATCH_M = 0.5            # a track matches an object of its class whose centroid is this near in (x, y)
 SNAPSHOT_GOALS = 2       # search goals after mapping, each followed by a snapshot
-
-
-def _world_xy(start: dict[str, float], p: np.ndarray) -> np.ndarray:
-    c, s = math.cos(math.radians(start["yaw_deg"])), math.sin(math.radians(start["yaw_deg"]))
-    return np.array([start["x"] + c * p[0] - s * p[1], start["y"] + s * p[0] + c * p[1]])
 
 
 def match_tracks(tracks: Sequence[Any], objects: Sequence[dict[str, Any]], start: dict[str, float],
@@ -49,7 +44,7 @@ def match_tracks(tracks: Sequence[Any], objects: Sequence[dict[str, Any]], start
     ``objects``: records with ``type`` and world ``centroid``; tracks are in the start frame."""
     pairs = []
     for t in tracks:
-        xy = _world_xy(start, np.asarray(t.centroid, float))
+        xy = start_to_world_xy(start, np.asarray(t.centroid, float))
         for j, o in enumerate(objects):
             if o["type"] == t.label:
                 d = float(np.hypot(*(xy - np.asarray(o["centroid"][:2], float))))
@@ -167,12 +162,6 @@ def _worker(job: dict[str, Any]) -> list[dict[str, Any]]:
                                  job["resolution"], agent_seed=job["agent_seed"])
 
 
-def _one_thread() -> None:
-    import torch
-
-    torch.set_num_threads(1)
-
-
 def gen_memory_samples(out: str | Path, split: str = "train", rooms_per_type: int = 20, messes: int = 2,
                        perception: str = "oracle", workers: int = 1, resolution: int = 256,
                        first_mess: int = 0, skip_rooms: int = 0, command: str = "tidee gen oop-memory",
@@ -208,7 +197,10 @@ def gen_memory_samples(out: str | Path, split: str = "train", rooms_per_type: in
             rows += _worker(job)
             bar.update()
     else:
-        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_one_thread) as pool:
+        from tidee.agent.evaluation.tidy_eval import _one_torch_thread
+
+        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
+                                    initializer=_one_torch_thread) as pool:
             for part in pool.map(_worker, jobs):
                 rows += part
                 bar.update()
@@ -251,18 +243,20 @@ def memory_meta(path: str | Path) -> dict[str, Any]:
     return json.loads((Path(path) / "meta.json").read_text())
 
 
+def memory_features(rows: Sequence[dict[str, Any]], dim: int) -> np.ndarray:
+    """float32 N x ``dim``: the samples' track features (zeros where a track had none)."""
+    from tidee.agent.reasoning.language_oop import _features
+
+    return _features([None if r["feature"] is None else np.asarray(r["feature"], np.float32) for r in rows], dim)
+
+
 def evaluate_memory(classifier: Any, path: str | Path, split: str = "test") -> dict[str, Any]:
     """Object-level AP of a language / fused classifier on held-out memory samples: how well
     it separates moved from in-place objects as the agent describes them (per room type too)."""
-    from tidee.agent.reasoning.language_oop import _features
-
     rows = load_memory_samples(path, split=split)
     if not rows:
         raise ValueError(f"{path} holds no samples")
-    visual = None
-    if getattr(classifier, "visual_dim", 0):
-        visual = _features([None if r["feature"] is None else np.asarray(r["feature"], np.float32) for r in rows],
-                           classifier.visual_dim)
+    visual = memory_features(rows, classifier.visual_dim) if getattr(classifier, "visual_dim", 0) else None
     probs = classifier.predict([r["paragraph"] for r in rows], visual)
     return {"data": str(path), "split": split, **_scores(probs, rows)}
 
