@@ -97,6 +97,31 @@ def test_box_contained_object_picks_highest_surface() -> None:
     assert supported_by(book, [room_thing, shelf]) is shelf
 
 
+def test_low_shelf_and_walled_container() -> None:
+    # A remote on a coffee table's magazine shelf (9 cm up, under the top): the coffee
+    # table, not the floor; the same remote lying on the floor under the table: the floor.
+    table = rec("ct", "CoffeeTable", (0.0, 0.0, 0.22), (-0.6, -0.3, 0.0), (0.6, 0.3, 0.45))
+    on_shelf = ObjectRef("r", "RemoteControl", (0.1, 0.0, 0.11), (0.0, -0.02, 0.095), (0.2, 0.02, 0.125))
+    assert supported_by(on_shelf, [table]) is table
+    on_floor = ObjectRef("r2", "RemoteControl", (0.1, 0.0, 0.015), (0.0, -0.02, 0.0), (0.2, 0.02, 0.03))
+    assert supported_by(on_floor, [table]) == FLOOR
+    # Off the floor but beside the table's footprint (the shelf rule does not grow it): floor band.
+    beside = ObjectRef("r3", "RemoteControl", (0.65, 0.0, 0.11), (0.6, -0.02, 0.095), (0.7, 0.02, 0.125))
+    assert supported_by(beside, [table]) == FLOOR
+    # Of two boxes holding it, the smaller: a bathtub's floor, not the room-sized thing around it.
+    tub = rec("tb", "Bathtub", (2.0, 0.0, 0.28), (1.2, -0.4, 0.0), (2.8, 0.4, 0.56))
+    big = rec("big", "Cabinet", (2.0, 0.0, 1.0), (0.0, -2.0, 0.0), (4.0, 2.0, 2.0))
+    bottle = ObjectRef("sb", "SprayBottle", (2.1, 0.1, 0.2), (2.05, 0.05, 0.12), (2.15, 0.15, 0.28))
+    assert supported_by(bottle, [big, tub]) is tub
+    # A dumbbell thrown into a box lies on the box's floor, 1 cm up: in the box (walled),
+    # while under an open table at that height it is on the floor.
+    box = rec("bx", "Box", (3.0, 0.0, 0.15), (2.8, -0.15, 0.0), (3.2, 0.15, 0.3))
+    bell = ObjectRef("db", "Dumbbell", (3.0, 0.0, 0.05), (2.9, -0.04, 0.01), (3.1, 0.04, 0.09))
+    assert supported_by(bell, [box]) is box
+    assert supported_by(ObjectRef("db2", "Dumbbell", (0.1, 0.0, 0.05), (0.0, -0.04, 0.01), (0.2, 0.04, 0.09)),
+                        [table]) == FLOOR
+
+
 def test_supported_by_excludes_the_target_itself() -> None:
     plate = ObjectRef("p", "Plate", (0.0, 0.0, 0.8), (-0.1, -0.1, 0.79), (0.1, 0.1, 0.81),
                       receptacle=True)

@@ -1101,8 +1101,11 @@ def _with_support(paragraph: str, inst: Instruction) -> str:
     return _SUPPORT_RE.sub(inst.sentence().replace("\\", "\\\\"), paragraph, count=1)
 
 
+ANCHOR_WEIGHT = 5e-2      # apply_instruction's L2 pull to the start weights
+
+
 def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction, steps: int = 50,
-                      lr: float = 1e-3, batch_size: int = 64, anchor_weight: float = 5e-2, variants: int = 24,
+                      lr: float = 1e-3, batch_size: int = 64, anchor_weight: float = ANCHOR_WEIGHT, variants: int = 24,
                       seed: int = 0, max_steps: int = 250, check_p: float = 0.85) -> dict[str, Any]:
     """Fine-tune ``classifier`` in place so that it follows an instruction (paper §3.2, §4.6).
 
@@ -1196,30 +1199,33 @@ PAPER_TABLE_S2 = {("AlarmClock", "Desk"): (.10, .70), ("Knife", "DiningTable"): 
 
 
 def _pair_examples(samples: Sequence[OOPSample], category: str, receptacle: str,
-                   limit: int = 40) -> tuple[list[str], str]:
+                   limit: int = 40, split: str = "test") -> tuple[list[str], str]:
     """Held-out paragraphs where ``category`` is supported by ``receptacle`` and where they
     come from: the test rooms themselves, or (when the pair never occurs there) the
     category's test paragraphs with the supported-by sentence rewritten, or the bare sentence."""
     inst = Instruction(category, receptacle, OUT_OF_PLACE)
     found = [s.paragraph for s in samples if s.category == category and paragraph_support(s.paragraph) == receptacle]
     if found:
-        return found[:limit], "test rooms"
+        return found[:limit], f"{split} rooms"
     same = [s.paragraph for s in samples if s.category == category]
     if same:
-        return [_with_support(p, inst) for p in same[:limit]], "test paragraphs of the category, support rewritten"
-    return [inst.sentence()], "bare sentence (category absent from the test rooms)"
+        return [_with_support(p, inst) for p in same[:limit]], f"{split} paragraphs of the category, support rewritten"
+    return [inst.sentence()], f"bare sentence (category absent from the {split} rooms)"
 
 
 def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS, steps: int = 50,
                       rooms_per_type: int = 5, messes_per_room: int = 5, n_unrelated: int = 24,
                       encoder_path: str | Path | None = None, cache_dir: str | Path | None = DEFAULT_CACHE_DIR,
-                      seed: int = 0, lr: float = 1e-3, anchor_weight: float = 5e-2,
-                      progress: bool = True) -> dict[str, Any]:
+                      seed: int = 0, lr: float = 1e-3, anchor_weight: float = ANCHOR_WEIGHT,
+                      split: str = "test", progress: bool = True) -> dict[str, Any]:
     """Table S2: P(out of place) of ten relation pairs before and after an instruction that
     calls them out of place (each from the shipped head), plus three preferences ("I want my
     X on the Y") for pairs the head calls out of place; forgetting = mean |change| of
     P(out of place) over the test paragraphs of ``n_unrelated`` frequent pairs of other
-    categories. Writes instruct.json and instruct.md."""
+    categories. ``split="val"`` runs the same on the validation rooms (for choosing the
+    fine-tuning settings without looking at the test rooms). Writes instruct.json and instruct.md."""
+    if split not in ("test", "val"):
+        raise ValueError(f"instructions are evaluated on held-out rooms (test or val), not {split!r}")
     from tidee.protocol.episode_log import write_json_atomic
     from tidee.protocol.episode_log import write_atomic
 
@@ -1228,7 +1234,7 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
     t0 = time.time()
     base = LanguageOOPClassifier.load(weights, encoder_path)
     base.encoder.load_cache(cache_dir)
-    samples = language_oop_samples("test", rooms_per_type, messes_per_room, cache_dir=cache_dir, progress=progress)
+    samples = language_oop_samples(split, rooms_per_type, messes_per_room, cache_dir=cache_dir, progress=progress)
     base_p = base.predict([s.paragraph for s in samples])
     pairs: dict[tuple[str, str], list[int]] = defaultdict(list)
     for k, s in enumerate(samples):
@@ -1255,7 +1261,7 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
     for cat, rec, polarity in tqdm(jobs, desc="instructions", disable=not progress):
         text = (f"the {words(cat)} on the {words(rec)} is out of place" if polarity == OUT_OF_PLACE
                 else f"I want my {words(cat)} on the {words(rec)}")
-        examples, source = _pair_examples(samples, cat, rec)
+        examples, source = _pair_examples(samples, cat, rec, split=split)
         clf = base.copy()
         before = clf.predict(examples)
         report = apply_instruction(clf, text, steps=steps, lr=lr, anchor_weight=anchor_weight, seed=seed)
@@ -1274,7 +1280,8 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
     base.encoder.save_cache(cache_dir)
     from tidee.agent.learning import read_manifest
 
-    command = f"tidee eval instruct --steps {steps} --out {out}"
+    command = (f"tidee eval instruct{'' if split == 'test' else ' --split ' + split} --steps {steps}"
+               f"{'' if anchor_weight == ANCHOR_WEIGHT else f' --anchor-weight {anchor_weight:g}'} --out {out}")
     s2 = [r for r in rows if r["polarity"] == OUT_OF_PLACE]
     summary = {"table_s2_reached_0.7": sum(r["reached_0.7"] for r in s2), "table_s2_pairs": len(s2),
                "preferences_reached_0.7": sum(r["reached_0.7"] for r in rows if r["polarity"] == IN_PLACE),
@@ -1284,7 +1291,8 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
                "unrelated_mean_abs_change": float(np.mean([r["unrelated_mean_abs_change"] for r in rows])),
                "unrelated_worst_instruction": float(max(r["unrelated_mean_abs_change"] for r in rows))}
     report = {"command": command, "weights": _show(weights), "sha256": read_manifest(weights)["sha256"],
-              "steps": steps, "lr": lr, "anchor_weight": anchor_weight, "seed": seed, "test_rooms_per_type": rooms_per_type, "messes_per_room": messes_per_room,
+              "split": split, "steps": steps, "lr": lr, "anchor_weight": anchor_weight, "seed": seed,
+              "test_rooms_per_type": rooms_per_type, "messes_per_room": messes_per_room,
               "test_objects": len(samples), "unrelated_pairs": [list(cr) + [len(pairs[cr])] for cr in unrelated],
               "unrelated_examples": len(unrelated_idx), "rows": rows, "summary": summary,
               "seconds": round(time.time() - t0, 1)}
@@ -1292,9 +1300,9 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
     lines = ["# Altering placement priors by instruction (paper Table S2)", "", f"`{command}`", "",
              (f"- weights `{_show(weights)}`; each instruction fine-tunes a fresh copy of the head for {steps} steps "
              "(instructed relations + replay of training samples, L2 pull to the start weights)"),
-             (f"- P(out of place) = mean over the held-out paragraphs with that relation ({rooms_per_type} test rooms "
+             (f"- P(out of place) = mean over the held-out paragraphs with that relation ({rooms_per_type} {split} rooms "
              f"per type x {messes_per_room} messes; `source` says where they come from)"),
-             (f"- forgetting: mean |change| of P(out of place) over {len(unrelated_idx)} test paragraphs of "
+             (f"- forgetting: mean |change| of P(out of place) over {len(unrelated_idx)} {split} paragraphs of "
              f"{len(unrelated)} frequent pairs of other categories"), "",
              "| relation | instruction | n | source | before | after | paper before -> after | unrelated mean abs change |",
              "|---|---|---|---|---|---|---|---|"]
@@ -1344,7 +1352,8 @@ def _cmd_eval(args: Any) -> int:
 
 def _cmd_instruct(args: Any) -> int:
     _set_threads(args.threads)
-    run_instruct_eval(args.out, args.weights, args.steps, encoder_path=args.encoder_path, cache_dir=args.cache_dir)
+    run_instruct_eval(args.out, args.weights, args.steps, encoder_path=args.encoder_path, cache_dir=args.cache_dir,
+                      anchor_weight=args.anchor_weight, split=args.split)
     print((Path(args.out) / "instruct.md").read_text())
     return 0
 
@@ -1386,5 +1395,9 @@ def register(train_sub: Any, eval_sub: Any) -> None:
     p.add_argument("--out", required=True)
     p.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
     p.add_argument("--steps", type=int, default=50)
+    p.add_argument("--anchor-weight", type=float, default=ANCHOR_WEIGHT,
+                   help="L2 pull towards the starting weights during an instruction's fine-tuning")
+    p.add_argument("--split", choices=("test", "val"), default="test",
+                   help="rooms whose paragraphs are instructed and watched for forgetting")
     _common(p)
     p.set_defaults(func=_cmd_instruct)

@@ -112,9 +112,15 @@ def _by_distance(target: ObjectRef, objs: Sequence[ObjectRef]) -> list[ObjectRef
     return sorted(objs, key=lambda o: _dist(target, o))  # stable: ties keep input order
 
 
+WALLED_CONTAINERS = frozenset({"Box", "GarbageCan"})
+"""Receptacles with walls down to the floor: what lies within their footprint is in them,
+however low it lies (nothing on the floor can be under them)."""
+
+
 def supported_by(target: ObjectRef, others: Sequence[ObjectRef], floor_z: float = 0.0,
                  xy_margin_m: float = 0.1, top_tol_m: float = 0.05,
-                 floor_band_m: float = 0.2, height_weight: float = 4.0) -> Support:
+                 floor_band_m: float = 0.2, height_weight: float = 4.0,
+                 off_floor_m: float = 0.05) -> Support:
     """The receptacle the target rests on, or ``"Floor"``. Only receptacles are candidates.
 
     Rules, first match wins (metres, start frame):
@@ -125,15 +131,22 @@ def supported_by(target: ObjectRef, others: Sequence[ObjectRef], floor_z: float 
          ``height_weight`` x (bottom - top) + (how far the centroid lies outside its
          unexpanded footprint): a surface at the right height beats one merely under it;
          nearest on ties. Using the bottom keeps a tall bottle off the microwave beside it.
-      2. Floor band: target centroid z - ``floor_z`` <= ``floor_band_m``, or its box bottom
+      2. Low shelf: a target with a box whose bottom is at least ``off_floor_m`` above the
+         floor and whose centroid lies inside a receptacle's box (x, y within its footprint,
+         not grown): the smallest such box. A coffee table's magazine shelf (9 cm), a TV
+         stand's or side table's bottom shelf and a bathtub's floor are this low; something
+         lying on the floor has its bottom on it. A walled container
+         (``WALLED_CONTAINERS``: a box, a garbage can) holds what lies in its footprint
+         at any height.
+      3. Floor band: target centroid z - ``floor_z`` <= ``floor_band_m``, or its box bottom
          within half that of the floor (a tall box standing there) -> "Floor"
          (under a table is on the floor).
-      3. Inside: receptacles whose box contains the target centroid in 3D (x, y grown by
+      4. Inside: receptacles whose box contains the target centroid in 3D (x, y grown by
          ``xy_margin_m``): the smallest box volume (a shelf or cabinet, not the room-sized
          thing around it).
-      4. Paper rule: receptacles whose centroid z is below the target's: the nearest
+      5. Paper rule: receptacles whose centroid z is below the target's: the nearest
          (euclidean centroid distance).
-      5. "Floor".
+      6. "Floor".
     """
     recs = [o for o in _others(target, others) if o.receptacle]
     tx, ty, tz = target.centroid
@@ -153,12 +166,20 @@ def supported_by(target: ObjectRef, others: Sequence[ObjectRef], floor_z: float 
             return height_weight * (bottom - float(o.box_max[2])) + math.hypot(ox, oy)  # type: ignore[index]
         # min keeps the first of equal misfits: the nearest, as candidates are sorted by distance
         return min(_by_distance(target, surfaces), key=misfit)
+    def volume(o: ObjectRef) -> float:
+        return float(np.prod(np.subtract(o.box_max, o.box_min)))  # type: ignore[arg-type]
+
+    off_floor = target.has_box and bottom - floor_z >= off_floor_m
+    shelves = [o for o in recs if o.has_box
+               and o.box_min[0] <= tx <= o.box_max[0] and o.box_min[1] <= ty <= o.box_max[1]  # type: ignore[index]
+               and o.box_min[2] <= tz <= o.box_max[2]  # type: ignore[index]
+               and (off_floor or o.label in WALLED_CONTAINERS)]
+    if shelves:
+        return min(shelves, key=volume)
     if tz - floor_z <= floor_band_m or (target.has_box and bottom - floor_z <= 0.5 * floor_band_m):
         return FLOOR
     inside = [o for o in boxed if o.box_min[2] <= tz <= o.box_max[2]]  # type: ignore[index]
     if inside:
-        def volume(o: ObjectRef) -> float:
-            return float(np.prod(np.subtract(o.box_max, o.box_min)))  # type: ignore[arg-type]
         return min(inside, key=volume)
     below = [o for o in recs if o.centroid[2] < tz]
     if below:
