@@ -122,3 +122,59 @@ def test_a_tracked_object_placed_in_the_frame_from_the_map():
     assert projected_sighting(body(1.05, [table, candle]), obj(1.0, 0.0)) is not None
     off = Detection("TennisRacket", 0.6, (0, 0, 40, 40))           # elsewhere in the frame
     assert projected_sighting(body(1.05, [off]), obj(1.0, 0.0)) is not None
+
+
+def _still_body(x: float = 0.0, y: float = 0.0, detections=()):
+    """A body whose pose never changes (what a move that cannot happen looks like)."""
+    from types import SimpleNamespace
+
+    from tidee.agent.classes import CLASSES
+    from tidee.agent.mapping.maps import MapConfig, SemanticMapper
+    from tidee.agent.policy.skills import Body
+
+    obs = SimpleNamespace(step=4, agent_pose=(x, y, 0.0, 0.0), steps_left=500, success=True, error="")
+    return Body(SemanticMapper(MapConfig(), CLASSES), obs=obs, detections=list(detections))
+
+
+def test_a_start_hemmed_in_by_the_map_still_plans():
+    """The agent between a bed and a dresser: their cells 0.2 m away, dilated by the 0.2 m agent
+    radius, cover every cell around it. The planner steps down to half the radius there."""
+    from tidee.agent.navigation.fmm import FMMPlanner
+    from tidee.agent.policy.skills import AGENT_RADIUS, TRAPPED_CELLS, planner_from
+
+    body = _still_body()
+    m = body.mapper
+    for y in np.arange(-1.0, 1.0, 0.02):           # a bed edge 0.2 m ahead and a dresser 0.2 m behind
+        m.stamp_obstacle((0.2, y), radius=0.03)
+        m.stamp_obstacle((-0.2, y), radius=0.03)
+    m.stood[m.grid.to_cell((0.0, 0.0))] = True
+    plain = FMMPlanner(m.traversible(AGENT_RADIUS), m.grid).reachable_from((0.0, 0.0))
+    assert plain.sum() < TRAPPED_CELLS
+    reach = planner_from(body).reachable_from((0.0, 0.0))
+    assert reach.sum() > 100 and reach[m.grid.to_cell((0.0, 0.8))]     # along the corridor between them
+    # with room around it the agent keeps the full radius
+    free = _still_body()
+    assert np.array_equal(planner_from(free).traversible, free.mapper.traversible(AGENT_RADIUS))
+
+
+def test_a_detection_from_across_the_room_is_not_stopping_near_it():
+    """If the walk to the object cannot happen (the agent stays 1.6 m away), seeing its class
+    in the frame must not count as found: the attempt verifies nothing and the approach fails."""
+    from tidee.agent.mapping.memory import TrackedObject
+    from tidee.agent.perception.base import Detection
+    from tidee.agent.policy.search import approach_and_verify, footprint_gap
+
+    bell = TrackedObject(0, "Dumbbell", 0.5, np.array([0.9, -1.45, 0.06]), np.array([0.77, -1.59, 0.01]),
+                         np.array([1.04, -1.34, 0.11]))
+    assert footprint_gap(np.array([0.0, 0.0]), bell) == pytest.approx(np.hypot(0.77, 1.34))
+    assert footprint_gap(np.array([0.9, -1.4]), bell) == 0.0
+    body = _still_body(detections=[Detection("Dumbbell", 0.49, (10, 200, 30, 220))])
+    skill = approach_and_verify(body, bell, radius=1.0, budget=5)
+    actions = []
+    try:
+        while True:
+            actions.append(next(skill))
+    except StopIteration as done:
+        found = done.value
+    assert found is False
+    assert actions and all(a.name.value in ("MoveAhead", "RotateLeft", "RotateRight") for a in actions)

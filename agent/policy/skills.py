@@ -66,6 +66,22 @@ def goal_mask_near_box(mapper: SemanticMapper, box_min: np.ndarray, box_max: np.
     return np.hypot(dx[:, None], dy[None, :]) <= radius
 
 
+TRAPPED_CELLS = 20           # a start component this small (0.05 m² at 5 cm cells): the agent is hemmed in
+
+
+def planner_from(body: Body) -> FMMPlanner:
+    """A planner on ``traversible(AGENT_RADIUS)``; when the agent stands closer than that to an
+    obstacle on the map (a start at the foot of a bed: the dilated bed covers every cell
+    around it and its own cell reaches almost nothing), on ``traversible(AGENT_RADIUS / 2)``
+    until it has stepped clear. Without it every plan from there snapped to the agent's own
+    cell and "arrived" without a move."""
+    mapper = body.mapper
+    planner = FMMPlanner(mapper.traversible(AGENT_RADIUS), mapper.grid)
+    if int(planner.reachable_from(tuple(body.xy)).sum()) < TRAPPED_CELLS:
+        planner = FMMPlanner(mapper.traversible(AGENT_RADIUS / 2), mapper.grid)
+    return planner
+
+
 def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: np.ndarray | None = None,
              radius: float = 0.0, stop_radius: float = 0.2, budget: int = 60) -> Skill:
     """Walk to a goal with fast-marching planning, replanning every step on the growing map.
@@ -84,7 +100,7 @@ def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: 
         if body.steps_left() <= 1:
             return False
         x, y, yaw, _ = body.pose
-        planner = FMMPlanner(body.mapper.traversible(AGENT_RADIUS), body.mapper.grid)
+        planner = planner_from(body)
         if goal_mask is not None:
             ok = planner.set_goal_mask(goal_mask, start_xy=(x, y))
         else:

@@ -29,9 +29,8 @@ from tidee.agent.config import AgentConfig
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import (FrontierExplorer, sample_reachable_goal, sample_unexplored_goal,
                                             unexplored_fraction)
-from tidee.agent.navigation.fmm import FMMPlanner
-from tidee.agent.policy.skills import (AGENT_RADIUS, MOVE_M, Body, face_point, find_in_view, goal_mask_near_box,
-                                       look_around, navigate, pitch_to, projected_sighting, receptacle_in_view,
+from tidee.agent.policy.skills import (MOVE_M, Body, face_point, find_in_view, goal_mask_near_box, look_around,
+                                       navigate, pitch_to, planner_from, projected_sighting, receptacle_in_view,
                                        sighting_of)
 from tidee.agent.reasoning.oop import OOPDetector
 from tidee.agent.reasoning.placement import PlacementModel
@@ -136,8 +135,7 @@ class TidyPolicy:
         return sorted(objs, key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
 
     def _reachable(self) -> np.ndarray:
-        planner = FMMPlanner(self.body.mapper.traversible(AGENT_RADIUS), self.body.mapper.grid)
-        return planner.reachable_from(tuple(self.body.xy))
+        return planner_from(self.body).reachable_from(tuple(self.body.xy))
 
     # ------------------------------------------------------------------ Algorithm 1
     def run(self) -> Gen:
@@ -179,7 +177,7 @@ class TidyPolicy:
             if unexplored_fraction(mapper.explored, reachable) < self.p.explore_unexplored_stop:
                 break
             if self.cfg.explorer == "frontier":
-                planner = FMMPlanner(mapper.traversible(AGENT_RADIUS), mapper.grid)
+                planner = planner_from(self.body)
                 planner.set_goal(tuple(self.body.xy))
                 known = mapper.explored | (mapper.occupancy_grid() > 0)
                 goal = self.frontier.next_goal(mapper.occupancy_grid() == 1, known, mapper.obstacle, planner,
