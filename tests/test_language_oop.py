@@ -156,6 +156,8 @@ def test_config_paragraphs_from_ground_truth_boxes() -> None:
 def test_training_and_evaluation_refuse_the_wrong_rooms() -> None:
     with pytest.raises(ValueError, match="held-out"):
         lo.evaluate_language_oop(None, split="train")                      # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="held-out"):
+        lo.run_instruct_eval("unused", split="train")   # the instruct eval picks settings on val, reports on test
     with pytest.raises(ValueError, match="val or test|train, val or test"):
         lo.room_seeds("pool", 1)
 

@@ -1201,8 +1201,8 @@ PAPER_TABLE_S2 = {("AlarmClock", "Desk"): (.10, .70), ("Knife", "DiningTable"): 
 def _pair_examples(samples: Sequence[OOPSample], category: str, receptacle: str,
                    limit: int = 40, split: str = "test") -> tuple[list[str], str]:
     """Held-out paragraphs where ``category`` is supported by ``receptacle`` and where they
-    come from: the test rooms themselves, or (when the pair never occurs there) the
-    category's test paragraphs with the supported-by sentence rewritten, or the bare sentence."""
+    come from: the ``split``'s rooms themselves, or (when the pair never occurs there) the
+    category's paragraphs there with the supported-by sentence rewritten, or the bare sentence."""
     inst = Instruction(category, receptacle, OUT_OF_PLACE)
     found = [s.paragraph for s in samples if s.category == category and paragraph_support(s.paragraph) == receptacle]
     if found:

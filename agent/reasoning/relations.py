@@ -166,6 +166,7 @@ def supported_by(target: ObjectRef, others: Sequence[ObjectRef], floor_z: float 
             return height_weight * (bottom - float(o.box_max[2])) + math.hypot(ox, oy)  # type: ignore[index]
         # min keeps the first of equal misfits: the nearest, as candidates are sorted by distance
         return min(_by_distance(target, surfaces), key=misfit)
+
     def volume(o: ObjectRef) -> float:
         return float(np.prod(np.subtract(o.box_max, o.box_min)))  # type: ignore[arg-type]
 
