@@ -178,3 +178,34 @@ def test_a_detection_from_across_the_room_is_not_stopping_near_it():
         found = done.value
     assert found is False
     assert actions and all(a.name.value in ("MoveAhead", "RotateLeft", "RotateRight") for a in actions)
+
+
+def test_a_stuck_walk_gives_up_after_a_full_turn(monkeypatch):
+    """A planner that finds no move lowering the distance turns towards downhill; turning on
+    the spot for longer than a full turn is a walk that cannot happen (it used to burn the
+    step budget turning left, right, left ... until the episode's cap)."""
+    from tidee.agent.navigation.fmm import NavStatus
+    from tidee.agent.policy import skills
+    from tidee.protocol.messages import ActionName
+
+    class Stuck:
+        status = NavStatus.stuck
+
+        def set_goal(self, *a, **k):
+            return True
+
+        def next_action(self, *a, **k):
+            return ActionName.RotateLeft
+
+        def path(self, *a, **k):
+            return np.zeros((1, 2))
+
+    monkeypatch.setattr(skills, "planner_from", lambda body: Stuck())
+    walk = skills.navigate(_still_body(), goal_xy=(2.0, 0.0), budget=60)
+    actions = []
+    try:
+        while True:
+            actions.append(next(walk))
+    except StopIteration as done:
+        arrived = done.value
+    assert arrived is False and len(actions) == skills.STUCK_TURNS

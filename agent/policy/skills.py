@@ -66,6 +66,7 @@ def goal_mask_near_box(mapper: SemanticMapper, box_min: np.ndarray, box_max: np.
     return np.hypot(dx[:, None], dy[None, :]) <= radius
 
 
+STUCK_TURNS = 4              # 90-degree turns on the spot before a stuck walk gives up
 TRAPPED_CELLS = 20           # a start component this small (0.05 m² at 5 cm cells): the agent is hemmed in
 
 
@@ -87,10 +88,11 @@ def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: 
     """Walk to a goal with fast-marching planning, replanning every step on the growing map.
 
     A blocked move stamps an obstacle in front of the agent (the failed cell) and replans.
-    Returns True on arrival; False when the goal is unreachable, the budget is spent or the
-    agent keeps bumping into things.
+    Returns True on arrival; False when the goal is unreachable, the budget is spent, the
+    agent keeps bumping into things, or the planner has been stuck (no move lowers the
+    distance: it turns towards downhill) for more than a full turn on the spot.
     """
-    bumps = 0
+    bumps = stuck = 0
     if goal_mask is not None:    # shown to viewers: the centre of the goal region
         body.goal = body.mapper.grid.to_world(np.argwhere(goal_mask).mean(0)) if goal_mask.any() else None
     else:
@@ -111,6 +113,10 @@ def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: 
         if action is None:
             body.path = None
             return planner.status == NavStatus.arrived
+        stuck = stuck + 1 if planner.status == NavStatus.stuck else 0
+        if stuck > STUCK_TURNS:
+            body.path = None
+            return False
         body.path = planner.path((x, y), max_points=200).astype(np.float32)
         yield Action(action)
         body.nav_steps += 1
