@@ -136,6 +136,16 @@ def _still_body(x: float = 0.0, y: float = 0.0, detections=()):
     return Body(SemanticMapper(MapConfig(), CLASSES), obs=obs, detections=list(detections))
 
 
+def _drain(skill):
+    """Run a skill whose body never changes to its end: (the actions it yielded, its result)."""
+    actions = []
+    try:
+        while True:
+            actions.append(next(skill))
+    except StopIteration as done:
+        return actions, done.value
+
+
 def test_a_start_hemmed_in_by_the_map_still_plans():
     """The agent between a bed and a dresser: their cells 0.2 m away, dilated by the 0.2 m agent
     radius, cover every cell around it. The planner steps down to half the radius there."""
@@ -162,20 +172,15 @@ def test_a_detection_from_across_the_room_is_not_stopping_near_it():
     in the frame must not count as found: the attempt verifies nothing and the approach fails."""
     from tidee.agent.mapping.memory import TrackedObject
     from tidee.agent.perception.base import Detection
-    from tidee.agent.policy.search import approach_and_verify, footprint_gap
+    from tidee.agent.policy.search import approach_and_verify
+    from tidee.agent.policy.skills import footprint_gap
 
     bell = TrackedObject(0, "Dumbbell", 0.5, np.array([0.9, -1.45, 0.06]), np.array([0.77, -1.59, 0.01]),
                          np.array([1.04, -1.34, 0.11]))
-    assert footprint_gap(np.array([0.0, 0.0]), bell) == pytest.approx(np.hypot(0.77, 1.34))
-    assert footprint_gap(np.array([0.9, -1.4]), bell) == 0.0
+    assert footprint_gap(bell.box_min, bell.box_max, 0.0, 0.0) == pytest.approx(np.hypot(0.77, 1.34))
+    assert footprint_gap(bell.box_min, bell.box_max, 0.9, -1.4) == 0.0
     body = _still_body(detections=[Detection("Dumbbell", 0.49, (10, 200, 30, 220))])
-    skill = approach_and_verify(body, bell, radius=1.0, budget=5)
-    actions = []
-    try:
-        while True:
-            actions.append(next(skill))
-    except StopIteration as done:
-        found = done.value
+    actions, found = _drain(approach_and_verify(body, bell, radius=1.0, budget=5))
     assert found is False
     assert actions and all(a.name.value in ("MoveAhead", "RotateLeft", "RotateRight") for a in actions)
 
@@ -201,11 +206,5 @@ def test_a_stuck_walk_gives_up_after_a_full_turn(monkeypatch):
             return np.zeros((1, 2))
 
     monkeypatch.setattr(skills, "planner_from", lambda body: Stuck())
-    walk = skills.navigate(_still_body(), goal_xy=(2.0, 0.0), budget=60)
-    actions = []
-    try:
-        while True:
-            actions.append(next(walk))
-    except StopIteration as done:
-        arrived = done.value
+    actions, arrived = _drain(skills.navigate(_still_body(), goal_xy=(2.0, 0.0), budget=60))
     assert arrived is False and len(actions) == skills.STUCK_TURNS

@@ -23,8 +23,8 @@ from tidee.agent.classes import CLASSES, PICKUPABLE
 from tidee.agent.mapping.maps import MapConfig, SemanticMapper
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import FrontierExplorer, sample_reachable_goal
-from tidee.agent.policy.skills import (Body, Skill, face_point, find_in_view, goal_mask_near_box, look_around,
-                                       navigate, pitch_to, planner_from, projected_sighting)
+from tidee.agent.policy.skills import (Body, Skill, face_point, find_in_view, footprint_gap, goal_mask_near_box,
+                                       look_around, navigate, pitch_to, planner_from, projected_sighting)
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
 
 # Where to search next: (body, target label, search points already visited) -> ranked goals (x, y).
@@ -128,13 +128,6 @@ def _in_frame_unoccluded(body: Body, obj: TrackedObject) -> bool:
     return projected_sighting(body, obj, reach=1.4, nearer_tol=0.25, farther_tol=math.inf) is not None
 
 
-def footprint_gap(xy: np.ndarray, obj: TrackedObject) -> float:
-    """Metres from a point to the tracked object's (x, y) box footprint (0 inside it)."""
-    dx = max(float(obj.box_min[0]) - float(xy[0]), 0.0, float(xy[0]) - float(obj.box_max[0]))
-    dy = max(float(obj.box_min[1]) - float(xy[1]), 0.0, float(xy[1]) - float(obj.box_max[1]))
-    return math.hypot(dx, dy)
-
-
 def approach_and_verify(body: Body, obj: TrackedObject, radius: float = 1.0, budget: int = 40) -> Skill:
     """Walk within ``radius`` of a tracked object's footprint, face it; True when the detector
     sees it in view, or when an object the detector has seen at least twice lies in the frame,
@@ -145,7 +138,7 @@ def approach_and_verify(body: Body, obj: TrackedObject, radius: float = 1.0, bud
         r = radius + 0.25 * attempt
         mask = goal_mask_near_box(body.mapper, obj.box_min, obj.box_max, r)
         yield from navigate(body, goal_mask=mask, stop_radius=0.05, budget=budget)
-        if footprint_gap(body.xy, obj) > r + 0.25:
+        if footprint_gap(obj.box_min, obj.box_max, *body.xy) > r + 0.25:
             continue
         for pitch_try in range(2):
             if body.steps_left() <= 1:
@@ -203,5 +196,5 @@ def search_object(body: Body, label: str, propose: Proposer, rng: np.random.Gene
     return False
 
 
-__all__ = ["Proposer", "SkillDriver", "approach_and_verify", "footprint_gap", "frontier_proposer", "reachable_mask",
+__all__ = ["Proposer", "SkillDriver", "approach_and_verify", "frontier_proposer", "reachable_mask",
            "search_object"]

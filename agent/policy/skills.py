@@ -55,15 +55,21 @@ class Body:
 
 # --- navigation ---------------------------------------------------------------------------
 
+def footprint_gap(box_min: np.ndarray, box_max: np.ndarray, x, y):
+    """Metres from points (x, y) (scalars or broadcasting arrays) to a box's (x, y) footprint;
+    0 inside it."""
+    dx = np.maximum(np.maximum(box_min[0] - x, x - box_max[0]), 0.0)
+    dy = np.maximum(np.maximum(box_min[1] - y, y - box_max[1]), 0.0)
+    return np.hypot(dx, dy)
+
+
 def goal_mask_near_box(mapper: SemanticMapper, box_min: np.ndarray, box_max: np.ndarray,
                        radius: float) -> np.ndarray:
     """bool grid: cells whose centre is within ``radius`` of the box's (x, y) footprint."""
     g = mapper.grid
     xs = g.origin[0] + (np.arange(g.shape[0]) + 0.5) * g.cell
     ys = g.origin[1] + (np.arange(g.shape[1]) + 0.5) * g.cell
-    dx = np.maximum(np.maximum(box_min[0] - xs, xs - box_max[0]), 0.0)
-    dy = np.maximum(np.maximum(box_min[1] - ys, ys - box_max[1]), 0.0)
-    return np.hypot(dx[:, None], dy[None, :]) <= radius
+    return footprint_gap(box_min, box_max, xs[:, None], ys[None, :]) <= radius
 
 
 STUCK_TURNS = 4              # 90-degree turns on the spot before a stuck walk gives up

@@ -151,10 +151,10 @@ def supported_by(target: ObjectRef, others: Sequence[ObjectRef], floor_z: float 
     recs = [o for o in _others(target, others) if o.receptacle]
     tx, ty, tz = target.centroid
 
-    def xy_in(o: ObjectRef) -> bool:
+    def xy_in(o: ObjectRef, margin: float = xy_margin_m) -> bool:
         assert o.box_min is not None and o.box_max is not None
-        return (o.box_min[0] - xy_margin_m <= tx <= o.box_max[0] + xy_margin_m
-                and o.box_min[1] - xy_margin_m <= ty <= o.box_max[1] + xy_margin_m)
+        return (o.box_min[0] - margin <= tx <= o.box_max[0] + margin
+                and o.box_min[1] - margin <= ty <= o.box_max[1] + margin)
 
     boxed = [o for o in recs if o.has_box and xy_in(o)]
     bottom = float(target.box_min[2]) if target.has_box else tz  # type: ignore[index]
@@ -171,9 +171,7 @@ def supported_by(target: ObjectRef, others: Sequence[ObjectRef], floor_z: float 
         return float(np.prod(np.subtract(o.box_max, o.box_min)))  # type: ignore[arg-type]
 
     off_floor = target.has_box and bottom - floor_z >= off_floor_m
-    shelves = [o for o in recs if o.has_box
-               and o.box_min[0] <= tx <= o.box_max[0] and o.box_min[1] <= ty <= o.box_max[1]  # type: ignore[index]
-               and o.box_min[2] <= tz <= o.box_max[2]  # type: ignore[index]
+    shelves = [o for o in recs if o.has_box and xy_in(o, 0.0) and o.box_min[2] <= tz <= o.box_max[2]  # type: ignore[index]
                and (off_floor or o.label in WALLED_CONTAINERS)]
     if shelves:
         return min(shelves, key=volume)
