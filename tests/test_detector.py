@@ -115,6 +115,42 @@ def test_a_few_training_steps_reduce_the_loss(tiny_train_frames, tmp_path) -> No
     assert r2["steps"] == 16 and r2["history"] == r["history"]
 
 
+def test_a_grown_model_starts_as_the_weights_it_grew_from(tmp_path) -> None:
+    """--init with extra blocks and a head conv: same outputs before any step; foreign weights refused."""
+    from tidee.agent.learning import save_checkpoint
+    from tidee.agent.perception.train_detector import init_from
+
+    torch.manual_seed(0)
+    small = CenterDetector(DetectorConfig(input_size=128))
+    with torch.no_grad():                 # BN statistics and scales off their defaults, like trained weights
+        for mod in small.modules():
+            if isinstance(mod, torch.nn.BatchNorm2d):
+                mod.weight.uniform_(0.5, 1.5)
+                mod.bias.uniform_(-0.2, 0.2)
+                mod.running_mean.uniform_(-0.5, 0.5)
+                mod.running_var.uniform_(0.5, 2.0)
+    path = tmp_path / "small.pt"
+    save_checkpoint(path, config=small.cfg.to_dict(), state_dict=small.state_dict())
+    grown = CenterDetector(DetectorConfig(input_size=128, extra_blocks=(1, 1, 1), head_conv=True))
+    lineage = init_from(grown, path)
+    assert lineage["new_tensors"] > 0 and len(lineage["sha256"]) == 64
+    assert sum(p.numel() for p in grown.parameters()) > sum(p.numel() for p in small.parameters())
+    x = torch.randn(2, 4, 128, 128)
+    for mode in ("eval", "train"):
+        small.train(mode == "train")
+        grown.train(mode == "train")
+        with torch.no_grad():
+            a, b = small(x), grown(x)
+        for k in a:
+            torch.testing.assert_close(b[k], a[k], msg=f"{k} differs in {mode} mode")
+    with torch.no_grad():          # and the grown blocks are real parameters that training moves
+        grown.head_conv[1].weight.add_(0.1)
+        assert not torch.allclose(grown(x)["heat"], small(x)["heat"])
+    narrow = CenterDetector(DetectorConfig(input_size=128, neck=32))
+    with pytest.raises(ValueError, match="not a subset"):
+        init_from(narrow, path)
+
+
 def test_model_outputs_have_the_documented_shapes() -> None:
     cfg = DetectorConfig()
     m = CenterDetector(cfg).eval()

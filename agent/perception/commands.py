@@ -12,13 +12,21 @@ from pathlib import Path
 
 
 def _cmd_train_detector(args: argparse.Namespace) -> int:
+    from tidee.agent.perception.detector import DetectorConfig
     from tidee.agent.perception.train_detector import TrainConfig, train_detector
 
+    try:
+        extra = tuple(int(x) for x in args.extra_blocks.split(","))
+    except ValueError:
+        raise SystemExit(f"--extra-blocks wants three integers like 0,1,1, not {args.extra_blocks!r}")
+    if len(extra) != 3 or min(extra) < 0:
+        raise SystemExit(f"--extra-blocks wants three non-negative integers (stride 8, 16, 32), not {args.extra_blocks!r}")
     cfg = TrainConfig(data=args.data, out=args.out, work_dir=args.work_dir, steps=args.steps,
                       batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
-                      threads=args.threads, limit_frames=args.limit_frames)
+                      threads=args.threads, limit_frames=args.limit_frames, init=args.init, warmup=args.warmup)
+    model_cfg = DetectorConfig(extra_blocks=extra, head_conv=args.head_conv)
     command = "tidee train detector " + " ".join(sys.argv[3:])
-    result = train_detector(cfg, resume=not args.no_resume, command=command.strip())
+    result = train_detector(cfg, model_cfg, resume=not args.no_resume, command=command.strip())
     last = result["history"][-1] if result["history"] else {}
     print(json.dumps({"steps": result["steps"], "seconds": result["seconds"], "device": result["device"],
                       "final_losses": last, "weights": result.get("out")}, indent=1))
@@ -39,6 +47,14 @@ def register(train_sub: argparse._SubParsersAction, eval_sub: argparse._SubParse
     p.add_argument("--threads", type=int, default=0, help="CPU threads (0: torch's default)")
     p.add_argument("--limit-frames", type=int, default=None, help="train on the first N frames only (smoke runs)")
     p.add_argument("--no-resume", action="store_true", help="ignore a checkpoint in --work-dir")
+    p.add_argument("--warmup", type=int, default=200, help="steps of linear learning-rate warm-up")
+    p.add_argument("--init", default=None,
+                   help="start from these detector weights; with --extra-blocks / --head-conv the model grows "
+                        "around them, starting as exactly the same function")
+    p.add_argument("--extra-blocks", default="0,0,0",
+                   help="extra residual blocks at stride 8,16,32 (identity at start)")
+    p.add_argument("--head-conv", action="store_true",
+                   help="a depthwise-separable conv before the heads (identity at start)")
     p.set_defaults(func=_cmd_train_detector)
 
     p = train_sub.add_parser("depth", help="the depth-from-RGB network (the '+est. depth' setting)")

@@ -35,6 +35,11 @@ class DetectorConfig:
     stride: int = 4
     input_size: int = 256
     use_depth: bool = True
+    # grown capacity (``tidee train detector --init``): extra residual blocks at stride 8, 16,
+    # 32, and a depthwise-separable conv before the heads. Each starts as the identity, so a
+    # grown model computes exactly what the weights it was initialised from computed.
+    extra_blocks: tuple[int, ...] = (0, 0, 0)
+    head_conv: bool = False
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -43,6 +48,7 @@ class DetectorConfig:
     def from_dict(d: dict) -> "DetectorConfig":
         d = dict(d)
         d["widths"] = tuple(d["widths"])
+        d["extra_blocks"] = tuple(d.get("extra_blocks", (0, 0, 0)))
         return DetectorConfig(**d)
 
 
@@ -52,13 +58,29 @@ def cbr(cin: int, cout: int, stride: int = 1, k: int = 3) -> nn.Sequential:
 
 
 class Residual(nn.Module):
-    def __init__(self, c: int) -> None:
+    def __init__(self, c: int, identity: bool = False) -> None:
         super().__init__()
         self.a = cbr(c, c)
         self.b = nn.Sequential(nn.Conv2d(c, c, 3, 1, 1, bias=False), nn.BatchNorm2d(c))
+        if identity:        # the branch's last BN scale at 0: x is post-ReLU, so relu(x + 0) == x
+            nn.init.zeros_(self.b[1].weight)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return F.relu(x + self.b(self.a(x)), inplace=True)
+
+
+def identity_dw_block(c: int) -> nn.Sequential:
+    """Depthwise 3x3 + pointwise 1x1 (with biases, no BN) + ReLU, initialised to the identity
+    on non-negative input: a head layer that can be added to trained weights without changing them."""
+    dw = nn.Conv2d(c, c, 3, 1, 1, groups=c)
+    pw = nn.Conv2d(c, c, 1)
+    with torch.no_grad():
+        dw.weight.zero_()
+        dw.weight[:, 0, 1, 1] = 1.0
+        dw.bias.zero_()
+        pw.weight.copy_(torch.eye(c).view(c, c, 1, 1))
+        pw.bias.zero_()
+    return nn.Sequential(dw, pw, nn.ReLU(inplace=True))
 
 
 class CenterDetector(nn.Module):
@@ -68,15 +90,20 @@ class CenterDetector(nn.Module):
         w = cfg.widths
         cin = 4 if cfg.use_depth else 3
         self.stem = nn.Sequential(cbr(cin, w[0], 2), cbr(w[0], w[1], 2), cbr(w[1], w[1]))      # /4
-        self.s8 = nn.Sequential(cbr(w[1], w[2], 2), Residual(w[2]))                            # /8
-        self.s16 = nn.Sequential(cbr(w[2], w[3], 2), Residual(w[3]))                           # /16
-        self.s32 = nn.Sequential(cbr(w[3], w[4], 2), Residual(w[4]), Residual(w[4]))           # /32
+        extra = tuple(cfg.extra_blocks) + (0,) * (3 - len(cfg.extra_blocks))
+        self.s8 = nn.Sequential(cbr(w[1], w[2], 2), Residual(w[2]),                            # /8
+                                *[Residual(w[2], identity=True) for _ in range(extra[0])])
+        self.s16 = nn.Sequential(cbr(w[2], w[3], 2), Residual(w[3]),                           # /16
+                                 *[Residual(w[3], identity=True) for _ in range(extra[1])])
+        self.s32 = nn.Sequential(cbr(w[3], w[4], 2), Residual(w[4]), Residual(w[4]),           # /32
+                                 *[Residual(w[4], identity=True) for _ in range(extra[2])])
         n = cfg.neck
         self.lat = nn.ModuleList([nn.Conv2d(c, n, 1) for c in (w[1], w[2], w[3], w[4])])
         self.smooth8 = cbr(n, n)
         # at stride 4 every MAC counts: a depthwise-separable smoothing conv, heads read it directly
         self.smooth4 = nn.Sequential(nn.Conv2d(n, n, 3, 1, 1, groups=n, bias=False), nn.BatchNorm2d(n),
                                      nn.Conv2d(n, n, 1, bias=False), nn.BatchNorm2d(n), nn.ReLU(inplace=True))
+        self.head_conv = identity_dw_block(n) if cfg.head_conv else nn.Identity()
         self.heat = nn.Conv2d(n, cfg.num_classes, 1)
         self.box = nn.Conv2d(n, 5, 1)           # size (2), offset (2), oop (1)
         nn.init.constant_(self.heat.bias, -4.6)  # prior 0.01, as CenterNet / RetinaNet
@@ -90,8 +117,9 @@ class CenterDetector(nn.Module):
         p = self.lat[2](c16) + F.interpolate(p, scale_factor=2, mode="nearest")
         p = self.smooth8(self.lat[1](c8) + F.interpolate(p, scale_factor=2, mode="nearest"))
         feat = self.smooth4(self.lat[0](c4) + F.interpolate(p, scale_factor=2, mode="nearest"))
-        b = self.box(feat)
-        return {"heat": self.heat(feat), "size": b[:, 0:2], "off": b[:, 2:4], "oop": b[:, 4:5], "feat": feat}
+        h = self.head_conv(feat)
+        b = self.box(h)
+        return {"heat": self.heat(h), "size": b[:, 0:2], "off": b[:, 2:4], "oop": b[:, 4:5], "feat": feat}
 
 
 def preprocess(rgb: np.ndarray, depth: np.ndarray | None, use_depth: bool = True) -> torch.Tensor:

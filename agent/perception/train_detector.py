@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from tidee.agent.learning import (WEIGHTS_DIR, load_checkpoint, pick_device, save_checkpoint, save_loss_curve,
-                                  write_manifest)
+                                  sha256_file, write_manifest)
 from tidee.agent.perception.dataset import load_shards
 from tidee.agent.perception.detector import (CenterDetector, DetectorConfig, detector_loss, encode_targets,
                                              preprocess)
@@ -43,6 +43,7 @@ class TrainConfig:
     ckpt_every: int = 200
     log_every: int = 20
     limit_frames: int | None = None  # use only the first N frames (tests, smoke runs)
+    init: str | None = None          # start from these detector weights (a grown model: see init_from)
 
 
 class Batches:
@@ -87,6 +88,39 @@ class Batches:
         return x, {k: torch.from_numpy(np.stack(v)) for k, v in targets.items()}
 
 
+def init_from(model: CenterDetector, weights: str | Path) -> dict[str, Any]:
+    """Load trained detector weights into ``model``, which may be a grown copy of theirs.
+
+    Every tensor of ``weights`` must exist in ``model`` with the same shape; tensors of the model
+    that ``weights`` lacks must belong to the grown modules (extra residual blocks, the head
+    conv), which start as the identity, so the model computes what ``weights`` computed.
+    Returns the lineage for the manifest: the file's checksum and its own manifest's command.
+    """
+    weights = Path(weights)
+    blob = load_checkpoint(weights)
+    if blob is None or "state_dict" not in blob:
+        raise ValueError(f"--init {weights}: not a detector weights file (no state_dict)")
+    old = DetectorConfig.from_dict(blob["config"])
+    new = model.cfg
+    if (old.num_classes, old.widths, old.neck, old.stride, old.use_depth) != \
+            (new.num_classes, new.widths, new.neck, new.stride, new.use_depth):
+        raise ValueError(f"--init {weights}: its architecture {old.to_dict()} is not a subset of {new.to_dict()}")
+    own = model.state_dict()
+    for k, v in blob["state_dict"].items():
+        if k not in own or own[k].shape != v.shape:
+            raise ValueError(f"--init {weights}: tensor {k} {tuple(v.shape)} has no place in the grown model")
+    missing = [k for k in own if k not in blob["state_dict"]]
+    model.load_state_dict(blob["state_dict"], strict=False)
+    lineage: dict[str, Any] = {"weights": str(weights), "sha256": sha256_file(weights), "config": old.to_dict(),
+                               "new_tensors": len(missing)}
+    man = weights.with_suffix(".json")
+    if man.exists():
+        m = json.loads(man.read_text())
+        lineage.update({k: m.get(k) for k in ("command", "train_config", "init")})
+        lineage["data_command"] = (m.get("data") or {}).get("command")
+    return lineage
+
+
 def lr_at(step: int, cfg: TrainConfig) -> float:
     if step < cfg.warmup:
         return cfg.lr * (step + 1) / cfg.warmup
@@ -113,7 +147,9 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
         keep = data["obj_frame"] < cfg.limit_frames
         data = {**{k: v[:cfg.limit_frames] for k, v in data.items() if not k.startswith("obj_")},
                 **{k: v[keep] for k, v in data.items() if k.startswith("obj_")}}
-    model = CenterDetector(model_cfg).to(device)
+    model = CenterDetector(model_cfg)
+    lineage = init_from(model, cfg.init) if cfg.init else None
+    model = model.to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     batches = Batches(data, model_cfg, cfg.batch_size, cfg.seed)
     work = Path(cfg.work_dir)
@@ -177,9 +213,10 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
             metrics={"train_loss_final": history[-1] if history else None},
             train_config=asdict(cfg), model_config=model_cfg.to_dict(),
             parameters=int(sum(p.numel() for p in model.parameters())),
+            **({"init": lineage} if lineage else {}),
             loss_curve="docs/models/detector_loss.png")
         result["out"] = str(out)
     return result
 
 
-__all__ = ["TrainConfig", "Batches", "train_detector", "DEFAULT_WEIGHTS", "lr_at"]
+__all__ = ["TrainConfig", "Batches", "train_detector", "DEFAULT_WEIGHTS", "lr_at", "init_from"]
