@@ -38,7 +38,7 @@ class DetectorConfig:
     # grown capacity (``tidee train detector --init``): extra residual blocks at stride 8, 16,
     # 32, and a depthwise-separable conv before the heads. Each starts as the identity, so a
     # grown model computes exactly what the weights it was initialised from computed.
-    extra_blocks: tuple[int, ...] = (0, 0, 0)
+    extra_blocks: tuple[int, int, int] = (0, 0, 0)
     head_conv: bool = False
 
     def to_dict(self) -> dict:
@@ -90,7 +90,7 @@ class CenterDetector(nn.Module):
         w = cfg.widths
         cin = 4 if cfg.use_depth else 3
         self.stem = nn.Sequential(cbr(cin, w[0], 2), cbr(w[0], w[1], 2), cbr(w[1], w[1]))      # /4
-        extra = tuple(cfg.extra_blocks) + (0,) * (3 - len(cfg.extra_blocks))
+        extra = cfg.extra_blocks
         self.s8 = nn.Sequential(cbr(w[1], w[2], 2), Residual(w[2]),                            # /8
                                 *[Residual(w[2], identity=True) for _ in range(extra[0])])
         self.s16 = nn.Sequential(cbr(w[2], w[3], 2), Residual(w[3]),                           # /16

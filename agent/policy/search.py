@@ -24,7 +24,8 @@ from tidee.agent.mapping.maps import MapConfig, SemanticMapper
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import FrontierExplorer, sample_reachable_goal
 from tidee.agent.policy.skills import (Body, Skill, face_point, find_in_view, footprint_gap, goal_mask_near_box,
-                                       look_around, navigate, pitch_to, planner_from, projected_sighting)
+                                       look_around, navigate, pitch_to, planner_from, projected_sighting,
+                                       reachable_mask)
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
 
 # Where to search next: (body, target label, search points already visited) -> ranked goals (x, y).
@@ -68,11 +69,6 @@ class SkillDriver:
                 on_step(body)
         skill.close()
         return None
-
-
-def reachable_mask(body: Body) -> np.ndarray:
-    """bool nav grid: cells the agent can reach from where it stands (unknown counts as free)."""
-    return planner_from(body).reachable_from(tuple(body.xy))
 
 
 def frontier_proposer(explorer: FrontierExplorer | None = None) -> Proposer:
@@ -196,5 +192,5 @@ def search_object(body: Body, label: str, propose: Proposer, rng: np.random.Gene
     return False
 
 
-__all__ = ["Proposer", "SkillDriver", "approach_and_verify", "frontier_proposer", "reachable_mask",
+__all__ = ["Proposer", "SkillDriver", "approach_and_verify", "frontier_proposer",
            "search_object"]

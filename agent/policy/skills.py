@@ -76,17 +76,29 @@ STUCK_TURNS = 4              # 90-degree turns on the spot before a stuck walk g
 TRAPPED_CELLS = 20           # a start component this small (0.05 m² at 5 cm cells): the agent is hemmed in
 
 
-def planner_from(body: Body) -> FMMPlanner:
-    """A planner on ``traversible(AGENT_RADIUS)``; when the agent stands closer than that to an
-    obstacle on the map (a start at the foot of a bed: the dilated bed covers every cell
-    around it and its own cell reaches almost nothing), on ``traversible(AGENT_RADIUS / 2)``
-    until it has stepped clear. Without it every plan from there snapped to the agent's own
-    cell and "arrived" without a move."""
-    mapper = body.mapper
+def planner_and_reach(body: Body) -> tuple[FMMPlanner, np.ndarray]:
+    """A planner on ``traversible(AGENT_RADIUS)`` and the cells it reaches from the agent
+    (unknown counts as free); when the agent stands closer than that radius to an obstacle on
+    the map (a start at the foot of a bed: the dilated bed covers every cell around it and
+    its own cell reaches almost nothing), on ``traversible(AGENT_RADIUS / 2)`` until it has
+    stepped clear. Without it every plan from there snapped to the agent's own cell and
+    "arrived" without a move."""
+    mapper, xy = body.mapper, tuple(body.xy)
     planner = FMMPlanner(mapper.traversible(AGENT_RADIUS), mapper.grid)
-    if int(planner.reachable_from(tuple(body.xy)).sum()) < TRAPPED_CELLS:
+    reach = planner.reachable_from(xy)
+    if int(reach.sum()) < TRAPPED_CELLS:
         planner = FMMPlanner(mapper.traversible(AGENT_RADIUS / 2), mapper.grid)
-    return planner
+        reach = planner.reachable_from(xy)
+    return planner, reach
+
+
+def planner_from(body: Body) -> FMMPlanner:
+    return planner_and_reach(body)[0]
+
+
+def reachable_mask(body: Body) -> np.ndarray:
+    """bool nav grid: cells the agent can reach from where it stands (unknown counts as free)."""
+    return planner_and_reach(body)[1]
 
 
 def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: np.ndarray | None = None,

@@ -30,8 +30,8 @@ from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import (FrontierExplorer, sample_reachable_goal, sample_unexplored_goal,
                                             unexplored_fraction)
 from tidee.agent.policy.skills import (MOVE_M, Body, face_point, find_in_view, goal_mask_near_box, look_around,
-                                       navigate, pitch_to, planner_from, projected_sighting, receptacle_in_view,
-                                       sighting_of)
+                                       navigate, pitch_to, planner_and_reach, projected_sighting, receptacle_in_view,
+                                       reachable_mask, sighting_of)
 from tidee.agent.reasoning.oop import OOPDetector
 from tidee.agent.reasoning.placement import PlacementModel
 from tidee.protocol.messages import Action, ActionName
@@ -134,9 +134,6 @@ class TidyPolicy:
                 if o.out_of_place and not o.meta.get("give_up") and not self._is_placed(o)]
         return sorted(objs, key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
 
-    def _reachable(self) -> np.ndarray:
-        return planner_from(self.body).reachable_from(tuple(self.body.xy))
-
     # ------------------------------------------------------------------ Algorithm 1
     def run(self) -> Gen:
         self.state.phase = "mapping"
@@ -157,7 +154,7 @@ class TidyPolicy:
             if empty_goals >= self.p.k_empty_goals:
                 self.state.end_reason = f"no out-of-place object found after {empty_goals} search goals"
                 break
-            goal = sample_reachable_goal(self._reachable(), self.body.mapper.grid, self.rng, tuple(self.body.xy))
+            goal = sample_reachable_goal(reachable_mask(self.body), self.body.mapper.grid, self.rng, tuple(self.body.xy))
             empty_goals += 1
             if goal is None:
                 continue
@@ -172,12 +169,11 @@ class TidyPolicy:
     def map_room(self) -> Gen:
         start = self.body.obs.step
         while self.body.obs.step - start < self.p.mapping_step_budget and self.body.steps_left() > 1:
-            reachable = self._reachable()
+            planner, reachable = planner_and_reach(self.body)
             mapper = self.body.mapper
             if unexplored_fraction(mapper.explored, reachable) < self.p.explore_unexplored_stop:
                 break
             if self.cfg.explorer == "frontier":
-                planner = planner_from(self.body)
                 planner.set_goal(tuple(self.body.xy))
                 known = mapper.explored | (mapper.occupancy_grid() > 0)
                 goal = self.frontier.next_goal(mapper.occupancy_grid() == 1, known, mapper.obstacle, planner,
@@ -343,7 +339,7 @@ class TidyPolicy:
             goal = self.searched_point(label)
             if goal is not None:
                 return goal
-        mapper, reachable = self.body.mapper, self._reachable()
+        mapper, reachable = self.body.mapper, reachable_mask(self.body)
         goal = sample_unexplored_goal(mapper.explored, reachable, mapper.grid, self.rng, tuple(self.body.xy))
         return goal or sample_reachable_goal(reachable, mapper.grid, self.rng, tuple(self.body.xy))
 
@@ -464,7 +460,7 @@ class TidyPolicy:
         shape = self.body.obs.depth.shape
         self.state.phase = "searching_receptacle"
         for _ in range(self.p.search_goals + 2):
-            goal = sample_reachable_goal(self._reachable(), self.body.mapper.grid, self.rng, tuple(self.body.xy))
+            goal = sample_reachable_goal(reachable_mask(self.body), self.body.mapper.grid, self.rng, tuple(self.body.xy))
             if goal is not None:
                 yield from navigate(self.body, goal_xy=goal, budget=self.p.goal_step_budget)
             yield from pitch_to(self.body, 30.0)

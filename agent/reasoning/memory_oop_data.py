@@ -72,7 +72,7 @@ def config_memory_samples(transport: Any, room_type: str, seed: int, mess_index:
     from tidee.agent.mapping.maps import SemanticMapper
     from tidee.agent.navigation.explore import sample_reachable_goal
     from tidee.agent.perception import make_perception
-    from tidee.agent.policy.skills import Body, look_around, navigate
+    from tidee.agent.policy.skills import Body, look_around, navigate, reachable_mask
     from tidee.agent.policy.tidy import TidyPolicy
     from tidee.agent.reasoning.language_oop import _record, object_paragraph
     from tidee.agent.reasoning.oop import as_ref
@@ -136,7 +136,7 @@ def config_memory_samples(transport: Any, room_type: str, seed: int, mess_index:
     for k in range(1, SNAPSHOT_GOALS + 1):
         if body.steps_left() <= 30:
             break
-        goal = sample_reachable_goal(policy._reachable(), mapper.grid, rng, tuple(body.xy))
+        goal = sample_reachable_goal(reachable_mask(body), mapper.grid, rng, tuple(body.xy))
         if goal is None:
             break
         drive(_chain(navigate(body, goal_xy=goal, budget=cfg.policy.goal_step_budget),

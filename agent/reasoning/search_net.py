@@ -408,7 +408,8 @@ def _jobs(cfg: SearchGenConfig) -> list[tuple[str, int, int | None]]:
 def _explore_skill(body: Any, rng: np.random.Generator) -> Any:
     """Mapping as the agent does it: look around, then frontier or random unexplored goals."""
     from tidee.agent.navigation.explore import FrontierExplorer, sample_unexplored_goal
-    from tidee.agent.policy.search import frontier_proposer, reachable_mask
+    from tidee.agent.policy.search import frontier_proposer
+    from tidee.agent.policy.skills import reachable_mask
     from tidee.agent.policy.skills import look_around, navigate
 
     yield from look_around(body)
