@@ -134,6 +134,30 @@ def test_instruction_moves_probability_the_asked_way(trained: lo.LanguageOOPClas
     assert float(clf.predict([floor])[0]) < before - 0.2
 
 
+def test_an_instruction_leaves_other_objects_on_the_receptacle_alone() -> None:
+    """Shipped head: "the laptop on the bed is out of place" must not drag the cell phone on
+    the bed along (MiniLM puts the two paragraphs close). Replay samples of other categories
+    on the bed, held to the head's own probabilities, are what keep it; without them the
+    cell phone follows the laptop."""
+    base = lo.LanguageOOPClassifier.load()
+    phone = ["The cell phone is supported by the bed. The cell phone is next to the pillow.",
+             "The cell phone is next to the pillow. The cell phone is supported by the bed. "
+             "The cell phone is closest to the laptop."]
+    laptop = ["The laptop is supported by the bed. The laptop is next to the pillow."]
+    before = base.predict(phone)
+    assert before.max() < 0.1
+    kept = base.copy()
+    lo.apply_instruction(kept, "the laptop on the bed is out of place")
+    assert kept.predict(laptop)[0] > 0.7
+    assert np.abs(kept.predict(phone) - before).max() < 0.3
+    again = base.copy()
+    lo.apply_instruction(again, "the laptop on the bed is out of place")   # same seed, same head
+    np.testing.assert_array_equal(again.predict(phone + laptop), kept.predict(phone + laptop))
+    dragged = base.copy()
+    lo.apply_instruction(dragged, "the laptop on the bed is out of place", distill=False, neighbour_share=0.0)
+    assert np.abs(dragged.predict(phone) - before).max() > 0.5
+
+
 # ----------------------------------------------------------------------------- paragraphs, rows, agent
 def _records() -> list[dict]:
     def rec(oid, typ, lo_, hi, moved=False):

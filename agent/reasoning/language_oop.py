@@ -571,13 +571,13 @@ def replay_set(samples: Sequence[OOPSample], emb: np.ndarray, per_category: int,
 def fit_head(head: Any, x: np.ndarray, y: np.ndarray, steps: int, batch_size: int, lr: float,
              weight_decay: float, seed: int, device: str, log_every: int = 50, progress: bool = True,
              anchor_weight: float = 0.0, pos_weight: float | None = None,
-             fixed: tuple[np.ndarray, np.ndarray] | None = None,
-             fixed_share: float = 0.0, anchor: list[Any] | None = None) -> list[dict[str, float]]:
+             fixed: Sequence[tuple[np.ndarray, np.ndarray, float]] = (),
+             anchor: list[Any] | None = None) -> list[dict[str, float]]:
     """Minibatch AdamW on class-balanced BCE; returns the logged history.
 
     ``pos_weight`` (default n_negative / n_positive of ``y``) balances the ~20% of
-    out-of-place samples. ``fixed`` = (x, y) samples that make up ``fixed_share`` of every
-    batch (an instruction's relations); ``anchor_weight`` pulls the weights towards their
+    out-of-place samples. ``fixed``: groups of (x, y, share), samples that make up ``share``
+    of every batch each (an instruction's relations); ``anchor_weight`` pulls the weights towards their
     starting values (L2-SP), which limits forgetting during a short fine-tune (``anchor``:
     other weights to pull towards, e.g. those before an earlier round of fine-tuning).
     """
@@ -597,19 +597,20 @@ def fit_head(head: Any, x: np.ndarray, y: np.ndarray, steps: int, batch_size: in
         anchor = []
     elif anchor is None:
         anchor = [p.detach().clone() for p in head.parameters()]
-    n_fixed = 0
-    if fixed is not None and fixed_share > 0:
-        fx = torch.as_tensor(fixed[0], dtype=torch.float32, device=device)
-        fy = torch.as_tensor(fixed[1], dtype=torch.float32, device=device)
-        n_fixed = max(1, round(batch_size * fixed_share))
+    groups = [(torch.as_tensor(gx, dtype=torch.float32, device=device),
+               torch.as_tensor(gy, dtype=torch.float32, device=device), max(1, round(batch_size * share)))
+              for gx, gy, share in fixed if share > 0 and len(gx)]
+    n_fixed = sum(n for _, _, n in groups)
+    if n_fixed >= batch_size:
+        raise ValueError(f"fixed groups take {n_fixed} of a batch of {batch_size}: leave room for the replay")
     history: list[dict[str, float]] = []
     running = 0.0
     for step in tqdm(range(1, steps + 1), desc="train head", disable=not progress):
         idx = torch.randint(len(xt), (batch_size - n_fixed,), generator=gen).to(device)
         bx, by = xt[idx], yt[idx]
-        if n_fixed:
-            j = torch.randint(len(fx), (n_fixed,), generator=gen).to(device)
-            bx, by = torch.cat([bx, fx[j]]), torch.cat([by, fy[j]])
+        for gx, gy, n in groups:
+            j = torch.randint(len(gx), (n,), generator=gen).to(device)
+            bx, by = torch.cat([bx, gx[j]]), torch.cat([by, gy[j]])
         loss = loss_fn(head(bx), by)
         if anchor:
             loss = loss + anchor_weight * sum(((p - a) ** 2).sum() for p, a in zip(head.parameters(), anchor))
@@ -1106,7 +1107,8 @@ ANCHOR_WEIGHT = 5e-2      # apply_instruction's L2 pull to the start weights
 
 def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction, steps: int = 50,
                       lr: float = 1e-3, batch_size: int = 64, anchor_weight: float = ANCHOR_WEIGHT, variants: int = 24,
-                      seed: int = 0, max_steps: int = 250, check_p: float = 0.85) -> dict[str, Any]:
+                      seed: int = 0, max_steps: int = 250, check_p: float = 0.85,
+                      distill: bool = True, neighbour_share: float = 0.25) -> dict[str, Any]:
     """Fine-tune ``classifier`` in place so that it follows an instruction (paper §3.2, §4.6).
 
     Instructed samples, labelled as the instruction says: the bare relation ("The alarm
@@ -1118,6 +1120,17 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
     relation are relabelled; the rest keep their labels and fill half of each batch, and an
     L2 pull towards the starting weights limits forgetting. The instructed samples join the
     replay set, so later instructions keep this one. Returns a short report.
+
+    ``distill`` (default): the replay samples the instruction does not relabel are fitted
+    to the head's own probabilities before the instruction (soft targets, unweighted BCE)
+    rather than to their training labels, so that what the head said about everything else
+    is what it is held to (knowledge distillation, as in learning without forgetting);
+    without it they keep their hard training labels, which the head never fitted exactly,
+    and fitting them again moves unrelated predictions.
+
+    ``neighbour_share`` of every batch: replay samples of *other* categories on the
+    instructed receptacle (a cell phone on the bed when the laptop on the bed is out of
+    place), the predictions an instruction is most likely to drag along with it.
 
     ``steps`` at a time, up to ``max_steps``: a third of the rewritten paragraphs is held
     back as a check, and training goes on until the head gives them the instructed label
@@ -1148,12 +1161,22 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
     instructed = bare + rewritten
     inst_y = [inst.label] * len(instructed)
     replay_y = labels.copy()
+    relabelled = np.zeros(len(paras), bool)
     for i in of_cat:
         if supports[i] == inst.receptacle:
             replay_y[i] = inst.label                 # the instruction overrides what training said
+            relabelled[i] = True
         elif inst.polarity == IN_PLACE:
             replay_y[i] = 1.0                        # "I want it on the desk": elsewhere is out of place
+            relabelled[i] = True
+    fit_y, pos_weight = replay_y, None
+    if distill:
+        soft = classifier.predict_embeddings(rep["embeddings"]).astype(np.float32)
+        fit_y, pos_weight = np.where(relabelled, replay_y, soft).astype(np.float32), 1.0
     inst_x = classifier.encoder.encode(instructed)
+    neighbours = [i for i, (c, r) in enumerate(zip(cats, supports)) if r == inst.receptacle and c != inst.category]
+    fixed = [(inst_x, np.asarray(inst_y, np.float32), 0.5),
+             (rep["embeddings"][neighbours], fit_y[neighbours], neighbour_share)]
     check_x = classifier.encoder.encode(check) if check else inst_x
     before = classifier.predict_embeddings(np.concatenate([inst_x, check_x]) if check else inst_x)
     anchor = [p.detach().clone() for p in classifier.head.parameters()]
@@ -1162,14 +1185,18 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
         p = classifier.predict_embeddings(check_x)
         return bool(np.mean(p if inst.label else 1.0 - p) >= check_p)
 
+    import torch
+
     done = 0
-    while done < max(steps, 1):
-        fit_head(classifier.head, rep["embeddings"], replay_y, steps, batch_size, lr, 0.0, seed + done, "cpu",
-                 log_every=max(steps, 1), progress=False, anchor_weight=anchor_weight, anchor=anchor,
-                 fixed=(inst_x, np.asarray(inst_y, np.float32)), fixed_share=0.5)
-        done += steps
-        if check_ok() or done + steps > max_steps:
-            break
+    with torch.random.fork_rng(devices=[]):     # dropout draws from torch's global generator
+        torch.manual_seed(seed)
+        while done < max(steps, 1):
+            fit_head(classifier.head, rep["embeddings"], fit_y, steps, batch_size, lr, 0.0, seed + done, "cpu",
+                     log_every=max(steps, 1), progress=False, anchor_weight=anchor_weight, anchor=anchor,
+                     pos_weight=pos_weight, fixed=fixed)
+            done += steps
+            if check_ok() or done + steps > max_steps:
+                break
     if check:
         instructed += check
         inst_y += [inst.label] * len(check)
@@ -1217,7 +1244,7 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
                       rooms_per_type: int = 5, messes_per_room: int = 5, n_unrelated: int = 24,
                       encoder_path: str | Path | None = None, cache_dir: str | Path | None = DEFAULT_CACHE_DIR,
                       seed: int = 0, lr: float = 1e-3, anchor_weight: float = ANCHOR_WEIGHT,
-                      split: str = "test", progress: bool = True) -> dict[str, Any]:
+                      split: str = "test", progress: bool = True, distill: bool = True) -> dict[str, Any]:
     """Table S2: P(out of place) of ten relation pairs before and after an instruction that
     calls them out of place (each from the shipped head), plus three preferences ("I want my
     X on the Y") for pairs the head calls out of place; forgetting = mean |change| of
@@ -1264,7 +1291,8 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
         examples, source = _pair_examples(samples, cat, rec, split=split)
         clf = base.copy()
         before = clf.predict(examples)
-        report = apply_instruction(clf, text, steps=steps, lr=lr, anchor_weight=anchor_weight, seed=seed)
+        report = apply_instruction(clf, text, steps=steps, lr=lr, anchor_weight=anchor_weight, seed=seed,
+                                   distill=distill)
         after = clf.predict(examples)
         change = clf.predict(unrelated_para) - base_p[unrelated_idx]
         pair_change = [abs(float(np.mean(change[pair_of == j]))) for j in range(len(unrelated))]
@@ -1281,7 +1309,8 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
     from tidee.agent.learning import read_manifest
 
     command = (f"tidee eval instruct{'' if split == 'test' else ' --split ' + split} --steps {steps}"
-               f"{'' if anchor_weight == ANCHOR_WEIGHT else f' --anchor-weight {anchor_weight:g}'} --out {out}")
+               f"{'' if anchor_weight == ANCHOR_WEIGHT else f' --anchor-weight {anchor_weight:g}'}"
+               f"{'' if distill else ' --hard-replay'} --out {out}")
     s2 = [r for r in rows if r["polarity"] == OUT_OF_PLACE]
     summary = {"table_s2_reached_0.7": sum(r["reached_0.7"] for r in s2), "table_s2_pairs": len(s2),
                "preferences_reached_0.7": sum(r["reached_0.7"] for r in rows if r["polarity"] == IN_PLACE),
@@ -1289,9 +1318,10 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
                "mean_before": float(np.mean([r["p_oop_before"] for r in s2])),
                "mean_after": float(np.mean([r["p_oop_after"] for r in s2])),
                "unrelated_mean_abs_change": float(np.mean([r["unrelated_mean_abs_change"] for r in rows])),
-               "unrelated_worst_instruction": float(max(r["unrelated_mean_abs_change"] for r in rows))}
+               "unrelated_worst_instruction": float(max(r["unrelated_mean_abs_change"] for r in rows)),
+               "unrelated_largest_pair_change": float(max(r["unrelated_max_pair_change"] for r in rows))}
     report = {"command": command, "weights": _show(weights), "sha256": read_manifest(weights)["sha256"],
-              "split": split, "steps": steps, "lr": lr, "anchor_weight": anchor_weight, "seed": seed,
+              "split": split, "steps": steps, "lr": lr, "anchor_weight": anchor_weight, "distill": distill, "seed": seed,
               "test_rooms_per_type": rooms_per_type, "messes_per_room": messes_per_room,
               "test_objects": len(samples), "unrelated_pairs": [list(cr) + [len(pairs[cr])] for cr in unrelated],
               "unrelated_examples": len(unrelated_idx), "rows": rows, "summary": summary,
@@ -1299,23 +1329,28 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
     write_json_atomic(out / "instruct.json", report)
     lines = ["# Altering placement priors by instruction (paper Table S2)", "", f"`{command}`", "",
              (f"- weights `{_show(weights)}`; each instruction fine-tunes a fresh copy of the head for {steps} steps "
-             "(instructed relations + replay of training samples, L2 pull to the start weights)"),
+             "(instructed relations + replay of training samples, "
+             + ("held to the head's own probabilities before the instruction (distillation)" if distill
+                else "with their training labels") + ", L2 pull to the start weights)"),
              (f"- P(out of place) = mean over the held-out paragraphs with that relation ({rooms_per_type} {split} rooms "
              f"per type x {messes_per_room} messes; `source` says where they come from)"),
              (f"- forgetting: mean |change| of P(out of place) over {len(unrelated_idx)} {split} paragraphs of "
              f"{len(unrelated)} frequent pairs of other categories"), "",
-             "| relation | instruction | n | source | before | after | paper before -> after | unrelated mean abs change |",
-             "|---|---|---|---|---|---|---|---|"]
+             ("| relation | instruction | n | source | before | after | paper before -> after | unrelated mean abs change "
+              "| largest unrelated pair change |"),
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         paper = r["paper_before_after"]
         lines.append(f"| {words(r['category'])} supported-by {words(r['receptacle'])} | {r['instruction']} | "
                      f"{r['examples']} | {r['source']} | {r['p_oop_before']:.2f} | {r['p_oop_after']:.2f} | "
-                     f"{f'{paper[0]:.2f} -> {paper[1]:.2f}' if paper else '--'} | {r['unrelated_mean_abs_change']:.3f} |")
+                     f"{f'{paper[0]:.2f} -> {paper[1]:.2f}' if paper else '--'} | {r['unrelated_mean_abs_change']:.3f} | "
+                     f"{r['unrelated_max_pair_change']:.2f} |")
     lines += ["", (f"Out-of-place instructions reaching P(oop) >= 0.7: {summary['table_s2_reached_0.7']}/"
               f"{summary['table_s2_pairs']} (mean {summary['mean_before']:.2f} -> {summary['mean_after']:.2f}); "
               f"preferences reaching P(in place) >= 0.7: {summary['preferences_reached_0.7']}/{summary['preferences']}; "
               f"unrelated pairs: mean |change| {summary['unrelated_mean_abs_change']:.3f} "
-              f"(worst instruction {summary['unrelated_worst_instruction']:.3f})."), ""]
+              f"(worst instruction {summary['unrelated_worst_instruction']:.3f}; largest change of one unrelated "
+              f"pair's mean {summary['unrelated_largest_pair_change']:.2f})."), ""]
     write_atomic(out / "instruct.md", "\n".join(lines).encode())
     return report
 
@@ -1353,7 +1388,7 @@ def _cmd_eval(args: Any) -> int:
 def _cmd_instruct(args: Any) -> int:
     _set_threads(args.threads)
     run_instruct_eval(args.out, args.weights, args.steps, encoder_path=args.encoder_path, cache_dir=args.cache_dir,
-                      anchor_weight=args.anchor_weight, split=args.split)
+                      anchor_weight=args.anchor_weight, split=args.split, distill=not args.hard_replay)
     print((Path(args.out) / "instruct.md").read_text())
     return 0
 
@@ -1397,6 +1432,9 @@ def register(train_sub: Any, eval_sub: Any) -> None:
     p.add_argument("--steps", type=int, default=50)
     p.add_argument("--anchor-weight", type=float, default=ANCHOR_WEIGHT,
                    help="L2 pull towards the starting weights during an instruction's fine-tuning")
+    p.add_argument("--hard-replay", action="store_true",
+                   help="replay samples keep their training labels (the default holds them to the head's own "
+                        "probabilities before the instruction: distillation)")
     p.add_argument("--split", choices=("test", "val"), default="test",
                    help="rooms whose paragraphs are instructed and watched for forgetting")
     _common(p)
