@@ -577,9 +577,10 @@ def fit_head(head: Any, x: np.ndarray, y: np.ndarray, steps: int, batch_size: in
 
     ``pos_weight`` (default n_negative / n_positive of ``y``) balances the ~20% of
     out-of-place samples. ``fixed``: groups of (x, y, share), samples that make up ``share``
-    of every batch each (an instruction's relations); ``anchor_weight`` pulls the weights towards their
-    starting values (L2-SP), which limits forgetting during a short fine-tune (``anchor``:
-    other weights to pull towards, e.g. those before an earlier round of fine-tuning).
+    of every batch each (an instruction's relations and its neighbours); ``anchor_weight``
+    pulls the weights towards their starting values (L2-SP), which limits forgetting during a
+    short fine-tune (``anchor``: other weights to pull towards, e.g. those before an earlier
+    round of fine-tuning).
     """
     import torch
     from tqdm import tqdm
@@ -1174,7 +1175,8 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
         soft = classifier.predict_embeddings(rep["embeddings"]).astype(np.float32)
         fit_y, pos_weight = np.where(relabelled, replay_y, soft).astype(np.float32), 1.0
     inst_x = classifier.encoder.encode(instructed)
-    neighbours = [i for i, (c, r) in enumerate(zip(cats, supports)) if r == inst.receptacle and c != inst.category]
+    neighbours = [i for i, (c, r) in enumerate(zip(cats, supports))
+                  if r == inst.receptacle and c != inst.category]
     fixed = [(inst_x, np.asarray(inst_y, np.float32), 0.5),
              (rep["embeddings"][neighbours], fit_y[neighbours], neighbour_share)]
     check_x = classifier.encoder.encode(check) if check else inst_x
@@ -1191,8 +1193,8 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
     with torch.random.fork_rng(devices=[]):     # dropout draws from torch's global generator
         torch.manual_seed(seed)
         while done < max(steps, 1):
-            fit_head(classifier.head, rep["embeddings"], fit_y, steps, batch_size, lr, 0.0, seed + done, "cpu",
-                     log_every=max(steps, 1), progress=False, anchor_weight=anchor_weight, anchor=anchor,
+            fit_head(classifier.head, rep["embeddings"], fit_y, steps, batch_size, lr, 0.0, seed + done,
+                     "cpu", log_every=max(steps, 1), progress=False, anchor_weight=anchor_weight, anchor=anchor,
                      pos_weight=pos_weight, fixed=fixed)
             done += steps
             if check_ok() or done + steps > max_steps:
@@ -1321,7 +1323,8 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
                "unrelated_worst_instruction": float(max(r["unrelated_mean_abs_change"] for r in rows)),
                "unrelated_largest_pair_change": float(max(r["unrelated_max_pair_change"] for r in rows))}
     report = {"command": command, "weights": _show(weights), "sha256": read_manifest(weights)["sha256"],
-              "split": split, "steps": steps, "lr": lr, "anchor_weight": anchor_weight, "distill": distill, "seed": seed,
+              "split": split, "steps": steps, "lr": lr, "anchor_weight": anchor_weight, "distill": distill,
+              "seed": seed,
               "test_rooms_per_type": rooms_per_type, "messes_per_room": messes_per_room,
               "test_objects": len(samples), "unrelated_pairs": [list(cr) + [len(pairs[cr])] for cr in unrelated],
               "unrelated_examples": len(unrelated_idx), "rows": rows, "summary": summary,
@@ -1336,21 +1339,21 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
              f"per type x {messes_per_room} messes; `source` says where they come from)"),
              (f"- forgetting: mean |change| of P(out of place) over {len(unrelated_idx)} {split} paragraphs of "
              f"{len(unrelated)} frequent pairs of other categories"), "",
-             ("| relation | instruction | n | source | before | after | paper before -> after | unrelated mean abs change "
-              "| largest unrelated pair change |"),
+             ("| relation | instruction | n | source | before | after | paper before -> after "
+              "| unrelated mean abs change | largest unrelated pair change |"),
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         paper = r["paper_before_after"]
         lines.append(f"| {words(r['category'])} supported-by {words(r['receptacle'])} | {r['instruction']} | "
                      f"{r['examples']} | {r['source']} | {r['p_oop_before']:.2f} | {r['p_oop_after']:.2f} | "
-                     f"{f'{paper[0]:.2f} -> {paper[1]:.2f}' if paper else '--'} | {r['unrelated_mean_abs_change']:.3f} | "
-                     f"{r['unrelated_max_pair_change']:.2f} |")
+                     f"{f'{paper[0]:.2f} -> {paper[1]:.2f}' if paper else '--'} | "
+                     f"{r['unrelated_mean_abs_change']:.3f} | {r['unrelated_max_pair_change']:.2f} |")
     lines += ["", (f"Out-of-place instructions reaching P(oop) >= 0.7: {summary['table_s2_reached_0.7']}/"
               f"{summary['table_s2_pairs']} (mean {summary['mean_before']:.2f} -> {summary['mean_after']:.2f}); "
               f"preferences reaching P(in place) >= 0.7: {summary['preferences_reached_0.7']}/{summary['preferences']}; "
               f"unrelated pairs: mean |change| {summary['unrelated_mean_abs_change']:.3f} "
-              f"(worst instruction {summary['unrelated_worst_instruction']:.3f}; largest change of one unrelated "
-              f"pair's mean {summary['unrelated_largest_pair_change']:.2f})."), ""]
+              f"(worst instruction {summary['unrelated_worst_instruction']:.3f}; "
+              f"largest change of one unrelated pair's mean {summary['unrelated_largest_pair_change']:.2f})."), ""]
     write_atomic(out / "instruct.md", "\n".join(lines).encode())
     return report
 
