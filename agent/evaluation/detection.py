@@ -60,7 +60,7 @@ SIZE_RANGES: dict[str, tuple[float, float]] = {"small": (0.0, 32.0 ** 2), "mediu
 
 VISUAL_ROW = "dDETR-OOP (visual)"
 OOP_ROWS: tuple[str, ...] = (VISUAL_ROW, "BERT-OOP (language)", "dDETR+BERT-OOP (fused)", "Oracle-language")
-NOT_BUILT = "not built yet (issue 6)"
+NOT_BUILT = "not run (`--visual-only`)"
 # Table 3 of the paper (tidee-eccv2022.tex, tab:oop_supp), AP in %, on AI2THOR test rooms:
 # (mAP, AP in-place, AP out-of-place) at IoU 0.25, then at IoU 0.5; None where the paper has "--".
 # The paper's names: dDETR-OOP, BERT-OOP, dDETR+BERT-OOP, oracle-BERT-OOP.
@@ -620,7 +620,7 @@ def run_oop_eval(detector: FrameDetector, out_dir: str | Path, views_per_config:
     counts = _config_counts(frames)
     expected = len(ROOM_TYPES) * rooms_per_type * messes
     command = (f"tidee eval oop --split {split} --views {views_per_config} --rooms-per-type {rooms_per_type} "
-               f"--messes {messes} --walks {walks} --seed {seed} --out {out}")
+               f"--messes {messes} --walks {walks} --seed {seed}{'' if extra_rows else ' --visual-only'} --out {out}")
     report = {"command": command, "detector": _detector_info(detector), "timing": timing,
               "data": {"split": split, "rooms_per_type": rooms_per_type, "messes_per_room": messes,
                        "views_per_config_target": views_per_config, "walks": walks,
