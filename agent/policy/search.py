@@ -23,8 +23,8 @@ from tidee.agent.classes import CLASSES, PICKUPABLE
 from tidee.agent.mapping.maps import MapConfig, SemanticMapper
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import FrontierExplorer, sample_reachable_goal
-from tidee.agent.policy.skills import (Body, Skill, face_point, find_in_view, footprint_gap, goal_mask_near_box,
-                                       look_around, navigate, pitch_to, planner_from, projected_sighting,
+from tidee.agent.policy.skills import (Body, Skill, face_point, find_in_view, footprint_gap, frontier_goal,
+                                       goal_mask_near_box, look_around, navigate, pitch_to, projected_sighting,
                                        reachable_mask)
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
 
@@ -75,13 +75,7 @@ def frontier_proposer(explorer: FrontierExplorer | None = None) -> Proposer:
     """The Yamauchi baseline: the geodesically nearest frontier (Table 2's exploration agent)."""
 
     def propose(body: Body, label: str, visited: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
-        mapper = body.mapper
-        ex = explorer or FrontierExplorer(mapper.grid)
-        planner = planner_from(body)
-        planner.set_goal(tuple(body.xy))
-        occ = mapper.occupancy_grid()
-        known = mapper.explored | (occ > 0)
-        goal = ex.next_goal(occ == 1, known, mapper.obstacle, planner, tuple(body.xy))
+        goal = frontier_goal(body, explorer or FrontierExplorer(body.mapper.grid))
         return [] if goal is None else [goal]
 
     return propose

@@ -18,6 +18,7 @@ from tidee.agent.classes import PICKUPABLE
 from tidee.agent.mapping.geometry import project, unproject
 from tidee.agent.mapping.maps import SemanticMapper
 from tidee.agent.mapping.memory import TrackedObject
+from tidee.agent.navigation.explore import FrontierExplorer
 from tidee.agent.navigation.fmm import FMMPlanner, NavStatus, wrap_deg
 from tidee.agent.perception.base import Detection
 from tidee.protocol.messages import Action, ActionName, Observation
@@ -99,6 +100,17 @@ def planner_from(body: Body) -> FMMPlanner:
 def reachable_mask(body: Body) -> np.ndarray:
     """bool nav grid: cells the agent can reach from where it stands (unknown counts as free)."""
     return planner_and_reach(body)[1]
+
+
+def frontier_goal(body: Body, explorer: FrontierExplorer,
+                  planner: FMMPlanner | None = None) -> tuple[float, float] | None:
+    """The explorer's next goal from where the agent stands: the geodesically nearest
+    frontier (None: none left). ``planner``: one already built for this step."""
+    planner = planner or planner_from(body)
+    planner.set_goal(tuple(body.xy))
+    mapper = body.mapper
+    occ = mapper.occupancy_grid()
+    return explorer.next_goal(occ == 1, mapper.explored | (occ > 0), mapper.obstacle, planner, tuple(body.xy))
 
 
 def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: np.ndarray | None = None,

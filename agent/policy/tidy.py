@@ -29,9 +29,9 @@ from tidee.agent.config import AgentConfig
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import (FrontierExplorer, sample_reachable_goal, sample_unexplored_goal,
                                             unexplored_fraction)
-from tidee.agent.policy.skills import (MOVE_M, Body, face_point, find_in_view, goal_mask_near_box, look_around,
-                                       navigate, pitch_to, planner_and_reach, projected_sighting, receptacle_in_view,
-                                       reachable_mask, sighting_of)
+from tidee.agent.policy.skills import (MOVE_M, Body, face_point, find_in_view, frontier_goal, goal_mask_near_box,
+                                       look_around, navigate, pitch_to, planner_and_reach, projected_sighting,
+                                       reachable_mask, receptacle_in_view, sighting_of)
 from tidee.agent.reasoning.oop import OOPDetector
 from tidee.agent.reasoning.placement import PlacementModel
 from tidee.protocol.messages import Action, ActionName
@@ -174,10 +174,7 @@ class TidyPolicy:
             if unexplored_fraction(mapper.explored, reachable) < self.p.explore_unexplored_stop:
                 break
             if self.cfg.explorer == "frontier":
-                planner.set_goal(tuple(self.body.xy))
-                known = mapper.explored | (mapper.occupancy_grid() > 0)
-                goal = self.frontier.next_goal(mapper.occupancy_grid() == 1, known, mapper.obstacle, planner,
-                                               tuple(self.body.xy))
+                goal = frontier_goal(self.body, self.frontier, planner)
             else:
                 goal = sample_unexplored_goal(mapper.explored, reachable, mapper.grid, self.rng, tuple(self.body.xy))
             if goal is None:

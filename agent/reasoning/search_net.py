@@ -407,24 +407,21 @@ def _jobs(cfg: SearchGenConfig) -> list[tuple[str, int, int | None]]:
 
 def _explore_skill(body: Any, rng: np.random.Generator) -> Any:
     """Mapping as the agent does it: look around, then frontier or random unexplored goals."""
-    from tidee.agent.navigation.explore import FrontierExplorer, sample_unexplored_goal
-    from tidee.agent.policy.search import frontier_proposer
-    from tidee.agent.policy.skills import reachable_mask
-    from tidee.agent.policy.skills import look_around, navigate
+    from tidee.agent.navigation.explore import FrontierExplorer, sample_reachable_goal, sample_unexplored_goal
+    from tidee.agent.policy.skills import frontier_goal, look_around, navigate, reachable_mask
 
     yield from look_around(body)
-    frontier = frontier_proposer(FrontierExplorer(body.mapper.grid))
+    explorer = FrontierExplorer(body.mapper.grid)
     while body.steps_left() > 1:
+        reach = None
         if rng.random() < 0.5:
-            goals = frontier(body, "", ())
-            goal = goals[0] if goals else None
+            goal = frontier_goal(body, explorer)
         else:
-            goal = sample_unexplored_goal(body.mapper.explored, reachable_mask(body), body.mapper.grid, rng,
-                                          tuple(body.xy))
+            reach = reachable_mask(body)
+            goal = sample_unexplored_goal(body.mapper.explored, reach, body.mapper.grid, rng, tuple(body.xy))
         if goal is None:
-            from tidee.agent.navigation.explore import sample_reachable_goal
-
-            goal = sample_reachable_goal(reachable_mask(body), body.mapper.grid, rng, tuple(body.xy))
+            reach = reachable_mask(body) if reach is None else reach
+            goal = sample_reachable_goal(reach, body.mapper.grid, rng, tuple(body.xy))
             if goal is None:
                 return False
         yield from navigate(body, goal_xy=goal, budget=40)
