@@ -90,6 +90,16 @@ def test_targets_decode_back_to_their_boxes() -> None:
     assert [d.cls for d in dets] == [3, 17, 3]
     assert [round(d.oop_prob) for d in dets] == [0, 1, 0]
     np.testing.assert_allclose([d.box for d in dets], boxes, atol=1e-3)
+    # a second guess: class 40 also scores at the first box's centre cell
+    i0 = int(t["ind"][0])
+    out["heat"][0, 40].view(-1)[i0] = 1.0
+    assert len(decode(out, threshold=0.5)[0]) == 3                    # one class per peak
+    multi = decode(out, threshold=0.5, classes_per_peak=2)[0]
+    assert len(multi) == 4 and [d.cls for d in multi].count(40) == 1
+    second = next(d for d in multi if d.cls == 40)
+    first = next(d for d in multi if d.cell == second.cell and d.cls != 40)
+    assert first.cls == 3 and first.box == second.box and second.score < first.score
+    assert multi[-1] is second                                          # ranked by score with the rest
 
 
 @pytest.fixture(scope="module")
@@ -99,13 +109,17 @@ def tiny_train_frames() -> dict[str, np.ndarray]:
     return pack(list(iter_frames(cfg, progress=False)))
 
 
-def test_a_few_training_steps_reduce_the_loss(tiny_train_frames, tmp_path) -> None:
-    from tidee.agent.perception.train_detector import TrainConfig, train_detector
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_a_few_training_steps_reduce_the_loss(tiny_train_frames, tmp_path, precision) -> None:
+    from tidee.agent.perception.train_detector import TrainConfig, bf16_supported, train_detector
 
+    if precision == "bf16" and not bf16_supported("cpu"):
+        pytest.skip("this CPU has no native bf16")
     cfg = TrainConfig(work_dir=str(tmp_path / "run"), steps=16, batch_size=4, lr=2e-3, warmup=2, log_every=4,
-                      ckpt_every=8)
+                      ckpt_every=8, precision=precision)
     model_cfg = DetectorConfig(input_size=128)
     r = train_detector(cfg, model_cfg, resume=False, progress=False, data=tiny_train_frames, ship=False)
+    assert r["precision"] == precision
     losses = [h["total"] for h in r["history"]]
     assert len(losses) == 4
     assert losses[-1] < 0.7 * losses[0], losses
@@ -131,7 +145,7 @@ def test_a_grown_model_starts_as_the_weights_it_grew_from(tmp_path) -> None:
                 mod.running_var.uniform_(0.5, 2.0)
     path = tmp_path / "small.pt"
     save_checkpoint(path, config=small.cfg.to_dict(), state_dict=small.state_dict())
-    grown = CenterDetector(DetectorConfig(input_size=128, extra_blocks=(1, 1, 1), head_conv=True))
+    grown = CenterDetector(DetectorConfig(input_size=128, extra_blocks=(1, 2, 1), head_conv=True, extra_s4=1))
     lineage = init_from(grown, path)
     assert lineage["new_tensors"] > 0 and len(lineage["sha256"]) == 64
     assert sum(p.numel() for p in grown.parameters()) > sum(p.numel() for p in small.parameters())

@@ -18,13 +18,16 @@ def _cmd_train_detector(args: argparse.Namespace) -> int:
     try:
         extra = tuple(int(x) for x in args.extra_blocks.split(","))
     except ValueError:
-        raise SystemExit(f"--extra-blocks wants three integers like 0,1,1, not {args.extra_blocks!r}")
-    if len(extra) != 3 or min(extra) < 0:
-        raise SystemExit(f"--extra-blocks wants three non-negative integers (stride 8, 16, 32), not {args.extra_blocks!r}")
+        raise SystemExit(f"--extra-blocks wants integers like 0,1,1, not {args.extra_blocks!r}")
+    if len(extra) not in (3, 4) or min(extra) < 0:
+        raise SystemExit("--extra-blocks wants three non-negative integers (stride 8, 16, 32) or four "
+                         f"(stride 4, 8, 16, 32), not {args.extra_blocks!r}")
+    extra_s4, extra = (extra[0], extra[1:]) if len(extra) == 4 else (0, extra)
     cfg = TrainConfig(data=args.data, out=args.out, work_dir=args.work_dir, steps=args.steps,
                       batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
-                      threads=args.threads, limit_frames=args.limit_frames, init=args.init, warmup=args.warmup)
-    model_cfg = DetectorConfig(extra_blocks=extra, head_conv=args.head_conv)
+                      threads=args.threads, limit_frames=args.limit_frames, init=args.init, warmup=args.warmup,
+                      precision=args.precision)
+    model_cfg = DetectorConfig(extra_blocks=extra, head_conv=args.head_conv, extra_s4=extra_s4)
     command = "tidee train detector " + " ".join(sys.argv[3:])
     result = train_detector(cfg, model_cfg, resume=not args.no_resume, command=command.strip())
     last = result["history"][-1] if result["history"] else {}
@@ -52,7 +55,10 @@ def register(train_sub: argparse._SubParsersAction, eval_sub: argparse._SubParse
                    help="start from these detector weights; with --extra-blocks / --head-conv the model grows "
                         "around them, starting as exactly the same function")
     p.add_argument("--extra-blocks", default="0,0,0",
-                   help="extra residual blocks at stride 8,16,32 (identity at start)")
+                   help="extra residual blocks at stride 8,16,32, or 4,8,16,32 (identity at start)")
+    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                   help="bf16 autocast + channels-last (about 2x faster on a CPU with AVX512-BF16); "
+                        "auto: bf16 where the CPU or GPU supports it, fp32 otherwise")
     p.add_argument("--head-conv", action="store_true",
                    help="a depthwise-separable conv before the heads (identity at start)")
     p.set_defaults(func=_cmd_train_detector)

@@ -36,10 +36,12 @@ class DetectorConfig:
     input_size: int = 256
     use_depth: bool = True
     # grown capacity (``tidee train detector --init``): extra residual blocks at stride 8, 16,
-    # 32, and a depthwise-separable conv before the heads. Each starts as the identity, so a
-    # grown model computes exactly what the weights it was initialised from computed.
+    # 32 (``extra_blocks``) and 4 (``extra_s4``), and a depthwise-separable conv before the
+    # heads. Each starts as the identity, so a grown model computes exactly what the weights it
+    # was initialised from computed.
     extra_blocks: tuple[int, int, int] = (0, 0, 0)
     head_conv: bool = False
+    extra_s4: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -89,7 +91,8 @@ class CenterDetector(nn.Module):
         self.cfg = cfg
         w = cfg.widths
         cin = 4 if cfg.use_depth else 3
-        self.stem = nn.Sequential(cbr(cin, w[0], 2), cbr(w[0], w[1], 2), cbr(w[1], w[1]))      # /4
+        self.stem = nn.Sequential(cbr(cin, w[0], 2), cbr(w[0], w[1], 2), cbr(w[1], w[1]),      # /4
+                                  *[Residual(w[1], identity=True) for _ in range(cfg.extra_s4)])
         extra = cfg.extra_blocks
         self.s8 = nn.Sequential(cbr(w[1], w[2], 2), Residual(w[2]),                            # /8
                                 *[Residual(w[2], identity=True) for _ in range(extra[0])])
@@ -229,30 +232,44 @@ class RawDetection:
 
 
 def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
-           stride: int = 4) -> list[list[RawDetection]]:
-    """Peaks of the class-max heatmap (3x3 max-pool NMS) -> one box per peak, per image.
+           stride: int = 4, classes_per_peak: int = 1) -> list[list[RawDetection]]:
+    """Peaks of the class-max heatmap (3x3 max-pool NMS) -> boxes, per image, best first.
 
     Peaks are found on the max over classes (logits: sigmoid is monotonic), so NMS costs a
-    64 x 64 pool instead of C of them; one class per centre cell.
+    64 x 64 pool instead of C of them. ``classes_per_peak`` = 1 gives one class per centre
+    cell (what the agent uses); m > 1 offers the m best classes of each peak as separate
+    detections sharing its box, ranked together (the detector's second guesses: a COCO-style
+    evaluation keeps them, as CenterNet's top-100 over classes and cells does).
     """
-    logits = out["heat"]
+    logits = out["heat"].float()
     b, c, h, w = logits.shape
     best, cls_map = logits.max(1)                                   # B x H x W
     keep = F.max_pool2d(best.unsqueeze(1), 3, 1, 1)[:, 0] == best
-    peak = torch.where(keep, best, torch.full_like(best, -1e4)).view(b, -1)
-    top, idx = peak.topk(min(k, h * w))
+    if classes_per_peak <= 1:
+        peak = torch.where(keep, best, torch.full_like(best, -1e4)).view(b, -1)
+        top, idx = peak.topk(min(k, h * w))
+        cls_flat = cls_map.view(b, -1)
+        cls_sel = torch.gather(cls_flat, 1, idx)
+        cells = idx
+    else:
+        m = min(classes_per_peak, c)
+        vals, cls_m = logits.topk(m, dim=1)                         # B x m x H x W
+        vals = torch.where(keep.unsqueeze(1), vals, torch.full_like(vals, -1e4)).view(b, -1)
+        top, idx = vals.topk(min(k, m * h * w))
+        cls_sel = torch.gather(cls_m.reshape(b, -1), 1, idx)
+        cells = idx % (h * w)
     scores = torch.sigmoid(top)
-    size = out["size"].reshape(b, 2, -1)
-    off = out["off"].reshape(b, 2, -1)
-    oop = torch.sigmoid(out["oop"]).reshape(b, -1)
-    cls_flat = cls_map.view(b, -1)
+    size = out["size"].float().reshape(b, 2, -1)
+    off = out["off"].float().reshape(b, 2, -1)
+    oop = torch.sigmoid(out["oop"].float()).reshape(b, -1)
     res: list[list[RawDetection]] = []
     for i in range(b):
         dets = []
-        sel = idx[i][scores[i] >= threshold]
-        if len(sel):
-            sc = scores[i][: len(sel)].tolist()
-            cl = cls_flat[i, sel].tolist()
+        n = int((scores[i] >= threshold).sum())       # scores are sorted: the first n pass
+        if n:
+            sel = cells[i, :n]
+            sc = scores[i, :n].tolist()
+            cl = cls_sel[i, :n].tolist()
             sz = size[i][:, sel].clamp(max=7.0).exp().tolist()
             of = off[i][:, sel].tolist()
             op = oop[i, sel].tolist()

@@ -66,14 +66,24 @@ def nms(boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray, iou: float) 
 
 
 class LearnedPerception:
-    """The trained detector. ``threshold`` is the score below which detections are dropped."""
+    """The trained detector. ``threshold`` is the score below which detections are dropped.
+
+    ``precision``: "auto" runs the network under bf16 autocast, channels-last, where the CPU
+    has native bf16 (AVX512-BF16/AMX; about 1.6x faster per frame), fp32 elsewhere.
+    ``classes_per_peak``: see ``detector.decode`` (1 for the agent).
+    """
 
     name = "learned"
     needs_ground_truth = False
 
     def __init__(self, model: CenterDetector, manifest: dict | None = None, threshold: float = 0.3,
-                 max_detections: int = 50, path: Path | None = None, nms_iou: float = 0.5) -> None:
-        self.model = model.eval()
+                 max_detections: int = 50, path: Path | None = None, nms_iou: float = 0.5,
+                 precision: str = "auto", classes_per_peak: int = 1) -> None:
+        from tidee.agent.perception.train_detector import resolve_precision
+
+        self.precision = resolve_precision(precision, "cpu")
+        self.model = model.eval().to(memory_format=torch.channels_last)
+        self.classes_per_peak = classes_per_peak
         self.path = path                    # the weights file (its manifest is beside it)
         self.cfg = model.cfg
         self.manifest = manifest or {}
@@ -82,7 +92,8 @@ class LearnedPerception:
         self.nms_iou = nms_iou
 
     @staticmethod
-    def load(path: str | Path | None = None, threshold: float = 0.3, verify: bool = True) -> "LearnedPerception":
+    def load(path: str | Path | None = None, threshold: float = 0.3, verify: bool = True,
+             precision: str = "auto", classes_per_peak: int = 1) -> "LearnedPerception":
         from tidee.agent.perception.train_detector import DEFAULT_WEIGHTS
 
         path = Path(path) if path else DEFAULT_WEIGHTS
@@ -93,7 +104,8 @@ class LearnedPerception:
             raise ValueError(f"{path} predicts {cfg.num_classes} classes; the catalog has {len(CLASSES)}: retrain")
         model = CenterDetector(cfg)
         model.load_state_dict(blob["state_dict"])
-        return LearnedPerception(model, manifest, threshold, path=path)
+        return LearnedPerception(model, manifest, threshold, path=path, precision=precision,
+                                 classes_per_peak=classes_per_peak)
 
     @property
     def sha256(self) -> str | None:
@@ -117,9 +129,13 @@ class LearnedPerception:
             depth_in = np.stack([cv2.resize(d, (size, size), interpolation=cv2.INTER_NEAREST) for d in depths])
         else:
             rgb_in, depth_in = rgbs, depths
-        out = self.model(preprocess(rgb_in, depth_in, self.cfg.use_depth))
+        x = preprocess(rgb_in, depth_in, self.cfg.use_depth).contiguous(memory_format=torch.channels_last)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+            out = self.model(x)
+        out = {k: v.float() for k, v in out.items()}
         thr = self.threshold if threshold is None else threshold
-        raw = decode(out, k=self.max_detections, threshold=thr, stride=self.cfg.stride)
+        raw = decode(out, k=self.max_detections, threshold=thr, stride=self.cfg.stride,
+                     classes_per_peak=self.classes_per_peak)
         feat = torch.nn.functional.normalize(out["feat"], dim=1)
         sx, sy = w / size, h / size
         focal = (w / 2) / np.tan(np.radians(45.0))

@@ -44,6 +44,7 @@ class TrainConfig:
     log_every: int = 20
     limit_frames: int | None = None  # use only the first N frames (tests, smoke runs)
     init: str | None = None          # start from these detector weights (a grown model: see init_from)
+    precision: str = "auto"          # auto | fp32 | bf16 (autocast; weights, optimiser and losses stay fp32)
 
 
 class Batches:
@@ -121,6 +122,24 @@ def init_from(model: CenterDetector, weights: str | Path) -> dict[str, Any]:
     return lineage
 
 
+def bf16_supported(device: str) -> bool:
+    """Whether bf16 autocast runs natively here (AVX512-BF16/AMX through oneDNN, or a bf16 GPU)."""
+    if device.startswith("cuda"):
+        return torch.cuda.is_bf16_supported()
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
+def resolve_precision(precision: str, device: str) -> str:
+    if precision not in ("auto", "fp32", "bf16"):
+        raise ValueError(f"precision must be auto, fp32 or bf16, not {precision!r}")
+    if precision == "auto":
+        return "bf16" if bf16_supported(device) else "fp32"
+    return precision
+
+
 def lr_at(step: int, cfg: TrainConfig) -> float:
     if step < cfg.warmup:
         return cfg.lr * (step + 1) / cfg.warmup
@@ -149,7 +168,8 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
                 **{k: v[keep] for k, v in data.items() if k.startswith("obj_")}}
     model = CenterDetector(model_cfg)
     lineage = init_from(model, cfg.init) if cfg.init else None
-    model = model.to(device)
+    precision = resolve_precision(cfg.precision, device)
+    model = model.to(device, memory_format=torch.channels_last)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     batches = Batches(data, model_cfg, cfg.batch_size, cfg.seed)
     work = Path(cfg.work_dir)
@@ -157,7 +177,7 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
     step, history = 0, []
     ck = load_checkpoint(ckpt_path) if resume else None
     if ck is not None:
-        if ck["train_config"]["seed"] != cfg.seed or ck["model_config"] != model_cfg.to_dict():
+        if ck["train_config"]["seed"] != cfg.seed or DetectorConfig.from_dict(ck["model_config"]) != model_cfg:
             raise ValueError(f"{ckpt_path} was written by a different run (seed or architecture); "
                              "pass --no-resume or another --work-dir")
         model.load_state_dict(ck["model"])
@@ -173,9 +193,11 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
         for g in opt.param_groups:
             g["lr"] = lr_at(step, cfg)
         x, tgt = batches()
-        x = x.to(device)
+        x = x.to(device, memory_format=torch.channels_last)
         tgt = {k: v.to(device) for k, v in tgt.items()}
-        losses = detector_loss(model(x), tgt)
+        with torch.autocast(device.split(":")[0], dtype=torch.bfloat16, enabled=precision == "bf16"):
+            out = model(x)
+        losses = detector_loss({k: v.float() for k, v in out.items()}, tgt)
         opt.zero_grad(set_to_none=True)
         losses["total"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
@@ -196,11 +218,11 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
             save_loss_curve(history, work / "loss.png", f"detector ({step} steps, batch {cfg.batch_size})")
     bar.close()
     result: dict[str, Any] = {"history": history, "seconds": round(time.time() - t0, 1), "steps": step,
-                              "device": device, "work_dir": str(work)}
+                              "device": device, "precision": precision, "work_dir": str(work)}
     if ship:
         out = Path(cfg.out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+        state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
         save_checkpoint(out, config=model_cfg.to_dict(), state_dict=state)
         docs = Path("docs/models")
         docs.mkdir(parents=True, exist_ok=True)
@@ -211,7 +233,7 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
                   "rooms": len(data_manifest.get("rooms", [])), "room_seeds": data_manifest.get("config", {}),
                   "split": "train (seeds 0-19 + pool 10000...), never val/test"},
             metrics={"train_loss_final": history[-1] if history else None},
-            train_config=asdict(cfg), model_config=model_cfg.to_dict(),
+            train_config={**asdict(cfg), "precision_used": precision}, model_config=model_cfg.to_dict(),
             parameters=int(sum(p.numel() for p in model.parameters())),
             **({"init": lineage} if lineage else {}),
             loss_curve="docs/models/detector_loss.png")
@@ -219,4 +241,5 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
     return result
 
 
-__all__ = ["TrainConfig", "Batches", "train_detector", "DEFAULT_WEIGHTS", "lr_at", "init_from"]
+__all__ = ["TrainConfig", "Batches", "train_detector", "DEFAULT_WEIGHTS", "lr_at", "init_from", "bf16_supported",
+           "resolve_precision"]
