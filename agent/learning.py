@@ -30,6 +30,27 @@ def pick_device(requested: str = "auto") -> str:
     return requested
 
 
+def bf16_supported(device: str) -> bool:
+    """Whether bf16 autocast runs natively here (AVX512-BF16/AMX through oneDNN, or a bf16 GPU)."""
+    import torch
+
+    if device.startswith("cuda"):
+        return torch.cuda.is_bf16_supported()
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
+def resolve_precision(precision: str, device: str) -> str:
+    """"auto" -> "bf16" where ``device`` runs it natively, "fp32" elsewhere; "fp32" / "bf16" as asked."""
+    if precision not in ("auto", "fp32", "bf16"):
+        raise ValueError(f"precision must be auto, fp32 or bf16, not {precision!r}")
+    if precision == "auto":
+        return "bf16" if bf16_supported(device) else "fp32"
+    return precision
+
+
 def sha256_file(path: str | Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:

@@ -111,7 +111,8 @@ def tiny_train_frames() -> dict[str, np.ndarray]:
 
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_a_few_training_steps_reduce_the_loss(tiny_train_frames, tmp_path, precision) -> None:
-    from tidee.agent.perception.train_detector import TrainConfig, bf16_supported, train_detector
+    from tidee.agent.learning import bf16_supported
+    from tidee.agent.perception.train_detector import TrainConfig, train_detector
 
     if precision == "bf16" and not bf16_supported("cpu"):
         pytest.skip("this CPU has no native bf16")

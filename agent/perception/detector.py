@@ -241,27 +241,20 @@ def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
     detections sharing its box, ranked together (the detector's second guesses: a COCO-style
     evaluation keeps them, as CenterNet's top-100 over classes and cells does).
     """
-    logits = out["heat"].float()
+    logits = out["heat"]
     b, c, h, w = logits.shape
-    best, cls_map = logits.max(1)                                   # B x H x W
+    best = logits.max(1).values                                     # B x H x W
     keep = F.max_pool2d(best.unsqueeze(1), 3, 1, 1)[:, 0] == best
-    if classes_per_peak <= 1:
-        peak = torch.where(keep, best, torch.full_like(best, -1e4)).view(b, -1)
-        top, idx = peak.topk(min(k, h * w))
-        cls_flat = cls_map.view(b, -1)
-        cls_sel = torch.gather(cls_flat, 1, idx)
-        cells = idx
-    else:
-        m = min(classes_per_peak, c)
-        vals, cls_m = logits.topk(m, dim=1)                         # B x m x H x W
-        vals = torch.where(keep.unsqueeze(1), vals, torch.full_like(vals, -1e4)).view(b, -1)
-        top, idx = vals.topk(min(k, m * h * w))
-        cls_sel = torch.gather(cls_m.reshape(b, -1), 1, idx)
-        cells = idx % (h * w)
+    m = min(max(classes_per_peak, 1), c)
+    vals, cls_m = logits.topk(m, dim=1)                             # B x m x H x W, best class first
+    vals = torch.where(keep.unsqueeze(1), vals, torch.full_like(vals, -1e4)).view(b, -1)
+    top, idx = vals.topk(min(k, m * h * w))
+    cls_sel = torch.gather(cls_m.reshape(b, -1), 1, idx)
+    cells = idx % (h * w)
     scores = torch.sigmoid(top)
-    size = out["size"].float().reshape(b, 2, -1)
-    off = out["off"].float().reshape(b, 2, -1)
-    oop = torch.sigmoid(out["oop"].float()).reshape(b, -1)
+    size = out["size"].reshape(b, 2, -1)
+    off = out["off"].reshape(b, 2, -1)
+    oop = torch.sigmoid(out["oop"]).reshape(b, -1)
     res: list[list[RawDetection]] = []
     for i in range(b):
         dets = []

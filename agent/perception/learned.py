@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from tidee.agent.classes import CLASSES
-from tidee.agent.learning import read_manifest
+from tidee.agent.learning import read_manifest, resolve_precision
 from tidee.agent.perception.base import Detection
 from tidee.agent.perception.detector import CenterDetector, DetectorConfig, decode, preprocess
 from tidee.protocol.messages import Observation
@@ -79,8 +79,6 @@ class LearnedPerception:
     def __init__(self, model: CenterDetector, manifest: dict | None = None, threshold: float = 0.3,
                  max_detections: int = 50, path: Path | None = None, nms_iou: float = 0.5,
                  precision: str = "auto", classes_per_peak: int = 1) -> None:
-        from tidee.agent.perception.train_detector import resolve_precision
-
         self.precision = resolve_precision(precision, "cpu")
         self.model = model.eval().to(memory_format=torch.channels_last)
         self.classes_per_peak = classes_per_peak

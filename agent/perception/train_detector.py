@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from tidee.agent.learning import (WEIGHTS_DIR, load_checkpoint, pick_device, save_checkpoint, save_loss_curve,
-                                  sha256_file, write_manifest)
+from tidee.agent.learning import (WEIGHTS_DIR, load_checkpoint, pick_device, resolve_precision, save_checkpoint,
+                                  save_loss_curve, sha256_file, write_manifest)
 from tidee.agent.perception.dataset import load_shards
 from tidee.agent.perception.detector import (CenterDetector, DetectorConfig, detector_loss, encode_targets,
                                              preprocess)
@@ -120,24 +120,6 @@ def init_from(model: CenterDetector, weights: str | Path) -> dict[str, Any]:
         lineage.update({k: m.get(k) for k in ("command", "train_config", "init")})
         lineage["data_command"] = (m.get("data") or {}).get("command")
     return lineage
-
-
-def bf16_supported(device: str) -> bool:
-    """Whether bf16 autocast runs natively here (AVX512-BF16/AMX through oneDNN, or a bf16 GPU)."""
-    if device.startswith("cuda"):
-        return torch.cuda.is_bf16_supported()
-    try:
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):
-        return False
-
-
-def resolve_precision(precision: str, device: str) -> str:
-    if precision not in ("auto", "fp32", "bf16"):
-        raise ValueError(f"precision must be auto, fp32 or bf16, not {precision!r}")
-    if precision == "auto":
-        return "bf16" if bf16_supported(device) else "fp32"
-    return precision
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -241,5 +223,4 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
     return result
 
 
-__all__ = ["TrainConfig", "Batches", "train_detector", "DEFAULT_WEIGHTS", "lr_at", "init_from", "bf16_supported",
-           "resolve_precision"]
+__all__ = ["TrainConfig", "Batches", "train_detector", "DEFAULT_WEIGHTS", "lr_at", "init_from"]
