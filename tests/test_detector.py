@@ -109,6 +109,35 @@ def tiny_train_frames() -> dict[str, np.ndarray]:
     return pack(list(iter_frames(cfg, progress=False)))
 
 
+def _write_shard_dir(root, frames: dict[str, np.ndarray], rooms: list[str]) -> None:
+    import json
+
+    root.mkdir()
+    np.savez_compressed(root / "shard_0000.npz", **frames)
+    (root / "manifest.json").write_text(json.dumps({"command": f"synthetic {root.name}", "classes": list(CLASSES),
+                                                    "shards": ["shard_0000.npz"], "rooms": rooms}))
+
+
+def test_several_data_directories_load_as_one_and_refuse_a_shared_room(tiny_train_frames, tmp_path) -> None:
+    from tidee.agent.perception.dataset import load_datasets
+
+    f = tiny_train_frames
+    n = len(f["rgb"])
+    assert n >= 2 and len(f["obj_frame"]) > 0
+    # the same frames, written twice as if from two sets of rooms; the second copy's objects must point at its frames
+    _write_shard_dir(tmp_path / "a", f, ["LivingRoom:0"])
+    _write_shard_dir(tmp_path / "b", f, ["LivingRoom:80"])
+    data, manifests = load_datasets(f"{tmp_path / 'a'},{tmp_path / 'b'}")
+    assert len(data["rgb"]) == 2 * n and [m["command"] for m in manifests] == ["synthetic a", "synthetic b"]
+    assert np.array_equal(data["obj_frame"], np.concatenate([f["obj_frame"], f["obj_frame"] + n]))
+    assert np.array_equal(data["rgb"][n:], f["rgb"]) and np.array_equal(data["obj_box"][len(f["obj_box"]):], f["obj_box"])
+    _write_shard_dir(tmp_path / "c", f, ["LivingRoom:0"])
+    with pytest.raises(ValueError, match="LivingRoom:0 is in both"):
+        load_datasets([str(tmp_path / "a"), str(tmp_path / "c")])
+    with pytest.raises(ValueError, match="no manifest.json"):
+        load_datasets(str(tmp_path / "missing"))
+
+
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_a_few_training_steps_reduce_the_loss(tiny_train_frames, tmp_path, precision) -> None:
     from tidee.agent.learning import bf16_supported

@@ -39,7 +39,8 @@ def _cmd_train_detector(args: argparse.Namespace) -> int:
 def register(train_sub: argparse._SubParsersAction, eval_sub: argparse._SubParsersAction) -> None:
     """``tidee train detector``, ``tidee train depth`` and ``tidee eval depth``."""
     p = train_sub.add_parser("detector", help="the RGB-D detector with its OOP head, on `tidee gen detection` data")
-    p.add_argument("--data", default="data/detection")
+    p.add_argument("--data", default="data/detection",
+                   help="directory of `tidee gen detection` shards, or several, comma-separated (different rooms)")
     p.add_argument("--out", default="agent/weights/detector.pt", help="shipped weights (+ .json manifest)")
     p.add_argument("--work-dir", default="runs/detector", help="checkpoints and the loss curve (resumable)")
     p.add_argument("--steps", type=int, default=5500)

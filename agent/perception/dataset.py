@@ -250,6 +250,51 @@ def load_shards(root: str | Path, with_inst: bool = False, limit: int | None = N
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
+def data_dirs(spec: str | Path | list[str]) -> list[Path]:
+    """``--data`` names one directory of shards or several, comma-separated."""
+    items = spec if isinstance(spec, list) else str(spec).split(",")
+    dirs = [Path(x.strip()) for x in items if str(x).strip()]
+    if not dirs:
+        raise ValueError(f"--data names no directory: {spec!r}")
+    for d in dirs:
+        if not (d / "manifest.json").exists():
+            raise ValueError(f"--data {d}: no manifest.json there (make it with `tidee gen detection --out {d}`)")
+    return dirs
+
+
+def load_datasets(spec: str | Path | list[str], with_inst: bool = False,
+                  limit: int | None = None) -> tuple[dict[str, np.ndarray], list[dict]]:
+    """Shards of one or several ``tidee gen detection`` directories, concatenated, with their manifests.
+
+    The directories must hold different rooms: a room in two of them would count twice."""
+    dirs = data_dirs(spec)
+    manifests = [json.loads((d / "manifest.json").read_text()) for d in dirs]
+    seen: dict[str, Path] = {}
+    for d, m in zip(dirs, manifests):
+        for room in m.get("rooms", []):
+            if room in seen:
+                raise ValueError(f"room {room} is in both {seen[room]} and {d}; "
+                                 "generate the second with --skip-rooms past the first")
+            seen[room] = d
+    datas = []
+    total = 0
+    for d in dirs:
+        part = load_shards(d, with_inst=with_inst, limit=None if limit is None else limit - total)
+        datas.append(part)
+        total += len(part["rgb"])
+        if limit is not None and total >= limit:
+            break
+    if len(datas) == 1:
+        return datas[0], manifests
+    merged: dict[str, list[np.ndarray]] = {}
+    base = 0
+    for part in datas:
+        for k, v in part.items():
+            merged.setdefault(k, []).append(v + base if k == "obj_frame" else v)
+        base += len(part["rgb"])
+    return {k: np.concatenate(v) for k, v in merged.items()}, manifests
+
+
 def held_out_frames(split: str = "test", rooms_per_type: int = 5, messes: int = 2, walks: int = 1,
                     frames_per_walk: int = 5, seed: int = 7, oop_views_only: bool = False, tidy: bool = True,
                     per_config: int | None = None, resolution: int = 256, renderer: str = TRAINED_RENDERER,
@@ -274,4 +319,4 @@ def describe(cfg: GenConfig) -> str:
 
 
 __all__ = ["GenConfig", "configs", "frame_targets", "iter_frames", "generate", "load_shards", "held_out_frames",
-           "pack", "describe", "room_seeds", "MIN_PIXELS"]
+           "pack", "describe", "room_seeds", "MIN_PIXELS", "data_dirs", "load_datasets"]

@@ -20,7 +20,7 @@ import torch
 
 from tidee.agent.learning import (WEIGHTS_DIR, load_checkpoint, pick_device, resolve_precision, save_checkpoint,
                                   save_loss_curve, sha256_file, write_manifest)
-from tidee.agent.perception.dataset import load_shards
+from tidee.agent.perception.dataset import load_datasets
 from tidee.agent.perception.detector import (CenterDetector, DetectorConfig, detector_loss, encode_targets,
                                              preprocess)
 
@@ -118,7 +118,8 @@ def init_from(model: CenterDetector, weights: str | Path) -> dict[str, Any]:
     if man.exists():
         m = json.loads(man.read_text())
         lineage.update({k: m.get(k) for k in ("command", "train_config", "init")})
-        lineage["data_command"] = (m.get("data") or {}).get("command")
+        d = m.get("data") or {}
+        lineage["data_command"] = d.get("command") or [part.get("command") for part in d.get("parts", [])]
     return lineage
 
 
@@ -140,10 +141,9 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
     device = pick_device(cfg.device)
     torch.manual_seed(cfg.seed)
     model_cfg = model_cfg or DetectorConfig()
-    data_manifest: dict[str, Any] = {}
+    data_manifests: list[dict[str, Any]] = []
     if data is None:
-        data_manifest = json.loads((Path(cfg.data) / "manifest.json").read_text())
-        data = load_shards(cfg.data, limit=cfg.limit_frames)
+        data, data_manifests = load_datasets(cfg.data, limit=cfg.limit_frames)
     if cfg.limit_frames is not None:
         keep = data["obj_frame"] < cfg.limit_frames
         data = {**{k: v[:cfg.limit_frames] for k, v in data.items() if not k.startswith("obj_")},
@@ -211,8 +211,10 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
         shutil.copyfile(work / "loss.png", docs / "detector_loss.png")
         result["manifest"] = write_manifest(
             out, command=command,
-            data={"dir": cfg.data, "command": data_manifest.get("command"), "frames": int(len(data["rgb"])),
-                  "rooms": len(data_manifest.get("rooms", [])), "room_seeds": data_manifest.get("config", {}),
+            data={"dir": cfg.data, "frames": int(len(data["rgb"])),
+                  "rooms": sum(len(m.get("rooms", [])) for m in data_manifests),
+                  "parts": [{"command": m.get("command"), "rooms": len(m.get("rooms", [])),
+                             "room_seeds": m.get("config", {})} for m in data_manifests],
                   "split": "train (seeds 0-19 + pool 10000...), never val/test"},
             metrics={"train_loss_final": history[-1] if history else None},
             train_config={**asdict(cfg), "precision_used": precision}, model_config=model_cfg.to_dict(),

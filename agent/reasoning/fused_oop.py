@@ -72,12 +72,14 @@ def held_out_room(room: str) -> bool:
 
 def detector_rooms(detector: Any) -> set[str]:
     """The "Type:seed" rooms of the frames the detector was trained on (from its manifest's
-    data directory; empty when that directory is not here)."""
-    data_dir = Path(str(detector.manifest.get("data", {}).get("dir", "")))
-    try:
-        return set(json.loads((data_dir / "manifest.json").read_text()).get("rooms", []))
-    except (OSError, ValueError):
-        return set()
+    data directories, comma-separated; a directory that is not here adds nothing)."""
+    rooms: set[str] = set()
+    for d in str(detector.manifest.get("data", {}).get("dir", "")).split(","):
+        try:
+            rooms |= set(json.loads((Path(d.strip()) / "manifest.json").read_text()).get("rooms", []))
+        except (OSError, ValueError):
+            continue
+    return rooms
 
 
 def detection_samples(frames: dict[str, np.ndarray], detections: list[list[Any]], context_score: float = 0.3,
