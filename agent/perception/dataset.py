@@ -250,10 +250,15 @@ def load_shards(root: str | Path, with_inst: bool = False, limit: int | None = N
     return {k: np.concatenate(v) for k, v in parts.items()}
 
 
-def data_dirs(spec: str | Path | list[str]) -> list[Path]:
-    """``--data`` names one directory of shards or several, comma-separated."""
+def split_data_spec(spec: str | Path | list[str]) -> list[Path]:
+    """The directories of a ``--data`` value: one, or several comma-separated (blanks dropped)."""
     items = spec if isinstance(spec, list) else str(spec).split(",")
-    dirs = [Path(x.strip()) for x in items if str(x).strip()]
+    return [Path(str(x).strip()) for x in items if str(x).strip()]
+
+
+def data_dirs(spec: str | Path | list[str]) -> list[Path]:
+    """``--data`` names one directory of shards or several, comma-separated; each must have a manifest."""
+    dirs = split_data_spec(spec)
     if not dirs:
         raise ValueError(f"--data names no directory: {spec!r}")
     for d in dirs:
@@ -284,6 +289,7 @@ def load_datasets(spec: str | Path | list[str], with_inst: bool = False,
         total += len(part["rgb"])
         if limit is not None and total >= limit:
             break
+    manifests = manifests[:len(datas)]           # a --limit-frames run may stop before the last directory
     if len(datas) == 1:
         return datas[0], manifests
     merged: dict[str, list[np.ndarray]] = {}
@@ -319,4 +325,5 @@ def describe(cfg: GenConfig) -> str:
 
 
 __all__ = ["GenConfig", "configs", "frame_targets", "iter_frames", "generate", "load_shards", "held_out_frames",
-           "pack", "describe", "room_seeds", "MIN_PIXELS", "data_dirs", "load_datasets"]
+           "pack", "describe", "room_seeds", "MIN_PIXELS", "split_data_spec", "data_dirs",
+           "load_datasets"]

@@ -73,10 +73,12 @@ def held_out_room(room: str) -> bool:
 def detector_rooms(detector: Any) -> set[str]:
     """The "Type:seed" rooms of the frames the detector was trained on (from its manifest's
     data directories, comma-separated; a directory that is not here adds nothing)."""
+    from tidee.agent.perception.dataset import split_data_spec
+
     rooms: set[str] = set()
-    for d in str(detector.manifest.get("data", {}).get("dir", "")).split(","):
+    for d in split_data_spec(detector.manifest.get("data", {}).get("dir", "")):
         try:
-            rooms |= set(json.loads((Path(d.strip()) / "manifest.json").read_text()).get("rooms", []))
+            rooms |= set(json.loads((d / "manifest.json").read_text()).get("rooms", []))
         except (OSError, ValueError):
             continue
     return rooms
