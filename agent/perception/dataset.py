@@ -229,25 +229,35 @@ def generate(cfg: GenConfig, out: str | Path, command: str = "", progress: bool 
     return manifest
 
 
-def load_shards(root: str | Path, with_inst: bool = False, limit: int | None = None) -> dict[str, np.ndarray]:
-    """All shards listed in ``root/manifest.json``, concatenated (object frame indices rebased)."""
-    root = Path(root)
+def _read_manifest(root: Path) -> dict:
     manifest = json.loads((root / "manifest.json").read_text())
     if manifest.get("classes") != list(CLASSES):
         raise ValueError(f"{root} was generated for a different class list; regenerate it")
+    return manifest
+
+
+def _concat_shards(paths: list[Path], with_inst: bool, limit: int | None) -> tuple[dict[str, np.ndarray], int]:
+    """Shard files in order, concatenated (object frame indices rebased), until ``limit`` frames;
+    also how many of ``paths`` were read."""
     parts: dict[str, list[np.ndarray]] = {}
-    base = 0
-    for name in manifest["shards"]:
-        with np.load(root / name) as z:
-            keys = [k for k in z.files if with_inst or k != "inst"]
-            d = {k: z[k] for k in keys}
+    base = read = 0
+    for path in paths:
+        with np.load(path) as z:
+            d = {k: z[k] for k in z.files if with_inst or k != "inst"}
         d["obj_frame"] = d["obj_frame"] + base
         base += len(d["rgb"])
+        read += 1
         for k, v in d.items():
             parts.setdefault(k, []).append(v)
         if limit is not None and base >= limit:
             break
-    return {k: np.concatenate(v) for k, v in parts.items()}
+    return {k: np.concatenate(v) for k, v in parts.items()}, read
+
+
+def load_shards(root: str | Path, with_inst: bool = False, limit: int | None = None) -> dict[str, np.ndarray]:
+    """All shards listed in ``root/manifest.json``, concatenated (object frame indices rebased)."""
+    root = Path(root)
+    return _concat_shards([root / name for name in _read_manifest(root)["shards"]], with_inst, limit)[0]
 
 
 def split_data_spec(spec: str | Path | list[str]) -> list[Path]:
@@ -273,7 +283,7 @@ def load_datasets(spec: str | Path | list[str], with_inst: bool = False,
 
     The directories must hold different rooms: a room in two of them would count twice."""
     dirs = data_dirs(spec)
-    manifests = [json.loads((d / "manifest.json").read_text()) for d in dirs]
+    manifests = [_read_manifest(d) for d in dirs]
     seen: dict[str, Path] = {}
     for d, m in zip(dirs, manifests):
         for room in m.get("rooms", []):
@@ -281,24 +291,10 @@ def load_datasets(spec: str | Path | list[str], with_inst: bool = False,
                 raise ValueError(f"room {room} is in both {seen[room]} and {d}; "
                                  "generate the second with --skip-rooms past the first")
             seen[room] = d
-    datas = []
-    total = 0
-    for d in dirs:
-        part = load_shards(d, with_inst=with_inst, limit=None if limit is None else limit - total)
-        datas.append(part)
-        total += len(part["rgb"])
-        if limit is not None and total >= limit:
-            break
-    manifests = manifests[:len(datas)]           # a --limit-frames run may stop before the last directory
-    if len(datas) == 1:
-        return datas[0], manifests
-    merged: dict[str, list[np.ndarray]] = {}
-    base = 0
-    for part in datas:
-        for k, v in part.items():
-            merged.setdefault(k, []).append(v + base if k == "obj_frame" else v)
-        base += len(part["rgb"])
-    return {k: np.concatenate(v) for k, v in merged.items()}, manifests
+    shards = [(i, d / name) for i, (d, m) in enumerate(zip(dirs, manifests)) for name in m["shards"]]
+    data, read = _concat_shards([p for _, p in shards], with_inst, limit)
+    # a --limit-frames run may stop before the last directory: only the manifests it read
+    return data, manifests[:shards[read - 1][0] + 1] if read else []
 
 
 def held_out_frames(split: str = "test", rooms_per_type: int = 5, messes: int = 2, walks: int = 1,
