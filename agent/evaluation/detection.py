@@ -38,7 +38,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from tidee.agent.classes import CLASS_INDEX, CLASSES, PICKUPABLE
-from tidee.agent.perception import TRAINED_RENDERER
+from tidee.agent.perception import PEAK_MODES, TRAINED_RENDERER
 from tidee.agent.perception.base import Detection
 from tidee.agent.perception.dataset import held_out_frames
 from tidee.protocol.episode_log import write_atomic, write_json_atomic
@@ -502,16 +502,23 @@ def _frames_summary(frames: Mapping[str, np.ndarray]) -> dict[str, Any]:
 def run_detector_eval(detector: FrameDetector, out_dir: str | Path, rooms_per_type: int = 5, messes: int = 2,
                       frames_per_walk: int = 5, walks: int = 1, seed: int = 7, batch: int = 16,
                       split: str = "test", renderer: str = TRAINED_RENDERER, progress: bool = True,
-                      classes_per_peak: int = SECOND_GUESSES) -> dict[str, Any]:
+                      classes_per_peak: int = SECOND_GUESSES, peaks: str = "class-max") -> dict[str, Any]:
     """Box AP of ``detector`` on held-out frames; writes detector.json, detector.md, detector_examples.png.
 
     The headline is the detector as the agent runs it. Where the detector can offer several
     classes per heatmap peak (``classes_per_peak`` attribute) and ``classes_per_peak`` > 1, the
-    report adds box AP with its ``classes_per_peak`` best classes per peak (``multiclass``)."""
+    report adds box AP with its ``classes_per_peak`` best classes per peak (``multiclass``).
+    ``peaks`` other than "class-max" (the agent's) evaluates another decoding (``detector.decode``),
+    without the multiclass pass."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     frames = held_out_frames(split, rooms_per_type=rooms_per_type, messes=messes, walks=walks,
                              frames_per_walk=frames_per_walk, seed=seed, renderer=renderer, progress=progress)
+    if peaks != "class-max":
+        if not hasattr(detector, "peaks"):
+            raise ValueError(f"peaks={peaks!r}: {detector.name} has no heatmap peaks to decode another way")
+        detector.peaks = peaks
+        classes_per_peak = 1
     dets, timing = _detect_all(detector, frames, batch, progress)
     timing.update(_single_frame_latency(detector, frames))
     metrics = evaluate_boxes(dets, frames)
@@ -528,9 +535,11 @@ def run_detector_eval(detector: FrameDetector, out_dir: str | Path, rooms_per_ty
                                  "by_size": {k: v["map50"] for k, v in mm["by_size"].items()}}
     command = (f"tidee eval detector --split {split} --rooms-per-type {rooms_per_type} --messes {messes} "
                f"--walks {walks} --frames-per-walk {frames_per_walk} --seed {seed}"
-               + (f" --classes-per-peak {classes_per_peak}" if classes_per_peak != SECOND_GUESSES else "")
+               + (f" --classes-per-peak {classes_per_peak}"
+                  if classes_per_peak != SECOND_GUESSES and peaks == "class-max" else "")
+               + (f" --peaks {peaks}" if peaks != "class-max" else "")
                + (f" --renderer {renderer}" if renderer != TRAINED_RENDERER else "") + f" --out {out}")
-    report = {"command": command, "detector": _detector_info(detector), "timing": timing,
+    report = {"command": command, "detector": _detector_info(detector), "peaks": peaks, "timing": timing,
               "data": {"split": split, "renderer": renderer, "rooms_per_type": rooms_per_type, "messes_per_room": messes,
                        "tidy": True, "walks": walks, "frames_per_walk": frames_per_walk, "seed": seed,
                        **_frames_summary(frames)},
@@ -587,6 +596,8 @@ def _detector_markdown(r: Mapping[str, Any]) -> str:
         f"| mAP@0.5 | {_pct(r['map50'])} |",
         f"| mAP@[.5:.95] | {_pct(r['map'])} |",
     ]
+    if r.get("peaks", "class-max") != "class-max":
+        lines.insert(4, f"- decoding: `--peaks {r['peaks']}` (an ablation; the agent decodes class-max peaks)")
     mc = r.get("multiclass")
     if mc:
         lines += [f"| mAP@0.5, {mc['classes_per_peak']} best classes per peak | {_pct(mc['map50'])} |",
@@ -649,7 +660,7 @@ def run_oop_eval(detector: FrameDetector, out_dir: str | Path, views_per_config:
     expected = len(ROOM_TYPES) * rooms_per_type * messes
     command = (f"tidee eval oop --split {split} --views {views_per_config} --rooms-per-type {rooms_per_type} "
                f"--messes {messes} --walks {walks} --seed {seed}{'' if extra_rows else ' --visual-only'} --out {out}")
-    report = {"command": command, "detector": _detector_info(detector), "timing": timing,
+    report = {"command": command, "detector": _detector_info(detector), "peaks": peaks, "timing": timing,
               "data": {"split": split, "rooms_per_type": rooms_per_type, "messes_per_room": messes,
                        "views_per_config_target": views_per_config, "walks": walks,
                        "frames_per_walk": frames_per_walk, "seed": seed,
@@ -724,11 +735,14 @@ def _cmd_eval_detector(args: Any) -> int:
     if args.record and args.renderer != TRAINED_RENDERER:
         raise SystemExit(f"tidee eval detector: --record keeps the manifest's figures on {TRAINED_RENDERER} frames, "
                          f"the detector's own; drop --record with --renderer {args.renderer}")
+    if args.record and args.peaks != "class-max":
+        raise SystemExit(f"tidee eval detector: --record keeps the manifest's figures for the agent's decoding "
+                         f"(class-max); drop --record with --peaks {args.peaks}")
     det = _load_detector(args.weights)
     r = run_detector_eval(det, args.out, rooms_per_type=args.rooms_per_type,
                           messes=args.messes, frames_per_walk=args.frames_per_walk, walks=args.walks, seed=args.seed,
                           batch=args.batch, split=args.split, renderer=args.renderer,
-                          classes_per_peak=args.classes_per_peak)
+                          classes_per_peak=args.classes_per_peak, peaks=args.peaks)
     if args.record:
         mc = r.get("multiclass")
         _record_in_manifest(det, {"box_map50": r["map50"], "box_map50_95": r["map"],
@@ -813,6 +827,9 @@ def register(eval_sub: Any) -> None:
                    help="also report mAP with this many best classes per heatmap peak (1: skip)")
     p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default=TRAINED_RENDERER,
                    help=f"who draws the test frames (default {TRAINED_RENDERER}: what the detector was trained on)")
+    p.add_argument("--peaks", choices=PEAK_MODES, default="class-max",
+                   help="how heatmap peaks become detections (default class-max: the agent's; the others are "
+                        "an ablation, see detector.decode)")
     p.set_defaults(func=_cmd_eval_detector)
 
     p = eval_sub.add_parser("oop", help="in/out-of-place AP on messy held-out rooms (paper Table 3)")

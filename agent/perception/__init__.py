@@ -11,6 +11,8 @@ PERCEPTIONS = ("oracle", "learned")
 # `tidee eval detector --split test --renderer egl`), so the
 # agent's commands ask for this one until the models are retrained on EGL frames.
 TRAINED_RENDERER = "tiny"
+# How the detector's heatmap peaks become detections (``detector.decode``); the agent's is the first.
+PEAK_MODES = ("class-max", "per-class", "per-class-single")
 
 
 def make_perception(name: str) -> Perception:
@@ -25,4 +27,4 @@ def make_perception(name: str) -> Perception:
     raise ValueError(f"unknown perception {name!r}; choose one of {PERCEPTIONS}")
 
 
-__all__ = ["Detection", "Perception", "PERCEPTIONS", "make_perception"]
+__all__ = ["Detection", "Perception", "PERCEPTIONS", "PEAK_MODES", "TRAINED_RENDERER", "make_perception"]

@@ -22,6 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from tidee.agent.perception import PEAK_MODES
+
 DEPTH_SCALE = 5.0
 RGB_MEAN = (0.5, 0.5, 0.5)
 RGB_STD = (0.25, 0.25, 0.25)
@@ -232,7 +234,7 @@ class RawDetection:
 
 
 def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
-           stride: int = 4, classes_per_peak: int = 1) -> list[list[RawDetection]]:
+           stride: int = 4, classes_per_peak: int = 1, peaks: str = "class-max") -> list[list[RawDetection]]:
     """Peaks of the class-max heatmap (3x3 max-pool NMS) -> boxes, per image, best first.
 
     Peaks are found on the max over classes (logits: sigmoid is monotonic), so NMS costs a
@@ -240,16 +242,32 @@ def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
     cell (what the agent uses); m > 1 offers the m best classes of each peak as separate
     detections sharing its box, ranked together (the detector's second guesses: a COCO-style
     evaluation keeps them, as CenterNet's top-100 over classes and cells does).
+
+    ``peaks`` (an ablation of this choice; the agent uses "class-max"): "per-class" pools each
+    class's heatmap on its own, as CenterNet does, so a small object's peak survives beside a
+    larger object's and one box may come out under several classes; "per-class-single" keeps a
+    per-class peak only where its class is the cell's best, one class per cell.
+    ``classes_per_peak`` applies to "class-max" only.
     """
+    if peaks not in PEAK_MODES:
+        raise ValueError(f"peaks={peaks!r}: expected one of {', '.join(PEAK_MODES)}")
     logits = out["heat"]
     b, c, h, w = logits.shape
-    best = logits.max(1).values                                     # B x H x W
-    keep = F.max_pool2d(best.unsqueeze(1), 3, 1, 1)[:, 0] == best
-    m = min(max(classes_per_peak, 1), c)
-    vals, cls_m = logits.topk(m, dim=1)                             # B x m x H x W, best class first
-    vals = torch.where(keep.unsqueeze(1), vals, torch.full_like(vals, -1e4)).view(b, -1)
-    top, idx = vals.topk(min(k, m * h * w))
-    cls_sel = torch.gather(cls_m.reshape(b, -1), 1, idx)
+    if peaks == "class-max":
+        best = logits.max(1).values                                 # B x H x W
+        keep = F.max_pool2d(best.unsqueeze(1), 3, 1, 1)[:, 0] == best
+        m = min(max(classes_per_peak, 1), c)
+        vals, cls_m = logits.topk(m, dim=1)                         # B x m x H x W, best class first
+        vals = torch.where(keep.unsqueeze(1), vals, torch.full_like(vals, -1e4)).reshape(b, -1)
+        top, idx = vals.topk(min(k, m * h * w))
+        cls_sel = torch.gather(cls_m.reshape(b, -1), 1, idx)
+    else:
+        keep = F.max_pool2d(logits, 3, 1, 1) == logits              # B x C x H x W
+        if peaks == "per-class-single":
+            keep &= logits == logits.max(1, keepdim=True).values
+        vals = torch.where(keep, logits, torch.full_like(logits, -1e4)).reshape(b, -1)
+        top, idx = vals.topk(min(k, c * h * w))
+        cls_sel = idx // (h * w)
     cells = idx % (h * w)
     scores = torch.sigmoid(top)
     size = out["size"].reshape(b, 2, -1)
@@ -276,5 +294,5 @@ def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
     return res
 
 
-__all__ = ["DetectorConfig", "CenterDetector", "preprocess", "encode_targets", "detector_loss", "decode",
+__all__ = ["DetectorConfig", "CenterDetector", "preprocess", "encode_targets", "detector_loss", "decode", "PEAK_MODES",
            "RawDetection", "gather", "focal_loss", "draw_gaussian", "gaussian_radius", "DEPTH_SCALE"]

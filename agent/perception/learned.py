@@ -18,6 +18,7 @@ import torch
 from tidee.agent.classes import CLASSES
 from tidee.agent.learning import read_manifest, resolve_precision
 from tidee.agent.perception.base import Detection
+from tidee.agent.perception import PEAK_MODES
 from tidee.agent.perception.detector import CenterDetector, DetectorConfig, decode, preprocess
 from tidee.protocol.messages import Observation
 
@@ -70,7 +71,7 @@ class LearnedPerception:
 
     ``precision``: "auto" runs the network under bf16 autocast, channels-last, where the CPU
     has native bf16 (AVX512-BF16/AMX; about 1.6x faster per frame), fp32 elsewhere.
-    ``classes_per_peak``: see ``detector.decode`` (1 for the agent).
+    ``classes_per_peak``, ``peaks``: see ``detector.decode`` (1 and "class-max" for the agent).
     """
 
     name = "learned"
@@ -78,8 +79,11 @@ class LearnedPerception:
 
     def __init__(self, model: CenterDetector, manifest: dict | None = None, threshold: float = 0.3,
                  max_detections: int = 50, path: Path | None = None, nms_iou: float = 0.5,
-                 precision: str = "auto", classes_per_peak: int = 1) -> None:
+                 precision: str = "auto", classes_per_peak: int = 1, peaks: str = "class-max") -> None:
+        if peaks not in PEAK_MODES:
+            raise ValueError(f"peaks={peaks!r}: expected one of {', '.join(PEAK_MODES)}")
         self.precision = resolve_precision(precision, "cpu")
+        self.peaks = peaks
         self.model = model.eval().to(memory_format=torch.channels_last)
         self.classes_per_peak = classes_per_peak
         self.path = path                    # the weights file (its manifest is beside it)
@@ -133,7 +137,7 @@ class LearnedPerception:
         out = {k: v.float() for k, v in out.items()}
         thr = self.threshold if threshold is None else threshold
         raw = decode(out, k=self.max_detections, threshold=thr, stride=self.cfg.stride,
-                     classes_per_peak=self.classes_per_peak)
+                     classes_per_peak=self.classes_per_peak, peaks=self.peaks)
         feat = torch.nn.functional.normalize(out["feat"], dim=1)
         sx, sy = w / size, h / size
         focal = (w / 2) / np.tan(np.radians(45.0))
