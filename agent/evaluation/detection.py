@@ -660,7 +660,7 @@ def run_oop_eval(detector: FrameDetector, out_dir: str | Path, views_per_config:
     expected = len(ROOM_TYPES) * rooms_per_type * messes
     command = (f"tidee eval oop --split {split} --views {views_per_config} --rooms-per-type {rooms_per_type} "
                f"--messes {messes} --walks {walks} --seed {seed}{'' if extra_rows else ' --visual-only'} --out {out}")
-    report = {"command": command, "detector": _detector_info(detector), "peaks": peaks, "timing": timing,
+    report = {"command": command, "detector": _detector_info(detector), "timing": timing,
               "data": {"split": split, "rooms_per_type": rooms_per_type, "messes_per_room": messes,
                        "views_per_config_target": views_per_config, "walks": walks,
                        "frames_per_walk": frames_per_walk, "seed": seed,
