@@ -517,10 +517,16 @@ def run_detector_eval(detector: FrameDetector, out_dir: str | Path, rooms_per_ty
     if peaks != "class-max":
         if not hasattr(detector, "peaks"):
             raise ValueError(f"peaks={peaks!r}: {detector.name} has no heatmap peaks to decode another way")
-        detector.peaks = peaks
         classes_per_peak = 1
-    dets, timing = _detect_all(detector, frames, batch, progress)
-    timing.update(_single_frame_latency(detector, frames))
+    own_peaks = getattr(detector, "peaks", None)
+    try:
+        if own_peaks is not None:
+            detector.peaks = peaks          # type: ignore[attr-defined]
+        dets, timing = _detect_all(detector, frames, batch, progress)
+        timing.update(_single_frame_latency(detector, frames))
+    finally:
+        if own_peaks is not None:
+            detector.peaks = own_peaks      # type: ignore[attr-defined]
     metrics = evaluate_boxes(dets, frames)
     if classes_per_peak > 1 and hasattr(detector, "classes_per_peak"):
         own = detector.classes_per_peak
