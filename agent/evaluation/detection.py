@@ -31,7 +31,8 @@ import json
 import math
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -499,6 +500,20 @@ def _frames_summary(frames: Mapping[str, np.ndarray]) -> dict[str, Any]:
             "rooms": sorted({":".join(k.split(":")[:2]) for k in counts}), "frames_per_configuration": counts}
 
 
+@contextmanager
+def _decoding(detector: FrameDetector, **settings: Any) -> Iterator[None]:
+    """Switch the detector's decoding attributes (``peaks``, ``classes_per_peak``) for one pass,
+    then put its own back."""
+    own = {k: getattr(detector, k) for k in settings}
+    try:
+        for k, v in settings.items():
+            setattr(detector, k, v)
+        yield
+    finally:
+        for k, v in own.items():
+            setattr(detector, k, v)
+
+
 def run_detector_eval(detector: FrameDetector, out_dir: str | Path, rooms_per_type: int = 5, messes: int = 2,
                       frames_per_walk: int = 5, walks: int = 1, seed: int = 7, batch: int = 16,
                       split: str = "test", renderer: str = TRAINED_RENDERER, progress: bool = True,
@@ -514,27 +529,16 @@ def run_detector_eval(detector: FrameDetector, out_dir: str | Path, rooms_per_ty
     out.mkdir(parents=True, exist_ok=True)
     frames = held_out_frames(split, rooms_per_type=rooms_per_type, messes=messes, walks=walks,
                              frames_per_walk=frames_per_walk, seed=seed, renderer=renderer, progress=progress)
-    if peaks != "class-max":
-        if not hasattr(detector, "peaks"):
-            raise ValueError(f"peaks={peaks!r}: {detector.name} has no heatmap peaks to decode another way")
-        classes_per_peak = 1
-    own_peaks = getattr(detector, "peaks", None)
-    try:
-        if own_peaks is not None:
-            detector.peaks = peaks          # type: ignore[attr-defined]
+    if peaks != "class-max" and not hasattr(detector, "peaks"):
+        raise ValueError(f"peaks={peaks!r}: {detector.name} has no heatmap peaks to decode another way")
+    with _decoding(detector, **({"peaks": peaks} if hasattr(detector, "peaks") else {})):
         dets, timing = _detect_all(detector, frames, batch, progress)
         timing.update(_single_frame_latency(detector, frames))
-    finally:
-        if own_peaks is not None:
-            detector.peaks = own_peaks      # type: ignore[attr-defined]
     metrics = evaluate_boxes(dets, frames)
-    if classes_per_peak > 1 and hasattr(detector, "classes_per_peak"):
-        own = detector.classes_per_peak
-        detector.classes_per_peak = classes_per_peak
-        try:
+    second_guesses = peaks == "class-max" and classes_per_peak > 1 and hasattr(detector, "classes_per_peak")
+    if second_guesses:
+        with _decoding(detector, classes_per_peak=classes_per_peak):
             multi, _ = _detect_all(detector, frames, batch, progress)
-        finally:
-            detector.classes_per_peak = own
         mm = evaluate_boxes(multi, frames)
         metrics["multiclass"] = {"classes_per_peak": classes_per_peak, "map50": mm["map50"], "map": mm["map"],
                                  "n_detections": mm["n_detections"],
@@ -542,7 +546,7 @@ def run_detector_eval(detector: FrameDetector, out_dir: str | Path, rooms_per_ty
     command = (f"tidee eval detector --split {split} --rooms-per-type {rooms_per_type} --messes {messes} "
                f"--walks {walks} --frames-per-walk {frames_per_walk} --seed {seed}"
                + (f" --classes-per-peak {classes_per_peak}"
-                  if classes_per_peak != SECOND_GUESSES and peaks == "class-max" else "")
+                  if peaks == "class-max" and classes_per_peak != SECOND_GUESSES else "")
                + (f" --peaks {peaks}" if peaks != "class-max" else "")
                + (f" --renderer {renderer}" if renderer != TRAINED_RENDERER else "") + f" --out {out}")
     report = {"command": command, "detector": _detector_info(detector), "peaks": peaks, "timing": timing,

@@ -254,10 +254,11 @@ def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
     logits = out["heat"]
     b, c, h, w = logits.shape
     if peaks == "class-max":
-        best = logits.max(1).values                                 # B x H x W
-        keep = F.max_pool2d(best.unsqueeze(1), 3, 1, 1)[:, 0] == best
         m = min(max(classes_per_peak, 1), c)
-        vals, cls_m = logits.topk(m, dim=1)                         # B x m x H x W, best class first
+        # B x m x H x W, best class first (the agent's m = 1: one max, not a top-k)
+        vals, cls_m = logits.topk(m, dim=1) if m > 1 else logits.max(1, keepdim=True)
+        best = vals[:, 0]                                           # B x H x W
+        keep = F.max_pool2d(best.unsqueeze(1), 3, 1, 1)[:, 0] == best
         vals = torch.where(keep.unsqueeze(1), vals, torch.full_like(vals, -1e4)).reshape(b, -1)
         top, idx = vals.topk(min(k, m * h * w))
         cls_sel = torch.gather(cls_m.reshape(b, -1), 1, idx)
