@@ -167,6 +167,70 @@ def test_a_start_hemmed_in_by_the_map_still_plans():
     assert np.array_equal(planner_from(free).traversible, free.mapper.traversible(AGENT_RADIUS))
 
 
+def test_a_second_pick_aims_at_what_stands_over_the_track():
+    """A pick that hit the floor beside a mug retries at the highest point over the track's
+    footprint; a track with nothing standing there (bare floor) gets no second pixel, nor does
+    one whose highest point a detection of another pickupable class covers."""
+    from types import SimpleNamespace
+
+    from tidee.agent.mapping.geometry import unproject
+    from tidee.agent.mapping.memory import TrackedObject
+    from tidee.agent.perception.base import Detection
+    from tidee.agent.policy.skills import raised_sighting
+
+    pose = np.eye(4)        # camera 1 m up looking straight down (image right = -y, image down = -x)
+    pose[:3, :3] = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    pose[:3, 3] = (0.0, 0.0, 1.0)
+    k = np.array([[128.0, 0.0, 128.0], [0.0, 128.0, 128.0], [0.0, 0.0, 1.0]])
+    floor = np.full((256, 256), 1.0, np.float32)
+    mug = floor.copy()
+    mug[150:160, 150:160] = 0.9                  # 10 cm tall, a few centimetres off the centroid
+    pts, _ = unproject(mug, k, pose, mask=np.pad(np.ones((10, 10), bool), ((150, 96), (150, 96))))
+    c = pts.mean(0)
+    track = TrackedObject(0, "Mug", 0.5, np.array([c[0] + 0.04, c[1] - 0.03, 0.05]),
+                          np.array([c[0] - 0.01, c[1] - 0.08, 0.0]), np.array([c[0] + 0.09, c[1] + 0.02, 0.1]))
+
+    def body(depth, detections=()):
+        obs = SimpleNamespace(depth=depth, intrinsics=k, camera_pose=pose)
+        return SimpleNamespace(obs=obs, detections=list(detections))
+
+    s = raised_sighting(body(mug), track)
+    assert s is not None and 150 <= s.u < 160 and 150 <= s.v < 160
+    assert abs(s.point[2] - 0.1) < 1e-3 and s.detection is None
+    assert raised_sighting(body(floor), track) is None
+    bowl = Detection("Bowl", 0.7, (145, 145, 165, 165))
+    assert raised_sighting(body(mug, [bowl]), track) is None
+    assert raised_sighting(body(mug, [Detection("Mug", 0.7, (145, 145, 165, 165))]), track) is not None
+
+
+def test_a_detection_of_the_category_counts_only_within_the_stop_radius():
+    """Stop needs an instance near the agent: a detection of the label whose near side is 2.5 m
+    away (the real TV stand across the room while the track that brought the agent here was
+    mislocated) does not verify; the same detection 1 m away does."""
+    from types import SimpleNamespace
+
+    from tidee.agent.mapping.memory import TrackedObject
+    from tidee.agent.perception.base import Detection
+    from tidee.agent.policy.search import _in_view
+
+    pose = np.eye(4)           # camera 1.5 m up at the origin looking along +x, as above
+    pose[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    pose[:3, 3] = (0.0, 0.0, 1.5)
+    k = np.array([[128.0, 0.0, 128.0], [0.0, 128.0, 128.0], [0.0, 0.0, 1.0]])
+    stand = TrackedObject(0, "TVStand", 0.5, np.array([1.0, 0.0, 0.4]), np.array([0.8, -0.3, 0.0]),
+                          np.array([1.2, 0.3, 0.8]))
+
+    def body(depth: float, detections):
+        obs = SimpleNamespace(depth=np.full((256, 256), depth, np.float32), intrinsics=k, camera_pose=pose)
+        return SimpleNamespace(obs=obs, detections=list(detections), xy=np.zeros(2))
+
+    seen = Detection("TVStand", 0.5, (100, 100, 156, 156))
+    assert _in_view(body(1.0, [seen]), stand)
+    assert not _in_view(body(2.5, [seen]), stand)
+    assert not _in_view(body(1.0, [Detection("Television", 0.9, (100, 100, 156, 156))]), stand)
+    assert not _in_view(body(1.0, []), stand)
+
+
 def test_a_detection_from_across_the_room_is_not_stopping_near_it():
     """If the walk to the object cannot happen (the agent stays 1.6 m away), seeing its class
     in the frame must not count as found: the attempt verifies nothing and the approach fails."""

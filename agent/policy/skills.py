@@ -275,6 +275,40 @@ def projected_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, margi
     return Sighting(None, ui, vi, float(np.linalg.norm(pts[0] - cam)), pts[0])
 
 
+def raised_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, min_rise: float = 0.01,
+                    skip: tuple[int, int] | None = None) -> Sighting | None:
+    """A second pixel to pick ``obj`` at, after the first hit its support (a pick that reported
+    "Floor cannot be picked up": a box's centre or a projected centroid can miss a mug or a key
+    ring by a few centimetres). Among the pixels within ``reach`` whose 3D point lies over the
+    track's footprint (its box grown by 5 cm, and at least 12 cm around the centroid), the one
+    highest above the lowest of them, when it rises at least ``min_rise``: the thing that stands
+    on the surface there. None when nothing rises there (a track with no object under it), or
+    when a detection of another pickupable class covers that pixel. ``skip``: the pixel (u, v)
+    that already failed."""
+    obs = body.obs
+    assert obs is not None
+    h, w = obs.depth.shape
+    pts, index = unproject(obs.depth, obs.intrinsics, obs.camera_pose)
+    cam = obs.camera_pose[:3, 3]
+    grow = np.maximum(0.05, 0.12 - 0.5 * (obj.box_max[:2] - obj.box_min[:2]))
+    lo, hi = obj.box_min[:2] - grow, obj.box_max[:2] + grow
+    keep = np.all((pts[:, :2] >= lo) & (pts[:, :2] <= hi), axis=1)
+    keep &= np.linalg.norm(pts - cam, axis=1) <= reach
+    if skip is not None:
+        keep &= index != skip[1] * w + skip[0]
+    if keep.sum() < 2:
+        return None
+    pts, index = pts[keep], index[keep]
+    k = int(np.argmax(pts[:, 2]))
+    if float(pts[k, 2] - pts[:, 2].min()) < min_rise:
+        return None
+    v, u = divmod(int(index[k]), w)
+    for det in body.detections:
+        if det.label != obj.label and det.label in PICKUPABLE and det.region((h, w))[v, u]:
+            return None
+    return Sighting(None, u, v, float(np.linalg.norm(pts[k] - cam)), pts[k])
+
+
 def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: float = 1.4,
                 avoid: list[np.ndarray] | None = None, avoid_m: float = 0.4) -> Sighting | None:
     """The pixel of a detection to act on: its region's most central pixel with valid depth.

@@ -31,7 +31,7 @@ from tidee.agent.navigation.explore import (FrontierExplorer, sample_reachable_g
                                             unexplored_fraction)
 from tidee.agent.policy.skills import (MOVE_M, Body, face_point, find_in_view, frontier_goal, goal_mask_near_box,
                                        look_around, navigate, pitch_to, planner_and_reach, projected_sighting,
-                                       reachable_mask, receptacle_in_view, sighting_of)
+                                       raised_sighting, reachable_mask, receptacle_in_view, sighting_of)
 from tidee.agent.reasoning.oop import OOPDetector
 from tidee.agent.reasoning.placement import PlacementModel
 from tidee.protocol.messages import Action, ActionName
@@ -197,6 +197,13 @@ class TidyPolicy:
         st.phase = "picking"
         yield sighting.action(ActionName.PickupObject, self.body.obs.depth.shape)
         obs = self.body.obs
+        if not obs.success and obs.error == "not_pickupable":
+            # the pixel hit what the object stands on: try the highest point over its footprint
+            again = raised_sighting(self.body, obj, reach=self.p.interact_m, skip=(sighting.u, sighting.v))
+            if again is not None:
+                self.event("pick_retry", label=obj.label, first=obs.message)
+                yield again.action(ActionName.PickupObject, self.body.obs.depth.shape)
+                obs = self.body.obs
         if not obs.success:
             obj.meta["pick_fails"] = obj.meta.get("pick_fails", 0) + 1
             if obj.meta["pick_fails"] >= 2:
