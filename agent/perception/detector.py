@@ -233,6 +233,13 @@ class RawDetection:
     cell: tuple[int, int]            # (row, col) on the output grid
 
 
+def check_peaks(peaks: str) -> str:
+    """``peaks`` if it names a decoding of ``decode`` (``PEAK_MODES``), else a ValueError."""
+    if peaks not in PEAK_MODES:
+        raise ValueError(f"peaks={peaks!r}: expected one of {', '.join(PEAK_MODES)}")
+    return peaks
+
+
 def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
            stride: int = 4, classes_per_peak: int = 1, peaks: str = "class-max") -> list[list[RawDetection]]:
     """Peaks of the class-max heatmap (3x3 max-pool NMS) -> boxes, per image, best first.
@@ -249,8 +256,7 @@ def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
     per-class peak only where its class is the cell's best, one class per cell.
     ``classes_per_peak`` applies to "class-max" only.
     """
-    if peaks not in PEAK_MODES:
-        raise ValueError(f"peaks={peaks!r}: expected one of {', '.join(PEAK_MODES)}")
+    check_peaks(peaks)
     logits = out["heat"]
     b, c, h, w = logits.shape
     if peaks == "class-max":
@@ -295,5 +301,5 @@ def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
     return res
 
 
-__all__ = ["DetectorConfig", "CenterDetector", "preprocess", "encode_targets", "detector_loss", "decode", "PEAK_MODES",
+__all__ = ["DetectorConfig", "CenterDetector", "preprocess", "encode_targets", "detector_loss", "decode", "check_peaks",
            "RawDetection", "gather", "focal_loss", "draw_gaussian", "gaussian_radius", "DEPTH_SCALE"]

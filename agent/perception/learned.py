@@ -18,8 +18,7 @@ import torch
 from tidee.agent.classes import CLASSES
 from tidee.agent.learning import read_manifest, resolve_precision
 from tidee.agent.perception.base import Detection
-from tidee.agent.perception import PEAK_MODES
-from tidee.agent.perception.detector import CenterDetector, DetectorConfig, decode, preprocess
+from tidee.agent.perception.detector import CenterDetector, DetectorConfig, check_peaks, decode, preprocess
 from tidee.protocol.messages import Observation
 
 
@@ -80,10 +79,8 @@ class LearnedPerception:
     def __init__(self, model: CenterDetector, manifest: dict | None = None, threshold: float = 0.3,
                  max_detections: int = 50, path: Path | None = None, nms_iou: float = 0.5,
                  precision: str = "auto", classes_per_peak: int = 1, peaks: str = "class-max") -> None:
-        if peaks not in PEAK_MODES:
-            raise ValueError(f"peaks={peaks!r}: expected one of {', '.join(PEAK_MODES)}")
+        self.peaks = check_peaks(peaks)
         self.precision = resolve_precision(precision, "cpu")
-        self.peaks = peaks
         self.model = model.eval().to(memory_format=torch.channels_last)
         self.classes_per_peak = classes_per_peak
         self.path = path                    # the weights file (its manifest is beside it)

@@ -24,6 +24,7 @@ from tidee.agent.mapping.geometry import unproject
 from tidee.agent.mapping.maps import MapConfig, SemanticMapper
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import FrontierExplorer, sample_reachable_goal
+from tidee.agent.perception.base import Detection
 from tidee.agent.policy.skills import (Body, Skill, face_point, footprint_gap, frontier_goal,
                                        goal_mask_near_box, look_around, navigate, pitch_to, projected_sighting,
                                        reachable_mask)
@@ -118,7 +119,7 @@ def _in_view(body: Body, obj: TrackedObject, reach_xy: float = STOP_REACH_M) -> 
     return any(d.label == obj.label and _detection_within(body, d, reach_xy) for d in body.detections)
 
 
-def _detection_within(body: Body, det: Any, reach_xy: float) -> bool:
+def _detection_within(body: Body, det: Detection, reach_xy: float) -> bool:
     """The 10th percentile of the (x, y) distance from the agent to the 3D points of the
     detection's region is at most ``reach_xy`` (a box region also holds some floor or wall
     around the object: a low percentile stands for the object's near side)."""

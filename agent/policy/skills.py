@@ -265,9 +265,8 @@ def projected_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, margi
     d = float(obs.depth[vi, ui])
     if not -nearer_tol <= d - float(z[0]) <= farther_tol:
         return None
-    for det in body.detections:       # seen up close as another small thing: the track was a confusion
-        if det.label != obj.label and det.label in PICKUPABLE and det.region((h, w))[vi, ui]:
-            return None
+    if _other_pickupable_at(body, obj.label, ui, vi):   # seen up close as another small thing: a confusion
+        return None
     pts, _ = unproject(obs.depth, obs.intrinsics, obs.camera_pose,
                        mask=np.eye(1, h * w, vi * w + ui, dtype=bool).reshape(h, w))
     if len(pts) == 0:
@@ -287,7 +286,7 @@ def raised_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, min_rise
     that already failed."""
     obs = body.obs
     assert obs is not None
-    h, w = obs.depth.shape
+    w = obs.depth.shape[1]
     pts, index = unproject(obs.depth, obs.intrinsics, obs.camera_pose)
     cam = obs.camera_pose[:3, 3]
     grow = np.maximum(0.05, 0.12 - 0.5 * (obj.box_max[:2] - obj.box_min[:2]))
@@ -303,10 +302,15 @@ def raised_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, min_rise
     if float(pts[k, 2] - pts[:, 2].min()) < min_rise:
         return None
     v, u = divmod(int(index[k]), w)
-    for det in body.detections:
-        if det.label != obj.label and det.label in PICKUPABLE and det.region((h, w))[v, u]:
-            return None
+    if _other_pickupable_at(body, obj.label, u, v):
+        return None
     return Sighting(None, u, v, float(np.linalg.norm(pts[k] - cam)), pts[k])
+
+
+def _other_pickupable_at(body: Body, label: str, u: int, v: int) -> bool:
+    """A detection of a pickupable class other than ``label`` covers pixel (u, v) of the frame."""
+    shape = body.obs.depth.shape
+    return any(d.label != label and d.label in PICKUPABLE and d.region(shape)[v, u] for d in body.detections)
 
 
 def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: float = 1.4,
