@@ -39,7 +39,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from tidee.agent.classes import CLASS_INDEX, CLASSES, PICKUPABLE
-from tidee.agent.perception import PEAK_MODES, TRAINED_RENDERER
+from tidee.agent.perception import AGENT_THRESHOLD, PEAK_MODES, TRAINED_RENDERER
 from tidee.agent.perception.base import Detection
 from tidee.agent.perception.dataset import held_out_frames
 from tidee.protocol.episode_log import write_atomic, write_json_atomic
@@ -434,6 +434,10 @@ def _detector_info(detector: FrameDetector) -> dict[str, Any]:
     info["sha256"] = sha
     path = getattr(detector, "path", None) or getattr(detector, "weights_path", None)
     info["weights"] = str(path) if path is not None else None
+    rc = getattr(detector, "reclassifier_manifest", None)
+    if getattr(detector, "reclassifier", None) is not None and isinstance(rc, Mapping):
+        info["reclassifier"] = {"weights": rc.get("path"), "sha256": rc.get("sha256"),
+                                "alpha": getattr(detector, "alpha", None), "beta": getattr(detector, "beta", None)}
     return info
 
 
@@ -533,9 +537,15 @@ def run_detector_eval(detector: FrameDetector, out_dir: str | Path, rooms_per_ty
         raise ValueError(f"peaks={peaks!r}: {detector.name} has no heatmap peaks to decode another way")
     with _decoding(detector, **({"peaks": peaks} if hasattr(detector, "peaks") else {})):
         dets, timing = _detect_all(detector, frames, batch, progress)
-        timing.update(_single_frame_latency(detector, frames))
+        # the agent's case: its score threshold (fewer detections to box, mask and reclassify than the eval's)
+        with _decoding(detector, **({"threshold": AGENT_THRESHOLD} if hasattr(detector, "threshold") else {})):
+            timing.update(_single_frame_latency(detector, frames))
+        timing.update({f"{k}_eval_threshold": v for k, v in _single_frame_latency(detector, frames).items()})
+        timing["agent_threshold"] = AGENT_THRESHOLD if hasattr(detector, "threshold") else None
     metrics = evaluate_boxes(dets, frames)
-    second_guesses = peaks == "class-max" and classes_per_peak > 1 and hasattr(detector, "classes_per_peak")
+    # second guesses are the detector's runner-up classes: a crop reclassifier renames them all alike
+    second_guesses = (peaks == "class-max" and classes_per_peak > 1 and hasattr(detector, "classes_per_peak")
+                      and getattr(detector, "reclassifier", None) is None)
     if second_guesses:
         with _decoding(detector, classes_per_peak=classes_per_peak):
             multi, _ = _detect_all(detector, frames, batch, progress)
@@ -548,7 +558,8 @@ def run_detector_eval(detector: FrameDetector, out_dir: str | Path, rooms_per_ty
                + (f" --classes-per-peak {classes_per_peak}"
                   if peaks == "class-max" and classes_per_peak != SECOND_GUESSES else "")
                + (f" --peaks {peaks}" if peaks != "class-max" else "")
-               + (f" --renderer {renderer}" if renderer != TRAINED_RENDERER else "") + f" --out {out}")
+               + (f" --renderer {renderer}" if renderer != TRAINED_RENDERER else "")
+               + _reclassifier_flag(detector) + f" --out {out}")
     report = {"command": command, "detector": _detector_info(detector), "peaks": peaks, "timing": timing,
               "data": {"split": split, "renderer": renderer, "rooms_per_type": rooms_per_type, "messes_per_room": messes,
                        "tidy": True, "walks": walks, "frames_per_walk": frames_per_walk, "seed": seed,
@@ -558,6 +569,103 @@ def run_detector_eval(detector: FrameDetector, out_dir: str | Path, rooms_per_ty
     write_json_atomic(out / "detector.json", report)
     write_atomic(out / "detector.md", _detector_markdown(report).encode())
     return report
+
+
+FUSION_ALPHAS = (0.0, 1.0, 2.0, 3.0, 4.0)
+FUSION_BETAS = (0.0, 0.25, 0.5, 1.0)
+
+
+def run_fusion_sweep(detector: FrameDetector, out_dir: str | Path, split: str = "val", rooms_per_type: int = 5,
+                     messes: int = 2, frames_per_walk: int = 5, walks: int = 1, seed: int = 7, batch: int = 16,
+                     alphas: Sequence[float] = FUSION_ALPHAS, betas: Sequence[float] = FUSION_BETAS,
+                     progress: bool = True) -> dict[str, Any]:
+    """Box mAP of the detector alone and of every (alpha, beta) fusion with its crop reclassifier
+    (``reclassifier.fuse``) on the same held-out frames; writes fusion.json and fusion.md. The
+    weights are chosen on the validation rooms (``tidee eval reclassifier --record``)."""
+    if getattr(detector, "reclassifier", None) is None:
+        raise ValueError("the fusion sweep needs a detector with a crop reclassifier")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    frames = held_out_frames(split, rooms_per_type=rooms_per_type, messes=messes, walks=walks,
+                             frames_per_walk=frames_per_walk, seed=seed, progress=progress)
+    rc, a0, b0 = detector.reclassifier, detector.alpha, detector.beta  # type: ignore[attr-defined]
+    rows: list[dict[str, Any]] = []
+    try:
+        detector.reclassifier = None  # type: ignore[attr-defined]
+        dets, _ = _detect_all(detector, frames, batch, False)
+        m = evaluate_boxes(dets, frames)
+        rows.append({"alpha": None, "beta": None, "map50": m["map50"], "map": m["map"], "n_detections": m["n_detections"],
+                     "by_size": {k: v["map50"] for k, v in m["by_size"].items()}})
+        detector.reclassifier = rc  # type: ignore[attr-defined]
+        for a in alphas:
+            for b in betas:
+                detector.alpha, detector.beta = float(a), float(b)  # type: ignore[attr-defined]
+                dets, _ = _detect_all(detector, frames, batch, False)
+                m = evaluate_boxes(dets, frames)
+                rows.append({"alpha": float(a), "beta": float(b), "map50": m["map50"], "map": m["map"],
+                             "n_detections": m["n_detections"],
+                             "by_size": {k: v["map50"] for k, v in m["by_size"].items()}})
+                if progress:
+                    print(f"alpha {a} beta {b}: mAP@0.5 {100 * m['map50']:.1f}", flush=True)
+    finally:
+        detector.reclassifier, detector.alpha, detector.beta = rc, a0, b0  # type: ignore[attr-defined]
+    best = max(rows[1:], key=lambda r: r["map50"])
+    command = (f"tidee eval reclassifier --split {split} --rooms-per-type {rooms_per_type} --messes {messes} "
+               f"--walks {walks} --frames-per-walk {frames_per_walk} --seed {seed}"
+               + ("" if (tuple(alphas), tuple(betas)) == (FUSION_ALPHAS, FUSION_BETAS) else
+                  f" --alphas {','.join(f'{a:g}' for a in alphas)} --betas {','.join(f'{b:g}' for b in betas)}")
+               + _reclassifier_flag(detector) + f" --out {out}")
+    report = {"command": command, "detector": _detector_info(detector), "rows": rows, "best": best,
+              "data": {"split": split, "rooms_per_type": rooms_per_type, "messes_per_room": messes, "walks": walks,
+                       "frames_per_walk": frames_per_walk, "seed": seed, **_frames_summary(frames)}}
+    lines = [f"# Crop reclassifier: fusion with the detector's classes ({split} rooms)", "", f"`{command}`", "",
+             _detector_line(report["detector"]), f"- frames: {report['data']['frames']} of {split} rooms", "",
+             "class = argmax log p_crop + alpha log sigmoid(heat); score = peak score x p_crop(class)^beta", "",
+             "| alpha | beta | mAP@0.5 | mAP@[.5:.95] | small | medium | large | detections |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        sz = r["by_size"]
+        name = ("detector alone", "") if r["alpha"] is None else (f"{r['alpha']:g}", f"{r['beta']:g}")
+        star = " **(best)**" if r is best else ""
+        lines.append(f"| {name[0]} | {name[1]} | {_pct(r['map50'])}{star} | {_pct(r['map'])} | {_pct(sz['small'])} | "
+                     f"{_pct(sz['medium'])} | {_pct(sz['large'])} | {r['n_detections']} |")
+    write_json_atomic(out / "fusion.json", report)
+    write_atomic(out / "fusion.md", ("\n".join(lines) + "\n").encode())
+    return report
+
+
+def _cmd_eval_reclassifier(args: Any) -> int:
+    if args.record and args.split != "val":
+        raise SystemExit("tidee eval reclassifier: --record chooses the fusion weights on the validation rooms; "
+                         "use --split val (the test rooms stay for the final figures)")
+    det = _load_detector(args.weights, args.reclassifier)
+    try:
+        alphas = [float(x) for x in args.alphas.split(",")]
+        betas = [float(x) for x in args.betas.split(",")]
+    except ValueError:
+        raise SystemExit(f"--alphas / --betas want comma-separated numbers, not {args.alphas!r} / {args.betas!r}")
+    r = run_fusion_sweep(det, args.out, split=args.split, rooms_per_type=args.rooms_per_type, messes=args.messes,
+                         frames_per_walk=args.frames_per_walk, walks=args.walks, seed=args.seed, batch=args.batch,
+                         alphas=alphas, betas=betas)
+    if args.record:
+        b = r["best"]
+        _record_in_manifest(det, {"fusion": {"alpha": b["alpha"], "beta": b["beta"], "val_map50": b["map50"],
+                                             "val_map50_detector_alone": r["rows"][0]["map50"],
+                                             "command": r["command"]}})
+    print((Path(args.out) / "fusion.md").read_text())
+    return 0
+
+
+def _reclassifier_flag(detector: FrameDetector) -> str:
+    """The ``--reclassifier`` option that reloads ``detector``'s second stage ("" for the default)."""
+    from tidee.agent.perception.reclassifier import DEFAULT_RECLASSIFIER
+
+    if not hasattr(detector, "reclassifier"):
+        return ""
+    rc = _detector_info(detector).get("reclassifier")
+    if rc is None:
+        return " --reclassifier none" if DEFAULT_RECLASSIFIER.exists() else ""
+    return "" if Path(rc["weights"]).resolve() == DEFAULT_RECLASSIFIER.resolve() else f" --reclassifier {rc['weights']}"
 
 
 def _single_frame_latency(detector: FrameDetector, frames: Mapping[str, np.ndarray], n: int = 60) -> dict[str, float]:
@@ -582,8 +690,11 @@ def _single_frame_latency(detector: FrameDetector, frames: Mapping[str, np.ndarr
 
 
 def _detector_line(det: Mapping[str, Any]) -> str:
+    rc = det.get("reclassifier")
     return (f"- detector: **{det['name']}**" + (f", weights `{det['weights']}`" if det.get("weights") else "")
-            + (f", manifest sha256 `{det['sha256']}`" if det.get("sha256") else ", manifest sha256: not available"))
+            + (f", manifest sha256 `{det['sha256']}`" if det.get("sha256") else ", manifest sha256: not available")
+            + (f"; classes from the crop reclassifier `{rc['weights']}` (sha256 `{rc['sha256']}`, alpha {rc['alpha']}, "
+               f"beta {rc['beta']})" if rc else "; classes from the detector alone"))
 
 
 def _detector_markdown(r: Mapping[str, Any]) -> str:
@@ -600,7 +711,10 @@ def _detector_markdown(r: Mapping[str, Any]) -> str:
         f"- `detect_batch` time: {t['ms_per_frame_median']:.1f} ms/frame median ({t['ms_per_frame_mean']:.1f} mean), "
         f"batch {t['batch']}, 1 torch thread",
         f"- one frame at a time (the agent's case), 1 torch thread: {t['single_frame_ms_median']:.1f} ms median, "
-        f"{t['single_frame_ms_p90']:.1f} ms p90 (target <= 30 ms), including box decoding and depth masks",
+        f"{t['single_frame_ms_p90']:.1f} ms p90 (target <= 30 ms), including box decoding and depth masks"
+        + (f", at the agent's score threshold {t['agent_threshold']}; at the evaluation's {EVAL_THRESHOLD} "
+           f"(more detections): {t['single_frame_ms_median_eval_threshold']:.1f} ms median, "
+           f"{t['single_frame_ms_p90_eval_threshold']:.1f} ms p90" if t.get("agent_threshold") is not None else ""),
         "",
         "| metric | value |", "|---|---|",
         f"| mAP@0.5 | {_pct(r['map50'])} |",
@@ -669,7 +783,8 @@ def run_oop_eval(detector: FrameDetector, out_dir: str | Path, views_per_config:
     counts = _config_counts(frames)
     expected = len(ROOM_TYPES) * rooms_per_type * messes
     command = (f"tidee eval oop --split {split} --views {views_per_config} --rooms-per-type {rooms_per_type} "
-               f"--messes {messes} --walks {walks} --seed {seed}{'' if extra_rows else ' --visual-only'} --out {out}")
+               f"--messes {messes} --walks {walks} --seed {seed}{'' if extra_rows else ' --visual-only'}"
+               f"{_reclassifier_flag(detector)} --out {out}")
     report = {"command": command, "detector": _detector_info(detector), "timing": timing,
               "data": {"split": split, "rooms_per_type": rooms_per_type, "messes_per_room": messes,
                        "views_per_config_target": views_per_config, "walks": walks,
@@ -727,18 +842,24 @@ def _eval_split(value: str) -> str:
 EVAL_THRESHOLD = 0.05     # AP integrates over the whole precision/recall curve: keep low-score detections
 
 
-def _load_detector(weights: str | None) -> FrameDetector:
+def _load_detector(weights: str | None, reclassifier: str | None = "default") -> FrameDetector:
+    """The learned detector at the evaluation threshold; ``reclassifier``: "default" (the shipped
+    crop classifier when it is there), "none", or a path."""
     from tidee.agent.perception.learned import LearnedPerception
 
-    return LearnedPerception.load(weights, threshold=EVAL_THRESHOLD)
+    return LearnedPerception.load(weights, threshold=EVAL_THRESHOLD,
+                                  reclassifier=None if reclassifier == "none" else reclassifier)
 
 
 def _record_in_manifest(detector: FrameDetector, metrics: dict[str, Any]) -> None:
-    """Merge held-out metrics into the evaluated weights' manifest (the weights are unchanged)."""
+    """Merge held-out metrics into the evaluated weights' manifest (the weights are unchanged):
+    the crop reclassifier's when it renamed the detections, else the detector's."""
     from tidee.agent.learning import update_manifest_metrics
 
-    update_manifest_metrics(detector.path, metrics)  # type: ignore[attr-defined]
-    print(f"recorded in {Path(detector.path).with_suffix('.json')}: {sorted(metrics)}")  # type: ignore[attr-defined]
+    rc = _detector_info(detector).get("reclassifier")
+    path = Path(rc["weights"]) if rc else Path(detector.path)  # type: ignore[attr-defined]
+    update_manifest_metrics(path, metrics)
+    print(f"recorded in {path.with_suffix('.json')}: {sorted(metrics)}")
 
 
 def _cmd_eval_detector(args: Any) -> int:
@@ -748,7 +869,7 @@ def _cmd_eval_detector(args: Any) -> int:
     if args.record and args.peaks != "class-max":
         raise SystemExit(f"tidee eval detector: --record keeps the manifest's figures for the agent's decoding "
                          f"(class-max); drop --record with --peaks {args.peaks}")
-    det = _load_detector(args.weights)
+    det = _load_detector(args.weights, args.reclassifier)
     r = run_detector_eval(det, args.out, rooms_per_type=args.rooms_per_type,
                           messes=args.messes, frames_per_walk=args.frames_per_walk, walks=args.walks, seed=args.seed,
                           batch=args.batch, split=args.split, renderer=args.renderer,
@@ -810,7 +931,7 @@ def _language_rows() -> dict[str, OopRowFn | None]:
 
 
 def _cmd_eval_oop(args: Any) -> int:
-    det = _load_detector(args.weights)
+    det = _load_detector(args.weights, args.reclassifier)
     r = run_oop_eval(det, args.out, views_per_config=args.views, messes=args.messes,
                      rooms_per_type=args.rooms_per_type, seed=args.seed, split=args.split, walks=args.walks,
                      batch=args.batch, extra_rows=None if args.visual_only else _language_rows())
@@ -818,6 +939,10 @@ def _cmd_eval_oop(args: Any) -> int:
         _record_in_manifest(det, {"oop_visual": r["rows"][VISUAL_ROW], "oop_eval_command": r["command"]})
     print((Path(args.out) / "oop.md").read_text())
     return 0
+
+
+RECLASSIFIER_HELP = ("the crop classifier that renames detections: default (the shipped one when it is there), "
+                     "none (the detector's own classes), or a weights path")
 
 
 def register(eval_sub: Any) -> None:
@@ -840,7 +965,27 @@ def register(eval_sub: Any) -> None:
     p.add_argument("--peaks", choices=PEAK_MODES, default="class-max",
                    help="how heatmap peaks become detections (default class-max: the agent's; the others are "
                         "an ablation, see detector.decode)")
+    p.add_argument("--reclassifier", default="default", help=RECLASSIFIER_HELP)
     p.set_defaults(func=_cmd_eval_detector)
+
+    p = eval_sub.add_parser("reclassifier", help="box AP of the detector alone and fused with its crop reclassifier "
+                                                 "(alpha x beta), to choose the fusion on the validation rooms")
+    p.add_argument("--split", type=_eval_split, default="val", help="val (default: where the fusion is chosen) or test")
+    p.add_argument("--out", required=True)
+    p.add_argument("--weights", default=None, help="detector weights (default: the installed ones)")
+    p.add_argument("--reclassifier", default="default", help=RECLASSIFIER_HELP)
+    p.add_argument("--rooms-per-type", type=int, default=5)
+    p.add_argument("--messes", type=int, default=2)
+    p.add_argument("--walks", type=int, default=1)
+    p.add_argument("--frames-per-walk", type=int, default=5)
+    p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--alphas", default=",".join(f"{a:g}" for a in FUSION_ALPHAS),
+                   help="weights of the detector's class scores to try (comma-separated)")
+    p.add_argument("--betas", default=",".join(f"{b:g}" for b in FUSION_BETAS),
+                   help="exponents of the crop's class probability in the score to try (comma-separated)")
+    p.add_argument("--record", action="store_true", help="write the best fusion into the reclassifier's manifest")
+    p.set_defaults(func=_cmd_eval_reclassifier)
 
     p = eval_sub.add_parser("oop", help="in/out-of-place AP on messy held-out rooms (paper Table 3)")
     p.add_argument("--split", type=_eval_split, default="test", help="test (default) or val")
@@ -855,4 +1000,5 @@ def register(eval_sub: Any) -> None:
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--record", action="store_true", help="merge the visual row into the weights' manifest")
     p.add_argument("--visual-only", action="store_true", help="skip the language, fused and oracle-language rows")
+    p.add_argument("--reclassifier", default="default", help=RECLASSIFIER_HELP)
     p.set_defaults(func=_cmd_eval_oop)

@@ -1,4 +1,4 @@
-"""The perception models' commands: ``tidee train detector``, ``tidee train depth``,
+"""The perception models' commands: ``tidee train detector``, ``tidee train reclassifier``, ``tidee train depth``,
 ``tidee eval depth``. Argparse only at import: the handlers import torch when they run, so
 ``tidee server`` and ``tidee viewer`` work on an install without torch."""
 
@@ -36,8 +36,24 @@ def _cmd_train_detector(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_reclassifier(args: argparse.Namespace) -> int:
+    from tidee.agent.perception.reclassifier import (ReclassifierConfig, ReclassifierTrainConfig,
+                                                     train_reclassifier)
+
+    tc = ReclassifierTrainConfig(data=args.data, out=args.out, work_dir=args.work_dir, steps=args.steps,
+                                 batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
+                                 threads=args.threads, limit_frames=args.limit_frames, precision=args.precision)
+    command = "tidee train reclassifier " + " ".join(sys.argv[3:])
+    result = train_reclassifier(tc, ReclassifierConfig(crop=args.crop), resume=not args.no_resume,
+                                command=command.strip())
+    last = result["history"][-1] if result["history"] else {}
+    print(json.dumps({"steps": result["steps"], "seconds": result["seconds"], "device": result["device"],
+                      "final": last, "weights": result.get("out")}, indent=1))
+    return 0
+
+
 def register(train_sub: argparse._SubParsersAction, eval_sub: argparse._SubParsersAction) -> None:
-    """``tidee train detector``, ``tidee train depth`` and ``tidee eval depth``."""
+    """``tidee train detector``, ``tidee train reclassifier``, ``tidee train depth`` and ``tidee eval depth``."""
     p = train_sub.add_parser("detector", help="the RGB-D detector with its OOP head, on `tidee gen detection` data")
     p.add_argument("--data", default="data/detection",
                    help="directory of `tidee gen detection` shards, or several, comma-separated (different rooms)")
@@ -63,6 +79,24 @@ def register(train_sub: argparse._SubParsersAction, eval_sub: argparse._SubParse
     p.add_argument("--head-conv", action="store_true",
                    help="a depthwise-separable conv before the heads (identity at start)")
     p.set_defaults(func=_cmd_train_detector)
+
+    p = train_sub.add_parser("reclassifier", help="the crop classifier that renames the detector's detections, "
+                                                  "on `tidee gen detection` data")
+    p.add_argument("--data", default="data/detection_d", help="comma-separated `tidee gen detection` directories")
+    p.add_argument("--out", default="agent/weights/reclassifier.pt", help="shipped weights (+ .json manifest)")
+    p.add_argument("--work-dir", default="runs/reclassifier", help="checkpoints and the loss curve (resumable)")
+    p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--batch-size", type=int, default=256, help="crops per step")
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--crop", type=int, default=40, help="crop side in pixels")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    p.add_argument("--threads", type=int, default=0, help="CPU threads (0: torch's default)")
+    p.add_argument("--limit-frames", type=int, default=None, help="train on the first N frames only (smoke runs)")
+    p.add_argument("--no-resume", action="store_true", help="ignore a checkpoint in --work-dir")
+    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                   help="auto: bf16 autocast where the CPU or GPU has it")
+    p.set_defaults(func=_cmd_train_reclassifier)
 
     p = train_sub.add_parser("depth", help="the depth-from-RGB network (the '+est. depth' setting)")
     p.add_argument("--data", default="data/detection", help="frames from `tidee gen detection`")

@@ -2,7 +2,9 @@
 
 Each detection carries the detector's class, score, box, its out-of-place probability (the
 OOP head: the paper's dDETR-OOP) and a feature vector (the neck at the object's centre
-cell, L2-normalised) for the downstream classifiers. The detector predicts boxes, not
+cell, L2-normalised) for the downstream classifiers. A second stage (``reclassifier``:
+a crop classifier, on by default when its weights ship) renames each detection from an RGB-D
+crop of its box and can lower the score of a box that holds no object. The detector predicts boxes, not
 masks; the mask handed to mapping is grown from the depth at the box centre: the pixels of
 the box whose depth lies within the object's own extent of it, so the median-depth
 centroid is the object's and not the wall behind it.
@@ -10,6 +12,7 @@ centroid is the object's and not the wall behind it.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +20,11 @@ import torch
 
 from tidee.agent.classes import CLASSES
 from tidee.agent.learning import read_manifest, resolve_precision
+from tidee.agent.perception import AGENT_THRESHOLD
 from tidee.agent.perception.base import Detection
-from tidee.agent.perception.detector import CenterDetector, DetectorConfig, check_peaks, decode, preprocess
+from tidee.agent.perception.detector import (CenterDetector, DetectorConfig, RawDetection, check_peaks, decode,
+                                             preprocess)
+from tidee.agent.perception.reclassifier import CropClassifier, crop_inputs, frame_tensor, fuse
 from tidee.protocol.messages import Observation
 
 
@@ -71,15 +77,25 @@ class LearnedPerception:
     ``precision``: "auto" runs the network under bf16 autocast, channels-last, where the CPU
     has native bf16 (AVX512-BF16/AMX; about 1.6x faster per frame), fp32 elsewhere.
     ``classes_per_peak``, ``peaks``: see ``detector.decode`` (1 and "class-max" for the agent).
+    ``reclassifier``: the crop classifier that renames detections (``reclassifier.fuse`` with
+    ``alpha``, ``beta``), or None for the detector's own classes and scores.
     """
 
     name = "learned"
     needs_ground_truth = False
 
-    def __init__(self, model: CenterDetector, manifest: dict | None = None, threshold: float = 0.3,
+    def __init__(self, model: CenterDetector, manifest: dict | None = None, threshold: float = AGENT_THRESHOLD,
                  max_detections: int = 50, path: Path | None = None, nms_iou: float = 0.5,
-                 precision: str = "auto", classes_per_peak: int = 1, peaks: str = "class-max") -> None:
+                 precision: str = "auto", classes_per_peak: int = 1, peaks: str = "class-max",
+                 reclassifier: CropClassifier | None = None, reclassifier_manifest: dict | None = None,
+                 alpha: float = 1.0, beta: float = 1.0) -> None:
         self.peaks = check_peaks(peaks)
+        if reclassifier is not None and reclassifier.cfg.num_classes != model.cfg.num_classes:
+            raise ValueError(f"the reclassifier knows {reclassifier.cfg.num_classes} classes, the detector "
+                             f"{model.cfg.num_classes}: retrain it")
+        self.reclassifier = reclassifier.eval().to(memory_format=torch.channels_last) if reclassifier else None
+        self.reclassifier_manifest = reclassifier_manifest or {}
+        self.alpha, self.beta = float(alpha), float(beta)
         self.precision = resolve_precision(precision, "cpu")
         self.model = model.eval().to(memory_format=torch.channels_last)
         self.classes_per_peak = classes_per_peak
@@ -91,8 +107,13 @@ class LearnedPerception:
         self.nms_iou = nms_iou
 
     @staticmethod
-    def load(path: str | Path | None = None, threshold: float = 0.3, verify: bool = True,
-             precision: str = "auto", classes_per_peak: int = 1) -> "LearnedPerception":
+    def load(path: str | Path | None = None, threshold: float = AGENT_THRESHOLD, verify: bool = True,
+             precision: str = "auto", classes_per_peak: int = 1,
+             reclassifier: str | Path | None = "default") -> "LearnedPerception":
+        """``reclassifier``: "default" loads the shipped crop classifier when it is there, a path
+        loads that one (it must exist), None runs the detector alone. Its fusion weights
+        (``alpha``, ``beta``) come from its manifest's ``fusion`` (``tidee eval reclassifier --record``)."""
+        from tidee.agent.perception.reclassifier import DEFAULT_RECLASSIFIER, load_reclassifier
         from tidee.agent.perception.train_detector import DEFAULT_WEIGHTS
 
         path = Path(path) if path else DEFAULT_WEIGHTS
@@ -103,8 +124,37 @@ class LearnedPerception:
             raise ValueError(f"{path} predicts {cfg.num_classes} classes; the catalog has {len(CLASSES)}: retrain")
         model = CenterDetector(cfg)
         model.load_state_dict(blob["state_dict"])
+        rc, rc_manifest = None, None
+        if reclassifier == "default":
+            reclassifier = DEFAULT_RECLASSIFIER if DEFAULT_RECLASSIFIER.exists() else None
+        if reclassifier is not None:
+            rc, rc_manifest = load_reclassifier(reclassifier, verify=verify)
+        fusion = (rc_manifest or {}).get("metrics", {}).get("fusion", {})
         return LearnedPerception(model, manifest, threshold, path=path, precision=precision,
-                                 classes_per_peak=classes_per_peak)
+                                 classes_per_peak=classes_per_peak, reclassifier=rc, reclassifier_manifest=rc_manifest,
+                                 alpha=fusion.get("alpha", 1.0), beta=fusion.get("beta", 1.0))
+
+    def _reclassify(self, raw: list[list[RawDetection]], rgb: np.ndarray, depth: np.ndarray,
+                    heat: torch.Tensor, threshold: float) -> list[list[RawDetection]]:
+        """Each detection renamed and rescored by the crop classifier (``reclassifier.fuse``);
+        those whose score falls under ``threshold`` are dropped, the rest sorted best first."""
+        flat = [(i, d) for i, dets in enumerate(raw) for d in dets]
+        fidx = torch.tensor([i for i, _ in flat])
+        boxes = torch.tensor([d.box for _, d in flat], dtype=torch.float32)
+        crops, side = crop_inputs(frame_tensor(rgb, depth), fidx, boxes, self.reclassifier.cfg)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+            logits = self.reclassifier(crops.contiguous(memory_format=torch.channels_last), side)
+        rows = torch.tensor([d.cell[0] for _, d in flat])
+        cols = torch.tensor([d.cell[1] for _, d in flat])
+        cls, score = fuse(logits, heat[fidx, :, rows, cols], torch.tensor([d.score for _, d in flat]),
+                          self.alpha, self.beta)
+        out: list[list[RawDetection]] = [[] for _ in raw]
+        for (i, d), c, s in zip(flat, cls.tolist(), score.tolist()):
+            if s >= threshold:
+                out[i].append(dataclasses.replace(d, cls=int(c), score=float(s)))
+        for dets in out:
+            dets.sort(key=lambda d: -d.score)
+        return out
 
     @property
     def sha256(self) -> str | None:
@@ -135,6 +185,8 @@ class LearnedPerception:
         thr = self.threshold if threshold is None else threshold
         raw = decode(out, k=self.max_detections, threshold=thr, stride=self.cfg.stride,
                      classes_per_peak=self.classes_per_peak, peaks=self.peaks)
+        if self.reclassifier is not None and any(raw):
+            raw = self._reclassify(raw, rgb_in, depth_in, out["heat"], thr)
         feat = torch.nn.functional.normalize(out["feat"], dim=1)
         sx, sy = w / size, h / size
         focal = (w / 2) / np.tan(np.radians(45.0))
