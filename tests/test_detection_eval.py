@@ -280,7 +280,8 @@ def test_register_parses_and_rejects_train():
 def test_cli_handlers_run_and_return_zero(tmp_path, monkeypatch, capsys):
     frames = oop_frames()
     monkeypatch.setattr(de, "held_out_frames", lambda *a, **k: frames)
-    monkeypatch.setattr(de, "_load_detector", lambda weights: GTDetector(frames, jitter=0.5, seed=5))
+    monkeypatch.setattr(de, "_load_detector",
+                        lambda weights, reclassifier="default": GTDetector(frames, jitter=0.5, seed=5))
     parser = argparse.ArgumentParser(prog="tidee")
     de.register(parser.add_subparsers(dest="eval_cmd"))
     for argv in (["detector", "--out", str(tmp_path / "d")], ["oop", "--out", str(tmp_path / "o"), "--views", "3", "--visual-only"]):
@@ -288,6 +289,16 @@ def test_cli_handlers_run_and_return_zero(tmp_path, monkeypatch, capsys):
         assert args.func(args) == 0
     assert "mAP@0.5" in capsys.readouterr().out
     assert (tmp_path / "d" / "detector.json").exists() and (tmp_path / "o" / "oop.json").exists()
+    # the fusion sweep needs a second stage to sweep; choosing it on the test rooms is refused
+    with pytest.raises(ValueError, match="needs a detector with a crop reclassifier"):
+        args = parser.parse_args(["reclassifier", "--out", str(tmp_path / "f")])
+        args.func(args)
+    with pytest.raises(SystemExit, match="validation rooms"):
+        args = parser.parse_args(["reclassifier", "--split", "test", "--record", "--out", str(tmp_path / "f")])
+        args.func(args)
+    with pytest.raises(SystemExit, match="comma-separated numbers"):
+        args = parser.parse_args(["reclassifier", "--alphas", "1,x", "--out", str(tmp_path / "f")])
+        args.func(args)
 
 
 def test_eval_detector_on_egl_frames_does_not_record_into_the_manifest():
