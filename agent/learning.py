@@ -79,6 +79,26 @@ def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
     return torch.load(path, map_location="cpu", weights_only=False)
 
 
+def resume_training(path: str | Path, seed: int, model_config: dict[str, Any], model: Any, optimizer: Any,
+                    sampler: Any) -> tuple[int, list[dict[str, float]]]:
+    """Restore a training run from its checkpoint (model, optimiser, the sampler's and torch's
+    random state); (step, history), or (0, []) when there is none. A checkpoint of another
+    seed or architecture is refused."""
+    import torch
+
+    ck = load_checkpoint(path)
+    if ck is None:
+        return 0, []
+    if ck["train_config"]["seed"] != seed or ck["model_config"] != model_config:
+        raise ValueError(f"{path} was written by a different run (seed or architecture); "
+                         "pass --no-resume or another --work-dir")
+    model.load_state_dict(ck["model"])
+    optimizer.load_state_dict(ck["optimizer"])
+    sampler.set_state(ck["sampler"])
+    torch.set_rng_state(ck["torch_rng"])
+    return ck["step"], ck["history"]
+
+
 def save_loss_curve(history: list[dict[str, float]], path: str | Path, title: str) -> None:
     """PNG of every loss term in ``history`` (one dict per logged step, with a "step" key)."""
     import matplotlib

@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from tidee.agent.learning import (WEIGHTS_DIR, load_checkpoint, pick_device, resolve_precision, save_checkpoint,
+from tidee.agent.learning import (WEIGHTS_DIR, pick_device, resolve_precision, resume_training, save_checkpoint,
                                   save_loss_curve, write_manifest)
 from tidee.agent.perception.detector import DEPTH_SCALE, RGB_MEAN, RGB_STD, cbr
 
@@ -153,18 +153,6 @@ class ReclassifierTrainConfig:
     precision: str = "auto"
 
 
-def _iou_many(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of each box of ``a`` (N x 4) with each of ``b`` (M x 4): N x M."""
-    x0 = np.maximum(a[:, None, 0], b[None, :, 0])
-    y0 = np.maximum(a[:, None, 1], b[None, :, 1])
-    x1 = np.minimum(a[:, None, 2], b[None, :, 2])
-    y1 = np.minimum(a[:, None, 3], b[None, :, 3])
-    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
-    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
-    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-6)
-
-
 class CropBatches:
     """Minibatches of jittered ground-truth crops and background crops from a few frames each.
 
@@ -191,6 +179,8 @@ class CropBatches:
         self.rng.bit_generator.state = s
 
     def __call__(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        from tidee.agent.evaluation.detection import box_iou
+
         d, rng, tc = self.data, self.rng, self.tc
         fids = rng.choice(self.frames_with_objects, min(tc.frames_per_batch, len(self.frames_with_objects)),
                           replace=False)
@@ -224,7 +214,7 @@ class CropBatches:
                 box = np.array([[x0, y0, x1, y1]])
                 label = int(d["obj_cls"][rows[r]])
             else:
-                ious = _iou_many(box, gt)[0]
+                ious = box_iou(box, gt)[0]
                 best = int(np.argmax(ious))
                 if ious[best] >= 0.5:
                     label = int(d["obj_cls"][rows[best]])
@@ -244,13 +234,6 @@ class CropBatches:
         return crops, side, torch.tensor(labels, dtype=torch.long)
 
 
-def _lr_at(step: int, tc: ReclassifierTrainConfig) -> float:
-    if step < tc.warmup:
-        return tc.lr * (step + 1) / tc.warmup
-    t = (step - tc.warmup) / max(tc.steps - tc.warmup, 1)
-    return tc.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(t, 1.0))))
-
-
 def train_reclassifier(tc: ReclassifierTrainConfig, cfg: ReclassifierConfig | None = None, resume: bool = True,
                        progress: bool = True, command: str = "", data: dict[str, np.ndarray] | None = None,
                        ship: bool = True) -> dict[str, Any]:
@@ -258,6 +241,7 @@ def train_reclassifier(tc: ReclassifierTrainConfig, cfg: ReclassifierConfig | No
     from tqdm import tqdm
 
     from tidee.agent.perception.dataset import load_datasets
+    from tidee.agent.perception.train_detector import lr_at
 
     if tc.threads:
         torch.set_num_threads(tc.threads)
@@ -273,24 +257,14 @@ def train_reclassifier(tc: ReclassifierTrainConfig, cfg: ReclassifierConfig | No
     batches = CropBatches(data, cfg, tc)
     work = Path(tc.work_dir)
     ckpt_path = work / "checkpoint.pt"
-    step, history = 0, []
-    ck = load_checkpoint(ckpt_path) if resume else None
-    if ck is not None:
-        if ck["train_config"]["seed"] != tc.seed or ReclassifierConfig.from_dict(ck["model_config"]) != cfg:
-            raise ValueError(f"{ckpt_path} was written by a different run (seed or architecture); "
-                             "pass --no-resume or another --work-dir")
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        batches.set_state(ck["sampler"])
-        torch.set_rng_state(ck["torch_rng"])
-        step, history = ck["step"], ck["history"]
+    step, history = resume_training(ckpt_path, tc.seed, cfg.to_dict(), model, opt, batches) if resume else (0, [])
     t0 = time.time()
     model.train()
     bar = tqdm(total=tc.steps, initial=step, desc="train reclassifier", disable=not progress)
     running = {"total": 0.0, "acc": 0.0}
     while step < tc.steps:
         for g in opt.param_groups:
-            g["lr"] = _lr_at(step, tc)
+            g["lr"] = lr_at(step, tc)            # the detector's warm-up + cosine schedule
         crops, side, labels = batches()
         crops = crops.to(device, memory_format=torch.channels_last)
         side, labels = side.to(device), labels.to(device)

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from tidee.agent.learning import (WEIGHTS_DIR, load_checkpoint, pick_device, resolve_precision, save_checkpoint,
-                                  save_loss_curve, sha256_file, write_manifest)
+from tidee.agent.learning import (WEIGHTS_DIR, load_checkpoint, pick_device, resolve_precision, resume_training,
+                                  save_checkpoint, save_loss_curve, sha256_file, write_manifest)
 from tidee.agent.perception.dataset import load_datasets
 from tidee.agent.perception.detector import (CenterDetector, DetectorConfig, detector_loss, encode_targets,
                                              preprocess)
@@ -156,17 +156,8 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
     batches = Batches(data, model_cfg, cfg.batch_size, cfg.seed)
     work = Path(cfg.work_dir)
     ckpt_path = work / "checkpoint.pt"
-    step, history = 0, []
-    ck = load_checkpoint(ckpt_path) if resume else None
-    if ck is not None:
-        if ck["train_config"]["seed"] != cfg.seed or DetectorConfig.from_dict(ck["model_config"]) != model_cfg:
-            raise ValueError(f"{ckpt_path} was written by a different run (seed or architecture); "
-                             "pass --no-resume or another --work-dir")
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        batches.set_state(ck["sampler"])
-        torch.set_rng_state(ck["torch_rng"])
-        step, history = ck["step"], ck["history"]
+    step, history = (resume_training(ckpt_path, cfg.seed, model_cfg.to_dict(), model, opt, batches)
+                     if resume else (0, []))
     t0 = time.time()
     model.train()
     bar = tqdm(total=cfg.steps, initial=step, desc="train detector", disable=not progress)
