@@ -80,6 +80,7 @@ class AgentConfig:
     oop: str = "auto"                       # auto: the detector's OOP head (visual) with learned perception,
                                             # the language classifier with oracle perception
     explorer: str = "random"                # how unexplored space is mapped: random goals | frontier
+    detection_threshold: float | None = None  # learned detector's score threshold (None: AGENT_THRESHOLD)
     seed: int = 0                           # the agent's own random draws (goal sampling, RandomReceptacle)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     map: MapConfig = field(default_factory=MapConfig)
@@ -92,6 +93,11 @@ class AgentConfig:
             raise ValueError(f"explorer must be one of {EXPLORERS}, got {self.explorer!r}")
         if self.depth not in DEPTH_SOURCES:
             raise ValueError(f"depth must be one of {DEPTH_SOURCES}, got {self.depth!r}")
+        if self.detection_threshold is not None:
+            if self.perception != "learned":
+                raise ValueError("--detection-threshold applies to the learned detector: it needs --perception learned")
+            if not 0.0 < self.detection_threshold < 1.0:
+                raise ValueError(f"--detection-threshold must be in (0, 1), got {self.detection_threshold}")
         if self.oop == "auto":
             self.oop = "visual" if self.perception == "learned" else "language"
         if self.oop == "visual" and self.perception != "learned":

@@ -61,7 +61,7 @@ class EpisodeRunner:
         self.publisher = publisher
         self.log_dir = Path(log_dir) if log_dir else None
         self.on_step = on_step
-        self.perception = make_perception(config.perception)
+        self.perception = make_perception(config.perception, config.detection_threshold)
         self.depth_net = None
         if config.depth == "estimated":
             from tidee.agent.perception.depth_net import DepthEstimator

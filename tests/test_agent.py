@@ -63,6 +63,12 @@ def test_bad_agent_configurations_say_what_is_wrong() -> None:
         AgentConfig(variant="Tidy")
     with pytest.raises(ValueError, match="oop_threshold"):
         PolicyConfig(oop_threshold=0.0)
+    with pytest.raises(ValueError, match="needs --perception learned"):
+        AgentConfig(perception="oracle", detection_threshold=0.2)
+    with pytest.raises(ValueError, match=r"must be in \(0, 1\), got 1.5"):
+        AgentConfig(detection_threshold=1.5)
+    with pytest.raises(ValueError, match="learned perception only"):
+        make_perception("oracle", threshold=0.2)
 
 
 def test_shipped_statistics_come_from_training_rooms_only() -> None:
@@ -153,11 +159,16 @@ def test_tidee_run_forwards_agent_options(monkeypatch) -> None:
     seen = {}
     monkeypatch.setattr(tidee.launch, "run_all", lambda cfg: seen.setdefault("cfg", cfg) and 0)
     args = cli.build_parser().parse_args(["run", "--variant", "RandomReceptacle", "--pose-noise", "--seed", "201",
-                                          "--linger", "0"])
+                                          "--linger", "0", "--detection-threshold", "0.2"])
     cli._cmd_run(args)
     fwd = seen["cfg"].agent_args
     assert fwd[fwd.index("--variant") + 1] == "RandomReceptacle" and "--pose-noise" in fwd
     assert fwd[fwd.index("--seed") + 1] == "201" and "--server-id" not in fwd and "--depth-noise" not in fwd
+    assert fwd[fwd.index("--detection-threshold") + 1] == "0.2"
+    agent_args = cli.build_parser().parse_args(["agent"] + fwd)
+    assert cli._agent_config(agent_args).detection_threshold == 0.2
+    assert cli.build_parser().parse_args(["eval", "tidy", "--out", "x", "--detection-threshold", "0.25"]
+                                         ).detection_threshold == 0.25
 
 
 def test_the_agent_side_asks_for_the_renderer_its_detector_was_trained_on() -> None:
@@ -186,3 +197,10 @@ def test_a_preference_on_the_command_channel_retrains_the_language_oop_head() ->
     assert after > before and after >= 0.7, (before, after)
     ok, msg = runner._apply_preference("I want my zzz on the qqq")
     assert not ok and "could not use" in msg
+
+
+def test_the_detection_threshold_reaches_the_learned_detector() -> None:
+    from tidee.agent.perception import AGENT_THRESHOLD
+
+    assert make_perception("learned").threshold == AGENT_THRESHOLD
+    assert make_perception("learned", threshold=0.2).threshold == 0.2

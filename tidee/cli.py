@@ -90,6 +90,8 @@ AGENT_OPTIONS: list[tuple[str, dict]] = [
     ("--oop", {"default": "auto", "help": "auto (visual with learned perception, language with oracle) | "
                                           "relation_stats | visual | language | fused"}),
     ("--explorer", {"default": "random", "choices": ("random", "frontier")}),
+    ("--detection-threshold", {"type": float, "default": None,
+                               "help": "learned detector's score threshold (default: perception.AGENT_THRESHOLD)"}),
     ("--room-type", {"default": "LivingRoom", "choices": ROOM_TYPES}),
     ("--seed", {"type": int, "default": 200, "help": "room seed (200-204 are test rooms)"}),
     ("--mess-index", {"type": int, "default": 0}),
@@ -110,7 +112,7 @@ def _agent_config(args: argparse.Namespace):
     from tidee.agent.config import AgentConfig
 
     return AgentConfig(variant=args.variant, perception=args.perception, oop=args.oop, explorer=args.explorer,
-                       seed=args.agent_seed, depth=args.depth)
+                       seed=args.agent_seed, depth=args.depth, detection_threshold=args.detection_threshold)
 
 
 def _cmd_agent(args: argparse.Namespace) -> int:
@@ -148,7 +150,8 @@ def _cmd_eval_tidy(args: argparse.Namespace) -> int:
     report = run_tidy_eval(args.out, split=args.split, episodes=args.episodes, variants=args.variants.split(","),
                            perception=args.perception, oop=args.oop, explorer=args.explorer,
                            resolution=args.resolution, max_steps=args.max_steps, workers=args.workers,
-                           renderer=args.renderer, keep_logs=args.keep_logs, depth=args.depth)
+                           renderer=args.renderer, keep_logs=args.keep_logs, depth=args.depth,
+                           detection_threshold=args.detection_threshold)
     print((Path(args.out) / "report.md").read_text())
     return 0 if report else 1
 
@@ -269,6 +272,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--depth", default="sensor", choices=("sensor", "estimated"))
     p.add_argument("--oop", default="auto", help="auto | relation_stats | visual | language | fused")
     p.add_argument("--explorer", default="random", choices=("random", "frontier"))
+    p.add_argument("--detection-threshold", type=float, default=None,
+                   help="learned detector's score threshold (default: perception.AGENT_THRESHOLD)")
     p.add_argument("--resolution", type=int, default=256)
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--workers", type=int, default=1, help="parallel simulator processes")

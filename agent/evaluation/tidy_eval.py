@@ -47,7 +47,8 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
     except NameError:
         transport = _TRANSPORT = InProcessTransport(renderer=job["renderer"])
     cfg = AgentConfig(variant=job["variant"], perception=job["perception"], oop=job["oop"], depth=job["depth"],
-                      explorer=job["explorer"], seed=job["agent_seed"])
+                      explorer=job["explorer"], seed=job["agent_seed"],
+                      detection_threshold=job.get("detection_threshold"))
     spec = EpisodeSpec(room_type=job["room_type"], seed=job["seed"], mess_index=job["mess_index"],
                        resolution=job["resolution"], max_steps=job["max_steps"])
     runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.get("log_dir"))
@@ -70,12 +71,13 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
                   variants: list[str] | None = None, perception: str = "learned", oop: str = "auto",
                   explorer: str = "random", resolution: int = 256, max_steps: int = 1000, workers: int = 1,
                   renderer: str = TRAINED_RENDERER, keep_logs: bool = False, progress: bool = True,
-                  depth: str = "sensor") -> dict[str, Any]:
+                  depth: str = "sensor", detection_threshold: float | None = None) -> dict[str, Any]:
     from tqdm import tqdm
 
     from tidee.agent.evaluation.report import with_references, write_report
 
-    oop = AgentConfig(perception=perception, oop=oop).oop      # "auto" resolved as the agent does
+    # "auto" resolved as the agent does; a bad threshold is refused here, before any episode
+    oop = AgentConfig(perception=perception, oop=oop, detection_threshold=detection_threshold).oop
     variants = variants or list(BUILT_VARIANTS)
     agents = [v for v in variants if v not in REFERENCE_VARIANTS]
     for v in agents:
@@ -89,6 +91,7 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
     out.mkdir(parents=True, exist_ok=True)
     configs = select_configs(split, episodes)
     jobs = [{"variant": v, "perception": perception, "oop": oop, "depth": depth, "explorer": explorer, "agent_seed": c.index,
+             "detection_threshold": detection_threshold,
              "room_type": c.room_type, "seed": c.seed, "mess_index": c.mess_index, "split": split,
              "resolution": resolution, "max_steps": max_steps, "renderer": renderer,
              "log_dir": str(out / "logs") if keep_logs else None}
@@ -117,10 +120,12 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
              f"resolution {resolution}, max {max_steps} steps, OOP detector '{oop}', explorer '{explorer}'",
              f"perception: {perception}" + (" (ORACLE: detections from the simulator's segmentation)"
                                            if perception == "oracle" else " (the shipped RGB-D detector)")
-             + f", depth: {depth}",
+             + f", depth: {depth}"
+             + (f", detection threshold {detection_threshold}" if detection_threshold is not None else ""),
              f"median per-step agent time (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in timing.items()),
              f"command: tidee eval tidy --split {split} --episodes {len(configs)} --variants {','.join(variants)} "
              f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} "
+             + (f"--detection-threshold {detection_threshold} " if detection_threshold is not None else "") +
              f"--max-steps {max_steps} --resolution {resolution} --workers {workers} --out {out}",
              f"total wall time {time.time() - t0:.0f} s with {workers} worker(s)"]
     return write_report(all_records, out, title=f"Tidy evaluation ({split} rooms)", notes=notes)

@@ -16,15 +16,21 @@ PEAK_MODES = ("class-max", "per-class", "per-class-single")
 AGENT_THRESHOLD = 0.3     # the learned detector's score below which the agent drops a detection
 
 
-def make_perception(name: str) -> Perception:
+def make_perception(name: str, threshold: float | None = None) -> Perception:
+    """``threshold``: the learned detector's score threshold (None: ``AGENT_THRESHOLD``); oracle
+    perception has no scores to threshold and refuses one."""
+    if threshold is not None and not 0.0 < threshold < 1.0:
+        raise ValueError(f"the detection threshold must be in (0, 1), got {threshold}")
     if name == "oracle":
         from tidee.agent.perception.oracle import OraclePerception
 
+        if threshold is not None:
+            raise ValueError("a detection threshold applies to learned perception only")
         return OraclePerception()
     if name == "learned":
         from tidee.agent.perception.learned import LearnedPerception
 
-        return LearnedPerception.load()
+        return LearnedPerception.load(threshold=AGENT_THRESHOLD if threshold is None else threshold)
     raise ValueError(f"unknown perception {name!r}; choose one of {PERCEPTIONS}")
 
 
