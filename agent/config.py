@@ -95,7 +95,8 @@ class AgentConfig:
             raise ValueError(f"depth must be one of {DEPTH_SOURCES}, got {self.depth!r}")
         if self.detection_threshold is not None:
             if self.perception != "learned":
-                raise ValueError("--detection-threshold applies to the learned detector: it needs --perception learned")
+                raise ValueError("--detection-threshold applies to the learned detector: "
+                                 "it needs --perception learned")
             if not 0.0 < self.detection_threshold < 1.0:
                 raise ValueError(f"--detection-threshold must be in (0, 1), got {self.detection_threshold}")
         if self.oop == "auto":

@@ -91,7 +91,8 @@ AGENT_OPTIONS: list[tuple[str, dict]] = [
                                           "relation_stats | visual | language | fused"}),
     ("--explorer", {"default": "random", "choices": ("random", "frontier")}),
     ("--detection-threshold", {"type": float, "default": None,
-                               "help": "learned detector's score threshold (default: perception.AGENT_THRESHOLD)"}),
+                               "help": "learned detector's score threshold (default: 0.3, "
+                                       "perception.AGENT_THRESHOLD)"}),
     ("--room-type", {"default": "LivingRoom", "choices": ROOM_TYPES}),
     ("--seed", {"type": int, "default": 200, "help": "room seed (200-204 are test rooms)"}),
     ("--mess-index", {"type": int, "default": 0}),
