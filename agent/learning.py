@@ -99,6 +99,33 @@ def resume_training(path: str | Path, seed: int, model_config: dict[str, Any], m
     return ck["step"], ck["history"]
 
 
+def ship_weights(out: str | Path, model: Any, config: dict[str, Any], loss_curve: str | Path,
+                 docs_name: str) -> str:
+    """Write a trained model's weights for shipping (``config`` + CPU state dict) and copy its
+    loss curve to ``docs/models/<docs_name>``; the copied curve's path, for the manifest."""
+    import shutil
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    save_checkpoint(out, config=config, state_dict=state)
+    docs = Path("docs/models")
+    docs.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(loss_curve, docs / docs_name)
+    return f"docs/models/{docs_name}"
+
+
+def dataset_record(data_dir: str, data: dict[str, Any], manifests: list[dict[str, Any]], split: str,
+                   **extra: Any) -> dict[str, Any]:
+    """The manifest's ``data`` entry for a model trained on ``tidee gen detection`` directories:
+    frames, rooms, and the generating command and room seeds of each directory."""
+    return {"dir": data_dir, "frames": int(len(data["rgb"])), **extra,
+            "rooms": sum(len(m.get("rooms", [])) for m in manifests),
+            "parts": [{"command": m.get("command"), "rooms": len(m.get("rooms", [])),
+                       "room_seeds": m.get("config", {})} for m in manifests],
+            "split": split}
+
+
 def save_loss_curve(history: list[dict[str, float]], path: str | Path, title: str) -> None:
     """PNG of every loss term in ``history`` (one dict per logged step, with a "step" key)."""
     import matplotlib

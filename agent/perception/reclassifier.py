@@ -21,7 +21,6 @@ overlap no object by IoU 0.3). Reproducible from a seed, resumable, progress bar
 from __future__ import annotations
 
 import math
-import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -32,8 +31,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from tidee.agent.learning import (WEIGHTS_DIR, pick_device, resolve_precision, resume_training, save_checkpoint,
-                                  save_loss_curve, write_manifest)
+from tidee.agent.learning import (WEIGHTS_DIR, dataset_record, pick_device, resolve_precision, resume_training,
+                                  save_checkpoint, save_loss_curve, ship_weights, write_manifest)
 from tidee.agent.perception.detector import DEPTH_SCALE, RGB_MEAN, RGB_STD, cbr
 
 DEFAULT_RECLASSIFIER = WEIGHTS_DIR / "reclassifier.pt"
@@ -295,25 +294,15 @@ def train_reclassifier(tc: ReclassifierTrainConfig, cfg: ReclassifierConfig | No
     result: dict[str, Any] = {"history": history, "seconds": round(time.time() - t0, 1), "steps": step,
                               "device": device, "precision": precision, "work_dir": str(work)}
     if ship:
-        out = Path(tc.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-        save_checkpoint(out, config=cfg.to_dict(), state_dict=state)
-        docs = Path("docs/models")
-        docs.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(work / "loss.png", docs / "reclassifier_loss.png")
+        curve = ship_weights(tc.out, model, cfg.to_dict(), work / "loss.png", "reclassifier_loss.png")
         result["manifest"] = write_manifest(
-            out, command=command,
-            data={"dir": tc.data, "frames": int(len(data["rgb"])), "objects": int(len(data["obj_cls"])),
-                  "rooms": sum(len(m.get("rooms", [])) for m in manifests),
-                  "parts": [{"command": m.get("command"), "rooms": len(m.get("rooms", [])),
-                             "room_seeds": m.get("config", {})} for m in manifests],
-                  "split": "train rooms only, never val/test"},
+            tc.out, command=command,
+            data=dataset_record(tc.data, data, manifests, "train rooms only, never val/test",
+                                objects=int(len(data["obj_cls"]))),
             metrics={"train_loss_final": history[-1] if history else None},
             train_config={**asdict(tc), "precision_used": precision}, model_config=cfg.to_dict(),
-            parameters=int(sum(p.numel() for p in model.parameters())),
-            loss_curve="docs/models/reclassifier_loss.png")
-        result["out"] = str(out)
+            parameters=int(sum(p.numel() for p in model.parameters())), loss_curve=curve)
+        result["out"] = str(tc.out)
     return result
 
 

@@ -9,7 +9,6 @@ PNG. Uses the GPU when torch sees one, the CPU otherwise.
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -18,8 +17,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from tidee.agent.learning import (WEIGHTS_DIR, load_checkpoint, pick_device, resolve_precision, resume_training,
-                                  save_checkpoint, save_loss_curve, sha256_file, write_manifest)
+from tidee.agent.learning import (WEIGHTS_DIR, dataset_record, load_checkpoint, pick_device, resolve_precision,
+                                  resume_training, save_checkpoint, save_loss_curve, sha256_file, ship_weights,
+                                  write_manifest)
 from tidee.agent.perception.dataset import load_datasets
 from tidee.agent.perception.detector import (CenterDetector, DetectorConfig, detector_loss, encode_targets,
                                              preprocess)
@@ -193,26 +193,16 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
     result: dict[str, Any] = {"history": history, "seconds": round(time.time() - t0, 1), "steps": step,
                               "device": device, "precision": precision, "work_dir": str(work)}
     if ship:
-        out = Path(cfg.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-        save_checkpoint(out, config=model_cfg.to_dict(), state_dict=state)
-        docs = Path("docs/models")
-        docs.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(work / "loss.png", docs / "detector_loss.png")
+        curve = ship_weights(cfg.out, model, model_cfg.to_dict(), work / "loss.png", "detector_loss.png")
         result["manifest"] = write_manifest(
-            out, command=command,
-            data={"dir": cfg.data, "frames": int(len(data["rgb"])),
-                  "rooms": sum(len(m.get("rooms", [])) for m in data_manifests),
-                  "parts": [{"command": m.get("command"), "rooms": len(m.get("rooms", [])),
-                             "room_seeds": m.get("config", {})} for m in data_manifests],
-                  "split": "train (seeds 0-19 + pool 10000...), never val/test"},
+            cfg.out, command=command,
+            data=dataset_record(cfg.data, data, data_manifests,
+                                "train (seeds 0-19 + pool 10000...), never val/test"),
             metrics={"train_loss_final": history[-1] if history else None},
             train_config={**asdict(cfg), "precision_used": precision}, model_config=model_cfg.to_dict(),
             parameters=int(sum(p.numel() for p in model.parameters())),
-            **({"init": lineage} if lineage else {}),
-            loss_curve="docs/models/detector_loss.png")
-        result["out"] = str(out)
+            **({"init": lineage} if lineage else {}), loss_curve=curve)
+        result["out"] = str(cfg.out)
     return result
 
 
