@@ -24,7 +24,7 @@ from tidee.agent.perception import AGENT_THRESHOLD
 from tidee.agent.perception.base import Detection
 from tidee.agent.perception.detector import (CenterDetector, DetectorConfig, RawDetection, check_peaks, decode,
                                              preprocess)
-from tidee.agent.perception.reclassifier import CropClassifier, crop_inputs, frame_tensor, fuse
+from tidee.agent.perception.reclassifier import CropClassifier, crop_inputs, det_features, frame_tensor, fuse
 from tidee.protocol.messages import Observation
 
 
@@ -142,12 +142,13 @@ class LearnedPerception:
         fidx = torch.tensor([i for i, _ in flat])
         boxes = torch.tensor([d.box for _, d in flat], dtype=torch.float32)
         crops, side = crop_inputs(frame_tensor(rgb, depth), fidx, boxes, self.reclassifier.cfg)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
-            logits = self.reclassifier(crops.contiguous(memory_format=torch.channels_last), side)
         rows = torch.tensor([d.cell[0] for _, d in flat])
         cols = torch.tensor([d.cell[1] for _, d in flat])
-        cls, score = fuse(logits, heat[fidx, :, rows, cols], torch.tensor([d.score for _, d in flat]),
-                          self.alpha, self.beta)
+        cell_heat, peak = heat[fidx, :, rows, cols], torch.tensor([d.score for _, d in flat])
+        det = det_features(cell_heat, peak) if self.reclassifier.cfg.det_inputs else None
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+            logits = self.reclassifier(crops.contiguous(memory_format=torch.channels_last), side, det)
+        cls, score = fuse(logits, cell_heat, peak, self.alpha, self.beta)
         out: list[list[RawDetection]] = [[] for _ in raw]
         for (i, d), c, s in zip(flat, cls.tolist(), score.tolist()):
             if s >= threshold:

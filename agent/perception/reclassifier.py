@@ -16,6 +16,13 @@ background, too, pulls a box's score down).
 Trained by ``tidee train reclassifier`` on frames of ``tidee gen detection``: crops of the
 ground-truth boxes, jittered as the detector's boxes are, and background crops (boxes that
 overlap no object by IoU 0.3). Reproducible from a seed, resumable, progress bar, loss curve.
+
+``--boxes detector`` (r3) trains on the detector's own boxes instead: the shipped detector
+runs over the training frames (rooms it was not trained on) at the evaluation's threshold,
+each detection is labelled by the ground-truth box it overlaps (IoU >= 0.5: that class;
+< 0.4: background; between: ignored), and the network also reads the detector's class
+logits at the detection's cell and its peak score (``det_features``): a learned fusion,
+on the box errors the detector really makes, in place of the hand-set ``alpha``.
 """
 
 from __future__ import annotations
@@ -47,6 +54,7 @@ class ReclassifierConfig:
     context: float = 1.2            # the crop covers the box grown by this factor
     widths: tuple[int, int, int] = (32, 64, 128)
     hidden: int = 128
+    det_inputs: bool = False        # also read the detector's class logits and score (det_features)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -64,13 +72,47 @@ class CropClassifier(nn.Module):
         self.cfg = cfg
         a, b, c = cfg.widths
         self.conv = nn.Sequential(cbr(4, a, 2), cbr(a, a), cbr(a, b, 2), cbr(b, b), cbr(b, c, 2), cbr(c, c))
-        self.mlp = nn.Sequential(nn.Linear(c + N_SIDE, cfg.hidden), nn.ReLU(inplace=True),
+        n_det = cfg.num_classes + 1 if cfg.det_inputs else 0
+        self.mlp = nn.Sequential(nn.Linear(c + N_SIDE + n_det, cfg.hidden), nn.ReLU(inplace=True),
                                  nn.Linear(cfg.hidden, cfg.num_classes + 1))
 
-    def forward(self, crops: torch.Tensor, side: torch.Tensor) -> torch.Tensor:
-        """N x 4 x crop x crop, N x N_SIDE -> N x (classes + 1) logits (the last: background)."""
+    def forward(self, crops: torch.Tensor, side: torch.Tensor, det: torch.Tensor | None = None) -> torch.Tensor:
+        """N x 4 x crop x crop, N x N_SIDE (, N x classes + 1 from ``det_features`` when the
+        config has ``det_inputs``) -> N x (classes + 1) logits (the last: background)."""
         f = self.conv(crops).mean((2, 3))
-        return self.mlp(torch.cat([f, side], 1))
+        parts = [f, side]
+        if self.cfg.det_inputs:
+            if det is None or det.shape != (len(f), self.cfg.num_classes + 1):
+                raise ValueError(f"this reclassifier reads the detector's outputs: det must be N x "
+                                 f"{self.cfg.num_classes + 1} (det_features), got "
+                                 f"{None if det is None else tuple(det.shape)}")
+            parts.append(det.to(f.dtype))
+        return self.mlp(torch.cat(parts, 1))
+
+
+def det_features(heat: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
+    """The detector's side of a detection for a ``det_inputs`` reclassifier: its class logits at
+    the detection's cell (N x C) as log-sigmoid, and the log of its peak score (N), scaled to
+    about [-3, 0] -> N x (C + 1)."""
+    return torch.cat([F.logsigmoid(heat.float()).clamp(min=-12.0),
+                      score.float().clamp(min=1e-6).log().clamp(min=-12.0).view(-1, 1)], 1) / 4.0
+
+
+def warm_start(model: CropClassifier, path: str | Path) -> None:
+    """Load a reclassifier's weights into ``model`` (same crop network); the detector inputs a
+    ``det_inputs`` model adds to the first MLP layer start at zero, so it starts as that model."""
+    blob = torch.load(path, map_location="cpu", weights_only=False)
+    state = dict(blob["state_dict"])
+    own = model.state_dict()
+    w = state["mlp.0.weight"]
+    if w.shape != own["mlp.0.weight"].shape:
+        if w.shape[0] != own["mlp.0.weight"].shape[0] or w.shape[1] > own["mlp.0.weight"].shape[1]:
+            raise ValueError(f"{path}: its first MLP layer is {tuple(w.shape)}, this model's "
+                             f"{tuple(own['mlp.0.weight'].shape)}: not a warm start of it")
+        grown = torch.zeros_like(own["mlp.0.weight"])
+        grown[:, :w.shape[1]] = w
+        state["mlp.0.weight"] = grown
+    model.load_state_dict(state)
 
 
 def frame_tensor(rgb: np.ndarray, depth: np.ndarray) -> torch.Tensor:
@@ -150,6 +192,117 @@ class ReclassifierTrainConfig:
     log_every: int = 20
     limit_frames: int | None = None
     precision: str = "auto"
+    boxes: str = "jitter"            # jitter: ground-truth boxes, jittered | detector: the detector's own
+    detector: str | None = None      # boxes=detector: its weights (None: the shipped detector)
+    init: str | None = None          # start from these reclassifier weights (warm_start)
+
+
+BOX_SOURCES = ("jitter", "detector")
+DET_POS_IOU, DET_NEG_IOU = 0.5, 0.4     # detector boxes: a class at IoU >= 0.5, background < 0.4
+
+
+@torch.inference_mode()
+def detector_boxes(data: dict[str, np.ndarray], detector: str | None = None, threshold: float = 0.05,
+                   batch: int = 32, progress: bool = True) -> dict[str, np.ndarray]:
+    """Run the detector (no reclassifier) over every frame of ``data`` as the evaluation does
+    (class-max peaks, one class each, score >= ``threshold``, before NMS) and label each
+    detection by the ground truth it overlaps. Returns det_frame, det_box (pixels), det_heat
+    (class logits at its cell, float16), det_score, det_label (class, background = C, IGNORE)."""
+    from tqdm import tqdm
+
+    from tidee.agent.evaluation.detection import box_iou
+    from tidee.agent.perception.detector import decode, preprocess
+    from tidee.agent.perception.learned import LearnedPerception
+
+    perc = LearnedPerception.load(detector, threshold=threshold, reclassifier=None)
+    model, dcfg = perc.model, perc.cfg
+    n, size = len(data["rgb"]), data["rgb"].shape[1]
+    if size != dcfg.input_size:
+        raise ValueError(f"frames are {size} px; the detector reads {dcfg.input_size}: generate at its resolution")
+    order = np.argsort(data["obj_frame"], kind="stable")
+    starts = np.searchsorted(data["obj_frame"][order], np.arange(n + 1))
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("frame", "box", "heat", "score", "label")}
+    for s in tqdm(range(0, n, batch), desc="detector boxes", disable=not progress):
+        rgb = np.ascontiguousarray(data["rgb"][s:s + batch])
+        depth = np.asarray(data["depth"][s:s + batch], np.float32)
+        x = preprocess(rgb, depth, dcfg.use_depth).contiguous(memory_format=torch.channels_last)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=perc.precision == "bf16"):
+            out = model(x)
+        out = {k: v.float() for k, v in out.items()}
+        raw = decode(out, k=perc.max_detections, threshold=threshold, stride=dcfg.stride)
+        for i, dets in enumerate(raw):
+            if not dets:
+                continue
+            f = s + i
+            boxes = np.array([d.box for d in dets], np.float64)
+            rows = order[starts[f]:starts[f + 1]]
+            label = np.full(len(dets), -1, np.int64)
+            if len(rows):
+                ious = box_iou(boxes, data["obj_box"][rows].astype(np.float64))
+                best = ious.argmax(1)
+                top = ious[np.arange(len(dets)), best]
+                label = np.where(top >= DET_POS_IOU, data["obj_cls"][rows][best].astype(np.int64),
+                                 np.where(top < DET_NEG_IOU, -1, IGNORE))
+            cells = torch.tensor([d.cell for d in dets])
+            cols["frame"].append(np.full(len(dets), f, np.int32))
+            cols["box"].append(boxes.astype(np.float32))
+            cols["heat"].append(out["heat"][i, :, cells[:, 0], cells[:, 1]].T.numpy().astype(np.float16))
+            cols["score"].append(np.array([d.score for d in dets], np.float32))
+            cols["label"].append(label)
+    c = out["heat"].shape[1] if n else 0
+    res = {f"det_{k}": (np.concatenate(v) if v else np.zeros((0,), np.float32)) for k, v in cols.items()}
+    res["det_label"] = np.where(res["det_label"] == -1, c, res["det_label"]).astype(np.int64)   # -1: background
+    res["detector_sha256"] = np.array(perc.sha256 or "")
+    return res
+
+
+class DetectorBoxBatches:
+    """Minibatches of the detector's own detections from a few frames each (``detector_boxes``):
+    objects drawn uniformly, background boxes at most ``background`` of the batch; crops are
+    mirrored and the frames' colours jittered as in ``CropBatches``."""
+
+    def __init__(self, data: dict[str, np.ndarray], boxes: dict[str, np.ndarray], cfg: ReclassifierConfig,
+                 tc: ReclassifierTrainConfig) -> None:
+        self.data, self.boxes, self.cfg, self.tc = data, boxes, cfg, tc
+        self.rng = np.random.default_rng(tc.seed)
+        n = len(data["rgb"])
+        order = np.argsort(boxes["det_frame"], kind="stable")
+        starts = np.searchsorted(boxes["det_frame"][order], np.arange(n + 1))
+        self.rows = [order[starts[i]:starts[i + 1]] for i in range(n)]
+        lab = boxes["det_label"]
+        self.frames_with_objects = np.array(
+            [i for i in range(n) if len(self.rows[i]) and ((lab[self.rows[i]] >= 0) & (lab[self.rows[i]] < cfg.num_classes)).any()],
+            np.int64)
+        if not len(self.frames_with_objects):
+            raise ValueError("the detector found no object in any frame: nothing to train on")
+
+    def state(self) -> dict:
+        return self.rng.bit_generator.state
+
+    def set_state(self, s: dict) -> None:
+        self.rng.bit_generator.state = s
+
+    def __call__(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        b, rng, tc, nc = self.boxes, self.rng, self.tc, self.cfg.num_classes
+        fids = rng.choice(self.frames_with_objects, min(tc.frames_per_batch, len(self.frames_with_objects)),
+                          replace=False)
+        rows = np.concatenate([self.rows[f] for f in fids])
+        lab = b["det_label"][rows]
+        obj, bg = rows[(lab >= 0) & (lab < nc)], rows[lab == nc]
+        n_bg = min(int(round(tc.batch_size * tc.background)), len(bg))
+        pick = np.concatenate([rng.choice(obj, tc.batch_size - n_bg, replace=len(obj) < tc.batch_size - n_bg),
+                               rng.choice(bg, n_bg, replace=False)])
+        local = {int(f): j for j, f in enumerate(fids)}
+        fidx = torch.tensor([local[int(f)] for f in b["det_frame"][pick]])
+        rgb = self.data["rgb"][fids].copy()
+        gain = rng.uniform(0.8, 1.2, (len(fids), 1, 1, 3)) * rng.uniform(0.85, 1.15, (len(fids), 1, 1, 1))
+        rgb = np.clip(rgb * gain, 0, 255).astype(np.uint8)
+        frames = frame_tensor(rgb, self.data["depth"][fids].astype(np.float32))
+        flip = torch.from_numpy(rng.random(len(pick)) < 0.5)
+        crops, side = crop_inputs(frames, fidx, torch.from_numpy(b["det_box"][pick].astype(np.float32)), self.cfg, flip)
+        det = det_features(torch.from_numpy(b["det_heat"][pick].astype(np.float32)),
+                           torch.from_numpy(b["det_score"][pick]))
+        return crops, side, torch.from_numpy(b["det_label"][pick]), det
 
 
 class CropBatches:
@@ -177,7 +330,7 @@ class CropBatches:
     def set_state(self, s: dict) -> None:
         self.rng.bit_generator.state = s
 
-    def __call__(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def __call__(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, None]:
         from tidee.agent.evaluation.detection import box_iou
 
         d, rng, tc = self.data, self.rng, self.tc
@@ -230,7 +383,7 @@ class CropBatches:
         frames = frame_tensor(rgb, d["depth"][fids].astype(np.float32))
         flip = torch.from_numpy(rng.random(tc.batch_size) < 0.5)
         crops, side = crop_inputs(frames, torch.tensor(fidx), torch.from_numpy(np.array(boxes)), self.cfg, flip)
-        return crops, side, torch.tensor(labels, dtype=torch.long)
+        return crops, side, torch.tensor(labels, dtype=torch.long), None
 
 
 def train_reclassifier(tc: ReclassifierTrainConfig, cfg: ReclassifierConfig | None = None, resume: bool = True,
@@ -242,19 +395,35 @@ def train_reclassifier(tc: ReclassifierTrainConfig, cfg: ReclassifierConfig | No
     from tidee.agent.perception.dataset import load_datasets
     from tidee.agent.perception.train_detector import lr_at
 
+    if tc.boxes not in BOX_SOURCES:
+        raise ValueError(f"boxes must be one of {BOX_SOURCES}, got {tc.boxes!r}")
     if tc.threads:
         torch.set_num_threads(tc.threads)
     device = pick_device(tc.device)
     torch.manual_seed(tc.seed)
     cfg = cfg or ReclassifierConfig()
+    if tc.boxes == "detector":
+        cfg = ReclassifierConfig.from_dict({**cfg.to_dict(), "det_inputs": True})
     manifests: list[dict[str, Any]] = []
     if data is None:
         data, manifests = load_datasets(tc.data, limit=tc.limit_frames)
-    model = CropClassifier(cfg).to(device, memory_format=torch.channels_last)
+    model = CropClassifier(cfg)
+    init_sha = None
+    if tc.init:
+        from tidee.agent.learning import sha256_file
+
+        init_sha = sha256_file(tc.init)        # the init file may be replaced by these weights when shipped
+        warm_start(model, tc.init)
+    model = model.to(device, memory_format=torch.channels_last)
     precision = resolve_precision(tc.precision, device)
     opt = torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
-    batches = CropBatches(data, cfg, tc)
     work = Path(tc.work_dir)
+    det_boxes: dict[str, np.ndarray] | None = None
+    if tc.boxes == "detector":
+        det_boxes = cached_detector_boxes(data, tc, work / "detector_boxes.npz", progress)
+        batches: CropBatches | DetectorBoxBatches = DetectorBoxBatches(data, det_boxes, cfg, tc)
+    else:
+        batches = CropBatches(data, cfg, tc)
     ckpt_path = work / "checkpoint.pt"
     step, history = resume_training(ckpt_path, tc.seed, cfg.to_dict(), model, opt, batches) if resume else (0, [])
     t0 = time.time()
@@ -264,11 +433,12 @@ def train_reclassifier(tc: ReclassifierTrainConfig, cfg: ReclassifierConfig | No
     while step < tc.steps:
         for g in opt.param_groups:
             g["lr"] = lr_at(step, tc)            # the detector's warm-up + cosine schedule
-        crops, side, labels = batches()
+        crops, side, labels, det = batches()
         crops = crops.to(device, memory_format=torch.channels_last)
         side, labels = side.to(device), labels.to(device)
+        det = det.to(device) if det is not None else None
         with torch.autocast(device.split(":")[0], dtype=torch.bfloat16, enabled=precision == "bf16"):
-            logits = model(crops, side)
+            logits = model(crops, side, det)
         loss = F.cross_entropy(logits.float(), labels, ignore_index=IGNORE, label_smoothing=0.05)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -298,12 +468,37 @@ def train_reclassifier(tc: ReclassifierTrainConfig, cfg: ReclassifierConfig | No
         result["manifest"] = write_manifest(
             tc.out, command=command,
             data=dataset_record(tc.data, data, manifests, "train rooms only, never val/test",
-                                objects=int(len(data["obj_cls"]))),
+                                objects=int(len(data["obj_cls"])),
+                                **({} if det_boxes is None else {
+                                    "detector_boxes": int(len(det_boxes["det_label"])),
+                                    "detector_sha256": str(det_boxes["detector_sha256"])})),
             metrics={"train_loss_final": history[-1] if history else None},
             train_config={**asdict(tc), "precision_used": precision}, model_config=cfg.to_dict(),
+            init=None if not tc.init else {"path": tc.init, "sha256": init_sha},
             parameters=int(sum(p.numel() for p in model.parameters())), loss_curve=curve)
         result["out"] = str(tc.out)
     return result
+
+
+def cached_detector_boxes(data: dict[str, np.ndarray], tc: ReclassifierTrainConfig, path: Path,
+                          progress: bool) -> dict[str, np.ndarray]:
+    """``detector_boxes`` of ``data``, kept in ``path`` (work dir) and reused while the detector's
+    weights and the frames are the same (a resumed run does not detect again)."""
+    from tidee.agent.learning import read_manifest
+    from tidee.agent.perception.train_detector import DEFAULT_WEIGHTS
+
+    sha = read_manifest(Path(tc.detector) if tc.detector else DEFAULT_WEIGHTS).get("sha256", "")
+    key = f"{sha}:{len(data['rgb'])}:{int(data['obj_cls'].sum())}"
+    if path.exists():
+        with np.load(path) as z:
+            if str(z["key"]) == key:
+                return {k: z[k] for k in z.files if k != "key"}
+    boxes = detector_boxes(data, tc.detector, progress=progress)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, key=np.array(key), **boxes)
+    tmp.replace(path)
+    return boxes
 
 
 def load_reclassifier(path: str | Path | None = None, verify: bool = True) -> tuple[CropClassifier, dict[str, Any]]:
@@ -317,5 +512,6 @@ def load_reclassifier(path: str | Path | None = None, verify: bool = True) -> tu
     return model.eval(), {**manifest, "path": str(path)}
 
 
-__all__ = ["ReclassifierConfig", "CropClassifier", "crop_inputs", "frame_tensor", "fuse", "ReclassifierTrainConfig",
-           "CropBatches", "train_reclassifier", "load_reclassifier", "DEFAULT_RECLASSIFIER"]
+__all__ = ["ReclassifierConfig", "CropClassifier", "crop_inputs", "frame_tensor", "fuse", "det_features", "warm_start",
+           "ReclassifierTrainConfig", "CropBatches", "DetectorBoxBatches", "detector_boxes", "train_reclassifier",
+           "load_reclassifier", "DEFAULT_RECLASSIFIER"]
