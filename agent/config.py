@@ -50,7 +50,9 @@ class PolicyConfig:
     mapping_step_budget: int = 320          # mapping never takes more than this many steps
     goal_step_budget: int = 60              # steps to reach one navigation goal before giving up
     oop_threshold: float = 0.5              # P(OOP) at or above which an object is picked
-    k_empty_goals: int = 3                  # k: stop after this many search goals without a new OOP object
+    sure_oop: float = 0.9                   # P(OOP) at which a track seen once is picked at its projected
+                                            # centroid when the detector misses it up close
+    k_empty_goals: int = 8                  # k: stop after this many search goals without a new OOP object
     m_place_tries: int = 3                  # m: placement attempts per receptacle class before moving on
     max_receptacle_classes: int = 3         # ranked receptacle classes tried before searching / dropping
     search_goals: int = 4                   # goals visited when searching for a receptacle not in memory
@@ -63,6 +65,8 @@ class PolicyConfig:
             raise ValueError(f"explore_unexplored_stop must be in [0, 1), got {self.explore_unexplored_stop}")
         if not 0.0 < self.oop_threshold <= 1.0:
             raise ValueError(f"oop_threshold must be in (0, 1], got {self.oop_threshold}")
+        if not 0.0 < self.sure_oop <= 1.0:
+            raise ValueError(f"sure_oop must be in (0, 1], got {self.sure_oop}")
         for name in ("mapping_step_budget", "goal_step_budget", "k_empty_goals", "m_place_tries",
                      "max_receptacle_classes", "search_goals"):
             if getattr(self, name) < 1:

@@ -11,7 +11,7 @@ import pytest
 pytest.importorskip("torch")
 
 from tidee.agent.classes import CLASSES  # noqa: E402
-from tidee.agent.config import AGENT_VARIANTS, AgentConfig  # noqa: E402
+from tidee.agent.config import AGENT_VARIANTS, AgentConfig, PolicyConfig  # noqa: E402
 from tidee.agent.mapping.maps import MapConfig, SemanticMapper  # noqa: E402
 from tidee.agent.policy.skills import Body  # noqa: E402
 from tidee.agent.policy.tidy import TidyPolicy  # noqa: E402
@@ -134,6 +134,23 @@ def test_the_agent_stands_nearer_to_a_floor_object_than_to_one_on_a_table():
     # standing floor_r from the footprint still leaves the centroid within reach of the eye
     d = floor_r + 0.5 * np.hypot(0.1, 0.16) + 0.125
     assert np.hypot(d, 0.9 - 0.02) <= policy.p.interact_m + 1e-9
+
+
+def test_a_track_seen_once_is_picked_unseen_only_when_surely_out_of_place():
+    policy, _ = _policy(variant="CommonMemory")
+    mem = policy.body.mapper.memory
+    knife = mem.add_or_merge("Knife", 0.4, np.array([2.0, 0.0, 0.01]), np.array([1.9, -0.02, 0.0]),
+                             np.array([2.1, 0.02, 0.02]), 1)
+    assert knife.n_obs == 1
+    knife.oop_prob = 0.99
+    assert policy._pick_unseen(knife)
+    knife.oop_prob = 0.6                         # flagged (>= 0.5), but one detection is not enough
+    assert not policy._pick_unseen(knife)
+    mem.add_or_merge("Knife", 0.4, np.array([2.0, 0.0, 0.01]), np.array([1.9, -0.02, 0.0]),
+                     np.array([2.1, 0.02, 0.02]), 2)
+    assert knife.n_obs == 2 and policy._pick_unseen(knife)
+    with pytest.raises(ValueError, match="sure_oop"):
+        PolicyConfig(sure_oop=0.0)
 
 
 def test_an_object_the_agent_dropped_is_not_picked_again():

@@ -259,9 +259,7 @@ class TidyPolicy:
             for pitch_try in range(2):
                 yield from face_point(self.body, obj.centroid)
                 sighting = find_in_view(self.body, obj)
-                if sighting is None and obj.n_obs >= 2:
-                    # not detected from here; a track seen twice can be picked at its projected
-                    # centroid when the depth there agrees (small objects are missed up close)
+                if sighting is None and self._pick_unseen(obj):
                     sighting = projected_sighting(self.body, obj, reach=self.p.interact_m)
                 if sighting is not None and sighting.distance <= self.p.interact_m:
                     return sighting
@@ -274,6 +272,13 @@ class TidyPolicy:
                 break
             radius = max(radius - MOVE_M, 0.25) if seen_far and arrived else radius + 0.15
         return None
+
+    def _pick_unseen(self, obj: TrackedObject) -> bool:
+        """Whether a track the detector does not see from up close may be picked at its projected
+        centroid (when the depth there agrees): one seen twice, or once as surely out of place
+        (``sure_oop``). Small objects on the floor are often detected once from afar and missed
+        from above; one stray detection with a middling P(OOP) is not worth a pick."""
+        return obj.n_obs >= 2 or (obj.oop_prob or 0.0) >= self.p.sure_oop
 
     def _reach_xy(self, obj: TrackedObject) -> float:
         """How far from the object's footprint, in (x, y), the agent can stand and still have
