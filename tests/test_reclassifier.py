@@ -14,7 +14,8 @@ from tidee.agent.perception.reclassifier import (DEFAULT_RECLASSIFIER, CropClass
 
 torch.set_num_threads(2)
 # the shipped detector + reclassifier (r3) on the 24 test-room frames of test_detector's floor test
-# score 0.74 (r2: 0.74, r1: 0.71; the detector alone 0.67); an untrained reclassifier renames everything at random (~0)
+# score 0.74 (r2: 0.74, r1: 0.71; the detector alone 0.67); an untrained reclassifier renames
+# everything at random (~0)
 RECLASSIFIED_FLOOR_MAP50 = 0.55
 
 
@@ -134,8 +135,9 @@ def test_detector_boxes_train_a_learned_fusion(tmp_path) -> None:
     overlap, train a reclassifier that also reads the detector's logits; it starts as the model
     it is warm-started from, and a few steps reduce the loss."""
     from tidee.agent.perception.dataset import GenConfig, iter_frames, pack
-    from tidee.agent.perception.reclassifier import (DetectorBoxBatches, ReclassifierTrainConfig, det_features,
-                                                     detector_boxes, train_reclassifier, warm_start)
+    from tidee.agent.perception.reclassifier import (DetectorBoxBatches, ReclassifierTrainConfig,
+                                                     det_features, detector_boxes, train_reclassifier,
+                                                     warm_start)
 
     cfg = GenConfig(rooms_per_type=1, messes_per_room=1, walks_per_config=1, frames_per_walk=4,
                     room_types=("Kitchen",))
@@ -171,9 +173,11 @@ def test_detector_boxes_train_a_learned_fusion(tmp_path) -> None:
     tc = ReclassifierTrainConfig(work_dir=str(tmp_path / "run"), steps=30, batch_size=48, frames_per_batch=3,
                                  lr=3e-3, warmup=2, log_every=10, ckpt_every=15, precision="fp32",
                                  boxes="detector", init=str(tmp_path / "plain.pt"))
-    crops, side, labels, det = DetectorBoxBatches(data, boxes, ReclassifierConfig(crop=24, det_inputs=True), tc)()
+    batches = DetectorBoxBatches(data, boxes, ReclassifierConfig(crop=24, det_inputs=True), tc)
+    crops, side, labels, det = batches()
     assert crops.shape == (48, 4, 24, 24) and det.shape == (48, n_cls + 1) and labels.shape == (48,)
-    r = train_reclassifier(tc, ReclassifierConfig(crop=24), resume=False, progress=False, data=data, ship=False)
+    r = train_reclassifier(tc, ReclassifierConfig(crop=24), resume=False, progress=False, data=data,
+                           ship=False)
     losses = [h["total"] for h in r["history"]]
     assert len(losses) == 3 and losses[-1] < 0.8 * losses[0], losses
     assert (tmp_path / "run" / "detector_boxes.npz").exists()

@@ -42,9 +42,9 @@ def _cmd_train_reclassifier(args: argparse.Namespace) -> int:
 
     tc = ReclassifierTrainConfig(data=args.data, out=args.out, work_dir=args.work_dir, steps=args.steps,
                                  batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
-                                 threads=args.threads, limit_frames=args.limit_frames, precision=args.precision,
-                                 boxes=args.boxes, detector=args.detector, init=args.init,
-                                 background=args.background)
+                                 threads=args.threads, limit_frames=args.limit_frames,
+                                 precision=args.precision, boxes=args.boxes, detector=args.detector,
+                                 init=args.init, background=args.background)
     command = "tidee train reclassifier " + " ".join(sys.argv[3:])
     result = train_reclassifier(tc, ReclassifierConfig(crop=args.crop), resume=not args.no_resume,
                                 command=command.strip())
@@ -95,9 +95,11 @@ def register(train_sub: argparse._SubParsersAction, eval_sub: argparse._SubParse
     p.add_argument("--boxes", choices=("jitter", "detector"), default="jitter",
                    help="jitter: jittered ground-truth boxes; detector: the detector's own detections on the "
                         "frames, and the network also reads the detector's class logits (a learned fusion)")
-    p.add_argument("--detector", default=None, help="--boxes detector: the detector's weights (default: shipped)")
+    p.add_argument("--detector", default=None,
+                   help="--boxes detector: the detector's weights (default: the shipped ones)")
     p.add_argument("--init", default=None, help="start from these reclassifier weights (same crop network)")
-    p.add_argument("--background", type=float, default=0.2, help="share of each batch drawn as background boxes")
+    p.add_argument("--background", type=float, default=0.2,
+                   help="share of each batch drawn as background boxes")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda")
     p.add_argument("--threads", type=int, default=0, help="CPU threads (0: torch's default)")
     p.add_argument("--limit-frames", type=int, default=None, help="train on the first N frames only (smoke runs)")

@@ -76,7 +76,8 @@ class CropClassifier(nn.Module):
         self.mlp = nn.Sequential(nn.Linear(c + N_SIDE + n_det, cfg.hidden), nn.ReLU(inplace=True),
                                  nn.Linear(cfg.hidden, cfg.num_classes + 1))
 
-    def forward(self, crops: torch.Tensor, side: torch.Tensor, det: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, crops: torch.Tensor, side: torch.Tensor,
+                det: torch.Tensor | None = None) -> torch.Tensor:
         """N x 4 x crop x crop, N x N_SIDE (, N x classes + 1 from ``det_features`` when the
         config has ``det_inputs``) -> N x (classes + 1) logits (the last: background)."""
         f = self.conv(crops).mean((2, 3))
@@ -198,6 +199,13 @@ class ReclassifierTrainConfig:
 
 
 BOX_SOURCES = ("jitter", "detector")
+
+
+def rows_by_frame(frame_of_row: np.ndarray, n_frames: int) -> list[np.ndarray]:
+    """For each of ``n_frames`` frames, the indices of the rows (objects, detections) in it."""
+    order = np.argsort(frame_of_row, kind="stable")
+    starts = np.searchsorted(frame_of_row[order], np.arange(n_frames + 1))
+    return [order[starts[i]:starts[i + 1]] for i in range(n_frames)]
 DET_POS_IOU, DET_NEG_IOU = 0.5, 0.4     # detector boxes: a class at IoU >= 0.5, background < 0.4
 
 
@@ -218,9 +226,9 @@ def detector_boxes(data: dict[str, np.ndarray], detector: str | None = None, thr
     model, dcfg = perc.model, perc.cfg
     n, size = len(data["rgb"]), data["rgb"].shape[1]
     if size != dcfg.input_size:
-        raise ValueError(f"frames are {size} px; the detector reads {dcfg.input_size}: generate at its resolution")
-    order = np.argsort(data["obj_frame"], kind="stable")
-    starts = np.searchsorted(data["obj_frame"][order], np.arange(n + 1))
+        raise ValueError(f"frames are {size} px; the detector reads {dcfg.input_size}: "
+                         "generate them at its resolution")
+    objects_of = rows_by_frame(data["obj_frame"], n)
     cols: dict[str, list[np.ndarray]] = {k: [] for k in ("frame", "box", "heat", "score", "label")}
     for s in tqdm(range(0, n, batch), desc="detector boxes", disable=not progress):
         rgb = np.ascontiguousarray(data["rgb"][s:s + batch])
@@ -235,7 +243,7 @@ def detector_boxes(data: dict[str, np.ndarray], detector: str | None = None, thr
                 continue
             f = s + i
             boxes = np.array([d.box for d in dets], np.float64)
-            rows = order[starts[f]:starts[f + 1]]
+            rows = objects_of[f]
             label = np.full(len(dets), -1, np.int64)
             if len(rows):
                 ious = box_iou(boxes, data["obj_box"][rows].astype(np.float64))
@@ -251,7 +259,8 @@ def detector_boxes(data: dict[str, np.ndarray], detector: str | None = None, thr
             cols["label"].append(label)
     c = out["heat"].shape[1] if n else 0
     res = {f"det_{k}": (np.concatenate(v) if v else np.zeros((0,), np.float32)) for k, v in cols.items()}
-    res["det_label"] = np.where(res["det_label"] == -1, c, res["det_label"]).astype(np.int64)   # -1: background
+    # -1 marked background: it becomes the last class
+    res["det_label"] = np.where(res["det_label"] == -1, c, res["det_label"]).astype(np.int64)
     res["detector_sha256"] = np.array(perc.sha256 or "")
     return res
 
@@ -265,14 +274,10 @@ class DetectorBoxBatches:
                  tc: ReclassifierTrainConfig) -> None:
         self.data, self.boxes, self.cfg, self.tc = data, boxes, cfg, tc
         self.rng = np.random.default_rng(tc.seed)
-        n = len(data["rgb"])
-        order = np.argsort(boxes["det_frame"], kind="stable")
-        starts = np.searchsorted(boxes["det_frame"][order], np.arange(n + 1))
-        self.rows = [order[starts[i]:starts[i + 1]] for i in range(n)]
-        lab = boxes["det_label"]
-        self.frames_with_objects = np.array(
-            [i for i in range(n) if len(self.rows[i]) and ((lab[self.rows[i]] >= 0) & (lab[self.rows[i]] < cfg.num_classes)).any()],
-            np.int64)
+        self.rows = rows_by_frame(boxes["det_frame"], len(data["rgb"]))
+        is_object = (boxes["det_label"] >= 0) & (boxes["det_label"] < cfg.num_classes)
+        self.frames_with_objects = np.array([i for i, r in enumerate(self.rows) if is_object[r].any()],
+                                            np.int64)
         if not len(self.frames_with_objects):
             raise ValueError("the detector found no object in any frame: nothing to train on")
 
@@ -299,7 +304,8 @@ class DetectorBoxBatches:
         rgb = np.clip(rgb * gain, 0, 255).astype(np.uint8)
         frames = frame_tensor(rgb, self.data["depth"][fids].astype(np.float32))
         flip = torch.from_numpy(rng.random(len(pick)) < 0.5)
-        crops, side = crop_inputs(frames, fidx, torch.from_numpy(b["det_box"][pick].astype(np.float32)), self.cfg, flip)
+        boxes = torch.from_numpy(b["det_box"][pick].astype(np.float32))
+        crops, side = crop_inputs(frames, fidx, boxes, self.cfg, flip)
         det = det_features(torch.from_numpy(b["det_heat"][pick].astype(np.float32)),
                            torch.from_numpy(b["det_score"][pick]))
         return crops, side, torch.from_numpy(b["det_label"][pick]), det
@@ -317,9 +323,7 @@ class CropBatches:
         self.data, self.cfg, self.tc = data, cfg, tc
         self.rng = np.random.default_rng(tc.seed)
         n = len(data["rgb"])
-        order = np.argsort(data["obj_frame"], kind="stable")
-        starts = np.searchsorted(data["obj_frame"][order], np.arange(n + 1))
-        self.rows = [order[starts[i]:starts[i + 1]] for i in range(n)]
+        self.rows = rows_by_frame(data["obj_frame"], n)
         self.frames_with_objects = np.array([i for i in range(n) if len(self.rows[i])], np.int64)
         if not len(self.frames_with_objects):
             raise ValueError("no frame has an object to crop")
@@ -512,6 +516,6 @@ def load_reclassifier(path: str | Path | None = None, verify: bool = True) -> tu
     return model.eval(), {**manifest, "path": str(path)}
 
 
-__all__ = ["ReclassifierConfig", "CropClassifier", "crop_inputs", "frame_tensor", "fuse", "det_features", "warm_start",
-           "ReclassifierTrainConfig", "CropBatches", "DetectorBoxBatches", "detector_boxes", "train_reclassifier",
-           "load_reclassifier", "DEFAULT_RECLASSIFIER"]
+__all__ = ["ReclassifierConfig", "CropClassifier", "crop_inputs", "frame_tensor", "fuse", "det_features",
+           "warm_start", "rows_by_frame", "ReclassifierTrainConfig", "CropBatches", "DetectorBoxBatches",
+           "detector_boxes", "train_reclassifier", "load_reclassifier", "DEFAULT_RECLASSIFIER"]
