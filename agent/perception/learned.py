@@ -165,6 +165,19 @@ class LearnedPerception:
         return self.detect_batch(obs.rgb[None], obs.depth[None])[0]
 
     @torch.inference_mode()
+    def raw_detections(self, rgb: np.ndarray, depth: np.ndarray,
+                       threshold: float) -> tuple[list[list[RawDetection]], dict[str, torch.Tensor]]:
+        """The network alone on frames at its input size: each frame's decoded peaks (before the
+        reclassifier and NMS) and the network's outputs (float32; ``heat``: class logits)."""
+        x = preprocess(rgb, depth, self.cfg.use_depth).contiguous(memory_format=torch.channels_last)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+            out = self.model(x)
+        out = {k: v.float() for k, v in out.items()}
+        raw = decode(out, k=self.max_detections, threshold=threshold, stride=self.cfg.stride,
+                     classes_per_peak=self.classes_per_peak, peaks=self.peaks)
+        return raw, out
+
+    @torch.inference_mode()
     def detect_batch(self, rgbs: np.ndarray, depths: np.ndarray, threshold: float | None = None) -> list[list[Detection]]:
         rgbs = np.asarray(rgbs)
         depths = np.asarray(depths, dtype=np.float32)
@@ -179,13 +192,8 @@ class LearnedPerception:
             depth_in = np.stack([cv2.resize(d, (size, size), interpolation=cv2.INTER_NEAREST) for d in depths])
         else:
             rgb_in, depth_in = rgbs, depths
-        x = preprocess(rgb_in, depth_in, self.cfg.use_depth).contiguous(memory_format=torch.channels_last)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
-            out = self.model(x)
-        out = {k: v.float() for k, v in out.items()}
         thr = self.threshold if threshold is None else threshold
-        raw = decode(out, k=self.max_detections, threshold=thr, stride=self.cfg.stride,
-                     classes_per_peak=self.classes_per_peak, peaks=self.peaks)
+        raw, out = self.raw_detections(rgb_in, depth_in, thr)
         if self.reclassifier is not None and any(raw):
             raw = self._reclassify(raw, rgb_in, depth_in, out["heat"], thr)
         feat = torch.nn.functional.normalize(out["feat"], dim=1)

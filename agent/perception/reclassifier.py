@@ -219,11 +219,10 @@ def detector_boxes(data: dict[str, np.ndarray], detector: str | None = None, thr
     from tqdm import tqdm
 
     from tidee.agent.evaluation.detection import box_iou
-    from tidee.agent.perception.detector import decode, preprocess
     from tidee.agent.perception.learned import LearnedPerception
 
     perc = LearnedPerception.load(detector, threshold=threshold, reclassifier=None)
-    model, dcfg = perc.model, perc.cfg
+    dcfg = perc.cfg
     n, size = len(data["rgb"]), data["rgb"].shape[1]
     if size != dcfg.input_size:
         raise ValueError(f"frames are {size} px; the detector reads {dcfg.input_size}: "
@@ -233,11 +232,7 @@ def detector_boxes(data: dict[str, np.ndarray], detector: str | None = None, thr
     for s in tqdm(range(0, n, batch), desc="detector boxes", disable=not progress):
         rgb = np.ascontiguousarray(data["rgb"][s:s + batch])
         depth = np.asarray(data["depth"][s:s + batch], np.float32)
-        x = preprocess(rgb, depth, dcfg.use_depth).contiguous(memory_format=torch.channels_last)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=perc.precision == "bf16"):
-            out = model(x)
-        out = {k: v.float() for k, v in out.items()}
-        raw = decode(out, k=perc.max_detections, threshold=threshold, stride=dcfg.stride)
+        raw, out = perc.raw_detections(rgb, depth, threshold)
         for i, dets in enumerate(raw):
             if not dets:
                 continue
@@ -265,21 +260,16 @@ def detector_boxes(data: dict[str, np.ndarray], detector: str | None = None, thr
     return res
 
 
-class DetectorBoxBatches:
-    """Minibatches of the detector's own detections from a few frames each (``detector_boxes``):
-    objects drawn uniformly, background boxes at most ``background`` of the batch; crops are
-    mirrored and the frames' colours jittered as in ``CropBatches``."""
+class _FrameBatches:
+    """What both batch samplers share: a seeded generator whose state a checkpoint keeps, a
+    few frames per batch, and those frames' colours jittered."""
 
-    def __init__(self, data: dict[str, np.ndarray], boxes: dict[str, np.ndarray], cfg: ReclassifierConfig,
-                 tc: ReclassifierTrainConfig) -> None:
-        self.data, self.boxes, self.cfg, self.tc = data, boxes, cfg, tc
+    rng: np.random.Generator
+    frames_with_objects: np.ndarray
+
+    def __init__(self, data: dict[str, np.ndarray], cfg: ReclassifierConfig, tc: ReclassifierTrainConfig) -> None:
+        self.data, self.cfg, self.tc = data, cfg, tc
         self.rng = np.random.default_rng(tc.seed)
-        self.rows = rows_by_frame(boxes["det_frame"], len(data["rgb"]))
-        is_object = (boxes["det_label"] >= 0) & (boxes["det_label"] < cfg.num_classes)
-        self.frames_with_objects = np.array([i for i, r in enumerate(self.rows) if is_object[r].any()],
-                                            np.int64)
-        if not len(self.frames_with_objects):
-            raise ValueError("the detector found no object in any frame: nothing to train on")
 
     def state(self) -> dict:
         return self.rng.bit_generator.state
@@ -287,10 +277,38 @@ class DetectorBoxBatches:
     def set_state(self, s: dict) -> None:
         self.rng.bit_generator.state = s
 
+    def _pick_frames(self) -> np.ndarray:
+        n = min(self.tc.frames_per_batch, len(self.frames_with_objects))
+        return self.rng.choice(self.frames_with_objects, n, replace=False)
+
+    def _jittered_frames(self, fids: np.ndarray) -> torch.Tensor:
+        """``frame_tensor`` of frames ``fids``, each with its colours scaled by a random gain."""
+        rgb = self.data["rgb"][fids].copy()
+        gain = (self.rng.uniform(0.8, 1.2, (len(fids), 1, 1, 3))
+                * self.rng.uniform(0.85, 1.15, (len(fids), 1, 1, 1)))
+        rgb = np.clip(rgb * gain, 0, 255).astype(np.uint8)
+        return frame_tensor(rgb, self.data["depth"][fids].astype(np.float32))
+
+
+class DetectorBoxBatches(_FrameBatches):
+    """Minibatches of the detector's own detections from a few frames each (``detector_boxes``):
+    objects drawn uniformly, background boxes at most ``background`` of the batch; crops are
+    mirrored and the frames' colours jittered as in ``CropBatches``."""
+
+    def __init__(self, data: dict[str, np.ndarray], boxes: dict[str, np.ndarray], cfg: ReclassifierConfig,
+                 tc: ReclassifierTrainConfig) -> None:
+        super().__init__(data, cfg, tc)
+        self.boxes = boxes
+        self.rows = rows_by_frame(boxes["det_frame"], len(data["rgb"]))
+        is_object = (boxes["det_label"] >= 0) & (boxes["det_label"] < cfg.num_classes)
+        self.frames_with_objects = np.array([i for i, r in enumerate(self.rows) if is_object[r].any()],
+                                            np.int64)
+        if not len(self.frames_with_objects):
+            raise ValueError("the detector found no object in any frame: nothing to train on")
+
     def __call__(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         b, rng, tc, nc = self.boxes, self.rng, self.tc, self.cfg.num_classes
-        fids = rng.choice(self.frames_with_objects, min(tc.frames_per_batch, len(self.frames_with_objects)),
-                          replace=False)
+        fids = self._pick_frames()
         rows = np.concatenate([self.rows[f] for f in fids])
         lab = b["det_label"][rows]
         obj, bg = rows[(lab >= 0) & (lab < nc)], rows[lab == nc]
@@ -299,10 +317,7 @@ class DetectorBoxBatches:
                                rng.choice(bg, n_bg, replace=False)])
         local = {int(f): j for j, f in enumerate(fids)}
         fidx = torch.tensor([local[int(f)] for f in b["det_frame"][pick]])
-        rgb = self.data["rgb"][fids].copy()
-        gain = rng.uniform(0.8, 1.2, (len(fids), 1, 1, 3)) * rng.uniform(0.85, 1.15, (len(fids), 1, 1, 1))
-        rgb = np.clip(rgb * gain, 0, 255).astype(np.uint8)
-        frames = frame_tensor(rgb, self.data["depth"][fids].astype(np.float32))
+        frames = self._jittered_frames(fids)
         flip = torch.from_numpy(rng.random(len(pick)) < 0.5)
         boxes = torch.from_numpy(b["det_box"][pick].astype(np.float32))
         crops, side = crop_inputs(frames, fidx, boxes, self.cfg, flip)
@@ -311,7 +326,7 @@ class DetectorBoxBatches:
         return crops, side, torch.from_numpy(b["det_label"][pick]), det
 
 
-class CropBatches:
+class CropBatches(_FrameBatches):
     """Minibatches of jittered ground-truth crops and background crops from a few frames each.
 
     Object boxes move by up to 15 % of their size and scale by up to +-25 % (the detector's box
@@ -320,26 +335,18 @@ class CropBatches:
     boxes, that overlap every object by IoU < 0.3."""
 
     def __init__(self, data: dict[str, np.ndarray], cfg: ReclassifierConfig, tc: ReclassifierTrainConfig) -> None:
-        self.data, self.cfg, self.tc = data, cfg, tc
-        self.rng = np.random.default_rng(tc.seed)
+        super().__init__(data, cfg, tc)
         n = len(data["rgb"])
         self.rows = rows_by_frame(data["obj_frame"], n)
         self.frames_with_objects = np.array([i for i in range(n) if len(self.rows[i])], np.int64)
         if not len(self.frames_with_objects):
             raise ValueError("no frame has an object to crop")
 
-    def state(self) -> dict:
-        return self.rng.bit_generator.state
-
-    def set_state(self, s: dict) -> None:
-        self.rng.bit_generator.state = s
-
     def __call__(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, None]:
         from tidee.agent.evaluation.detection import box_iou
 
         d, rng, tc = self.data, self.rng, self.tc
-        fids = rng.choice(self.frames_with_objects, min(tc.frames_per_batch, len(self.frames_with_objects)),
-                          replace=False)
+        fids = self._pick_frames()
         size = d["rgb"].shape[1]
         n_bg = int(round(tc.batch_size * tc.background))
         n_obj = tc.batch_size - n_bg
@@ -381,10 +388,7 @@ class CropBatches:
             fidx.append(j)
             boxes.append(box[0])
             labels.append(label)
-        rgb = d["rgb"][fids].copy()
-        gain = rng.uniform(0.8, 1.2, (len(fids), 1, 1, 3)) * rng.uniform(0.85, 1.15, (len(fids), 1, 1, 1))
-        rgb = np.clip(rgb * gain, 0, 255).astype(np.uint8)
-        frames = frame_tensor(rgb, d["depth"][fids].astype(np.float32))
+        frames = self._jittered_frames(fids)
         flip = torch.from_numpy(rng.random(tc.batch_size) < 0.5)
         crops, side = crop_inputs(frames, torch.tensor(fidx), torch.from_numpy(np.array(boxes)), self.cfg, flip)
         return crops, side, torch.tensor(labels, dtype=torch.long), None
