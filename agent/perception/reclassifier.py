@@ -267,7 +267,8 @@ class _FrameBatches:
     rng: np.random.Generator
     frames_with_objects: np.ndarray
 
-    def __init__(self, data: dict[str, np.ndarray], cfg: ReclassifierConfig, tc: ReclassifierTrainConfig) -> None:
+    def __init__(self, data: dict[str, np.ndarray], cfg: ReclassifierConfig,
+                 tc: ReclassifierTrainConfig) -> None:
         self.data, self.cfg, self.tc = data, cfg, tc
         self.rng = np.random.default_rng(tc.seed)
 
