@@ -101,14 +101,19 @@ def resume_training(path: str | Path, seed: int, model_config: dict[str, Any], m
 
 def ship_weights(out: str | Path, model: Any, config: dict[str, Any], loss_curve: str | Path,
                  docs_name: str) -> str:
-    """Write a trained model's weights for shipping (``config`` + CPU state dict) and copy its
-    loss curve to ``docs/models/<docs_name>``; the copied curve's path, for the manifest."""
+    """Write a trained model's weights for shipping (``config`` + CPU state dict); the path of
+    its loss curve, for the manifest. Weights written to the shipped directory
+    (``agent/weights/``) get their curve copied to ``docs/models/<docs_name>``; a candidate
+    written anywhere else (``runs/...``) keeps its curve where it is, so that the docs always
+    show the curve of the weights that ship."""
     import shutil
 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     save_checkpoint(out, config=config, state_dict=state)
+    if out.resolve().parent != WEIGHTS_DIR:
+        return str(loss_curve)
     docs = Path("docs/models")
     docs.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(loss_curve, docs / docs_name)

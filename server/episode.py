@@ -235,9 +235,15 @@ class Episode:
         return np.array([self.body.x, self.body.y, self.spec.camera_height])
 
     def _pixel_ray(self, u: float, v: float) -> tuple[str | None, int, np.ndarray, float]:
-        """Cast through a normalised pixel; returns (object id, link, hit point, distance)."""
+        """Cast through a normalised image point (0..1 across the image: a pixel's centre is
+        ((u + 0.5) / w, (v + 0.5) / h)) along the ray the render shows there; returns (object
+        id, link, hit point, distance). Thin things on the floor (a knife, a pencil) are two
+        or three pixels wide: half a pixel off and a pick aimed at them hits the floor."""
         right, down, fwd = camera_axes(self.body.yaw, self.body.pitch)
         t = math.tan(math.radians(FOV_DEG / 2))
+        du, dv = self.world.pixel_offset
+        r = self.spec.resolution
+        u, v = u + du / r, v + dv / r
         d = fwd + (2 * u - 1) * t * right + (2 * v - 1) * t * down
         d /= np.linalg.norm(d)
         eye = self._eye()

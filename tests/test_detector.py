@@ -215,6 +215,24 @@ def test_a_grown_model_starts_as_the_weights_it_grew_from(tmp_path) -> None:
         init_from(narrow, path)
 
 
+def test_only_shipped_weights_replace_the_loss_curve_in_the_docs(tmp_path, monkeypatch) -> None:
+    """A candidate trained to runs/ keeps its curve in its work dir; weights written to the
+    shipped directory copy theirs to docs/models/, which the manifest then names."""
+    from tidee.agent import learning
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(learning, "WEIGHTS_DIR", (tmp_path / "weights").resolve())
+    curve = tmp_path / "work" / "loss.png"
+    curve.parent.mkdir()
+    curve.write_bytes(b"curve")
+    model = torch.nn.Linear(2, 1)
+    assert learning.ship_weights(tmp_path / "runs" / "m.pt", model, {}, curve, "m_loss.png") == str(curve)
+    assert (tmp_path / "runs" / "m.pt").exists() and not (tmp_path / "docs").exists()
+    shipped = learning.ship_weights(tmp_path / "weights" / "m.pt", model, {}, curve, "m_loss.png")
+    assert shipped == "docs/models/m_loss.png"
+    assert (tmp_path / "docs" / "models" / "m_loss.png").read_bytes() == b"curve"
+
+
 def test_model_outputs_have_the_documented_shapes() -> None:
     cfg = DetectorConfig()
     m = CenterDetector(cfg).eval()

@@ -414,3 +414,26 @@ def test_frontier_next_goal_uses_geodesic_distance() -> None:
     # No frontier left: None.
     full = np.ones(g.shape, bool)
     assert explorer.next_goal(full, full, np.zeros(g.shape, bool), planner, agent) is None
+
+
+def test_a_way_too_narrow_for_the_moves_is_left_for_a_lattice_path() -> None:
+    """The geodesic way to the goal leaves the agent's room by a one-cell staircase (the field
+    is continuous; the agent moves 0.25 m along x or y). Greedy moves lead to its mouth and
+    stop there; the search over the move lattice then finds the long corridor round, and the
+    agent arrives. Before, it turned on the spot as "stuck" until its budget ran out."""
+    trav = np.zeros(GRID.shape, dtype=bool)
+    trav[120:137, 120:137] = True                    # the agent's room around (0, 0) = cell (128, 128)
+    for k in range(41):                              # the staircase towards +x, -y
+        trav[136 + k, 120 - k] = True
+        trav[137 + k, 120 - k] = True
+    trav[165:186, 70:91] = True                      # the goal room
+    trav[124:133, 136:201] = True                    # the way round: +y, then +x, then -y
+    trav[124:190, 192:201] = True
+    trav[177:186, 70:201] = True
+    planner = FMMPlanner(trav, GRID)
+    planner.set_goal(GRID.to_world((175, 80)))
+    straight = planner.distance((0.0, 0.0))
+    assert math.isfinite(straight) and straight < 5.0          # the staircase is the geodesic way
+    pose, steps, visited = drive(planner, trav, (0.0, 0.0, 0.0), max_steps=200)
+    assert planner.status is NavStatus.arrived, (pose, steps)
+    assert max(v[1] for v in visited) > 3.0                    # it went round by the corridor

@@ -167,6 +167,32 @@ def test_a_start_hemmed_in_by_the_map_still_plans():
     assert np.array_equal(planner_from(free).traversible, free.mapper.traversible(AGENT_RADIUS))
 
 
+def test_a_start_with_no_lattice_move_steps_down_to_half_the_radius():
+    """Four things 0.42 m from the agent along +-x and +-y (an object it just dropped in front
+    of it, a sofa, a wall): dilated by the agent radius, each blocks the 0.25 m move towards
+    it, while the room stays reachable diagonally, which no move can follow. On the full-radius
+    map the walk turned on the spot and gave up; on half the radius it moves."""
+    from tidee.agent.navigation.fmm import FMMPlanner
+    from tidee.agent.policy.skills import AGENT_RADIUS, TRAPPED_CELLS, can_step, navigate, planner_from
+    from tidee.protocol.messages import ActionName
+
+    body = _still_body()
+    m = body.mapper
+    for q in ((0.42, 0.0), (-0.42, 0.0), (0.0, 0.42), (0.0, -0.42)):
+        m.stamp_obstacle(q, radius=0.03)
+    m.stood[m.grid.to_cell((0.0, 0.0))] = True
+    full = FMMPlanner(m.traversible(AGENT_RADIUS), m.grid)
+    assert full.reachable_from((0.0, 0.0)).sum() >= TRAPPED_CELLS and not can_step(full, (0.0, 0.0))
+    planner = planner_from(body)
+    assert can_step(planner, (0.0, 0.0))
+    assert np.array_equal(planner.traversible, m.traversible(AGENT_RADIUS / 2))
+    actions, _ = _drain(navigate(body, goal_xy=(1.5, 0.0), budget=6))
+    assert actions and actions[0].name == ActionName.MoveAhead
+    # a free start keeps the full radius
+    free = _still_body()
+    assert can_step(planner_from(free), (0.0, 0.0))
+
+
 def test_a_second_pick_aims_at_what_stands_over_the_track():
     """A pick that hit the floor beside a mug retries at the highest point over the track's
     footprint; a track with nothing standing there (bare floor) gets no second pixel, nor does
@@ -249,10 +275,38 @@ def test_a_detection_from_across_the_room_is_not_stopping_near_it():
     assert actions and all(a.name.value in ("MoveAhead", "RotateLeft", "RotateRight") for a in actions)
 
 
+def test_a_walk_whose_plans_alternate_gives_up_on_the_spot(monkeypatch):
+    """Plans that make "progress" but disagree from one step to the next (turn right, turn
+    left, ...: a committed plan is lost when the map is rebuilt) used to spend the whole
+    budget on the spot; a walk now gives up after ``ON_THE_SPOT`` actions without a move."""
+    from tidee.agent.navigation.fmm import NavStatus
+    from tidee.agent.policy import skills
+    from tidee.protocol.messages import ActionName
+
+    class Alternating:
+        status = NavStatus.progress
+        calls = 0
+
+        def set_goal(self, *a, **k):
+            return True
+
+        def next_action(self, *a, **k):
+            Alternating.calls += 1
+            return ActionName.RotateLeft if Alternating.calls % 2 else ActionName.RotateRight
+
+        def path(self, *a, **k):
+            return np.zeros((1, 2))
+
+    monkeypatch.setattr(skills, "planner_from", lambda body: Alternating())
+    actions, arrived = _drain(skills.navigate(_still_body(), goal_xy=(2.0, 0.0), budget=60))
+    assert arrived is False and len(actions) == skills.ON_THE_SPOT
+
+
 def test_a_stuck_walk_gives_up_after_a_full_turn(monkeypatch):
-    """A planner that finds no move lowering the distance turns towards downhill; turning on
-    the spot for longer than a full turn is a walk that cannot happen (it used to burn the
-    step budget turning left, right, left ... until the episode's cap)."""
+    """A planner that finds no move lowering the distance, at the agent radius and at half of
+    it, turns towards downhill; turning on the spot for longer than a full turn is a walk that
+    cannot happen (it used to burn the step budget turning left, right, left ... until the
+    episode's cap)."""
     from tidee.agent.navigation.fmm import NavStatus
     from tidee.agent.policy import skills
     from tidee.protocol.messages import ActionName
@@ -270,5 +324,6 @@ def test_a_stuck_walk_gives_up_after_a_full_turn(monkeypatch):
             return np.zeros((1, 2))
 
     monkeypatch.setattr(skills, "planner_from", lambda body: Stuck())
+    monkeypatch.setattr(skills, "FMMPlanner", lambda *a, **k: Stuck())
     actions, arrived = _drain(skills.navigate(_still_body(), goal_xy=(2.0, 0.0), budget=60))
     assert arrived is False and len(actions) == skills.STUCK_TURNS

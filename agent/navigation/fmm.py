@@ -42,7 +42,8 @@ class NavStatus(str, Enum):
 
     arrived = "arrived"          # within the stop radius: action is None
     progress = "progress"        # a one-move sequence reduces the geodesic distance
-    detour = "detour"            # only a two-move sequence reduces it (lattice misalignment)
+    detour = "detour"            # only a longer sequence reduces it: a two-move pair, or a path
+                                 # found by search over the agent's own move lattice
     stuck = "stuck"              # nothing reduces it: a rotation towards downhill is returned
     unreachable = "unreachable"  # the agent's cell has no finite distance: action is None
 
@@ -434,9 +435,111 @@ class FMMPlanner:
             self.status = NavStatus.detour
             return best_seq[0]
 
+        plan = self._lattice_plan(pose, d0, stop_radius_m)
+        if plan:
+            poses = self._poses_along(pose, plan)
+            self._plan = list(zip(plan[1:], poses[1:]))
+            self.status = NavStatus.detour
+            return plan[0]
+
         self.status = NavStatus.stuck
-        self.stuck_reason = "no sequence of up to two moves reduces the geodesic distance"
+        self.stuck_reason = ("no sequence of moves on the 0.25 m lattice reduces the geodesic distance "
+                             "(the map's way there is narrower or more diagonal than the moves can follow)")
         return self._rotate_downhill(pose)
+
+    def _lattice_plan(self, pose: tuple[float, float, float], d0: float,
+                      stop_radius_m: float) -> list[ActionName]:
+        """Actions along the fewest-moves path over the poses the agent's own moves reach.
+
+        The geodesic field is continuous: its way to the goal can be a corridor narrower
+        than a move, or run diagonally, so that near it no short sequence lowers the
+        distance (a start hemmed in at the edge of a dilated obstacle). This searches the
+        lattice of points ``step_m`` apart along x and y from the agent, with an edge
+        wherever :meth:`segment_free` holds, breadth first from the agent, for the nearest
+        point within ``stop_radius_m`` of the goal; failing that, the reached point with the
+        lowest distance if it is at least half a move lower than ``d0``. [] when neither
+        exists, or when the plan simulated from ``pose`` is blocked: the caller reports stuck.
+        """
+        x0, y0, yaw = pose
+        s, c = self.step_m, self.cell
+        ox, oy = self.origin
+        a = np.arange(math.ceil((ox - x0) / s), math.floor((ox + self.shape[0] * c - x0) / s) + 1)
+        b = np.arange(math.ceil((oy - y0) / s), math.floor((oy + self.shape[1] * c - y0) / s) + 1)
+        if a.size == 0 or b.size == 0 or not (a == 0).any() or not (b == 0).any():
+            return []
+        xs, ys = x0 + a * s, y0 + b * s
+        start = (int(np.flatnonzero(a == 0)[0]), int(np.flatnonzero(b == 0)[0]))
+        # edge (i, j) -> (i + 1, j) along x and (i, j) -> (i, j + 1) along y: free when every
+        # sample (half a cell apart, both ends included) is on a traversible in-grid cell
+        n = max(2, int(math.ceil(s / (c / 2.0))) + 1)
+        t = np.linspace(0.0, 1.0, n)
+
+        def free(px: np.ndarray, py: np.ndarray) -> np.ndarray:
+            px, py = np.broadcast_arrays(px, py)
+            ci = np.floor((px - ox) / c).astype(np.int64)
+            cj = np.floor((py - oy) / c).astype(np.int64)
+            ok = (ci >= 0) & (ci < self.shape[0]) & (cj >= 0) & (cj < self.shape[1])
+            out = np.zeros(ci.shape, bool)
+            out[ok] = self.traversible[ci[ok], cj[ok]]
+            return out
+
+        gx = free(xs[:-1, None, None] + s * t[None, None, :], ys[None, :, None])
+        gy = free(xs[:, None, None], ys[None, :-1, None] + s * t[None, None, :])
+        edge_x, edge_y = gx.all(axis=2), gy.all(axis=2)
+        # moves off the start may cross a non-traversible start cell (segment_free skips it)
+        si, sj = start
+        if si + 1 < xs.size:
+            edge_x[si, sj] = self.segment_free(x0, y0, x0 + s, y0)
+        if si > 0:
+            edge_x[si - 1, sj] = self.segment_free(x0, y0, x0 - s, y0)
+        if sj + 1 < ys.size:
+            edge_y[si, sj] = self.segment_free(x0, y0, x0, y0 + s)
+        if sj > 0:
+            edge_y[si, sj - 1] = self.segment_free(x0, y0, x0, y0 - s)
+        ci = np.clip(np.floor((xs - ox) / c).astype(np.int64), 0, self.shape[0] - 1)
+        cj = np.clip(np.floor((ys - oy) / c).astype(np.int64), 0, self.shape[1] - 1)
+        dist = self.distance_field[ci[:, None], cj[None, :]]
+
+        parent: dict[tuple[int, int], tuple[int, int]] = {start: start}
+        queue = [start]
+        best, best_d = start, d0
+        goal = None
+        for node in queue:                          # breadth first: the list grows as it is read
+            i, j = node
+            if dist[i, j] <= stop_radius_m:
+                goal = node
+                break
+            if dist[i, j] < best_d:
+                best, best_d = node, float(dist[i, j])
+            for nxt, ok in (((i + 1, j), i + 1 < xs.size and edge_x[i, j]), ((i - 1, j), i > 0 and edge_x[i - 1, j]),
+                            ((i, j + 1), j + 1 < ys.size and edge_y[i, j]), ((i, j - 1), j > 0 and edge_y[i, j - 1])):
+                if ok and nxt not in parent:
+                    parent[nxt] = node
+                    queue.append(nxt)
+        if goal is None:
+            if best_d > d0 - s / 2.0:
+                return []
+            goal = best
+        path = [goal]
+        while path[-1] != start:
+            path.append(parent[path[-1]])
+        path.reverse()
+        actions: list[ActionName] = []
+        for (i, j), (k, l) in zip(path, path[1:]):
+            heading = math.degrees(math.atan2(l - j, k - i))
+            turn = wrap_deg(heading - yaw)
+            if abs(turn) > 135.0:
+                actions += [ActionName.RotateLeft, ActionName.RotateLeft]
+            elif turn > 45.0:
+                actions.append(ActionName.RotateLeft)
+            elif turn < -45.0:
+                actions.append(ActionName.RotateRight)
+            yaw = heading
+            actions.append(ActionName.MoveAhead)
+        # lattice points often lie on cell borders: a move the vectorised check passed may
+        # sample the cell on the other side when simulated from the real pose; such a plan is
+        # dropped rather than committed to
+        return actions if self._simulate(pose, actions) is not None else []
 
     def _rotate_downhill(self, pose: tuple[float, float, float]) -> ActionName:
         """RotateLeft/RotateRight towards the lowest cell within ``step_m`` of the agent."""

@@ -74,23 +74,35 @@ def goal_mask_near_box(mapper: SemanticMapper, box_min: np.ndarray, box_max: np.
 
 
 STUCK_TURNS = 4              # 90-degree turns on the spot before a stuck walk gives up
+ON_THE_SPOT = 8              # actions without a move before any walk gives up (two turns at most precede a move)
 TRAPPED_CELLS = 20           # a start component this small (0.05 m² at 5 cm cells): the agent is hemmed in
 
 
 def planner_and_reach(body: Body) -> tuple[FMMPlanner, np.ndarray]:
     """A planner on ``traversible(AGENT_RADIUS)`` and the cells it reaches from the agent
-    (unknown counts as free); when the agent stands closer than that radius to an obstacle on
-    the map (a start at the foot of a bed: the dilated bed covers every cell around it and
-    its own cell reaches almost nothing), on ``traversible(AGENT_RADIUS / 2)`` until it has
-    stepped clear. Without it every plan from there snapped to the agent's own cell and
-    "arrived" without a move."""
+    (unknown counts as free); when the agent is hemmed in on that map, on
+    ``traversible(AGENT_RADIUS / 2)`` until it has stepped clear. Hemmed in: its start
+    component is tiny (a start at the foot of a bed: the dilated bed covers every cell around
+    it), or none of the four lattice moves stays on traversible cells (an object it just put
+    on the floor in front of it, a wall beside and behind it: the start reaches the rest of
+    the room only diagonally, which no move can follow). Without it every plan from there
+    snapped to the agent's own cell and "arrived" without a move, or turned on the spot as
+    "stuck" until the episode ran out."""
     mapper, xy = body.mapper, tuple(body.xy)
     planner = FMMPlanner(mapper.traversible(AGENT_RADIUS), mapper.grid)
     reach = planner.reachable_from(xy)
-    if int(reach.sum()) < TRAPPED_CELLS:
+    if int(reach.sum()) < TRAPPED_CELLS or not can_step(planner, xy):
         planner = FMMPlanner(mapper.traversible(AGENT_RADIUS / 2), mapper.grid)
         reach = planner.reachable_from(xy)
     return planner, reach
+
+
+def can_step(planner: FMMPlanner, xy: tuple[float, float]) -> bool:
+    """Whether one of the four lattice moves (``MOVE_M`` along ±x or ±y: the agent's headings
+    are multiples of 90° in the start frame) from ``xy`` stays on the planner's traversible cells."""
+    x, y = xy
+    return any(planner.segment_free(x, y, x + dx, y + dy)
+               for dx, dy in ((MOVE_M, 0.0), (-MOVE_M, 0.0), (0.0, MOVE_M), (0.0, -MOVE_M)))
 
 
 def planner_from(body: Body) -> FMMPlanner:
@@ -118,33 +130,54 @@ def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: 
     """Walk to a goal with fast-marching planning, replanning every step on the growing map.
 
     A blocked move stamps an obstacle in front of the agent (the failed cell) and replans.
-    Returns True on arrival; False when the goal is unreachable, the budget is spent, the
-    agent keeps bumping into things, or the planner has been stuck (no move lowers the
-    distance: it turns towards downhill) for more than a full turn on the spot.
+    Where the map at the agent radius leaves no way the moves can follow, the walk plans at
+    half the radius until the agent has moved. Returns True on arrival; False when the goal
+    is unreachable, the budget is spent, the agent keeps bumping into things, the planner
+    has been stuck (no move lowers the distance: it turns towards downhill) for more than a
+    full turn on the spot, or the agent has stood on one spot for ``ON_THE_SPOT`` actions
+    (plans that disagree from one step to the next: left, right, left ...).
     """
-    bumps = stuck = 0
+    bumps = stuck = on_spot = 0
+    narrow_at: tuple[float, float] | None = None     # where the half-radius map was needed
     if goal_mask is not None:    # shown to viewers: the centre of the goal region
         body.goal = body.mapper.grid.to_world(np.argwhere(goal_mask).mean(0)) if goal_mask.any() else None
     else:
         assert goal_xy is not None
         body.goal = (float(goal_xy[0]), float(goal_xy[1]))
-    for _ in range(budget):
-        if body.steps_left() <= 1:
-            return False
-        x, y, yaw, _ = body.pose
-        planner = planner_from(body)
+    def plan(planner: FMMPlanner) -> tuple[bool, ActionName | None]:
         if goal_mask is not None:
             ok = planner.set_goal_mask(goal_mask, start_xy=(x, y))
         else:
             ok = planner.set_goal(goal_xy, radius_m=radius, start_xy=(x, y))
+        return ok, (planner.next_action(x, y, yaw, stop_radius_m=stop_radius) if ok else None)
+
+    for _ in range(budget):
+        if body.steps_left() <= 1:
+            return False
+        x, y, yaw, _ = body.pose
+        if narrow_at is not None and math.hypot(x - narrow_at[0], y - narrow_at[1]) > 1e-3:
+            narrow_at = None
+        planner = None if narrow_at is not None else planner_from(body)
+        ok, action = plan(planner) if planner is not None else (False, None)
+        if planner is None or (ok and planner.status == NavStatus.stuck):
+            # no lattice path on this map (a passage mapped narrower than the agent's radius
+            # allows: noisy depth on both sides of a doorway it walked through): half the
+            # radius, kept until the agent has moved so that the two maps' plans do not alternate
+            narrow = FMMPlanner(body.mapper.traversible(AGENT_RADIUS / 2), body.mapper.grid)
+            ok2, action2 = plan(narrow)
+            if ok2 and narrow.status in (NavStatus.progress, NavStatus.detour):
+                planner, ok, action, narrow_at = narrow, ok2, action2, (x, y)
+            elif planner is None:
+                narrow_at = None
+                planner = planner_from(body)
+                ok, action = plan(planner)
         if not ok:
             return False
-        action = planner.next_action(x, y, yaw, stop_radius_m=stop_radius)
         if action is None:
             body.path = None
             return planner.status == NavStatus.arrived
         stuck = stuck + 1 if planner.status == NavStatus.stuck else 0
-        if stuck > STUCK_TURNS:
+        if stuck > STUCK_TURNS or on_spot >= ON_THE_SPOT:
             body.path = None
             return False
         body.path = planner.path((x, y), max_points=200).astype(np.float32)
@@ -152,6 +185,8 @@ def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: 
         body.nav_steps += 1
         obs = body.obs
         assert obs is not None
+        moved = math.hypot(body.pose[0] - x, body.pose[1] - y) > 1e-3
+        on_spot = 0 if moved else on_spot + 1
         if action == ActionName.MoveAhead and not obs.success and obs.error == "blocked":
             bumps += 1
             t = math.radians(yaw)
