@@ -378,9 +378,11 @@ class FMMPlanner:
         scored by geodesic reduction per action; the best wins (ties go to the earlier one
         in that list). If none reduces the distance, pairs of those sequences are tried and
         the best is committed to (``status`` = detour; following calls replay it while the
-        pose matches). If still nothing reduces it, the rotation that best faces the
-        steepest descent of the distance field around the agent is returned (``status`` =
-        stuck, ``stuck_reason`` says why) so the agent never freezes.
+        pose matches); failing those, a path found by search over the move lattice
+        (:meth:`_lattice_plan`) is committed to the same way. If still nothing reduces it,
+        the rotation that best faces the steepest descent of the distance field around the
+        agent is returned (``status`` = stuck, ``stuck_reason`` says why) so the agent never
+        freezes.
         """
         if self._dist is None:
             raise RuntimeError("no goal set: call set_goal or set_goal_mask first")
@@ -511,8 +513,10 @@ class FMMPlanner:
                 break
             if dist[i, j] < best_d:
                 best, best_d = node, float(dist[i, j])
-            for nxt, ok in (((i + 1, j), i + 1 < xs.size and edge_x[i, j]), ((i - 1, j), i > 0 and edge_x[i - 1, j]),
-                            ((i, j + 1), j + 1 < ys.size and edge_y[i, j]), ((i, j - 1), j > 0 and edge_y[i, j - 1])):
+            for nxt, ok in (((i + 1, j), i + 1 < xs.size and edge_x[i, j]),
+                            ((i - 1, j), i > 0 and edge_x[i - 1, j]),
+                            ((i, j + 1), j + 1 < ys.size and edge_y[i, j]),
+                            ((i, j - 1), j > 0 and edge_y[i, j - 1])):
                 if ok and nxt not in parent:
                     parent[nxt] = node
                     queue.append(nxt)

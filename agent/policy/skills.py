@@ -74,7 +74,7 @@ def goal_mask_near_box(mapper: SemanticMapper, box_min: np.ndarray, box_max: np.
 
 
 STUCK_TURNS = 4              # 90-degree turns on the spot before a stuck walk gives up
-ON_THE_SPOT = 8              # actions without a move before any walk gives up (two turns at most precede a move)
+ON_THE_SPOT = 8              # actions without a move before any walk gives up (a plan turns twice at most)
 TRAPPED_CELLS = 20           # a start component this small (0.05 m² at 5 cm cells): the agent is hemmed in
 
 
@@ -144,7 +144,9 @@ def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: 
     else:
         assert goal_xy is not None
         body.goal = (float(goal_xy[0]), float(goal_xy[1]))
+
     def plan(planner: FMMPlanner) -> tuple[bool, ActionName | None]:
+        """(goal set, next action) on ``planner`` from the loop's current pose (x, y, yaw)."""
         if goal_mask is not None:
             ok = planner.set_goal_mask(goal_mask, start_xy=(x, y))
         else:
