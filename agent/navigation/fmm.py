@@ -331,12 +331,14 @@ class FMMPlanner:
         cells = self.grid.world_to_cell(pts)
         start = np.array(self.to_cell((x0, y0)))
         cells = cells[np.any(cells != start, axis=1)]
-        if cells.size == 0:
-            return True
-        if (cells.min() < 0 or (cells[:, 0] >= self.shape[0]).any()
-                or (cells[:, 1] >= self.shape[1]).any()):
-            return False
-        return bool(self.traversible[cells[:, 0], cells[:, 1]].all())
+        return bool(self._traversible_cells(cells).all())
+
+    def _traversible_cells(self, cells: np.ndarray) -> np.ndarray:
+        """bool N: whether each cell index (N x 2) is in the grid and traversible."""
+        ok = self.grid.in_bounds(cells) if len(cells) else np.zeros(0, bool)
+        out = np.zeros(len(cells), bool)
+        out[ok] = self.traversible[cells[ok, 0], cells[ok, 1]]
+        return out
 
     def _simulate(self, pose: tuple[float, float, float],
                   seq: Sequence[ActionName]) -> tuple[float, float, float] | None:
@@ -477,13 +479,9 @@ class FMMPlanner:
         t = np.linspace(0.0, 1.0, n)
 
         def free(px: np.ndarray, py: np.ndarray) -> np.ndarray:
-            px, py = np.broadcast_arrays(px, py)
-            ci = np.floor((px - ox) / c).astype(np.int64)
-            cj = np.floor((py - oy) / c).astype(np.int64)
-            ok = (ci >= 0) & (ci < self.shape[0]) & (cj >= 0) & (cj < self.shape[1])
-            out = np.zeros(ci.shape, bool)
-            out[ok] = self.traversible[ci[ok], cj[ok]]
-            return out
+            pts = np.stack(np.broadcast_arrays(px, py), -1)
+            cells = self.grid.world_to_cell(pts.reshape(-1, 2))
+            return self._traversible_cells(cells).reshape(pts.shape[:-1])
 
         gx = free(xs[:-1, None, None] + s * t[None, None, :], ys[None, :, None])
         gy = free(xs[:, None, None], ys[None, :-1, None] + s * t[None, None, :])

@@ -38,8 +38,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from tidee.agent.learning import (WEIGHTS_DIR, dataset_record, pick_device, resolve_precision, resume_training,
-                                  save_checkpoint, save_loss_curve, ship_weights, write_manifest)
+from tidee.agent.learning import (WEIGHTS_DIR, dataset_record, load_checkpoint, pick_device,
+                                  resolve_precision, resume_training, save_checkpoint, save_loss_curve,
+                                  ship_weights, write_manifest)
 from tidee.agent.perception.detector import DEPTH_SCALE, RGB_MEAN, RGB_STD, cbr
 
 DEFAULT_RECLASSIFIER = WEIGHTS_DIR / "reclassifier.pt"
@@ -102,7 +103,9 @@ def det_features(heat: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
 def warm_start(model: CropClassifier, path: str | Path) -> None:
     """Load a reclassifier's weights into ``model`` (same crop network); the detector inputs a
     ``det_inputs`` model adds to the first MLP layer start at zero, so it starts as that model."""
-    blob = torch.load(path, map_location="cpu", weights_only=False)
+    blob = load_checkpoint(path)
+    if blob is None or "state_dict" not in blob:
+        raise ValueError(f"--init {path}: not a reclassifier weights file (missing, or no state_dict)")
     state = dict(blob["state_dict"])
     own = model.state_dict()
     w = state["mlp.0.weight"]
@@ -206,6 +209,8 @@ def rows_by_frame(frame_of_row: np.ndarray, n_frames: int) -> list[np.ndarray]:
     order = np.argsort(frame_of_row, kind="stable")
     starts = np.searchsorted(frame_of_row[order], np.arange(n_frames + 1))
     return [order[starts[i]:starts[i + 1]] for i in range(n_frames)]
+
+
 DET_POS_IOU, DET_NEG_IOU = 0.5, 0.4     # detector boxes: a class at IoU >= 0.5, background < 0.4
 
 

@@ -89,12 +89,17 @@ def planner_and_reach(body: Body) -> tuple[FMMPlanner, np.ndarray]:
     snapped to the agent's own cell and "arrived" without a move, or turned on the spot as
     "stuck" until the episode ran out."""
     mapper, xy = body.mapper, tuple(body.xy)
-    planner = FMMPlanner(mapper.traversible(AGENT_RADIUS), mapper.grid)
+    planner = radius_planner(mapper, AGENT_RADIUS)
     reach = planner.reachable_from(xy)
     if int(reach.sum()) < TRAPPED_CELLS or not can_step(planner, xy):
-        planner = FMMPlanner(mapper.traversible(AGENT_RADIUS / 2), mapper.grid)
+        planner = radius_planner(mapper, AGENT_RADIUS / 2)
         reach = planner.reachable_from(xy)
     return planner, reach
+
+
+def radius_planner(mapper: SemanticMapper, radius: float) -> FMMPlanner:
+    """A planner on the map's cells where the agent's centre may go at ``radius``."""
+    return FMMPlanner(mapper.traversible(radius), mapper.grid)
 
 
 def can_step(planner: FMMPlanner, xy: tuple[float, float]) -> bool:
@@ -165,7 +170,7 @@ def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: 
             # no lattice path on this map (a passage mapped narrower than the agent's radius
             # allows: noisy depth on both sides of a doorway it walked through): half the
             # radius, kept until the agent has moved so that the two maps' plans do not alternate
-            narrow = FMMPlanner(body.mapper.traversible(AGENT_RADIUS / 2), body.mapper.grid)
+            narrow = radius_planner(body.mapper, AGENT_RADIUS / 2)
             ok2, action2 = plan(narrow)
             if ok2 and narrow.status in (NavStatus.progress, NavStatus.detour):
                 planner, ok, action, narrow_at = narrow, ok2, action2, (x, y)
