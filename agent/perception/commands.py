@@ -26,7 +26,7 @@ def _cmd_train_detector(args: argparse.Namespace) -> int:
     cfg = TrainConfig(data=args.data, out=args.out, work_dir=args.work_dir, steps=args.steps,
                       batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
                       threads=args.threads, limit_frames=args.limit_frames, init=args.init, warmup=args.warmup,
-                      precision=args.precision)
+                      precision=args.precision, loader_workers=args.loader_workers)
     model_cfg = DetectorConfig(extra_blocks=extra, head_conv=args.head_conv, extra_s4=extra_s4)
     command = "tidee train detector " + " ".join(sys.argv[3:])
     result = train_detector(cfg, model_cfg, resume=not args.no_resume, command=command.strip())
@@ -70,6 +70,9 @@ def register(train_sub: argparse._SubParsersAction, eval_sub: argparse._SubParse
     p.add_argument("--limit-frames", type=int, default=None, help="train on the first N frames only (smoke runs)")
     p.add_argument("--no-resume", action="store_true", help="ignore a checkpoint in --work-dir")
     p.add_argument("--warmup", type=int, default=200, help="steps of linear learning-rate warm-up")
+    p.add_argument("--loader-workers", type=int, default=0,
+                   help="build batches in this many processes (a GPU outruns one); a run is reproducible "
+                        "for a given count. 0: in the training process")
     p.add_argument("--init", default=None,
                    help="start from these detector weights; with --extra-blocks / --head-conv the model grows "
                         "around them, starting as exactly the same function")

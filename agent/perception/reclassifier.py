@@ -487,7 +487,8 @@ def train_reclassifier(tc: ReclassifierTrainConfig, cfg: ReclassifierConfig | No
                                     "detector_boxes": int(len(det_boxes["det_label"])),
                                     "detector_sha256": str(det_boxes["detector_sha256"])})),
             metrics={"train_loss_final": history[-1] if history else None},
-            train_config={**asdict(tc), "precision_used": precision}, model_config=cfg.to_dict(),
+            train_config={**asdict(tc), "precision_used": precision, "device_used": device},
+            model_config=cfg.to_dict(),
             init=None if not tc.init else {"path": tc.init, "sha256": init_sha},
             parameters=int(sum(p.numel() for p in model.parameters())), loss_curve=curve)
         result["out"] = str(tc.out)

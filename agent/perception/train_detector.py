@@ -45,12 +45,14 @@ class TrainConfig:
     limit_frames: int | None = None  # use only the first N frames (tests, smoke runs)
     init: str | None = None          # start from these detector weights (a grown model: see init_from)
     precision: str = "auto"          # auto | fp32 | bf16 (autocast; weights, optimiser and losses stay fp32)
+    loader_workers: int = 0          # >0: batches built in that many processes (see ParallelBatches)
 
 
 class Batches:
     """Random minibatches with flips and brightness jitter, targets encoded on the fly."""
 
-    def __init__(self, data: dict[str, np.ndarray], cfg: DetectorConfig, batch_size: int, seed: int) -> None:
+    def __init__(self, data: dict[str, np.ndarray], cfg: DetectorConfig, batch_size: int,
+                 seed: int | list[int]) -> None:
         self.data, self.cfg, self.batch_size = data, cfg, batch_size
         self.rng = np.random.default_rng(seed)
         n = len(data["rgb"])
@@ -87,6 +89,64 @@ class Batches:
                 targets.setdefault(k, []).append(v)
         x = preprocess(rgb, depth, self.cfg.use_depth)
         return x, {k: torch.from_numpy(np.stack(v)) for k, v in targets.items()}
+
+
+class _BatchStream(torch.utils.data.IterableDataset):
+    """Endless ``Batches`` in a DataLoader worker, seeded by (seed, worker, start step)."""
+
+    def __init__(self, data: dict[str, np.ndarray], cfg: DetectorConfig, batch_size: int, seed: int,
+                 start: int) -> None:
+        super().__init__()
+        self.data, self.cfg, self.batch_size, self.seed, self.start = data, cfg, batch_size, seed, start
+
+    def __iter__(self):
+        info = torch.utils.data.get_worker_info()
+        worker = info.id if info is not None else 0
+        torch.set_num_threads(1)
+        batches = Batches(self.data, self.cfg, self.batch_size, [self.seed, worker, self.start])
+        while True:
+            yield batches()
+
+
+class ParallelBatches:
+    """``Batches`` built in ``workers`` processes, for a GPU that one process cannot keep busy.
+
+    Worker k draws from its own generator seeded by (seed, k, start step) and the DataLoader
+    takes the workers' batches in turn, so a run is reproducible for a given worker count. The
+    sampler state is the step the stream has reached: a resumed run restarts every worker's
+    generator from (seed, k, that step), which is deterministic but not the stream an
+    uninterrupted run would have drawn.
+    """
+
+    def __init__(self, data: dict[str, np.ndarray], cfg: DetectorConfig, batch_size: int, seed: int,
+                 workers: int) -> None:
+        if workers < 1:
+            raise ValueError(f"ParallelBatches needs at least one worker, not {workers}")
+        self.data, self.cfg, self.batch_size, self.seed, self.workers = data, cfg, batch_size, seed, workers
+        self.start, self.drawn, self._it = 0, 0, None
+
+    def state(self) -> dict:
+        return {"parallel_workers": self.workers, "start": self.start + self.drawn}
+
+    def set_state(self, s: dict) -> None:
+        if not isinstance(s, dict) or s.get("parallel_workers") != self.workers:
+            raise ValueError(f"the checkpoint's sampler was not a {self.workers}-worker stream; resume with the "
+                             "same --loader-workers or pass --no-resume")
+        self.start, self.drawn, self._it = int(s["start"]), 0, None
+
+    def __call__(self) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        if self._it is None:
+            stream = _BatchStream(self.data, self.cfg, self.batch_size, self.seed, self.start)
+            loader = torch.utils.data.DataLoader(stream, batch_size=None, num_workers=self.workers,
+                                                 prefetch_factor=4, pin_memory=torch.cuda.is_available())
+            self._it = iter(loader)
+        self.drawn += 1
+        return next(self._it)
+
+    def close(self) -> None:
+        """Stop the workers: dropping the loader's iterator shuts them down (one left to the interpreter's
+        exit dies noisily in its pin-memory thread). A later call starts a stream at the step reached."""
+        self.start, self.drawn, self._it = self.start + self.drawn, 0, None
 
 
 def init_from(model: CenterDetector, weights: str | Path) -> dict[str, Any]:
@@ -153,7 +213,8 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
     precision = resolve_precision(cfg.precision, device)
     model = model.to(device, memory_format=torch.channels_last)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    batches = Batches(data, model_cfg, cfg.batch_size, cfg.seed)
+    batches = (ParallelBatches(data, model_cfg, cfg.batch_size, cfg.seed, cfg.loader_workers)
+               if cfg.loader_workers else Batches(data, model_cfg, cfg.batch_size, cfg.seed))
     work = Path(cfg.work_dir)
     ckpt_path = work / "checkpoint.pt"
     step, history = (resume_training(ckpt_path, cfg.seed, model_cfg.to_dict(), model, opt, batches)
@@ -166,8 +227,8 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
         for g in opt.param_groups:
             g["lr"] = lr_at(step, cfg)
         x, tgt = batches()
-        x = x.to(device, memory_format=torch.channels_last)
-        tgt = {k: v.to(device) for k, v in tgt.items()}
+        x = x.to(device, memory_format=torch.channels_last, non_blocking=True)
+        tgt = {k: v.to(device, non_blocking=True) for k, v in tgt.items()}
         with torch.autocast(device.split(":")[0], dtype=torch.bfloat16, enabled=precision == "bf16"):
             out = model(x)
         losses = detector_loss({k: v.float() for k, v in out.items()}, tgt)
@@ -190,6 +251,8 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
                             train_config=asdict(cfg), model_config=model_cfg.to_dict())
             save_loss_curve(history, work / "loss.png", f"detector ({step} steps, batch {cfg.batch_size})")
     bar.close()
+    if isinstance(batches, ParallelBatches):
+        batches.close()
     result: dict[str, Any] = {"history": history, "seconds": round(time.time() - t0, 1), "steps": step,
                               "device": device, "precision": precision, "work_dir": str(work)}
     if ship:
@@ -199,11 +262,12 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
             data=dataset_record(cfg.data, data, data_manifests,
                                 "train (seeds 0-19 + pool 10000...), never val/test"),
             metrics={"train_loss_final": history[-1] if history else None},
-            train_config={**asdict(cfg), "precision_used": precision}, model_config=model_cfg.to_dict(),
+            train_config={**asdict(cfg), "precision_used": precision, "device_used": device},
+            model_config=model_cfg.to_dict(),
             parameters=int(sum(p.numel() for p in model.parameters())),
             **({"init": lineage} if lineage else {}), loss_curve=curve)
         result["out"] = str(cfg.out)
     return result
 
 
-__all__ = ["TrainConfig", "Batches", "train_detector", "DEFAULT_WEIGHTS", "lr_at", "init_from"]
+__all__ = ["TrainConfig", "Batches", "ParallelBatches", "train_detector", "DEFAULT_WEIGHTS", "lr_at", "init_from"]
