@@ -120,6 +120,19 @@ def ship_weights(out: str | Path, model: Any, config: dict[str, Any], loss_curve
     return f"docs/models/{docs_name}"
 
 
+def loss_curve_path(out: str | Path, docs_name: str, asked: str | Path | None = None) -> str:
+    """Where a training run draws its loss curve: ``asked`` when given; ``docs/models/<docs_name>``
+    for weights written to the shipped directory (``agent/weights/``); beside the weights
+    otherwise (``<out stem>_loss.png``), so that a candidate in ``runs/`` never replaces the
+    curve of the weights that ship."""
+    if asked:
+        return str(asked)
+    out = Path(out)
+    if out.resolve().parent == WEIGHTS_DIR:
+        return f"docs/models/{docs_name}"
+    return str(out.with_name(f"{out.stem}_loss.png"))
+
+
 def dataset_record(data_dir: str, data: dict[str, Any], manifests: list[dict[str, Any]], split: str,
                    **extra: Any) -> dict[str, Any]:
     """The manifest's ``data`` entry for a model trained on ``tidee gen detection`` directories:
@@ -194,4 +207,5 @@ def update_manifest_metrics(weights: str | Path, metrics: dict[str, Any]) -> dic
 
 
 __all__ = ["WEIGHTS_DIR", "pick_device", "sha256_file", "save_checkpoint", "load_checkpoint", "save_loss_curve",
+           "loss_curve_path",
            "write_manifest", "read_manifest", "update_manifest_metrics"]

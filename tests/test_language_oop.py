@@ -286,3 +286,15 @@ def test_fused_samples_are_matched_pickupable_detections_with_their_features() -
     assert s["features"].shape == (2, 64) and s["features"][0].sum() == 64 and s["features"][1].sum() == 0
     assert all(p.startswith("The mug") for p in s["paragraphs"][:1]) and s["rooms"] == ["Bedroom:19:0"] * 2
     assert held_out_room("Bedroom:19:0") and not held_out_room("Kitchen:10003:None")
+
+
+def test_only_shipped_oop_heads_draw_their_loss_curve_in_the_docs(tmp_path) -> None:
+    from tidee.agent.learning import loss_curve_path
+
+    shipped = loss_curve_path(WEIGHTS_DIR / "language_oop_fused.pt", "language_oop_fused_loss.png")
+    assert shipped == "docs/models/language_oop_fused_loss.png"
+    candidate = loss_curve_path(tmp_path / "runs" / "fused" / "language_oop_fused.pt", "language_oop_fused_loss.png")
+    assert candidate == str(tmp_path / "runs" / "fused" / "language_oop_fused_loss.png")
+    assert loss_curve_path(WEIGHTS_DIR / "language_oop.pt", "language_oop_loss.png", asked="x/curve.png") == "x/curve.png"
+    # the training commands resolve it this way: neither default names the docs any more
+    assert lo.TrainConfig().loss_png is None

