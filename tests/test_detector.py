@@ -182,7 +182,7 @@ def test_a_few_training_steps_reduce_the_loss(tiny_train_frames, tmp_path, preci
 
 
 def test_parallel_batches_are_reproducible_and_resume_from_their_step(tiny_train_frames) -> None:
-    from tidee.agent.perception.train_detector import ParallelBatches
+    from tidee.agent.perception.train_detector import Batches, ParallelBatches
 
     cfg = DetectorConfig(input_size=128)
 
@@ -206,6 +206,8 @@ def test_parallel_batches_are_reproducible_and_resume_from_their_step(tiny_train
     assert c.state()["start"] == 6
     with pytest.raises(ValueError, match="same --loader-workers"):
         ParallelBatches(tiny_train_frames, cfg, 2, seed=3, workers=3).set_state(state)
+    with pytest.raises(ValueError, match="--loader-workers 2"):
+        Batches(tiny_train_frames, cfg, 2, seed=3).set_state(state)
 
 
 def test_a_grown_model_starts_as_the_weights_it_grew_from(tmp_path) -> None:

@@ -65,6 +65,9 @@ class Batches:
         return self.rng.bit_generator.state
 
     def set_state(self, s: dict) -> None:
+        if "parallel_workers" in s:
+            raise ValueError(f"the checkpoint's sampler was a {s['parallel_workers']}-worker stream; resume with "
+                             f"--loader-workers {s['parallel_workers']} or pass --no-resume")
         self.rng.bit_generator.state = s
 
     def __call__(self) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
