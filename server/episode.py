@@ -140,7 +140,8 @@ class Episode:
         yaw = float(self.rng.integers(4)) * math.pi / 2
         self.body = Body(x, y, yaw, 0.0, x, y, yaw)
         self.start = (x, y, yaw)
-        return self._observe(None, True, None, "", ground_truth)
+        self._last = (None, True, None, "")
+        return self.observe(ground_truth)
 
     def load(self, scene: Scene, spec: EpisodeSpec, agent_xy: tuple[float, float], yaw_deg: float,
              session: str = "local", ground_truth: bool = False) -> Observation:
@@ -153,7 +154,8 @@ class Episode:
         yaw = math.radians(yaw_deg)
         self.body = Body(agent_xy[0], agent_xy[1], yaw, 0.0, agent_xy[0], agent_xy[1], yaw)
         self.start = (agent_xy[0], agent_xy[1], yaw)
-        return self._observe(None, True, None, "", ground_truth)
+        self._last = (None, True, None, "")
+        return self.observe(ground_truth)
 
     def _update_free(self) -> None:
         assert self.scene is not None
@@ -173,17 +175,38 @@ class Episode:
 
     # ----------------------------------------------------------------- step
     def step(self, action: Action, ground_truth: bool = False) -> Observation:
+        self.act(action)
+        return self.observe(ground_truth)
+
+    def act(self, action: Action) -> tuple[bool, ActionError | None, str]:
+        """``step`` without the render: (success, error, message). For walks that keep only some
+        frames (data generation): ``observe`` renders the state when a frame is wanted. The
+        episode's state is what ``step`` leaves; with depth noise the random stream differs,
+        since that noise is drawn at the render."""
         if self.scene is None:
             raise RuntimeError("step() before reset()")
         name = ActionName(action.name)
         if self.done:
-            return self._observe(name.value, False, ActionError.episode_over,
-                                 "the episode is over (Done was called or the step cap reached)", ground_truth)
+            self._last = (name.value, False, ActionError.episode_over,
+                          "the episode is over (Done was called or the step cap reached)")
+            return self._last[1:]
         self.steps += 1
         ok, err, msg = self._execute(action)
         if name == ActionName.Done or self.steps >= self.spec.max_steps:
             self.done = True
-        return self._observe(name.value, ok, err, msg, ground_truth)
+        self._last = (name.value, ok, err, msg)
+        return ok, err, msg
+
+    def observe(self, ground_truth: bool = False) -> Observation:
+        """Render the current state, reporting the outcome of the last action (``step`` = ``act`` + this)."""
+        if self.scene is None:
+            raise RuntimeError("observe() before reset()")
+        return self._observe(*self._last, ground_truth)
+
+    @property
+    def pitch(self) -> float:
+        """The camera's pitch in degrees (positive looks down), as ``Observation.agent_pose[3]``."""
+        return float(self.body.pitch)
 
     def _execute(self, a: Action) -> tuple[bool, ActionError | None, str]:
         n = a.name

@@ -56,6 +56,28 @@ def test_moves_turns_and_looks(ep):
     assert ep.step(Action(A.LookDown)).error == "look_limit"
 
 
+def test_acting_without_a_render_leaves_the_state_a_step_leaves(ep):
+    # data generation walks with Episode.act and renders only the frames it keeps (Episode.observe)
+    walk = [A.MoveAhead, A.RotateLeft, A.LookDown, A.MoveAhead, A.MoveAhead, A.LookUp, A.LookUp, A.LookUp,
+            A.MoveRight]
+    ep.load(table_room(), spec(64), (1.0, 1.0), yaw_deg=0)
+    stepped = [ep.step(Action(a)) for a in walk]
+    other = Episode(renderer="tiny")
+    try:
+        other.load(table_room(), spec(64), (1.0, 1.0), yaw_deg=0)
+        outcomes = [other.act(Action(a)) for a in walk]
+        seen = other.observe()
+        assert [(o.success, o.error, o.message) for o in stepped] == \
+            [(ok, err.value if err else None, msg) for ok, err, msg in outcomes]
+        assert not outcomes[-2][0]                     # the third LookUp is refused at the limit
+        assert other.pitch == stepped[-1].agent_pose[3] == pytest.approx(-30.0)
+        np.testing.assert_array_equal(seen.rgb, stepped[-1].rgb)
+        np.testing.assert_array_equal(seen.depth, stepped[-1].depth)
+        assert seen.agent_pose == stepped[-1].agent_pose and seen.last_action == "MoveRight" and seen.success
+    finally:
+        other.close()
+
+
 def test_move_into_wall_is_blocked(ep):
     ep.load(table_room(), spec(), (0.3, 1.0), yaw_deg=180)  # facing the west wall, 0.3 m away
     obs = ep.step(Action(A.MoveAhead))

@@ -144,12 +144,14 @@ def iter_frames(cfg: GenConfig, jobs: list[tuple[str, int, int | None]] | None =
                             if kept >= cfg.frames_per_walk or in_config == cfg.per_config:
                                 break
                     name = WALK_ACTIONS[int(rng.integers(len(WALK_ACTIONS)))]
-                    if name == "LookUp" and obs.agent_pose[3] <= 0:
+                    if name == "LookUp" and ep.pitch <= 0:
                         name = "LookDown"          # the agent rarely looks above the horizon
-                    obs = ep.step(Action(name=name), ground_truth=True)
-                    if not obs.success and name == "MoveAhead":
-                        obs = ep.step(Action(name="RotateLeft" if rng.random() < 0.5 else "RotateRight"),
-                                      ground_truth=True)
+                    # only the frame the next iteration keeps is rendered (Episode.act skips the rest)
+                    ok, _, _ = ep.act(Action(name=name))
+                    if not ok and name == "MoveAhead":
+                        ep.act(Action(name="RotateLeft" if rng.random() < 0.5 else "RotateRight"))
+                    if (t + 1) % cfg.stride == cfg.stride - 1:
+                        obs = ep.observe(ground_truth=True)
     finally:
         ep.close()
 
