@@ -112,7 +112,7 @@ def ship_weights(out: str | Path, model: Any, config: dict[str, Any], loss_curve
     out.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     save_checkpoint(out, config=config, state_dict=state)
-    if out.resolve().parent != WEIGHTS_DIR:
+    if not ships(out):
         return str(loss_curve)
     docs = Path("docs/models")
     docs.mkdir(parents=True, exist_ok=True)
@@ -128,9 +128,13 @@ def loss_curve_path(out: str | Path, docs_name: str, asked: str | Path | None = 
     if asked:
         return str(asked)
     out = Path(out)
-    if out.resolve().parent == WEIGHTS_DIR:
-        return f"docs/models/{docs_name}"
-    return str(out.with_name(f"{out.stem}_loss.png"))
+    return f"docs/models/{docs_name}" if ships(out) else str(out.with_name(f"{out.stem}_loss.png"))
+
+
+def ships(out: str | Path) -> bool:
+    """Whether weights written to ``out`` are the shipped ones (in ``agent/weights/``), whose
+    loss curves the docs show; a candidate under ``runs/`` is not."""
+    return Path(out).resolve().parent == WEIGHTS_DIR
 
 
 def dataset_record(data_dir: str, data: dict[str, Any], manifests: list[dict[str, Any]], split: str,
@@ -207,5 +211,5 @@ def update_manifest_metrics(weights: str | Path, metrics: dict[str, Any]) -> dic
 
 
 __all__ = ["WEIGHTS_DIR", "pick_device", "sha256_file", "save_checkpoint", "load_checkpoint", "save_loss_curve",
-           "loss_curve_path",
+           "loss_curve_path", "ships",
            "write_manifest", "read_manifest", "update_manifest_metrics"]

@@ -137,17 +137,16 @@ def register(train_sub: argparse._SubParsersAction, eval_sub: argparse._SubParse
 
 
 def _cmd_train_depth(args: argparse.Namespace) -> int:
+    from tidee.agent.learning import ships
     from tidee.agent.perception.depth_net import DEFAULT_WEIGHTS, DOCS_LOSS_PNG, train_depth
 
     command = (f"tidee train depth --data {args.data} --steps {args.steps} --batch-size {args.batch_size} "
                f"--lr {args.lr} --seed {args.seed}" + (f" --out {args.out}" if args.out else ""))
     out = Path(args.out) if args.out else DEFAULT_WEIGHTS
-    # The docs show the curve of the shipped weights only; a run writing elsewhere leaves them alone.
-    shipped = out.resolve() == DEFAULT_WEIGHTS.resolve()
     result = train_depth(args.data, out, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                          seed=args.seed, device=args.device, resume=args.resume, command=command,
                          work_dir=args.work_dir, checkpoint_every=args.checkpoint_every,
-                         docs_png=DOCS_LOSS_PNG if shipped else None)
+                         docs_png=DOCS_LOSS_PNG if ships(out) else None)   # the docs show the shipped curve only
     print(json.dumps(result, indent=1))
     return 0
 

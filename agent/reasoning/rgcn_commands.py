@@ -9,6 +9,7 @@ import sys
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    from tidee.agent.learning import loss_curve_path
     from tidee.agent.reasoning.rgcn import (DEFAULT_WEIGHTS, DEFAULT_WITHOUT_MEMEX, RGCNTrainConfig,
                                             train_rgcn)
 
@@ -16,8 +17,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                           train_rooms_per_type=args.rooms_per_type, use_memex=not args.without_memex,
                           threads=args.threads)
     out = args.out or (DEFAULT_WITHOUT_MEMEX if args.without_memex else DEFAULT_WEIGHTS)
-    png = args.loss_png or ("docs/models/rgcn_without_memex_loss.png" if args.without_memex
-                            else "docs/models/rgcn_loss.png")
+    png = loss_curve_path(out, "rgcn_without_memex_loss.png" if args.without_memex else "rgcn_loss.png",
+                          args.loss_png)
     command = ("tidee train rgcn " + " ".join(sys.argv[3:])).strip()
     result = train_rgcn(cfg, out=out, loss_png=png, command=command, cache_dir=args.cache_dir)
     print(json.dumps({"out": result.get("out"), "samples": result["samples"], "seconds": result["seconds"],

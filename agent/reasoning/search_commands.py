@@ -24,15 +24,14 @@ def _cmd_gen_search(args: argparse.Namespace) -> int:
 
 
 def _cmd_train_search(args: argparse.Namespace) -> int:
-    from tidee.agent.reasoning.search_net import DEFAULT_WEIGHTS, DOCS_LOSS_PNG, SearchTrainConfig, train_search_net
-    from pathlib import Path
+    from tidee.agent.learning import ships
+    from tidee.agent.reasoning.search_net import DOCS_LOSS_PNG, SearchTrainConfig, train_search_net
 
     cfg = SearchTrainConfig(data=args.data, out=args.out, work_dir=args.work_dir, steps=args.steps,
                             batch_size=args.batch_size, lr=args.lr, pos_weight=args.pos_weight, seed=args.seed,
                             threads=args.threads)
-    shipped = Path(args.out).resolve() == DEFAULT_WEIGHTS.resolve()
     result = train_search_net(cfg, command=_command("tidee train search"), resume=not args.no_resume,
-                              docs_png=DOCS_LOSS_PNG if shipped else None)
+                              docs_png=DOCS_LOSS_PNG if ships(args.out) else None)
     result.pop("history", None)
     print(json.dumps(result, indent=1))
     return 0
