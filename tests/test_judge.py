@@ -180,6 +180,10 @@ def test_pairwise_counts_ties_and_exclusions():
     assert ba["pref_a"] == pytest.approx(0.375)
     assert ab["p_value"] == pytest.approx(binomtest(2, 3, 0.5).pvalue)
     assert ab["configurations"] == 2
+    # what decided it: seed 1's Mug_1 (CounterTop over Floor) and seed 2's Apple_1 won, seed 2's Mug_1 lost
+    assert ab["decided"] == [{"type": "Apple", "a": "CounterTop", "b": "Floor", "winner": "A", "n": 1},
+                             {"type": "Mug", "a": "CounterTop", "b": "Floor", "winner": "A", "n": 1},
+                             {"type": "Mug", "a": "Cabinet", "b": "CounterTop", "winner": "B", "n": 1}]
 
 
 def test_pairwise_p_value_matches_scipy():
@@ -253,6 +257,10 @@ def test_write_report(tmp_path):
     assert "| A \\ B | A | B | AI2THORPlacement | MessyPlacement |" in md
     p = binomtest(2, 3).pvalue
     assert f"| A | — | 62.5% (n=4, p={p:.2f}) |" in md
+    assert "## What decided the judge: A against the other agents" in md
+    assert "- **A vs B**: 2 won, 1 lost, 1 tied." in md
+    assert "  - won: Apple CounterTop vs Floor ×1; Mug CounterTop vs Floor ×1" in md
+    assert "  - lost: Mug Cabinet vs CounterTop ×1" in md
     assert "simulated" in md and "placement priors" in md
     assert "Perception was oracle" in md
     assert notes[0] in md

@@ -57,7 +57,8 @@ def test_summary_counts_failures_as_max_steps():
             {"method": "frontier", "success": False, "stopped": True, "steps": 80, "steps_scored": 200}]
     s = se.summarize(recs, ("network", "frontier"))
     assert s["network"] == {"episodes": 2, "successes": 1, "success_pct": 50.0, "mean_steps_all": 120.0,
-                            "mean_steps_successes": 40.0, "stopped_pct": 50.0, "detected_pct": 0.0}
+                            "mean_steps_successes": 40.0, "stopped_pct": 50.0, "detected_pct": 0.0,
+                            "goal_sources": {}}
     assert s["frontier"]["success_pct"] == 0.0 and s["frontier"]["mean_steps_successes"] is None
 
 
@@ -327,3 +328,52 @@ def test_a_stuck_walk_gives_up_after_a_full_turn(monkeypatch):
     monkeypatch.setattr(skills, "FMMPlanner", lambda *a, **k: Stuck())
     actions, arrived = _drain(skills.navigate(_still_body(), goal_xy=(2.0, 0.0), budget=60))
     assert arrived is False and len(actions) == skills.STUCK_TURNS
+
+
+def test_goal_sources_are_shares_of_the_goals_walked_to():
+    recs = [{"method": "network", "success": True, "stopped": True, "steps": 40, "steps_scored": 40,
+             "goals": {"proposed": 3, "fallback": 1}},
+            {"method": "network", "success": False, "stopped": False, "steps": 199, "steps_scored": 200,
+             "goals": {"proposed": 2, "random": 2, "fallback": 2}}]
+    assert se.summarize(recs, ("network",))["network"]["goal_sources"] == {"fallback": 30.0, "proposed": 50.0,
+                                                                           "random": 20.0}
+    with pytest.raises(ValueError, match="network-fallback"):
+        se.SearchEvalConfig(out="x", network_fallback="nearest")
+    args = _parser().parse_args(["eval", "search", "--out", "x", "--network-fallback", "frontier"])
+    assert se.config_from_args(args).network_fallback == "frontier"
+
+
+def test_search_walks_to_the_fallback_once_the_proposer_has_nothing(monkeypatch):
+    """The network's search points first; when none is left unvisited, the fallback proposer's
+    (e.g. the nearest frontier), and only when that has none either a random reachable point."""
+    from tidee.agent.policy import search
+    from tidee.protocol.messages import Action, ActionName
+
+    walked: list[tuple[float, float]] = []
+
+    def fake_navigate(body, goal_xy=None, **kw):
+        walked.append(tuple(goal_xy))
+        yield Action(ActionName.MoveAhead)
+
+    def no_look(body, **kw):
+        return
+        yield
+
+    monkeypatch.setattr(search, "navigate", fake_navigate)
+    monkeypatch.setattr(search, "look_around", no_look)
+    network_points = [[(2.0, 0.0)], [(2.0, 0.0)], [(2.0, 0.0), (0.0, 2.0)]]   # the second call: only a visited point
+
+    def propose(body, label, visited):
+        return network_points.pop(0) if network_points else []
+
+    def frontier(body, label, visited):
+        return [(-2.0 - 1.5 * len(visited), 0.0)]
+
+    counts: dict[str, int] = {}
+    skill = search.search_object(_still_body(), "Mug", propose, np.random.default_rng(0), fallback=frontier,
+                                 counts=counts)
+    for _ in range(5):
+        next(skill)
+    skill.close()
+    assert walked == [(2.0, 0.0), (-3.5, 0.0), (0.0, 2.0), (-6.5, 0.0), (-8.0, 0.0)]
+    assert counts == {"proposed": 2, "fallback": 3}

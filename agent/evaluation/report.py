@@ -256,6 +256,7 @@ def _index(recs: Sequence[Mapping[str, Any]]) -> dict[str, dict[Config, tuple[in
 def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
              b_runs: Mapping[Config, tuple[int, Mapping[str, Any]]]) -> dict[str, Any]:
     wins = ties = losses = configs = 0
+    groups: dict[tuple[str, str | None, str | None, str], int] = {}
     for key, (ia, ra) in a_runs.items():
         if key not in b_runs:
             continue
@@ -282,6 +283,9 @@ def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
                 losses += 1
             else:
                 ties += 1
+            if p != 0.5:
+                k = (oa["type"], oa["final_parent_type"], ob["final_parent_type"], "A" if p == 1.0 else "B")
+                groups[k] = groups.get(k, 0) + 1
     n = wins + ties + losses
     decided = wins + losses
     return {
@@ -289,6 +293,9 @@ def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
         "pref_a": (wins + ties / 2) / n if n else None,
         "p_value": float(binomtest(wins, decided, 0.5, alternative="two-sided").pvalue) if decided else 1.0,
         "configurations": configs,
+        # the decided objects grouped by (type, A's receptacle, B's receptacle): what the preference rests on
+        "decided": [{"type": t, "a": a, "b": b, "winner": w, "n": c}
+                    for (t, a, b, w), c in sorted(groups.items(), key=lambda kv: (-kv[1], kv[0][3], str(kv[0])))],
     }
 
 
@@ -309,7 +316,9 @@ def pairwise_table(records: Iterable[Mapping[str, Any]],
     * ``p_value``: two-sided exact binomial test (``scipy.stats.binomtest``, p = 0.5) of
       ``wins`` out of ``wins + losses``; ties are excluded, since they favour neither
       side (1.0 when nothing was decided);
-    * ``configurations``: how many configurations both variants ran.
+    * ``configurations``: how many configurations both variants ran;
+    * ``decided``: the won and lost objects grouped by (object type, A's final receptacle,
+      B's final receptacle, winner "A" or "B"), most frequent first, each with its count ``n``.
 
     Raises ValueError for a named variant without records, for two records of one
     variant in one configuration, and for records missing required keys.
@@ -409,8 +418,32 @@ def format_markdown(report: Mapping[str, Any]) -> str:
             lines.append(f"| {a} | " + " | ".join(cells) + " |")
     else:
         lines.append("(no variants)")
+    lines += _decided_section(table, [n for n in names if n not in REFERENCE_VARIANTS])
     lines += ["", "## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
     return "\n".join(lines)
+
+
+def _decided_section(table: Mapping[str, Mapping[str, Mapping[str, Any]]], agents: Sequence[str],
+                     top: int = 8) -> list[str]:
+    """For the first agent against each other agent: the placements that won and lost it the
+    judge's preference, the most frequent first (ties, most objects, are left out)."""
+    if len(agents) < 2:
+        return []
+    a = agents[0]
+    lines = ["", f"## What decided the judge: {a} against the other agents", "",
+             "Objects the judge did not score equal, grouped by (object, where A put it, where B put it); "
+             f"at most {top} groups each way.", ""]
+    for b in agents[1:]:
+        cell = table[a][b]
+        groups = cell.get("decided")
+        if groups is None:
+            continue
+        lines.append(f"- **{a} vs {b}**: {cell['wins']} won, {cell['losses']} lost, {cell['ties']} tied.")
+        for winner, word in (("A", "won"), ("B", "lost")):
+            g = [d for d in groups if d["winner"] == winner][:top]
+            if g:
+                lines.append(f"  - {word}: " + "; ".join(f"{d['type']} {d['a']} vs {d['b']} ×{d['n']}" for d in g))
+    return lines
 
 
 def _png(fig: Any) -> bytes:

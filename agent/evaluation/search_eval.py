@@ -31,6 +31,7 @@ from tidee.agent.reasoning.search_commands import int_at_least
 
 METHODS = ("network", "frontier")
 PAPER = {"network": {"success_pct": 72.4, "mean_steps": 88.8}, "frontier": {"success_pct": 64.8, "mean_steps": 100.9}}
+NETWORK_FALLBACKS = ("random", "frontier")
 MIN_VISIBLE_PIXELS = 12     # at 256 x 256 (scaled with the resolution)
 
 
@@ -50,6 +51,7 @@ class SearchEvalConfig:
     rooms: int | None = None                # first N rooms of the split (smoke runs)
     examples: int = 4                       # heatmap examples in the PNG
     explored_discount: float = 0.0          # VisualSearch.points: down-weight heat where the map is explored
+    network_fallback: str = "random"        # network: where to go when no search point is left (random | frontier)
 
     def __post_init__(self) -> None:
         if self.split not in ("test", "val"):
@@ -68,6 +70,8 @@ class SearchEvalConfig:
             raise ValueError(f"--perception must be learned or oracle, got {self.perception!r}")
         if not 0 <= self.explored_discount <= 1:
             raise ValueError(f"--explored-discount must be in [0, 1], got {self.explored_discount}")
+        if self.network_fallback not in NETWORK_FALLBACKS:
+            raise ValueError(f"--network-fallback must be one of {NETWORK_FALLBACKS}, got {self.network_fallback!r}")
         if not 1 <= self.workers <= 2:
             raise ValueError(f"--workers must be 1 or 2, got {self.workers}")
 
@@ -116,15 +120,19 @@ def _one_episode(job: dict[str, Any], cfg: SearchEvalConfig) -> dict[str, Any]:
                        max_steps=cfg.max_steps)
     t0 = time.perf_counter()
     body = driver.reset(spec)
+    fallback = None
     if job["method"] == "network":
         vs = w["search"]
 
         def propose(b: Any, label: str, visited: Any) -> list[tuple[float, float]]:
             return vs.points(b.mapper, label, tuple(b.xy), k=3, visited=visited)
+        if cfg.network_fallback == "frontier":
+            fallback = frontier_proposer(FrontierExplorer(body.mapper.grid))
     else:
         propose = frontier_proposer(FrontierExplorer(body.mapper.grid))
     rng = np.random.default_rng([cfg.seed, job["seed"], CLASS_INDEX[job["label"]]])
-    driver.run(search_object(body, job["label"], propose, rng))
+    goals: dict[str, int] = {}
+    driver.run(search_object(body, job["label"], propose, rng, fallback=fallback, counts=goals))
     obs = body.obs
     # ---- scoring (privileged) ----
     inst = room_instances(transport.state())
@@ -140,7 +148,7 @@ def _one_episode(job: dict[str, Any], cfg: SearchEvalConfig) -> dict[str, Any]:
     detected = bool(body.mapper.memory.of_label(job["label"]))   # the detector ever reported the category
     return {**job, "success": success, "stopped": bool(stopped), "visible": bool(visible), "detected": detected,
             "distance_m": round(dist, 3), "steps": int(obs.step), "steps_scored": int(obs.step) if success
-            else cfg.max_steps, "wall_s": round(time.perf_counter() - t0, 2)}
+            else cfg.max_steps, "goals": goals, "wall_s": round(time.perf_counter() - t0, 2)}
 
 
 def _worker(args: tuple[dict[str, Any], SearchEvalConfig]) -> dict[str, Any]:
@@ -157,8 +165,20 @@ def summarize(records: list[dict[str, Any]], methods: tuple[str, ...]) -> dict[s
                   "mean_steps_all": round(float(np.mean([r["steps_scored"] for r in rs])), 1) if rs else None,
                   "mean_steps_successes": round(float(np.mean([r["steps"] for r in succ])), 1) if succ else None,
                   "stopped_pct": round(100.0 * sum(r["stopped"] for r in rs) / len(rs), 1) if rs else None,
-                  "detected_pct": round(100.0 * sum(r.get("detected", False) for r in rs) / len(rs), 1) if rs else None}
+                  "detected_pct": round(100.0 * sum(r.get("detected", False) for r in rs) / len(rs), 1) if rs else None,
+                  "goal_sources": _goal_sources(rs)}
     return out
+
+
+def _goal_sources(records: list[dict[str, Any]]) -> dict[str, float]:
+    """Share (%) of the search goals walked to that came from the method's proposer, its fallback,
+    or a random reachable point (records without ``goals`` are skipped)."""
+    total: dict[str, int] = {}
+    for r in records:
+        for k, n in (r.get("goals") or {}).items():
+            total[k] = total.get(k, 0) + int(n)
+    n = sum(total.values())
+    return {k: round(100.0 * v / n, 1) for k, v in sorted(total.items())} if n else {}
 
 
 def markdown(result: dict[str, Any]) -> str:
@@ -185,6 +205,11 @@ def markdown(result: dict[str, Any]) -> str:
                   f"network only {n[(True, False)]}, frontier only {n[(False, True)]}, neither {n[(False, False)]}. "
                   "Detector reported the category at some point: " +
                   ", ".join(f"{m} {v['detected_pct']} %" for m, v in s.items()) + "."]
+    sources = {m: v.get("goal_sources") for m, v in s.items() if v.get("goal_sources")}
+    if sources:
+        lines += ["", "Where the search goals came from (% of goals walked to): " + "; ".join(
+            f"{m}: " + ", ".join(f"{k} {pct}" for k, pct in src.items()) for m, src in sources.items()) +
+            f". The network's fallback: {result['config'].get('network_fallback', 'random')}."]
     c = result["config"]
     lines += ["", f"Success: the agent says Stop within {c['radius']} m of an instance's footprint with an instance "
               f"of the category in the final frame (ground-truth segmentation, >= {MIN_VISIBLE_PIXELS} px at 256^2), "
@@ -308,6 +333,9 @@ def add_eval_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rooms", type=_count_from_0, default=0, help="first N rooms of the split (0: all)")
     p.add_argument("--explored-discount", type=float, default=0.0,
                    help="network: scale heat by (1 - d * explored) before choosing search points (0: paper)")
+    p.add_argument("--network-fallback", default="random", choices=NETWORK_FALLBACKS,
+                   help="network: where to go once no search point is left: a random reachable point, or the "
+                        "nearest frontier")
     p.set_defaults(func=_cmd_eval_search)
 
 
@@ -315,7 +343,8 @@ def config_from_args(args: argparse.Namespace) -> SearchEvalConfig:
     return SearchEvalConfig(out=args.out, split=args.split, methods=tuple(args.methods),
                             categories_per_room=args.categories_per_room or None, max_steps=args.max_steps,
                             radius=args.radius, perception=args.perception, workers=args.workers, seed=args.seed,
-                            weights=args.weights, rooms=args.rooms or None, explored_discount=args.explored_discount)
+                            weights=args.weights, rooms=args.rooms or None, explored_discount=args.explored_discount,
+                            network_fallback=args.network_fallback)
 
 
 def _cmd_eval_search(args: argparse.Namespace) -> int:
@@ -324,7 +353,8 @@ def _cmd_eval_search(args: argparse.Namespace) -> int:
                f"--categories-per-room {args.categories_per_room} --max-steps {cfg.max_steps} --radius {cfg.radius} "
                f"--perception {cfg.perception} --workers {cfg.workers} --seed {cfg.seed} --out {cfg.out}"
                + (f" --weights {cfg.weights}" if cfg.weights else "") + (f" --rooms {cfg.rooms}" if cfg.rooms else "")
-               + (f" --explored-discount {cfg.explored_discount}" if cfg.explored_discount else ""))
+               + (f" --explored-discount {cfg.explored_discount}" if cfg.explored_discount else "")
+               + (f" --network-fallback {cfg.network_fallback}" if cfg.network_fallback != "random" else ""))
     result = run_search_eval(cfg, command=command)
     print(markdown(result))
     return 0

@@ -162,16 +162,24 @@ def approach_and_verify(body: Body, obj: TrackedObject, radius: float = 1.0, bud
     return False
 
 
+def _unvisited(goals: Sequence[tuple[float, float]], visited: Sequence[tuple[float, float]],
+               radius: float) -> list[tuple[float, float]]:
+    return [g for g in goals if all(math.dist(g, v) > radius for v in visited)]
+
+
 def search_object(body: Body, label: str, propose: Proposer, rng: np.random.Generator,
-                  goal_budget: int = 40, approach_radius: float = 1.0, visit_radius: float = 1.0) -> Skill:
+                  goal_budget: int = 40, approach_radius: float = 1.0, visit_radius: float = 1.0,
+                  fallback: Proposer | None = None, counts: dict[str, int] | None = None) -> Skill:
     """Find an instance of ``label`` and stop near it with it in view (yields ``Done``); True on Stop.
 
     The loop (paper: search points visited in rank order, re-predicted as the map grows):
     look around; while steps remain: if the memory holds an instance not set aside, approach
     it and stop when it is verified in view (else set it aside: after a first failed approach
     until the next search point has been visited, for good after a second); otherwise walk to
-    the best proposed point not yet visited (a random reachable point when none),
-    interrupting the walk the moment the target is detected, and look around there.
+    the best proposed point not yet visited (when ``propose`` has none: ``fallback``'s point,
+    e.g. a frontier, and a random reachable point when that has none either), interrupting
+    the walk the moment the target is detected, and look around there. ``counts``, when
+    given, tallies where the goals came from: ``proposed``, ``fallback``, ``random``.
     """
     rejected: set[int] = set()        # failed twice, or deferred until the next search point
     tries: dict[int, int] = {}
@@ -190,13 +198,17 @@ def search_object(body: Body, label: str, propose: Proposer, rng: np.random.Gene
             tries[target.id] = tries.get(target.id, 0) + 1
             rejected.add(target.id)
             continue
-        goals = [g for g in propose(body, label, visited)
-                 if all(math.dist(g, v) > visit_radius for v in visited)]
+        source = "proposed"
+        goals = _unvisited(propose(body, label, visited), visited, visit_radius)
+        if not goals and fallback is not None:
+            source, goals = "fallback", _unvisited(fallback(body, label, visited), visited, visit_radius)
         if not goals:
             g = sample_reachable_goal(reachable_mask(body), body.mapper.grid, rng, tuple(body.xy))
             if g is None:
                 break
-            goals = [g]
+            source, goals = "random", [g]
+        if counts is not None:
+            counts[source] = counts.get(source, 0) + 1
         goal = goals[0]
         visited.append((float(goal[0]), float(goal[1])))
         yield from _interruptible(body, navigate(body, goal_xy=goal, budget=goal_budget), seen)
