@@ -274,3 +274,61 @@ def test_write_report_mixed_perception_and_empty(tmp_path):
     assert any("not oracle" in n and "B: learned" in n for n in rep["notes"])
     with pytest.raises(ValueError, match="no episode records"):
         write_report([], tmp_path / "empty", "Empty", [])
+
+
+# ------------------------------------------------------------------------ merging
+
+
+def test_merged_reports_equal_one_run_of_both_variants(tmp_path):
+    """A's episodes from one run, B's from another (gzipped as under docs/): the merged report
+    has the metrics and pairwise cells of a report of all the records at once."""
+    import gzip
+
+    from tidee.agent.evaluation.report import merge_reports
+
+    recs = _pair_records()
+    write_report(with_references([r for r in recs if r["variant"] == "A"]), tmp_path / "a", "A run",
+                 ["command: tidee eval tidy --variants A"])
+    write_report(with_references([r for r in recs if r["variant"] == "B"]), tmp_path / "b", "B run", [])
+    b_json = tmp_path / "b" / "report.json"
+    (tmp_path / "b" / "report.json.gz").write_bytes(gzip.compress(b_json.read_bytes()))
+    b_json.unlink()
+    whole = write_report(with_references(recs), tmp_path / "whole", "whole")
+    merged = merge_reports([tmp_path / "a", tmp_path / "b"], tmp_path / "m", command="tidee eval tidy-merge ...")
+    assert merged["metrics"] == whole["metrics"] and merged["pairwise"] == whole["pairwise"]
+    assert merged["pairwise"]["A"]["B"]["pref_a"] == pytest.approx(0.625)
+    assert any(n.startswith(f"{tmp_path / 'a'} (A): command: tidee eval tidy --variants A") for n in merged["notes"])
+    assert "command: tidee eval tidy-merge ..." in merged["notes"]
+    # only the named variants; a variant from two sources is refused, naming both
+    only_a = merge_reports([tmp_path / "whole"], tmp_path / "m2", variants=["A"])
+    assert set(only_a["metrics"]) == {"A", AI2THOR_PLACEMENT, MESSY_PLACEMENT}
+    with pytest.raises(ValueError, match=r"'A' is in both .*a and .*whole"):
+        merge_reports([tmp_path / "a", tmp_path / "whole"], tmp_path / "m3")
+    picked = merge_reports([tmp_path / "a", (tmp_path / "whole", ["B"])], tmp_path / "m3")   # A from a, B from whole
+    assert picked["pairwise"] == whole["pairwise"]
+    with pytest.raises(ValueError, match=r"no records of \['C'\] in .*whole"):
+        merge_reports([(tmp_path / "whole", ["C"])], tmp_path / "m3")
+    with pytest.raises(ValueError, match=r"no records of \['C'\]"):
+        merge_reports([tmp_path / "a"], tmp_path / "m4", variants=["A", "C"])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="no report.json"):
+        merge_reports([tmp_path / "empty"], tmp_path / "m6")
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not a readable tidy report"):
+        merge_reports([tmp_path / "bad.json"], tmp_path / "m7")
+
+
+def test_tidy_merge_command_takes_named_variants_from_each_source(tmp_path, capsys):
+    from tidee.cli import main
+
+    recs = _pair_records()
+    write_report(with_references(recs), tmp_path / "run1", "run 1")
+    write_report(with_references(recs), tmp_path / "run2", "run 2")
+    assert main(["eval", "tidy-merge", "--from", f"{tmp_path / 'run1'}=A,{tmp_path / 'run2'}=B",
+                 "--out", str(tmp_path / "m")]) == 0
+    data = json.loads((tmp_path / "m" / "report.json").read_text())
+    assert data["pairwise"]["A"]["B"]["pref_a"] == pytest.approx(0.625)
+    assert f"command: tidee eval tidy-merge --from {tmp_path / 'run1'}=A," in (tmp_path / "m" / "report.md").read_text()
+    assert main(["eval", "tidy-merge", "--from", f"{tmp_path / 'run1'},{tmp_path / 'run2'}",
+                 "--out", str(tmp_path / "m2")]) == 2
+    assert "'A' is in both" in capsys.readouterr().err

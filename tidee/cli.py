@@ -157,6 +157,25 @@ def _cmd_eval_tidy(args: argparse.Namespace) -> int:
     return 0 if report else 1
 
 
+def _cmd_eval_tidy_merge(args: argparse.Namespace) -> int:
+    from tidee.agent.evaluation.report import merge_reports
+
+    sources: list = []
+    for item in (s for s in args.sources.split(",") if s):
+        path, _, take = item.partition("=")
+        sources.append((path, [v for v in take.split("+") if v]) if take else path)
+    variants = [v for v in args.variants.split(",") if v] if args.variants else None
+    command = (f"tidee eval tidy-merge --from {args.sources}"
+               + (f" --variants {','.join(variants)}" if variants else "") + f" --out {args.out}")
+    try:
+        merge_reports(sources, args.out, variants=variants, command=command)
+    except ValueError as e:
+        print(f"tidee eval tidy-merge: {e}", file=sys.stderr)
+        return 2
+    print((Path(args.out) / "report.md").read_text())
+    return 0
+
+
 def _cmd_bench_agent(args: argparse.Namespace) -> int:
     from tidee.agent.bench import run_agent_bench
 
@@ -282,6 +301,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-logs", action="store_true", help="write every episode's log under OUT/logs")
     p.add_argument("--out", required=True)
     p.set_defaults(func=_cmd_eval_tidy)
+
+    p = ev.add_parser("tidy-merge", help="one Table 1 report from the episodes of several tidy runs "
+                                         "(compare a new agent with earlier records without rerunning them)")
+    p.add_argument("--from", dest="sources", required=True,
+                   help="comma list of report directories (report.json or report.json.gz) or report files, each "
+                        "optionally =VARIANT+VARIANT to take only those variants from it")
+    p.add_argument("--variants", default=None, help="comma list of agent variants to take (default: all)")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_cmd_eval_tidy_merge)
 
     p = bench.add_parser("agent", help="agent mapping/planning/step time and episode wall time")
     p.add_argument("--episodes", type=int, default=3)

@@ -44,7 +44,7 @@ from .judge import (DEFAULT_PLAUSIBILITY, REFERENCE_VARIANTS, judge_score, plaus
 
 __all__ = [
     "RECORD_KEYS", "OBJECT_KEYS", "config_key", "validate_records", "with_references",
-    "variant_metrics", "pairwise_table", "write_report", "format_markdown",
+    "variant_metrics", "pairwise_table", "write_report", "format_markdown", "load_report", "merge_reports",
 ]
 
 RECORD_KEYS: tuple[str, ...] = ("variant", "room_type", "seed", "mess_index", "steps", "wall_s",
@@ -604,3 +604,85 @@ def write_report(records: Iterable[Mapping[str, Any]], out_dir: str | os.PathLik
     write_atomic(out / "pairwise.png", _plot_pairwise(table, title))
     write_atomic(out / "report.json", (text + "\n").encode())
     return report
+
+
+# ------------------------------------------------------------------------ merging
+
+def load_report(source: str | os.PathLike[str]) -> dict[str, Any]:
+    """A report written by :func:`write_report`: ``source`` is its directory (``report.json``
+    or, as committed under docs/, ``report.json.gz``) or the file itself. Raises ValueError
+    when there is none, it is not JSON, or it has no ``episodes`` list."""
+    import gzip
+
+    path = Path(source)
+    if path.is_dir():
+        found = [path / n for n in ("report.json", "report.json.gz") if (path / n).is_file()]
+        if not found:
+            raise ValueError(f"{path}: no report.json or report.json.gz (the output of tidee eval tidy)")
+        path = found[0]
+    elif not path.is_file():
+        raise ValueError(f"{path}: no such report directory or file")
+    try:
+        raw = gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()
+        report = json.loads(raw)
+    except (OSError, EOFError, ValueError) as e:
+        raise ValueError(f"{path}: not a readable tidy report ({e})") from None
+    if not isinstance(report, dict) or not isinstance(report.get("episodes"), list):
+        raise ValueError(f"{path}: not a tidy report (no 'episodes' list)")
+    return report
+
+
+def merge_reports(sources: Sequence[str | os.PathLike[str] | tuple[str | os.PathLike[str], Sequence[str]]],
+                  out_dir: str | os.PathLike[str], variants: Sequence[str] | None = None,
+                  command: str = "") -> dict[str, Any]:
+    """One report from the episodes of several ``tidee eval tidy`` runs, e.g. a new agent's run
+    against the records of an earlier run of CommonMemory, without running the latter again.
+
+    A source is a report directory or file, or a pair (source, the variants to take from it).
+    Takes every agent variant's records from each source (only ``variants`` when given), drops
+    the reference rows (rebuilt from the merged records) and the judge's annotations (scored
+    again), and writes the report to ``out_dir`` with :func:`write_report`. Pairwise cells compare
+    the configurations both variants ran. A variant may come from one source only: the error
+    names both sources. Each source's notes that say how it was run are kept, prefixed with
+    its path, so the merged report says which command produced which rows.
+    """
+    if not sources:
+        raise ValueError("merge: give at least one report directory")
+    wanted = None if variants is None else list(dict.fromkeys(variants))
+    records: list[dict[str, Any]] = []
+    origin: dict[str, str] = {}
+    notes: list[str] = []
+    for item in sources:
+        src, own = item if isinstance(item, tuple) else (item, None)
+        report = load_report(src)
+        taken: set[str] = set()
+        if own is not None:
+            absent = [v for v in own if v not in {r.get("variant") for r in report["episodes"] if isinstance(r, dict)}]
+            if absent:
+                raise ValueError(f"merge: no records of {absent} in {src}")
+        for rec in report["episodes"]:
+            v = rec.get("variant") if isinstance(rec, dict) else None
+            if v in REFERENCE_VARIANTS or (wanted is not None and v not in wanted) or (own is not None and v not in own):
+                continue
+            if v in origin and origin[v] != str(src):
+                raise ValueError(f"merge: variant {v!r} is in both {origin[v]} and {src}; "
+                                 f"say which to take from each (--from DIR=VARIANT+VARIANT,...)")
+            origin.setdefault(str(v), str(src))
+            taken.add(str(v))
+            rec = dict(rec)
+            rec["objects"] = [{k: x for k, x in o.items() if k not in ("judge_score", "plausible")}
+                              if isinstance(o, dict) else o for o in rec.get("objects", [])]
+            records.append(rec)
+        kept = [n for n in report.get("notes", []) if isinstance(n, str)
+                and n.startswith(("command:", "split=", "perception:"))]
+        notes += [f"{src} ({', '.join(sorted(taken)) or 'nothing taken'}): {n}" for n in kept]
+    missing = [v for v in (wanted or []) if v not in origin and v not in REFERENCE_VARIANTS]
+    if missing:
+        raise ValueError(f"merge: no records of {missing} in {[str(s) for s in sources]}")
+    if not records:
+        raise ValueError(f"merge: no agent records in {[str(s) for s in sources]}")
+    if command:
+        notes.append(f"command: {command}")
+    splits = sorted({str(r.get("split")) for r in records})
+    return write_report(with_references(records), out_dir,
+                        title=f"Tidy evaluation ({', '.join(splits)} rooms, merged)", notes=notes)
