@@ -62,8 +62,8 @@ def run_agent_bench(out: str, episodes: int = 3, resolution: int = 256, variant:
         "episode_wall_s_median": round(float(np.median(walls)), 1),
         "episode_steps_median": float(np.median(steps)),
         "targets": {"mapping_plus_planning_ms": 20.0, "episode_wall_s": 60.0, "perception_ms": 30.0},
-        "command": f"tidee bench agent --episodes {episodes} --resolution {resolution} --perception {perception} "
-                   f"--out {out}",
+        "command": f"tidee bench agent --episodes {episodes} --resolution {resolution} --variant {variant} "
+                   f"--perception {perception} --max-steps {max_steps} --out {out}",
     }
     write_report(out, result, f"Agent benchmark ({perception} perception, in-process simulator, one core)")
     return result
