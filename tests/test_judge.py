@@ -313,6 +313,9 @@ def test_merged_reports_equal_one_run_of_both_variants(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="no report.json"):
         merge_reports([tmp_path / "empty"], tmp_path / "m6")
+    (tmp_path / "odd.json").write_text(json.dumps({"episodes": [["not", "a", "record"]]}))
+    with pytest.raises(ValueError, match="episode 0 is not a record"):
+        merge_reports([tmp_path / "odd.json"], tmp_path / "m7")
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(ValueError, match="not a readable tidy report"):
         merge_reports([tmp_path / "bad.json"], tmp_path / "m7")

@@ -660,8 +660,10 @@ def merge_reports(sources: Sequence[str | os.PathLike[str] | tuple[str | os.Path
             absent = [v for v in own if v not in {r.get("variant") for r in report["episodes"] if isinstance(r, dict)}]
             if absent:
                 raise ValueError(f"merge: no records of {absent} in {src}")
-        for rec in report["episodes"]:
-            v = rec.get("variant") if isinstance(rec, dict) else None
+        for i, rec in enumerate(report["episodes"]):
+            if not isinstance(rec, dict):
+                raise ValueError(f"merge: {src}: episode {i} is not a record (got {type(rec).__name__})")
+            v = rec.get("variant")
             if v in REFERENCE_VARIANTS or (wanted is not None and v not in wanted) or (own is not None and v not in own):
                 continue
             if v in origin and origin[v] != str(src):
@@ -670,8 +672,9 @@ def merge_reports(sources: Sequence[str | os.PathLike[str] | tuple[str | os.Path
             origin.setdefault(str(v), str(src))
             taken.add(str(v))
             rec = dict(rec)
-            rec["objects"] = [{k: x for k, x in o.items() if k not in ("judge_score", "plausible")}
-                              if isinstance(o, dict) else o for o in rec.get("objects", [])]
+            if isinstance(rec.get("objects"), list):    # validate_records reports anything else
+                rec["objects"] = [{k: x for k, x in o.items() if k not in ("judge_score", "plausible")}
+                                  if isinstance(o, dict) else o for o in rec["objects"]]
             records.append(rec)
         kept = [n for n in report.get("notes", []) if isinstance(n, str)
                 and n.startswith(("command:", "split=", "perception:"))]
