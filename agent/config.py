@@ -42,6 +42,9 @@ def check_variant_built(variant: str) -> None:
                          f"reference rows (evaluation only): {REFERENCE_VARIANTS}")
 
 
+MISSING_TOP = ("skip", "search")
+
+
 @dataclass
 class PolicyConfig:
     """Thresholds of Algorithm 1 (paper supplement 'Pseudo code')."""
@@ -56,6 +59,9 @@ class PolicyConfig:
     m_place_tries: int = 3                  # m: placement attempts per receptacle class before moving on
     max_receptacle_classes: int = 3         # ranked receptacle classes tried before searching / dropping
     search_goals: int = 4                   # goals visited when searching for a receptacle not in memory
+    missing_top: str = "skip"               # the top-ranked receptacle class is not in memory: "skip" to
+                                            # the ranked classes in memory first (search for it only after
+                                            # them), or "search" for it first (Algorithm S1)
     interact_m: float = 1.35                # aim to interact within this eye-to-target distance (server: 1.5)
     approach_m: float = 0.9                 # navigation stop radius around an object's (x, y)
     reserve_steps: int = 15                 # stop handling new objects when fewer steps than this remain
@@ -67,6 +73,8 @@ class PolicyConfig:
             raise ValueError(f"oop_threshold must be in (0, 1], got {self.oop_threshold}")
         if not 0.0 < self.sure_oop <= 1.0:
             raise ValueError(f"sure_oop must be in (0, 1], got {self.sure_oop}")
+        if self.missing_top not in MISSING_TOP:
+            raise ValueError(f"missing_top must be one of {MISSING_TOP}, got {self.missing_top!r}")
         for name in ("mapping_step_budget", "goal_step_budget", "k_empty_goals", "m_place_tries",
                      "max_receptacle_classes", "search_goals"):
             if getattr(self, name) < 1:

@@ -191,3 +191,68 @@ def test_a_target_that_reads_in_place_up_close_is_not_picked_and_twice_is_given_
     cup.out_of_place = True                   # flagged again by a later rescoring
     assert not policy._still_out_of_place(cup)
     assert cup.meta["give_up"] and cup not in policy._candidates()
+
+
+# ----------------------------------------------------------------------------- the missing top receptacle
+class _Ranking:
+    def __init__(self, ranked):
+        self.ranked = ranked
+
+    def predict(self, obj, memory, room_type):
+        return list(self.ranked)
+
+
+def _drive(gen):
+    """Run a policy generator that yields no action; its return value."""
+    try:
+        next(gen)
+    except StopIteration as stop:
+        return stop.value
+    raise AssertionError("the stubbed put_away yielded an action")
+
+
+def _placing_policy(missing_top, ranked, puts_succeed):
+    policy, events = _policy(variant="CommonMemory")
+    policy.p = PolicyConfig(missing_top=missing_top)
+    policy.placement = _Ranking(ranked)
+    mem = policy.body.mapper.memory
+    mem.add_or_merge("CounterTop", 0.9, np.array([2.0, 0.0, 0.45]), np.array([1.5, -0.3, 0.0]),
+                     np.array([2.5, 0.3, 0.9]), 1)
+    tried: list[str] = []
+
+    def put_on(rec):
+        tried.append(f"put:{rec.label}")
+        return puts_succeed
+        yield  # noqa: unreachable: makes this a generator like the real put_on
+
+    def search_and_put(held, label):
+        tried.append(f"search:{label}")
+        return False
+        yield  # noqa
+
+    policy.put_on, policy.search_and_put = put_on, search_and_put
+    obj = SimpleNamespace(label="Apple")
+    return policy, tried, obj
+
+
+def test_the_top_receptacle_not_in_memory_is_searched_for_first_only_with_missing_top_search():
+    ranked = [("Fridge", 0.6), ("CounterTop", 0.3), ("Sink", 0.1)]
+    # skip (the default): the ranked class in memory first, the missing ones searched for afterwards
+    policy, tried, obj = _placing_policy("skip", ranked, puts_succeed=False)
+    assert _drive(policy.put_away(obj)) is False
+    assert tried == ["put:CounterTop", "search:Fridge", "search:Sink"]
+    policy, tried, obj = _placing_policy("skip", ranked, puts_succeed=True)
+    assert _drive(policy.put_away(obj)) is True and tried == ["put:CounterTop"]
+    # search (Algorithm S1): the model's best class is searched for before anything else, and
+    # not searched for a second time when that search fails
+    policy, tried, obj = _placing_policy("search", ranked, puts_succeed=False)
+    assert _drive(policy.put_away(obj)) is False
+    assert tried == ["search:Fridge", "put:CounterTop", "search:Sink"]
+    # a top class already in memory is put on directly; Floor is never searched for
+    policy, tried, obj = _placing_policy("search", [("CounterTop", 0.7), ("Fridge", 0.3)], puts_succeed=True)
+    assert _drive(policy.put_away(obj)) is True and tried == ["put:CounterTop"]
+    policy, tried, obj = _placing_policy("search", [("Floor", 0.7), ("Fridge", 0.3)], puts_succeed=True)
+    policy.drop = lambda: iter(())     # the drop on the floor fails (no simulator here)
+    assert _drive(policy.put_away(obj)) is False and tried == ["search:Fridge"]
+    with pytest.raises(ValueError, match="missing_top"):
+        PolicyConfig(missing_top="later")

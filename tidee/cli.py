@@ -79,6 +79,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 # --- the agent -----------------------------------------------------------------------------
 
+MISSING_TOP_HELP = ("the top-ranked receptacle class is not in memory: skip to the ranked classes in memory "
+                    "(search for it only after them) | search for it first (the paper's Algorithm S1)")
+
 # (flag, kwargs) of every option `tidee agent` takes; `tidee run` takes them too and passes them on.
 AGENT_OPTIONS: list[tuple[str, dict]] = [
     ("--variant", {"default": "TIDEE",
@@ -90,6 +93,8 @@ AGENT_OPTIONS: list[tuple[str, dict]] = [
     ("--oop", {"default": "auto", "help": "auto (visual with learned perception, language with oracle) | "
                                           "relation_stats | visual | language | fused"}),
     ("--explorer", {"default": "random", "choices": ("random", "frontier")}),
+    ("--missing-top", {"default": "skip", "choices": ("skip", "search"),
+                       "help": MISSING_TOP_HELP}),
     ("--detection-threshold", {"type": float, "default": None,
                                "help": "learned detector's score threshold (default: 0.3, "
                                        "perception.AGENT_THRESHOLD)"}),
@@ -110,10 +115,11 @@ AGENT_OPTIONS: list[tuple[str, dict]] = [
 
 
 def _agent_config(args: argparse.Namespace):
-    from tidee.agent.config import AgentConfig
+    from tidee.agent.config import AgentConfig, PolicyConfig
 
     return AgentConfig(variant=args.variant, perception=args.perception, oop=args.oop, explorer=args.explorer,
-                       seed=args.agent_seed, depth=args.depth, detection_threshold=args.detection_threshold)
+                       seed=args.agent_seed, depth=args.depth, detection_threshold=args.detection_threshold,
+                       policy=PolicyConfig(missing_top=args.missing_top))
 
 
 def _cmd_agent(args: argparse.Namespace) -> int:
@@ -152,7 +158,7 @@ def _cmd_eval_tidy(args: argparse.Namespace) -> int:
                            perception=args.perception, oop=args.oop, explorer=args.explorer,
                            resolution=args.resolution, max_steps=args.max_steps, workers=args.workers,
                            renderer=args.renderer, keep_logs=args.keep_logs, depth=args.depth,
-                           detection_threshold=args.detection_threshold)
+                           detection_threshold=args.detection_threshold, missing_top=args.missing_top)
     print((Path(args.out) / "report.md").read_text())
     return 0 if report else 1
 
@@ -292,6 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--depth", default="sensor", choices=("sensor", "estimated"))
     p.add_argument("--oop", default="auto", help="auto | relation_stats | visual | language | fused")
     p.add_argument("--explorer", default="random", choices=("random", "frontier"))
+    p.add_argument("--missing-top", default="skip", choices=("skip", "search"), help=MISSING_TOP_HELP)
     p.add_argument("--detection-threshold", type=float, default=None,
                    help="learned detector's score threshold (default: perception.AGENT_THRESHOLD)")
     p.add_argument("--resolution", type=int, default=256)

@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 
 from tidee.agent.perception import TRAINED_RENDERER
-from tidee.agent.config import AGENT_VARIANTS, BUILT_VARIANTS, REFERENCE_VARIANTS, AgentConfig, check_variant_built
+from tidee.agent.config import (AGENT_VARIANTS, BUILT_VARIANTS, REFERENCE_VARIANTS, AgentConfig, PolicyConfig,
+                               check_variant_built)
 
 
 def select_configs(split: str, episodes: int | None) -> list[Any]:
@@ -48,7 +49,8 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
         transport = _TRANSPORT = InProcessTransport(renderer=job["renderer"])
     cfg = AgentConfig(variant=job["variant"], perception=job["perception"], oop=job["oop"], depth=job["depth"],
                       explorer=job["explorer"], seed=job["agent_seed"],
-                      detection_threshold=job.get("detection_threshold"))
+                      detection_threshold=job.get("detection_threshold"),
+                      policy=PolicyConfig(missing_top=job.get("missing_top", "skip")))
     spec = EpisodeSpec(room_type=job["room_type"], seed=job["seed"], mess_index=job["mess_index"],
                        resolution=job["resolution"], max_steps=job["max_steps"])
     runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.get("log_dir"))
@@ -71,13 +73,15 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
                   variants: list[str] | None = None, perception: str = "learned", oop: str = "auto",
                   explorer: str = "random", resolution: int = 256, max_steps: int = 1000, workers: int = 1,
                   renderer: str = TRAINED_RENDERER, keep_logs: bool = False, progress: bool = True,
-                  depth: str = "sensor", detection_threshold: float | None = None) -> dict[str, Any]:
+                  depth: str = "sensor", detection_threshold: float | None = None,
+                  missing_top: str = "skip") -> dict[str, Any]:
     from tqdm import tqdm
 
     from tidee.agent.evaluation.report import with_references, write_report
 
-    # "auto" resolved as the agent does; a bad threshold is refused here, before any episode
-    oop = AgentConfig(perception=perception, oop=oop, detection_threshold=detection_threshold).oop
+    # "auto" resolved as the agent does; a bad threshold or missing_top is refused here, before any episode
+    oop = AgentConfig(perception=perception, oop=oop, detection_threshold=detection_threshold,
+                      policy=PolicyConfig(missing_top=missing_top)).oop
     variants = variants or list(BUILT_VARIANTS)
     agents = [v for v in variants if v not in REFERENCE_VARIANTS]
     for v in agents:
@@ -91,7 +95,7 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
     out.mkdir(parents=True, exist_ok=True)
     configs = select_configs(split, episodes)
     jobs = [{"variant": v, "perception": perception, "oop": oop, "depth": depth, "explorer": explorer, "agent_seed": c.index,
-             "detection_threshold": detection_threshold,
+             "detection_threshold": detection_threshold, "missing_top": missing_top,
              "room_type": c.room_type, "seed": c.seed, "mess_index": c.mess_index, "split": split,
              "resolution": resolution, "max_steps": max_steps, "renderer": renderer,
              "log_dir": str(out / "logs") if keep_logs else None}
@@ -117,14 +121,15 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
     timing = {k: float(np.median([r["timing_ms"][k] for r in records if r.get("timing_ms", {}).get(k) is not None]))
               for k in ("perception_ms", "mapping_ms", "planning_ms", "step_ms", "sim_ms")}
     notes = [f"split={split}, {len(configs)} messy configurations x {len(agents)} agents, "
-             f"resolution {resolution}, max {max_steps} steps, OOP detector '{oop}', explorer '{explorer}'",
+             f"resolution {resolution}, max {max_steps} steps, OOP detector '{oop}', explorer '{explorer}', "
+             f"missing top receptacle: {missing_top}",
              f"perception: {perception}" + (" (ORACLE: detections from the simulator's segmentation)"
                                            if perception == "oracle" else " (the shipped RGB-D detector)")
              + f", depth: {depth}"
              + (f", detection threshold {detection_threshold}" if detection_threshold is not None else ""),
              f"median per-step agent time (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in timing.items()),
              f"command: tidee eval tidy --split {split} --episodes {len(configs)} --variants {','.join(variants)} "
-             f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} "
+             f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} --missing-top {missing_top} "
              + (f"--detection-threshold {detection_threshold} " if detection_threshold is not None else "") +
              f"--max-steps {max_steps} --resolution {resolution} --workers {workers} --out {out}",
              f"total wall time {time.time() - t0:.0f} s with {workers} worker(s)"]

@@ -9,6 +9,8 @@ pseudo code::
         receptacle classes <- placement model (CommonMemory, rGCN, ...)
         if one is in the object memory: navigate there, PutObject (open it first if closed)
         else: search for it (exploration / visual search network), PutObject
+              (missing_top="search": the top-ranked class is searched for before the others,
+               as in the paper's Algorithm S1; "skip": only after the classes in memory)
         after m failed tries per class: drop the object where the agent stands
     Done
 
@@ -302,12 +304,21 @@ class TidyPolicy:
         ranked = self.placement.predict(obj, self.body.mapper.memory, self.room_type)
         st.predictions = ranked[:5]
         self.event("predicted", label=obj.label, top=[[r, round(p, 3)] for r, p in ranked[:5]])
+        searched: set[str] = set()
+        top = ranked[0][0] if ranked else FLOOR
+        if self.p.missing_top == "search" and top != FLOOR and not self._instances(top):
+            # Algorithm S1: the model's best receptacle is not in memory: search for it first
+            searched.add(top)
+            if (yield from self.search_and_put(obj.label, top)):
+                return True
         st.phase = "placing"
         tried = 0
         missing: list[str] = []
         for label, _ in ranked:
             if tried >= self.p.max_receptacle_classes or self.body.steps_left() <= 2:
                 break
+            if label in searched:
+                continue
             if label == FLOOR:
                 st.target_receptacle = FLOOR
                 tried += 1
@@ -324,21 +335,28 @@ class TidyPolicy:
                 if (yield from self.put_on(rec)):
                     return self._placed(obj.label, label)
         # Receptacles the model wants but the memory lacks: search for them.
-        st.phase = "searching_receptacle"
         for label in missing[: self.p.max_receptacle_classes]:
-            st.target_receptacle = label
-            for _ in range(self.p.search_goals):
-                if self._instances(label) or self.body.steps_left() <= self.p.reserve_steps:
-                    break
-                goal = self.search_goal(label)
-                if goal is None:
-                    break
-                yield from navigate(self.body, goal_xy=goal, budget=self.p.goal_step_budget)
-                yield from look_around(self.body, pitches=(30.0,))
-            for rec in self._instances(label)[:1]:
-                st.phase = "placing"
-                if (yield from self.put_on(rec)):
-                    return self._placed(obj.label, label)
+            if (yield from self.search_and_put(obj.label, label)):
+                return True
+        return False
+
+    def search_and_put(self, held: str, label: str) -> Gen:
+        """Walk to search goals for receptacle class ``label`` (the visual search network's
+        points, else unexplored space) until one is mapped; put the held object on it."""
+        st = self.state
+        st.phase, st.target_receptacle = "searching_receptacle", label
+        for _ in range(self.p.search_goals):
+            if self._instances(label) or self.body.steps_left() <= self.p.reserve_steps:
+                break
+            goal = self.search_goal(label)
+            if goal is None:
+                break
+            yield from navigate(self.body, goal_xy=goal, budget=self.p.goal_step_budget)
+            yield from look_around(self.body, pitches=(30.0,))
+        for rec in self._instances(label)[:1]:
+            st.phase = "placing"
+            if (yield from self.put_on(rec)):
+                return self._placed(held, label)
         return False
 
     def search_goal(self, label: str) -> tuple[float, float] | None:
