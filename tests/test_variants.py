@@ -256,3 +256,59 @@ def test_the_top_receptacle_not_in_memory_is_searched_for_first_only_with_missin
     assert _drive(policy.put_away(obj)) is False and tried == ["search:Fridge"]
     with pytest.raises(ValueError, match="missing_top"):
         PolicyConfig(missing_top="later")
+
+
+# ----------------------------------------------------------------------------- putting on a receptacle
+def _shelf(mem, x, n_obs=1, top=1.7):
+    o = mem.add_or_merge("Shelf", 0.9, np.array([x, 2.0, top / 2]), np.array([x - 0.4, 1.8, 0.0]),
+                         np.array([x + 0.4, 2.2, top]), 1)
+    o.n_obs = n_obs
+    return o
+
+
+def test_receptacle_tracks_seen_twice_come_first_and_stray_ones_are_dropped():
+    policy, _ = _policy(variant="CommonMemory")
+    mem = policy.body.mapper.memory
+    stray = _shelf(mem, 0.5, top=0.1)                # detected once, nearest
+    real = _shelf(mem, 4.0, n_obs=5)
+    far = _shelf(mem, 8.0, n_obs=1)
+    assert [o.id for o in policy._instances("Shelf")] == [real.id, stray.id, far.id]
+    stray.meta["unseen"] = True                      # visited in vain: no shelf there
+    far.meta["full"] = True
+    assert [o.id for o in policy._instances("Shelf")] == [real.id]
+
+
+def test_a_receptacle_whose_track_is_off_is_still_found_by_its_class_in_view():
+    from tidee.agent.perception.base import Detection
+
+    policy, _ = _policy(variant="CommonMemory")
+    _with_camera(policy)
+    policy.body.obs.intrinsics = np.array([[64.0, 0, 64], [0, 64.0, 64], [0, 0, 1]])
+    policy.body.obs.depth = np.ones((128, 128), np.float32)
+    track = _shelf(policy.body.mapper.memory, 0.0)
+    track.centroid = np.array([0.0, -3.0, 0.8])      # projects far outside the frame: no detection matches it
+    small = Detection("Shelf", 0.9, (0, 0, 10, 10))
+    large = Detection("Shelf", 0.8, (20, 20, 90, 100))
+    policy.body.detections = [Detection("Bed", 0.9, (0, 0, 128, 128)), small, large]
+    assert policy._detection_of(track) is large
+    policy.body.detections = [Detection("Bed", 0.9, (0, 0, 128, 128))]
+    assert policy._detection_of(track) is None
+
+
+def test_a_receptacle_never_seen_from_beside_its_track_is_marked_and_reported(monkeypatch):
+    from tidee.agent.policy import tidy
+
+    def nothing(*a, **kw):
+        return
+        yield
+
+    monkeypatch.setattr(tidy, "navigate", nothing)
+    monkeypatch.setattr(tidy, "face_point", nothing)
+    policy, events = _policy(variant="CommonMemory")
+    policy.body.obs.depth = np.ones((8, 8), np.float32)
+    policy._detection_of = lambda rec: None
+    shelf = _shelf(policy.body.mapper.memory, 1.0)
+    assert _drive(policy.put_on(shelf)) is False
+    assert shelf.meta["unseen"] is True and shelf.id not in [o.id for o in policy._instances("Shelf")]
+    failed = [e for e in events if e["kind"] == "put_failed"]
+    assert len(failed) == 1 and failed[0]["error"] == "not_in_view" and f"track {shelf.id}" in failed[0]["message"]

@@ -421,9 +421,13 @@ class TidyPolicy:
         return [o for _, o in sorted(near, key=lambda t: t[0])]
 
     def _instances(self, label: str) -> list[TrackedObject]:
+        """Tracks of a receptacle class to put things on: not full, not visited in vain
+        (``unseen``: the detector saw no such receptacle from beside the track, a stray
+        detection), those detected at least twice first, then the nearest."""
         xy = self.body.xy
-        return sorted((o for o in self.body.mapper.memory.of_label(label) if not o.meta.get("full")),
-                      key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
+        return sorted((o for o in self.body.mapper.memory.of_label(label)
+                       if not o.meta.get("full") and not o.meta.get("unseen")),
+                      key=lambda o: (o.n_obs < 2, float(np.linalg.norm(o.centroid[:2] - xy))))
 
     def _placed(self, label: str, receptacle: str) -> bool:
         self.state.objects_fixed += 1
@@ -435,7 +439,8 @@ class TidyPolicy:
     def put_on(self, rec: TrackedObject) -> Gen:
         """Go to a receptacle and put the held object on/in it (opening it first if needed)."""
         shape = self.body.obs.depth.shape
-        no_room: list[np.ndarray] = []     # points where a put found no free space: aim elsewhere
+        no_room: list[np.ndarray] = []     # points where a put found no free space or no receptacle: aim elsewhere
+        seen = False
         for attempt in range(self.p.m_place_tries):
             if self.body.steps_left() <= 2:
                 return False
@@ -451,6 +456,7 @@ class TidyPolicy:
             det = self._detection_of(rec)
             if det is None:
                 continue
+            seen = True
             sighting = sighting_of(self.body, det, prefer_top=True, reach=self.p.interact_m, avoid=no_room)
             if sighting is None or sighting.distance > self.p.interact_m + 0.1:
                 continue           # not within reach from here: walk again, closer
@@ -469,6 +475,8 @@ class TidyPolicy:
                         return True
                 elif self.body.obs.error == "blocked":
                     yield Action(ActionName.MoveBack)
+            elif obs.error == "not_receptacle":   # the region's top was something else (a window above
+                no_room.append(sighting.point)      # a shelf, a wall): aim elsewhere next time
             elif obs.error == "no_free_space":
                 no_room.append(sighting.point)
                 rec.meta["full_tries"] = rec.meta.get("full_tries", 0) + 1
@@ -476,11 +484,20 @@ class TidyPolicy:
                     rec.meta["full"] = True
                     return False
             self.event("put_failed", receptacle=rec.label, error=obs.error, message=obs.message)
+        if not seen:
+            rec.meta["unseen"] = True
+            self.event("put_failed", receptacle=rec.label, error="not_in_view",
+                       message=f"no {rec.label} detected from beside track {rec.id} in {self.p.m_place_tries} tries")
         return False
 
     def _detection_of(self, rec: TrackedObject):
+        """The detection of ``rec`` in the current frame; else the largest detection of its
+        class (any instance will take the object; a track's box can be off where the detector
+        still sees the receptacle)."""
         s = find_in_view(self.body, rec, max_pixel_gap=0.3)
-        return s.detection if s is not None else None
+        if s is not None:
+            return s.detection
+        return receptacle_in_view(self.body, frozenset({rec.label}))
 
     def put_on_first_found(self, label: str) -> Gen:
         """RandomReceptacle: walk to random places; put on the first receptacle in view."""
