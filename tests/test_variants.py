@@ -258,6 +258,16 @@ def test_the_top_receptacle_not_in_memory_is_searched_for_first_only_with_missin
         PolicyConfig(missing_top="later")
 
 
+def test_the_missing_top_flag_reaches_the_agent_config():
+    from tidee import cli
+    from tidee.agent.config import MISSING_TOP
+
+    assert cli.MISSING_TOP_CHOICES == MISSING_TOP
+    args = cli.build_parser().parse_args(["agent", "--missing-top", "search"])
+    assert cli._agent_config(args).policy.missing_top == "search"
+    assert cli._agent_config(cli.build_parser().parse_args(["agent"])).policy.missing_top == "skip"
+
+
 # ----------------------------------------------------------------------------- putting on a receptacle
 def _shelf(mem, x, n_obs=1, top=1.7):
     o = mem.add_or_merge("Shelf", 0.9, np.array([x, 2.0, top / 2]), np.array([x - 0.4, 1.8, 0.0]),

@@ -79,6 +79,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 # --- the agent -----------------------------------------------------------------------------
 
+MISSING_TOP_CHOICES = ("skip", "search")   # agent.config.MISSING_TOP (not imported: it pulls in the mapper)
 MISSING_TOP_HELP = ("the top-ranked receptacle class is not in memory: skip to the ranked classes in memory "
                     "(search for it only after them) | search for it first (the paper's Algorithm S1)")
 
@@ -93,7 +94,7 @@ AGENT_OPTIONS: list[tuple[str, dict]] = [
     ("--oop", {"default": "auto", "help": "auto (visual with learned perception, language with oracle) | "
                                           "relation_stats | visual | language | fused"}),
     ("--explorer", {"default": "random", "choices": ("random", "frontier")}),
-    ("--missing-top", {"default": "skip", "choices": ("skip", "search"),
+    ("--missing-top", {"default": "skip", "choices": MISSING_TOP_CHOICES,
                        "help": MISSING_TOP_HELP}),
     ("--detection-threshold", {"type": float, "default": None,
                                "help": "learned detector's score threshold (default: 0.3, "
@@ -298,7 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--depth", default="sensor", choices=("sensor", "estimated"))
     p.add_argument("--oop", default="auto", help="auto | relation_stats | visual | language | fused")
     p.add_argument("--explorer", default="random", choices=("random", "frontier"))
-    p.add_argument("--missing-top", default="skip", choices=("skip", "search"), help=MISSING_TOP_HELP)
+    p.add_argument("--missing-top", default="skip", choices=MISSING_TOP_CHOICES, help=MISSING_TOP_HELP)
     p.add_argument("--detection-threshold", type=float, default=None,
                    help="learned detector's score threshold (default: perception.AGENT_THRESHOLD)")
     p.add_argument("--resolution", type=int, default=256)

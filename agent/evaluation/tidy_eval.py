@@ -50,7 +50,7 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
     cfg = AgentConfig(variant=job["variant"], perception=job["perception"], oop=job["oop"], depth=job["depth"],
                       explorer=job["explorer"], seed=job["agent_seed"],
                       detection_threshold=job.get("detection_threshold"),
-                      policy=PolicyConfig(missing_top=job.get("missing_top", "skip")))
+                      policy=PolicyConfig(missing_top=job["missing_top"]))
     spec = EpisodeSpec(room_type=job["room_type"], seed=job["seed"], mess_index=job["mess_index"],
                        resolution=job["resolution"], max_steps=job["max_steps"])
     runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.get("log_dir"))

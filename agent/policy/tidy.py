@@ -304,11 +304,11 @@ class TidyPolicy:
         ranked = self.placement.predict(obj, self.body.mapper.memory, self.room_type)
         st.predictions = ranked[:5]
         self.event("predicted", label=obj.label, top=[[r, round(p, 3)] for r, p in ranked[:5]])
-        searched: set[str] = set()
+        searched = None         # the class already searched for (Algorithm S1), not tried again
         top = ranked[0][0] if ranked else FLOOR
         if self.p.missing_top == "search" and top != FLOOR and not self._instances(top):
             # Algorithm S1: the model's best receptacle is not in memory: search for it first
-            searched.add(top)
+            searched = top
             if (yield from self.search_and_put(obj.label, top)):
                 return True
         st.phase = "placing"
@@ -317,7 +317,7 @@ class TidyPolicy:
         for label, _ in ranked:
             if tried >= self.p.max_receptacle_classes or self.body.steps_left() <= 2:
                 break
-            if label in searched:
+            if label == searched:
                 continue
             if label == FLOOR:
                 st.target_receptacle = FLOOR
