@@ -322,3 +322,43 @@ def test_a_receptacle_never_seen_from_beside_its_track_is_marked_and_reported(mo
     assert shelf.meta["unseen"] is True and shelf.id not in [o.id for o in policy._instances("Shelf")]
     failed = [e for e in events if e["kind"] == "put_failed"]
     assert len(failed) == 1 and failed[0]["error"] == "not_in_view" and f"track {shelf.id}" in failed[0]["message"]
+
+
+def _shelf_view(monkeypatch):
+    """A shelf's detection box seen from (0, 0, 0.9): a window above the shelf (rows 0-9, z 2.0),
+    the top board (rows 20-29, z 1.6) and a lower board (rows 50-59, z 0.9), all at x 1.0."""
+    from tidee.agent.policy import skills
+
+    h = w = 64
+    rows = list(range(0, 10)) + list(range(20, 30)) + list(range(50, 60))
+    cols = range(20, 44)
+    index = np.array([r * w + c for r in rows for c in cols])
+    z = {**{r: 2.0 for r in range(0, 10)}, **{r: 1.6 for r in range(20, 30)}, **{r: 0.9 for r in range(50, 60)}}
+    pts = np.array([[1.0, (c - 32) * 0.025, z[r]] for r in rows for c in cols])
+    monkeypatch.setattr(skills, "unproject", lambda depth, K, pose, mask=None: (pts, index))
+    pose = np.eye(4)
+    pose[2, 3] = 0.9
+    body = SimpleNamespace(obs=SimpleNamespace(depth=np.ones((h, w), np.float32), intrinsics=np.eye(3),
+                                               camera_pose=pose))
+    mask = np.zeros((h, w), bool)
+    mask.flat[index] = True
+    return body, skills.Detection("Shelf", 0.9, (20, 0, 44, 60), mask=mask)
+
+
+def test_a_put_aims_at_the_receptacle_not_the_window_above_it_then_below_a_tried_top(monkeypatch):
+    from tidee.agent.policy.skills import sighting_of
+
+    body, det = _shelf_view(monkeypatch)
+    box = (np.array([0.8, -0.4, 0.0]), np.array([1.2, 0.4, 1.7]))
+    # the detection's box alone: its top band is the window, out of the shelf's mapped box
+    assert sighting_of(body, det, prefer_top=True, reach=2.0).point[2] == pytest.approx(2.0)
+    top = sighting_of(body, det, prefer_top=True, reach=2.0, within=box)
+    assert top.point[2] == pytest.approx(1.6) and 20 <= top.v < 30
+    # the whole top board was tried (no free space there): the next aim is the board below
+    lower = sighting_of(body, det, prefer_top=True, reach=2.0, within=box, avoid=[top.point])
+    assert lower.point[2] == pytest.approx(0.9) and 50 <= lower.v < 60
+    # out of reach boards are never chosen: with 1.1 m of reach only the lower board is left
+    assert sighting_of(body, det, prefer_top=True, reach=1.1, within=box).point[2] == pytest.approx(0.9)
+    # a mapped box that misses every point (a track that is off) is ignored rather than emptying the aim
+    off = (np.array([5.0, 5.0, 0.0]), np.array([6.0, 6.0, 1.0]))
+    assert sighting_of(body, det, prefer_top=True, reach=2.0, within=off).point[2] == pytest.approx(2.0)

@@ -356,13 +356,19 @@ def _other_pickupable_at(body: Body, label: str, u: int, v: int) -> bool:
 
 
 def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: float = 1.4,
-                avoid: list[np.ndarray] | None = None, avoid_m: float = 0.4) -> Sighting | None:
+                avoid: list[np.ndarray] | None = None, avoid_m: float = 0.4,
+                within: tuple[np.ndarray, np.ndarray] | None = None, within_m: float = 0.15) -> Sighting | None:
     """The pixel of a detection to act on: its region's most central pixel with valid depth.
 
     ``prefer_top``: for putting things on a receptacle, prefer pixels whose 3D point lies near
     the top of the region's points (the surface something can rest on), within ``reach`` metres.
-    ``avoid``: 3D points already tried (a put that found no free space there); pixels within
-    ``avoid_m`` of them are skipped while others remain.
+    ``within``: the receptacle's mapped box (min, max corners); with ``prefer_top``, only points
+    inside it grown by ``within_m`` count (a detection's box also covers the wall or window
+    behind and above a shelf), unless none is.
+    ``avoid``: 3D points already tried (a put that found no free space or no receptacle there);
+    pixels within ``avoid_m`` of them are skipped while others remain, first in the top band,
+    then (when the whole top band was tried: a full top board) among the other reachable points,
+    again preferring the highest.
     """
     obs = body.obs
     assert obs is not None
@@ -374,19 +380,32 @@ def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: flo
     dist = np.linalg.norm(pts - obs.camera_pose[:3, 3], axis=1)
     weight = np.hypot(xs - xs.mean(), ys - ys.mean())
     if prefer_top:
-        top = np.percentile(pts[:, 2], 90)
         near = dist <= reach
-        keep = (pts[:, 2] >= top - 0.08) & near
+        if within is not None:
+            lo, hi = np.asarray(within[0]) - within_m, np.asarray(within[1]) + within_m
+            inside = np.all((pts >= lo) & (pts <= hi), axis=1)
+            if (inside & near).any():
+                near &= inside
+        keep = _top_band(pts, near)
         if not keep.any():
             keep = near if near.any() else np.ones(len(xs), bool)
         if avoid:
             far = np.min([np.linalg.norm(pts - a, axis=1) for a in avoid], axis=0) > avoid_m
             if (keep & far).any():
                 keep &= far
+            elif (near & far).any():
+                keep = _top_band(pts, near & far)
         cx, cy = xs[keep].mean(), ys[keep].mean()
         weight = np.where(keep, np.hypot(xs - cx, ys - cy), np.inf)
     k = int(np.argmin(weight))
     return Sighting(det, int(xs[k]), int(ys[k]), float(dist[k]), pts[k])
+
+
+def _top_band(pts: np.ndarray, among: np.ndarray, band_m: float = 0.08) -> np.ndarray:
+    """bool per point: among ``among``, those within ``band_m`` of the 90th height percentile."""
+    if not among.any():
+        return among
+    return among & (pts[:, 2] >= np.percentile(pts[among, 2], 90) - band_m)
 
 
 def receptacle_in_view(body: Body, labels: frozenset[str]) -> Detection | None:

@@ -457,7 +457,8 @@ class TidyPolicy:
             if det is None:
                 continue
             seen = True
-            sighting = sighting_of(self.body, det, prefer_top=True, reach=self.p.interact_m, avoid=no_room)
+            sighting = sighting_of(self.body, det, prefer_top=True, reach=self.p.interact_m, avoid=no_room,
+                                   within=(rec.box_min, rec.box_max))
             if sighting is None or sighting.distance > self.p.interact_m + 0.1:
                 continue           # not within reach from here: walk again, closer
             yield sighting.action(ActionName.PutObject, shape)
