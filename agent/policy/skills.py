@@ -387,8 +387,8 @@ def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: flo
             if (inside & near).any():
                 near &= inside
         keep = _top_band(pts, near)
-        if not keep.any():
-            keep = near if near.any() else np.ones(len(xs), bool)
+        if not keep.any():         # empty only when nothing is within reach
+            keep = np.ones(len(xs), bool)
         if avoid:
             far = np.min([np.linalg.norm(pts - a, axis=1) for a in avoid], axis=0) > avoid_m
             if (keep & far).any():

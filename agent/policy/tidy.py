@@ -476,14 +476,13 @@ class TidyPolicy:
                         return True
                 elif self.body.obs.error == "blocked":
                     yield Action(ActionName.MoveBack)
-            elif obs.error == "not_receptacle":   # the region's top was something else (a window above
-                no_room.append(sighting.point)      # a shelf, a wall): aim elsewhere next time
-            elif obs.error == "no_free_space":
-                no_room.append(sighting.point)
-                rec.meta["full_tries"] = rec.meta.get("full_tries", 0) + 1
-                if rec.meta["full_tries"] >= 3:
-                    rec.meta["full"] = True
-                    return False
+            elif obs.error in ("no_free_space", "not_receptacle"):   # aim elsewhere next time (not_receptacle:
+                no_room.append(sighting.point)                         # a wall or window above a shelf)
+                if obs.error == "no_free_space":
+                    rec.meta["full_tries"] = rec.meta.get("full_tries", 0) + 1
+                    if rec.meta["full_tries"] >= 3:
+                        rec.meta["full"] = True
+                        return False
             self.event("put_failed", receptacle=rec.label, error=obs.error, message=obs.message)
         if not seen:
             rec.meta["unseen"] = True
