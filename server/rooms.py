@@ -6,6 +6,7 @@
    that reaches every receptacle.
 2. Build the furniture in PyBullet and put 15-40 small objects on receptacle surfaces,
    drawn from the placement priors (rays check each spot has a surface and headroom).
+   :func:`populate` has two versions (:func:`rooms_version`; 1 is the default).
 3. Let physics settle them, drop any that did not end where the priors put them, and
    record each object's parent.
 Everything random comes from one numpy Generator seeded by (room type, seed).
@@ -14,6 +15,7 @@ Everything random comes from one numpy Generator seeded by (room type, seed).
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +32,7 @@ AGENT_RADIUS = 0.2
 NAV_CELL = 0.05
 REACH = 1.0           # a receptacle must have walkable floor within this distance
 ROOM_TYPE_INDEX = {"Kitchen": 0, "LivingRoom": 1, "Bedroom": 2, "Bathroom": 3}
+ROOMS_VERSIONS = (1, 2)
 SEATS = ("Chair", "Stool")
 TABLES_FOR_SEATS = ("DiningTable", "Desk", "CounterTop")
 
@@ -455,14 +458,14 @@ def _place_one(layout: _Layout, cat: Category, entry: dict) -> SceneObject | Non
 
 # ---------------------------------------------------------------------- small objects
 def _spot_on(world: World, host: SceneObject, size: list[float], rng: np.random.Generator,
-             taken: list[tuple[float, float, float]], inside_ok: bool) -> tuple[float, float, float] | None:
+             taken: list[tuple[float, float, float]], inside_ok: bool, tries: int = 12) -> tuple[float, float, float] | None:
     """A free (x, y, z) on one of the host's surfaces with headroom for the object."""
     surfaces = world.surfaces_world(host.id, include_inside=inside_ok)
     if not surfaces:
         return None
     areas = np.array([4 * h[0] * h[1] for _, h, _, _, _ in surfaces])
     radius = 0.5 * math.hypot(size[0], size[1])
-    for _ in range(12):
+    for _ in range(tries):
         k = int(rng.choice(len(surfaces), p=areas / areas.sum()))
         cxy, half, z, yaw, _inside = surfaces[k]
         mx, my = half[0] - radius * 0.8, half[1] - radius * 0.8
@@ -500,8 +503,31 @@ def _floor_spot(free: np.ndarray, size: list[float], rng: np.random.Generator,
     return None
 
 
-def populate(world: World, scene: Scene, rng: np.random.Generator) -> list[SceneObject]:
-    """Choose and place the small objects of a room on its receptacles (not yet settled)."""
+def rooms_version(version: int | None = None) -> int:
+    """The room generator's version: ``version``, else $TIDEE_ROOMS, else 1.
+
+    1 is the generator every shipped model and report so far used. 2 keeps the rooms' small objects
+    closer to the placement prior (:func:`populate`); its rooms differ from 1's in every small object."""
+    if version is None:
+        raw = os.environ.get("TIDEE_ROOMS", "1").strip()
+        try:
+            version = int(raw.lstrip("v"))
+        except ValueError:
+            raise ValueError(f"TIDEE_ROOMS must be one of {ROOMS_VERSIONS}, got {raw!r}") from None
+    if version not in ROOMS_VERSIONS:
+        raise ValueError(f"the room generator version must be one of {ROOMS_VERSIONS}, got {version!r}")
+    return int(version)
+
+
+def populate(world: World, scene: Scene, rng: np.random.Generator, version: int = 1) -> list[SceneObject]:
+    """Choose and place the small objects of a room on its receptacles (not yet settled).
+
+    Version 1 draws (category, receptacle type) pairs from the priors until the room's target count
+    is placed; a draw whose receptacle has no free spot is replaced by a new draw, so roomy
+    receptacles end up with more than their share and small ones with less. Version 2 draws the
+    target count once, tries every instance of the drawn receptacle type with more spots, and drops
+    what still does not fit without replacing it: the placed objects follow the prior, thinned only
+    by each receptacle's failure rate."""
     template = ROOM_TEMPLATES[scene.room_type]
     ids = _Ids()
     for o in scene.objects:
@@ -515,11 +541,12 @@ def populate(world: World, scene: Scene, rng: np.random.Generator) -> list[Scene
     freq = np.array([template["small"][n] for n in names], float)
     lo, hi = template.get("n_small", [15, 40])
     target = int(rng.integers(lo, hi + 1))
+    draws = target * 6 if version == 1 else target
     taken: dict[str, list[tuple[float, float, float]]] = {}
     free = nav_grid([world.aabb(o.id) for o in scene.objects if o.type != "Floor"], scene.width, scene.depth)
     placed: list[SceneObject] = []
     attempts = 0
-    while len(placed) < target and attempts < target * 6:
+    while len(placed) < target and attempts < draws:
         attempts += 1
         cat = CATEGORIES[names[int(rng.choice(len(names), p=freq / freq.sum()))]]
         variant = _sample_variant(cat, rng, template.get("variant_weights", {}).get(cat.name))
@@ -530,13 +557,20 @@ def populate(world: World, scene: Scene, rng: np.random.Generator) -> list[Scene
         rtype = rtypes[int(rng.choice(len(rtypes), p=np.array([weights[r] for r in rtypes])))]
         size = _sample_size(cat, variant, rng)
         palette = _sample_palette(cat, variant, rng)
+        spot = None
         if rtype == "Floor":
             host_id = FLOOR_ID
             spot = _floor_spot(free, size, rng, taken.setdefault(host_id, []))
         else:
-            host = receptacles[rtype][int(rng.integers(len(receptacles[rtype])))]
-            host_id = host.id
-            spot = _spot_on(world, host, size, rng, taken.setdefault(host_id, []), inside_ok=True)
+            hosts = receptacles[rtype]
+            # version 1: one instance at random, 12 spots; version 2: every instance, 30 spots each
+            order = [int(rng.integers(len(hosts)))] if version == 1 else [int(k) for k in rng.permutation(len(hosts))]
+            for k in order:
+                host_id = hosts[k].id
+                spot = _spot_on(world, hosts[k], size, rng, taken.setdefault(host_id, []), inside_ok=True,
+                                tries=12 if version == 1 else 30)
+                if spot is not None:
+                    break
         if spot is None:
             continue
         x, y, z = spot
@@ -548,8 +582,11 @@ def populate(world: World, scene: Scene, rng: np.random.Generator) -> list[Scene
     return placed
 
 
-def generate_scene(room_type: str, seed: int, world: World | None = None) -> Scene:
-    """The tidy room for (room_type, seed), settled by physics. Deterministic."""
+def generate_scene(room_type: str, seed: int, world: World | None = None, version: int | None = None) -> Scene:
+    """The tidy room for (room_type, seed), settled by physics. Deterministic.
+
+    ``version``: the generator's version (:func:`rooms_version`; None: $TIDEE_ROOMS, else 1)."""
+    version = rooms_version(version)
     if room_type not in ROOM_TEMPLATES:
         raise ValueError(f"room_type must be one of {sorted(ROOM_TEMPLATES)}, got {room_type!r}")
     layout = layout_furniture(room_type, seed)
@@ -560,7 +597,7 @@ def generate_scene(room_type: str, seed: int, world: World | None = None) -> Sce
     try:
         world.build(scene)
         rng = room_rng(room_type, seed, stream=1000)
-        small = populate(world, scene, rng)
+        small = populate(world, scene, rng, version)
         intended = {o.id: o.parent for o in small}
         scene.objects.extend(small)
         world.build(scene)

@@ -374,6 +374,9 @@ def build_parser() -> argparse.ArgumentParser:
     from tidee.agent.evaluation.search_eval import register as register_search_eval
 
     register_search_eval(ev)
+    from tidee.agent.evaluation.ceiling import register as register_ceiling
+
+    register_ceiling(ev)
 
     from tidee.viewer.cli import register as register_viewer  # argparse only: no viser import here
 

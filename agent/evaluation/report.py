@@ -30,7 +30,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -254,7 +254,8 @@ def _index(recs: Sequence[Mapping[str, Any]]) -> dict[str, dict[Config, tuple[in
 
 
 def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
-             b_runs: Mapping[Config, tuple[int, Mapping[str, Any]]]) -> dict[str, Any]:
+             b_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
+             judge: Callable[..., float] | None = None) -> dict[str, Any]:
     wins = ties = losses = configs = 0
     groups: dict[tuple[str, str | None, str | None, str], int] = {}
     for key, (ia, ra) in a_runs.items():
@@ -274,8 +275,14 @@ def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
                                  f"configuration")
             if not (oa["moved"] and oa["picked"] and ob["picked"]):
                 continue
-            sa, _ = _score(ia, ra, oa, oa["final_parent_type"])
-            sb, _ = _score(ib, rb, ob, ob["final_parent_type"])
+            if judge is None:
+                sa, _ = _score(ia, ra, oa, oa["final_parent_type"])
+                sb, _ = _score(ib, rb, ob, ob["final_parent_type"])
+            else:
+                sa = judge(oa["type"], oa["variant"], ra["room_type"], oa["final_parent_type"],
+                           ra["present_receptacles"])
+                sb = judge(ob["type"], ob["variant"], rb["room_type"], ob["final_parent_type"],
+                           rb["present_receptacles"])
             p = prefer(sa, sb)
             if p == 1.0:
                 wins += 1
@@ -299,8 +306,8 @@ def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
     }
 
 
-def pairwise_table(records: Iterable[Mapping[str, Any]],
-                   variants: Sequence[str] | None = None) -> dict[str, dict[str, dict[str, Any]]]:
+def pairwise_table(records: Iterable[Mapping[str, Any]], variants: Sequence[str] | None = None,
+                   judge: Callable[..., float] | None = None) -> dict[str, dict[str, dict[str, Any]]]:
     """The simulated judge's pairwise preferences, as in the paper's Table 1.
 
     Returns ``{A: {B: cell}}`` for every ordered pair of distinct variants A, B: the
@@ -320,6 +327,9 @@ def pairwise_table(records: Iterable[Mapping[str, Any]],
     * ``decided``: the won and lost objects grouped by (object type, A's final receptacle,
       B's final receptacle, winner "A" or "B"), most frequent first, each with its count ``n``.
 
+    ``judge``: another scorer ``(category, variant, room type, receptacle type, present) ->
+    score`` to use instead of :func:`judge_score` (``tidee eval ceiling``'s observed judge).
+
     Raises ValueError for a named variant without records, for two records of one
     variant in one configuration, and for records missing required keys.
     """
@@ -334,7 +344,7 @@ def pairwise_table(records: Iterable[Mapping[str, Any]],
             raise ValueError(f"pairwise_table: no records for variant(s) {missing}; "
                              f"the records have {sorted(by)}")
     names += [v for v in REFERENCE_VARIANTS if v in by and v not in names]
-    return {a: {b: _compare(by[a], by[b]) for b in names if b != a} for a in names}
+    return {a: {b: _compare(by[a], by[b], judge) for b in names if b != a} for a in names}
 
 
 # ------------------------------------------------------------------------ report
