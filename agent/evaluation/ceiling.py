@@ -133,6 +133,12 @@ def _present(record: Mapping[str, Any]) -> set[str]:
     return set(record["present_receptacles"]) | {"Floor"}
 
 
+def _present_counts(counts: Mapping[Any, Counter], key: Any, present: Sequence[str]) -> dict[str, int]:
+    """The survey's counts for ``key`` on the receptacle types present (and the floor)."""
+    have = set(present) | {"Floor"}
+    return {r: n for r, n in counts.get(key, Counter()).items() if r in have}
+
+
 def rooms_choosers(counts: Mapping[Key, Counter]) -> tuple[Chooser, Chooser]:
     """(TIDEE, CommonMemory) of a perfect learner of the surveyed rooms."""
     pooled: dict[str, Counter] = defaultdict(Counter)
@@ -140,10 +146,8 @@ def rooms_choosers(counts: Mapping[Key, Counter]) -> tuple[Chooser, Chooser]:
         pooled[cat].update(c)
 
     def tidee(rt: str, cat: str, variant: Any, present: Sequence[str]) -> str | None:
-        have = set(present) | {"Floor"}
-        c = {r: n for r, n in counts.get((rt, cat, variant), Counter()).items() if r in have}
-        if not c:   # never seen in this room type: fall back on the category's pooled counts
-            c = {r: n for r, n in pooled.get(cat, Counter()).items() if r in have}
+        # never seen in this room type: fall back on the category's pooled counts
+        c = _present_counts(counts, (rt, cat, variant), present) or _present_counts(pooled, cat, present)
         return max(sorted(c), key=lambda r: c[r]) if c else None
 
     def common(rt: str, cat: str, variant: Any, present: Sequence[str]) -> str | None:
@@ -214,54 +218,31 @@ def observed_judge(counts: Mapping[Key, Counter]) -> Callable[..., float]:
     def score(category: str, variant: Any, room_type: str, parent: str | None, present: Sequence[str]) -> float:
         if parent is None:
             return 0.0
-        have = set(present) | {"Floor"}
-        c = {r: n for r, n in counts.get((room_type, category, variant), Counter()).items() if r in have}
+        c = _present_counts(counts, (room_type, category, variant), present)
         if not c:
-            return 1.0 if parent in have else 0.0
+            return 1.0 if parent in set(present) | {"Floor"} else 0.0
         return c.get(parent, 0) / max(c.values())
     return score
 
 
 def _cell(records: Sequence[Mapping[str, Any]], judge: Callable[..., float] | None = None) -> dict[str, Any]:
+    """TIDEE against CommonMemory (:func:`tidee.agent.evaluation.report.pairwise_table`), with each
+    side's mean judge score over the objects compared."""
     from tidee.agent.evaluation.report import pairwise_table
 
     cell = pairwise_table(records, [A, B], judge=judge)[A][B]
-    return {k: cell[k] for k in ("n", "wins", "ties", "losses", "pref_a", "p_value")}
-
-
-def _mean_scores(records: Sequence[Mapping[str, Any]], judge: Callable[..., float]) -> dict[str, float | None]:
-    """Mean judge score per variant over the objects the preference compares (picked by both)."""
-    by = {(r["variant"], r["room_type"], r["seed"], r["mess_index"]): r for r in records}
-    sums: dict[str, list[float]] = {A: [], B: []}
-    for (v, rt, seed, mess), ra in by.items():
-        rb = by.get((B, rt, seed, mess)) if v == A else None
-        if rb is None:
-            continue
-        objs_b = {o["id"]: o for o in rb["objects"]}
-        for oa in ra["objects"]:
-            ob = objs_b.get(oa["id"])
-            if ob is None or not (oa["moved"] and oa["picked"] and ob["picked"]):
-                continue
-            for name, rec, o in ((A, ra, oa), (B, rb, ob)):
-                sums[name].append(judge(o["type"], o["variant"], rec["room_type"], o["final_parent_type"],
-                                        rec["present_receptacles"]))
-    return {k: (sum(v) / len(v) if v else None) for k, v in sums.items()}
+    return {**{k: cell[k] for k in ("n", "wins", "ties", "losses", "pref_a", "p_value")},
+            "mean_judge": {A: cell["mean_a"], B: cell["mean_b"]}}
 
 
 def ceilings(report: Mapping[str, Any], counts: Mapping[Key, Counter]) -> dict[str, Any]:
     """The report's preference of TIDEE over CommonMemory, the two counterfactual ceilings and the
     observed judge's preference (see the module docstring)."""
-    from tidee.agent.evaluation.judge import judge_score
-
     records = [e for e in report["episodes"] if e["variant"] in (A, B)]
-    out: dict[str, Any] = {}
-    rows = [("report", records)]
+    out: dict[str, Any] = {"report": _cell(records)}
     for name, (ta, cb) in (("rooms_learner", rooms_choosers(counts)), ("prior_learner", prior_choosers())):
-        rows.append((name, counterfactual(records, A, ta) + counterfactual(records, B, cb)))
-    for name, recs in rows:
-        out[name] = {**_cell(recs), "mean_judge": _mean_scores(recs, judge_score)}
-    obs = observed_judge(counts)
-    out["observed_judge"] = {**_cell(records, judge=obs), "mean_judge": _mean_scores(records, obs)}
+        out[name] = _cell(counterfactual(records, A, ta) + counterfactual(records, B, cb))
+    out["observed_judge"] = _cell(records, judge=observed_judge(counts))
     return out
 
 
@@ -275,7 +256,7 @@ def run_ceiling(reports: Sequence[str], out: str | Path, rooms_per_type: int = 2
     s = survey(rooms_per_type, version, first_seed=first_seed, progress=progress)
     result = {"command": command, "judge": "catalog placement priors (receptacle_weights)",
               "survey": {k: v for k, v in s.items() if k != "counts"},
-              "reports": [{"path": p, "split": r.get("split") or r.get("config", {}).get("split"),
+              "reports": [{"path": p, "split": ",".join(r.get("config", {}).get("splits", [])) or None,
                            **ceilings(r, s["counts"])} for p, r in loaded]}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

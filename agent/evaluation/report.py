@@ -257,6 +257,7 @@ def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
              b_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
              judge: Callable[..., float] | None = None) -> dict[str, Any]:
     wins = ties = losses = configs = 0
+    sum_a = sum_b = 0.0
     groups: dict[tuple[str, str | None, str | None, str], int] = {}
     for key, (ia, ra) in a_runs.items():
         if key not in b_runs:
@@ -283,6 +284,8 @@ def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
                            ra["present_receptacles"])
                 sb = judge(ob["type"], ob["variant"], rb["room_type"], ob["final_parent_type"],
                            rb["present_receptacles"])
+            sum_a += sa
+            sum_b += sb
             p = prefer(sa, sb)
             if p == 1.0:
                 wins += 1
@@ -298,6 +301,7 @@ def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
     return {
         "n": n, "wins": wins, "ties": ties, "losses": losses,
         "pref_a": (wins + ties / 2) / n if n else None,
+        "mean_a": sum_a / n if n else None, "mean_b": sum_b / n if n else None,
         "p_value": float(binomtest(wins, decided, 0.5, alternative="two-sided").pvalue) if decided else 1.0,
         "configurations": configs,
         # the decided objects grouped by (type, A's receptacle, B's receptacle): what the preference rests on
@@ -320,6 +324,7 @@ def pairwise_table(records: Iterable[Mapping[str, Any]], variants: Sequence[str]
 
     * ``n`` objects compared, ``wins``, ``ties``, ``losses`` (from A's side);
     * ``pref_a`` = (wins + ties / 2) / n (None when n = 0);
+    * ``mean_a``, ``mean_b``: each side's mean judge score over the n objects (None when n = 0);
     * ``p_value``: two-sided exact binomial test (``scipy.stats.binomtest``, p = 0.5) of
       ``wins`` out of ``wins + losses``; ties are excluded, since they favour neither
       side (1.0 when nothing was decided);
