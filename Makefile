@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml scripts/setup.sh
 	touch $(STAMP)
 
 demo: setup
-	$(PY) -m tidee.cli run --room-type LivingRoom --seed 200 --mess-index 0
+	$(VENV)/bin/tidee demo
 
 test: setup
 	$(PY) -m pytest -q

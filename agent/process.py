@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import signal
+import sys
 import time
 import uuid
 from dataclasses import dataclass
@@ -17,9 +18,9 @@ from dataclasses import dataclass
 import zenoh
 
 from tidee.agent.config import AgentConfig
-from tidee.agent.runner import EpisodeRunner
+from tidee.agent.runner import EpisodeRunner, format_summary
 from tidee.agent.telemetry import TelemetryPublisher
-from tidee.protocol.client import SimClient
+from tidee.protocol.client import RemoteError, SimClient
 from tidee.protocol.messages import AgentCommand, EpisodeSpec
 from tidee.protocol.zenoh_config import make_config
 
@@ -38,6 +39,7 @@ class AgentProcessConfig:
     serve: bool = False             # after them, wait for viewers' new_episode commands
     log_dir: str | None = "runs"
     connect_timeout: float = 60.0
+    score: bool = True            # score each episode at its end (the summary's moved / found / plausible)
 
 
 def run_agent_process(cfg: AgentProcessConfig) -> int:
@@ -70,15 +72,19 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
                 cmd = _wait_for_new_episode(publisher)
                 queue.append(_spec_from(cmd, base))
             spec = queue.pop(0)
-            res = runner.run(spec)
-            print(f"agent: {spec.room_type} seed {spec.seed} mess {spec.mess_index}: {res.steps} steps, "
-                  f"{res.wall_s:.1f} s, {res.objects_fixed} objects put away ({res.end_reason})", flush=True)
+            res = runner.run(spec, evaluate=cfg.score)
+            assert res.summary is not None
+            print(f"agent: {format_summary(res.summary)}", flush=True)
             if res.aborted_by is not None:
                 queue.insert(0, _spec_from(res.aborted_by, base))
         client.close()
         return 0
     except KeyboardInterrupt:
+        print("agent: stopped (the episode in progress is not scored)", flush=True)
         return 0 if stop["flag"] else 130
+    except (TimeoutError, RemoteError) as e:   # the server went away, or refused the episode
+        print(f"agent: error: {e}", file=sys.stderr, flush=True)
+        return 1
     finally:
         if publisher is not None:
             publisher.close()

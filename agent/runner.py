@@ -32,8 +32,8 @@ from tidee.agent.reasoning.placement import make_placement
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.protocol.episode_log import LogWriter
 from tidee.protocol.messages import (Action, ActionName, AgentCommand, AgentFrame, AgentStatus,
-                                     Detection2D, EpisodeSpec, ObjectMemoryMsg, Observation, ReceptaclePrediction,
-                                     SearchHeatmap, TrackedObjectMsg)
+                                     Detection2D, EpisodeSpec, EpisodeSummary, ObjectMemoryMsg, Observation,
+                                     ReceptaclePrediction, SearchHeatmap, TrackedObjectMsg)
 from tidee.protocol.transport import SimTransport
 
 log = logging.getLogger("tidee.agent")
@@ -49,6 +49,35 @@ class EpisodeResult:
     timings: dict[str, list[float]] = field(default_factory=dict)   # ms per step
     record: dict[str, Any] | None = None                             # evaluation record
     aborted_by: AgentCommand | None = None                           # a new_episode command
+    summary: EpisodeSummary | None = None                            # what a person reads at the end
+
+
+def episode_summary(session: str, info: dict[str, Any], steps: int, wall: float, end_reason: str, put_away: int,
+                    record: dict[str, Any] | None, replay: str = "") -> EpisodeSummary:
+    """How the episode ended; the moved / found / plausible / false-pick counts come from the
+    evaluation ``record`` (scored against the server's privileged state), None without one."""
+    counts: dict[str, Any] = {}
+    if record is not None:
+        from tidee.agent.evaluation.report import variant_metrics
+
+        m = variant_metrics([record])[record["variant"]]
+        counts = {k: int(m[k]) for k in ("moved", "found", "plausible", "false_picks")}
+    return EpisodeSummary(session=session, episode=dict(info), steps=int(steps), wall_s=round(float(wall), 2),
+                          end_reason=end_reason, put_away=int(put_away), replay=replay, **counts)
+
+
+def format_summary(s: EpisodeSummary) -> str:
+    """One line for a terminal: what was moved, found, put away, judged plausible, and how to replay it."""
+    e = s.episode
+    mess = "tidy" if e.get("mess_index") is None else f"mess {e['mess_index']}"
+    where = f"{e.get('room_type')} seed {e.get('seed')} {mess}"
+    if s.moved is None:
+        scored = f"put away {s.put_away}"
+    else:
+        scored = (f"moved {s.moved}, found {s.found}, put away {s.put_away}, plausible {s.plausible}/{s.moved} "
+                  f"(catalog judge), false picks {s.false_picks}")
+    line = f"{where}: {scored}; {s.steps} steps, {s.wall_s:.1f} s ({s.end_reason})"
+    return line + (f". Replay: {s.replay}" if s.replay else "")
 
 
 class EpisodeRunner:
@@ -170,12 +199,18 @@ class EpisodeRunner:
         if evaluate:
             record = self.evaluation_record(spec, initial, self.transport.state(), events, picked, obs, wall,
                                             end_reason)
+        replay = f"tidee viewer --replay {writer.dir}" if writer else ""
+        summary = episode_summary(self.session, info, int(obs.step), wall, end_reason, policy.state.objects_fixed,
+                                  record, replay)
         result = EpisodeResult(spec, int(obs.step), wall, end_reason, policy.state.objects_fixed, timings, record,
-                               aborted)
+                               aborted, summary)
+        if self.publisher:
+            self.publisher.offer("summary", lambda: summary, force=True)
         if writer:
+            writer.message("summary", summary)
             writer.finish({"episode": info, "steps": result.steps, "wall_s": round(wall, 2),
                            "end_reason": end_reason, "objects_fixed": result.objects_fixed,
-                           "events": len(events), "record": record})
+                           "events": len(events), "summary": dataclasses.asdict(summary), "record": record})
         log.info("episode %s: %d steps, %.1f s, fixed %d (%s)", self._name(spec), result.steps, wall,
                  result.objects_fixed, end_reason)
         return result

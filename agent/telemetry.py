@@ -22,7 +22,7 @@ from tidee.protocol.messages import AgentCommand, CommandAck
 log = logging.getLogger("tidee.agent.telemetry")
 
 # Maximum publish rate per kind (Hz). ``status`` is tiny and goes every step.
-DEFAULT_RATES = {"status": 1000.0, "frame": 10.0, "maps": 4.0, "memory": 5.0, "search": 2.0, "ack": 1000.0}
+DEFAULT_RATES = {"status": 1000.0, "frame": 10.0, "maps": 4.0, "memory": 5.0, "search": 2.0, "ack": 1000.0, "summary": 1000.0}
 
 
 class RateLimiter:

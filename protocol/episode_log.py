@@ -81,6 +81,8 @@ class LogWriter:
     def __init__(self, directory: str | os.PathLike) -> None:
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
+        # An earlier run's summary must not make this run look finished if it crashes.
+        (self.dir / SUMMARY_NAME).unlink(missing_ok=True)
         self._tlog = open(self.dir / TLOG_NAME, "wb")
         self._tlog.write(MAGIC)
         self._events = open(self.dir / EVENTS_NAME, "w")

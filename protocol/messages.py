@@ -226,7 +226,7 @@ class ErrorReply:
 # along +y. Every message carries the agent ``step`` it describes; viewers keep the
 # latest of each kind (a ring buffer of one), so a slow viewer drops frames, never lags.
 
-TELEMETRY_KINDS = ("status", "frame", "maps", "memory", "search", "ack")
+TELEMETRY_KINDS = ("status", "frame", "maps", "memory", "search", "ack", "summary")
 PHASES = ("idle", "mapping", "searching", "approaching", "picking", "inferring",
           "placing", "searching_receptacle", "dropping", "done")
 COMMAND_KINDS = ("pause", "resume", "step", "new_episode", "preference")
@@ -339,6 +339,28 @@ class SearchHeatmap:
     heatmap: np.ndarray                      # float32 XxY in [0, 1]
     points: np.ndarray                       # float32 Kx2: ranked search points (x, y)
     source: str = "search_network"
+
+
+@dataclass
+class EpisodeSummary:
+    """Kind ``summary``: how an episode ended, sent once when it ends (also ``summary.json``).
+
+    ``moved``, ``found``, ``plausible`` and ``false_picks`` are scored after the episode
+    against the server's privileged state (evaluation, never the agent's decisions);
+    they are None when the server gave no state.
+    """
+
+    session: str
+    episode: dict[str, Any]                  # room_type, seed, mess_index, variant, perception, ...
+    steps: int
+    wall_s: float
+    end_reason: str
+    put_away: int                            # puts of out-of-place objects that succeeded
+    moved: int | None = None                 # objects the mess-up moved
+    found: int | None = None                 # of those, how many the agent found (picked or flagged)
+    plausible: int | None = None             # moved objects whose final receptacle the judge accepts
+    false_picks: int | None = None           # objects picked that the mess-up had not moved
+    replay: str = ""                         # the command that replays the episode's log
 
 
 @dataclass

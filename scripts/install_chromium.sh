@@ -13,5 +13,5 @@ fi
 echo "install_chromium: installing chromium (headless browser for the viewer's end-to-end test)"
 SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
 ($SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium) \
-  || echo "install_chromium: could not install chromium; the viewer's browser test will be skipped"
+  >>"${TMPDIR:-/tmp}/tidee-setup-apt.log" 2>&1 || echo "install_chromium: could not install chromium; the viewer's browser test will be skipped"
 exit 0

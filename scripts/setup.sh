@@ -14,7 +14,7 @@ if [ ${#need_pkgs[@]} -gt 0 ] && command -v apt-get >/dev/null 2>&1; then
   echo "setup: installing ${need_pkgs[*]} (EGL renderer)"
   SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
   ($SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_pkgs[@]}") \
-    || echo "setup: could not install ${need_pkgs[*]}; the simulator will use the TinyRenderer"
+    >>"${TMPDIR:-/tmp}/tidee-setup-apt.log" 2>&1 || echo "setup: could not install ${need_pkgs[*]}; the simulator will use the TinyRenderer"
 fi
 
 # Debian's chromium, for the viewer's end-to-end browser test (skipped without it); not fatal.
@@ -23,8 +23,10 @@ bash scripts/install_chromium.sh || true
 if [ ! -x "$VENV/bin/python" ]; then
   python3 -m venv "$VENV"
 fi
-"$VENV/bin/python" -m pip install -q --upgrade pip
+# -qq: errors only (pip's warnings about this machine's package index locations are noise here).
+"$VENV/bin/python" -m pip install -qq --upgrade pip
 # torch first and pinned: an unpinned torch would pull GBs of CUDA wheels.
-"$VENV/bin/python" -m pip install -q "torch==2.13.0"
-"$VENV/bin/python" -m pip install -q -e ".[agent,viewer,dev]"
+echo "setup: installing torch 2.13.0 (CPU) and tidee's dependencies into $VENV"
+"$VENV/bin/python" -m pip install -qq "torch==2.13.0"
+"$VENV/bin/python" -m pip install -qq -e ".[agent,viewer,dev]"
 echo "setup: $VENV ready"

@@ -1,7 +1,6 @@
-"""``tidee demo`` (``make demo``): the server as its own process, a client over Zenoh.
+"""``tidee scene tour``: the server as its own process, a client over Zenoh.
 
-Until the agent exists, the demo starts ``tidee server`` on embedded Zenoh (peer mode,
-loopback), connects a client, resets a messy room, looks around (one full turn, looking
+It starts ``tidee server`` on embedded Zenoh (peer mode, loopback), connects a client, resets a messy room, looks around (one full turn, looking
 down at each heading), and saves what it saw plus a top-down render with the moved
 objects circled. It prints every file it wrote.
 """

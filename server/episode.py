@@ -19,6 +19,7 @@ from tidee.protocol.messages import (Action, ActionError, ActionName, EpisodeSpe
 from tidee.server.messup import mess_up
 from tidee.server.rooms import AGENT_RADIUS, NAV_CELL, generate_scene, main_component, nav_grid
 from tidee.server.scene import Scene
+from tidee.server.splits import check_mess_index
 from tidee.server.world import FOV_DEG, World
 
 MOVE_M = 0.25
@@ -52,7 +53,8 @@ class SceneLibrary:
             self._cache.popitem(last=False)
 
     def scene(self, world: World, room_type: str, seed: int, mess_index: int | None) -> Scene:
-        """The scene, built into ``world`` as a side effect."""
+        """The scene, built into ``world`` as a side effect; refuses a mess index outside the room's split."""
+        check_mess_index(int(seed), mess_index)
         key = (room_type, int(seed), mess_index)
         cached = self._get(key)
         if cached is not None:

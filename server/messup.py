@@ -14,8 +14,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pybullet as pb
 
+from tidee.server.bullet import pb
 from tidee.server.catalog import is_plausible
 from tidee.server.rooms import NAV_CELL, ROOM_TYPE_INDEX, main_component, nav_grid
 from tidee.server.scene import MessRecord, Scene

@@ -41,6 +41,7 @@ from tidee.protocol.messages import (CloseReply, CloseRequest, ErrorCode, ErrorR
                                      ResetRequest, StateReply, StateRequest, StepRequest)
 from tidee.protocol.transport import EpisodeLike
 from tidee.protocol.zenoh_config import make_config
+from tidee.server.splits import check_mess_index
 
 log = logging.getLogger("tidee.server")
 
@@ -56,7 +57,7 @@ class ServerConfig:
     endpoint: str | None = None        # listen here (default: TIDEE_ZENOH_ENDPOINT, else loopback:7447)
     router: str | None = None          # or: client mode through this Zenoh router (TIDEE_ZENOH_ROUTER)
     max_sessions: int = 16
-    renderer: str = "auto"             # auto | egl | tiny
+    renderer: str = "tiny"             # auto | egl | tiny; tiny: the frames the shipped detector was trained on
     server_id: str = "sim0"
     workers: int = 1                   # threads running episodes (see the module docstring)
     max_request_bytes: int = 1 << 20   # requests carry no arrays
@@ -274,6 +275,10 @@ class SimServer:
 
     # --- requests (on the session's worker) ----------------------------------------------
     def _reset(self, request: ResetRequest) -> Observation:
+        try:
+            check_mess_index(request.spec.seed, request.spec.mess_index)
+        except ValueError as e:
+            raise ProtocolError(ErrorCode.invalid_field, f"field 'spec.mess_index': {e}") from None
         episode = self._episode(request.session, create=True)
         return episode.reset(request.spec, session=request.session, ground_truth=request.ground_truth)
 

@@ -39,6 +39,24 @@ def split_of(seed: int) -> str:
     return "unassigned"
 
 
+def messes_per_room(seed: int) -> int | None:
+    """How many messy configurations a room of ``seed`` has (None: a seed outside every split)."""
+    split = split_of(seed)
+    if split == "unassigned":
+        return None
+    return MESSES_PER_ROOM["train" if split == "train_pool" else split]
+
+
+def check_mess_index(seed: int, mess_index: int | None) -> None:
+    """Refuse a messy configuration index outside the room's split, naming the valid range."""
+    limit = messes_per_room(seed)
+    if mess_index is None or limit is None:
+        return
+    if not 0 <= mess_index < limit:
+        raise ValueError(f"mess_index {mess_index} is out of range: {split_of(seed)} room seed {seed} has messy "
+                         f"configurations 0-{limit - 1}")
+
+
 def rooms(split: str) -> list[tuple[str, int]]:
     if split not in SPLIT_SEEDS:
         raise ValueError(f"split must be one of {sorted(SPLIT_SEEDS)}, got {split!r}")

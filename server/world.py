@@ -20,8 +20,8 @@ import pkgutil
 from dataclasses import dataclass
 
 import numpy as np
-import pybullet as pb
 
+from tidee.server.bullet import pb, quiet_stdio
 from tidee.server.catalog import CATEGORIES
 from tidee.server.catalog.schema import Category, Part, Surface
 from tidee.server.meshes import Mesh, add_part, hex_to_rgb, part_geometry
@@ -154,7 +154,8 @@ class World:
             return
         path = loader.get_filename()  # type: ignore[attr-defined]
         try:
-            self._egl_plugin = pb.loadPlugin(path, "_eglRendererPlugin", physicsClientId=self.client)
+            with quiet_stdio():
+                self._egl_plugin = pb.loadPlugin(path, "_eglRendererPlugin", physicsClientId=self.client)
             if self._egl_plugin >= 0:
                 self._gl = EGLContext()
         except Exception:  # pragma: no cover - depends on the machine's GL stack
@@ -172,8 +173,10 @@ class World:
             try:
                 if self._egl_plugin >= 0:
                     self._use_gl()
-                    pb.unloadPlugin(self._egl_plugin, physicsClientId=self.client)
-                pb.disconnect(self.client)
+                    with quiet_stdio():
+                        pb.unloadPlugin(self._egl_plugin, physicsClientId=self.client)
+                with quiet_stdio():
+                    pb.disconnect(self.client)
             except (pb.error, RuntimeError):  # a wrong thread: leak the client rather than crash
                 pass
             self.client = -1

@@ -152,6 +152,15 @@ def test_episode_log_round_trip_and_truncated_tail(tmp_path) -> None:
     assert "truncated" in r2.corrupt_message
 
 
+def test_a_rerun_into_the_same_log_directory_never_shows_the_earlier_runs_summary(tmp_path) -> None:
+    with LogWriter(tmp_path / "ep") as w:
+        w.finish({"steps": 5})
+    assert LogReader(tmp_path / "ep").summary() == {"steps": 5}
+    with LogWriter(tmp_path / "ep") as w:       # the rerun crashes before finishing
+        w.message("status", _status(0))
+    assert LogReader(tmp_path / "ep").summary() is None
+
+
 def test_tidee_run_forwards_agent_options(monkeypatch) -> None:
     import tidee.launch
     from tidee import cli
@@ -180,7 +189,10 @@ def test_the_agent_side_asks_for_the_renderer_its_detector_was_trained_on() -> N
     parser = cli.build_parser()
     assert parser.parse_args(["run"]).renderer == TRAINED_RENDERER
     assert parser.parse_args(["eval", "tidy", "--out", "x"]).renderer == TRAINED_RENDERER
-    assert parser.parse_args(["server"]).renderer == "auto"     # the simulator alone: the fastest that loads
+    assert parser.parse_args(["server"]).renderer == TRAINED_RENDERER   # a server started alone matches it too
+    from tidee.server.service import ServerConfig
+
+    assert ServerConfig().renderer == TRAINED_RENDERER
 
 
 def test_a_preference_on_the_command_channel_retrains_the_language_oop_head() -> None:

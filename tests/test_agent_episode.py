@@ -10,7 +10,7 @@ import zenoh
 
 from tests.test_service import free_endpoint, wait_until
 from tidee.agent.config import AgentConfig, PolicyConfig
-from tidee.agent.runner import EpisodeRunner
+from tidee.agent.runner import EpisodeRunner, format_summary
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.protocol import codec, keys
 from tidee.protocol.client import SimClient
@@ -102,4 +102,16 @@ def test_tidy_episode_over_zenoh_with_telemetry_and_log(real_server: SimServer, 
     assert kinds.count("status") == result.steps + 1 and not log.truncated
     summary = log.summary()
     assert summary is not None and summary["record"]["objects"] == rec["objects"]
+    # The end-of-episode summary: counted from the record, sent to viewers, logged, and in summary.json.
+    s = result.summary
+    assert s is not None and s.moved == len(moved) and s.found == sum(o["found"] for o in moved)
+    assert s.plausible is not None and 0 <= s.plausible <= s.moved and s.put_away == result.objects_fixed
+    assert s.false_picks == sum(o["picked"] and not o["moved"] for o in rec["objects"])
+    assert s.steps == result.steps and s.replay == f"tidee viewer --replay {tmp_path / 'ep'}"
+    assert summary["summary"]["moved"] == s.moved and summary["summary"]["replay"] == s.replay
+    assert wait_until(lambda: "summary" in received, timeout=5.0)
+    assert received["summary"][-1].found == s.found and "summary" in kinds
+    line = format_summary(s)
+    assert f"moved {s.moved}, found {s.found}, put away {s.put_away}, plausible {s.plausible}/{s.moved}" in line
+    assert line.endswith(f"Replay: {s.replay}")
     assert any(e["kind"] == "preference" for e in log.events())

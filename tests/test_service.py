@@ -195,6 +195,16 @@ def test_unknown_session(server: SimServer) -> None:
             c.state()
 
 
+def test_a_mess_index_outside_the_rooms_split_is_refused_with_the_valid_range(server: SimServer) -> None:
+    with client(server) as c:
+        with pytest.raises(RemoteError) as info:
+            c.reset(EpisodeSpec(seed=200, mess_index=5, resolution=32, max_steps=50))
+        assert info.value.code == ErrorCode.invalid_field
+        assert "spec.mess_index" in info.value.message and "configurations 0-4" in info.value.message
+        obs = c.reset(EpisodeSpec(seed=200, mess_index=4, resolution=32, max_steps=50))   # still usable
+        assert obs.step == 0
+
+
 def test_session_limit(server: SimServer) -> None:
     clients = [client(server) for _ in range(3)]
     for c in clients:

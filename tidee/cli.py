@@ -33,7 +33,7 @@ def _cmd_server(args: argparse.Namespace) -> int:
 def _cmd_scene_render(args: argparse.Namespace) -> int:
     from tidee.server.render import render_room
 
-    paths = render_room(args.room_type, args.seed, args.mess, args.out, resolution=args.resolution,
+    paths = render_room(args.room_type, args.seed, args.mess_index, args.out, resolution=args.resolution,
                         renderer=args.renderer)
     for p in paths:
         print(p)
@@ -46,11 +46,12 @@ def _cmd_scene_export(args: argparse.Namespace) -> int:
 
     world = World(renderer="tiny")
     try:
-        scene = SceneLibrary().scene(world, args.room_type, args.seed, args.mess)
+        scene = SceneLibrary().scene(world, args.room_type, args.seed, args.mess_index)
     finally:
         world.close()
     scene.save(args.out)
-    print(f"wrote {args.out}: {args.room_type} seed {args.seed} mess {args.mess}, {len(scene.objects)} objects")
+    print(f"wrote {args.out}: {args.room_type} seed {args.seed} mess index {args.mess_index}, "
+          f"{len(scene.objects)} objects")
     return 0
 
 
@@ -71,10 +72,10 @@ def _cmd_bench_transport(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
+def _cmd_scene_tour(args: argparse.Namespace) -> int:
     from tidee.server.demo import run_demo
 
-    return run_demo(args.out, room_type=args.room_type, seed=args.seed, mess=args.mess)
+    return run_demo(args.out, room_type=args.room_type, seed=args.seed, mess=args.mess_index)
 
 
 # --- the agent -----------------------------------------------------------------------------
@@ -123,10 +124,25 @@ def _agent_config(args: argparse.Namespace):
                        policy=PolicyConfig(missing_top=args.missing_top))
 
 
+def _check_episodes(args: argparse.Namespace) -> None:
+    """Refuse messy configuration indices outside the room's split before anything starts."""
+    from tidee.server.splits import check_mess_index
+
+    if args.episodes < 1:
+        raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.mess_index is not None:
+        try:
+            check_mess_index(args.seed, args.mess_index)
+            check_mess_index(args.seed, args.mess_index + args.episodes - 1)
+        except ValueError as e:
+            raise ValueError(f"--mess-index / --episodes: {e}") from None
+
+
 def _cmd_agent(args: argparse.Namespace) -> int:
     from tidee.agent.process import AgentProcessConfig, run_agent_process
     from tidee.protocol.messages import EpisodeSpec
 
+    _check_episodes(args)
     spec = EpisodeSpec(room_type=args.room_type, seed=args.seed, mess_index=args.mess_index,
                        resolution=args.resolution, max_steps=args.max_steps, pose_noise=args.pose_noise,
                        depth_noise=args.depth_noise)
@@ -139,6 +155,7 @@ def _cmd_agent(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from tidee.launch import RunConfig, run_all
 
+    _check_episodes(args)
     forwarded: list[str] = []
     for flag, kw in AGENT_OPTIONS:
         if flag == "--server-id":       # tidee run starts its own server under the default id
@@ -232,7 +249,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--endpoint", default=None, help="Zenoh endpoint to listen on (default: loopback, see protocol/README.md)")
     p.add_argument("--router", default=None, help="connect to this Zenoh router instead of peer mode")
     p.add_argument("--max-sessions", type=int, default=16)
-    p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="auto")
+    p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default=TRAINED_RENDERER,
+                   help=AGENT_RENDERER_HELP)
     p.add_argument("--server-id", default="sim0")
     p.set_defaults(func=_cmd_server)
 
@@ -242,7 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
         p = scene.add_parser(name, help=help_)
         p.add_argument("--room-type", choices=ROOM_TYPES, required=True)
         p.add_argument("--seed", type=int, required=True)
-        p.add_argument("--mess", type=int, default=None, help="messy configuration index (default: tidy)")
+        p.add_argument("--mess-index", type=int, default=None, help="messy configuration index (default: tidy)")
         p.add_argument("--out", required=True, help="output directory (render) or file (export)")
         if name == "render":
             p.add_argument("--resolution", type=int, default=480)
@@ -264,12 +282,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="bench/transport.json")
     p.set_defaults(func=_cmd_bench_transport)
 
-    p = sub.add_parser("demo", help="start a server, play a messy room over Zenoh, save what the agent sees")
+    p = scene.add_parser("tour", help="start a server, look around a messy room over Zenoh, save what a client sees")
     p.add_argument("--out", default="demo_out")
     p.add_argument("--room-type", choices=ROOM_TYPES, default="LivingRoom")
     p.add_argument("--seed", type=int, default=200)
-    p.add_argument("--mess", type=int, default=0)
-    p.set_defaults(func=_cmd_demo)
+    p.add_argument("--mess-index", type=int, default=0)
+    p.set_defaults(func=_cmd_scene_tour)
 
     p = sub.add_parser("agent", help="the tidying agent: connects to a server over Zenoh and runs episodes")
     _add_zenoh_args(p)
@@ -277,16 +295,20 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(flag, **kw)
     p.set_defaults(func=_cmd_agent)
 
-    p = sub.add_parser("run", help="server + agent + viewer as separate processes on embedded Zenoh")
-    for flag, kw in AGENT_OPTIONS:
-        if flag != "--server-id":
-            p.add_argument(flag, **kw)
-    p.add_argument("--no-viewer", action="store_true")
-    p.add_argument("--host", default="127.0.0.1", help="viewer host (loopback by default)")
-    p.add_argument("--port", type=int, default=8080, help="viewer port")
-    p.add_argument("--linger", type=float, default=30.0, help="seconds to keep the viewer up after the episodes")
-    p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default=TRAINED_RENDERER, help=AGENT_RENDERER_HELP)
-    p.set_defaults(func=_cmd_run)
+    for name, help_ in (("run", "server + agent + viewer as separate processes on embedded Zenoh"),
+                        ("demo", "what `make demo` runs: `tidee run` on the demo room (LivingRoom, test seed 200, "
+                                 "mess index 0); takes the same options")):
+        p = sub.add_parser(name, help=help_)
+        for flag, kw in AGENT_OPTIONS:
+            if flag != "--server-id":
+                p.add_argument(flag, **kw)
+        p.add_argument("--no-viewer", action="store_true")
+        p.add_argument("--host", default="127.0.0.1", help="viewer host (loopback by default)")
+        p.add_argument("--port", type=int, default=8080, help="viewer port")
+        p.add_argument("--linger", type=float, default=30.0, help="seconds to keep the viewer up after the episodes")
+        p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default=TRAINED_RENDERER,
+                       help=AGENT_RENDERER_HELP)
+        p.set_defaults(func=_cmd_run)
 
     ev = sub.add_parser("eval", help="evaluations that write JSON + Markdown + PNG").add_subparsers(
         dest="eval_cmd", required=True)
@@ -385,17 +407,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    func: Callable[[argparse.Namespace], int] = args.func
     try:
+        args = build_parser().parse_args(argv)
+        logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                            format="%(asctime)s %(name)s %(levelname)s %(message)s")
+        func: Callable[[argparse.Namespace], int] = args.func
         return func(args)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:   # Ctrl-C before a command's own handler took over (e.g. while importing)
+        print(f"tidee {_command_name(argv)}: interrupted".replace("  ", " "), file=sys.stderr)
         return 130
     except (ValueError, FileNotFoundError) as e:
         print(f"tidee: error: {e}", file=sys.stderr)
         return 2
+
+
+def _command_name(argv: list[str] | None) -> str:
+    words = sys.argv[1:] if argv is None else argv
+    return next((w for w in words if not w.startswith("-")), "")
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 
@@ -52,10 +53,38 @@ def _tidee(*args: str) -> list[str]:
     return [sys.executable, "-m", "tidee.cli", *args]
 
 
+def _interrupt_on_sigterm() -> Callable[[], None]:
+    """Make SIGTERM (``kill``) end this process like Ctrl-C; returns a function that undoes it."""
+    def _raise(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, _raise)
+    return lambda: signal.signal(signal.SIGTERM, previous)
+
+
+def stop_children(procs: list[tuple[str, subprocess.Popen]], grace: float = 15.0) -> None:
+    """SIGINT every child still running (in reverse start order), wait, then SIGTERM / SIGKILL stragglers."""
+    for _, p in reversed(procs):
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + grace
+    for _, p in reversed(procs):
+        try:
+            p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.terminate()
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
 def run_all(cfg: RunConfig) -> int:
     endpoint = cfg.endpoint or f"tcp/127.0.0.1:{free_port()}"
     procs: list[tuple[str, subprocess.Popen]] = []
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    restore = _interrupt_on_sigterm()
     try:
         procs.append(("server", subprocess.Popen(_tidee("server", "--endpoint", endpoint, "--renderer", cfg.renderer),
                                                  env=env)))
@@ -73,13 +102,13 @@ def run_all(cfg: RunConfig) -> int:
             time.sleep(cfg.linger)
         return rc
     except KeyboardInterrupt:
+        print("run: interrupted; stopping the agent, viewer and server", flush=True)
         return 130
     finally:
-        for name, p in reversed(procs):
-            if p.poll() is None:
-                p.terminate()
-        for name, p in reversed(procs):
-            try:
-                p.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        # A second Ctrl-C while the children stop must not leave them behind.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            stop_children(procs)
+        finally:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+            restore()
