@@ -18,6 +18,11 @@ RandomReceptacle   first receptacle found by random exploration
 
 Out-of-place detection is its own choice (``oop``), the same for every variant.
 
+Both choices are registries, so a new placement policy or OOP detector is one decorated
+class and its name is then a valid ``variant`` / ``oop``: ``PLACEMENT_MODELS`` and
+``register_placement`` (``reasoning/placement.py``), ``OOP_DETECTORS`` and
+``register_oop_detector`` (``reasoning/oop.py``). Validation reads those tables.
+
 AI2THORPlacement and MessyPlacement are reference rows built from the episode record
 (``tidee.agent.evaluation``), not agents.
 """
@@ -28,18 +33,23 @@ from dataclasses import dataclass, field
 
 from tidee.agent.mapping.maps import MapConfig
 from tidee.agent.perception import PERCEPTIONS
+from tidee.agent.reasoning.oop import check_oop_detector
+from tidee.agent.reasoning.placement import PAPER_VARIANTS, PLACEMENT_MODELS, check_variant
 
-AGENT_VARIANTS = ("TIDEE", "WithoutMemex", "3DSmntMap2Place", "CommonMemory", "RandomReceptacle")
+# The paper's agents (Table 1), the default of `tidee eval tidy`. Validation reads the registry,
+# PLACEMENT_MODELS, which also holds any variant a user registers.
+AGENT_VARIANTS = PAPER_VARIANTS
 REFERENCE_VARIANTS = ("AI2THORPlacement", "MessyPlacement")
 BUILT_VARIANTS = AGENT_VARIANTS
-SEARCH_VARIANTS = ("TIDEE", "WithoutMemex", "3DSmntMap2Place")   # use the visual search network
 EXPLORERS = ("random", "frontier")
 
 
 def check_variant_built(variant: str) -> None:
-    if variant not in AGENT_VARIANTS:
-        raise ValueError(f"unknown variant {variant!r}; agents: {AGENT_VARIANTS}, "
-                         f"reference rows (evaluation only): {REFERENCE_VARIANTS}")
+    """A ValueError unless ``variant`` is a registered agent (reference rows are not agents)."""
+    if variant in REFERENCE_VARIANTS:
+        raise ValueError(f"variant {variant!r} is a reference row built by evaluation from the agents' "
+                         f"episodes, not an agent; agents: {', '.join(PLACEMENT_MODELS)}")
+    check_variant(variant)
 
 
 MISSING_TOP = ("skip", "search")
@@ -113,5 +123,6 @@ class AgentConfig:
                 raise ValueError(f"--detection-threshold must be in (0, 1), got {self.detection_threshold}")
         if self.oop == "auto":
             self.oop = "visual" if self.perception == "learned" else "language"
+        check_oop_detector(self.oop)
         if self.oop == "visual" and self.perception != "learned":
             raise ValueError("--oop visual reads the learned detector's OOP head: it needs --perception learned")

@@ -1,17 +1,20 @@
 """tidee.protocol: the messages, codec, key expressions and clients every tidee process shares.
 
-Importing it registers the Gymnasium environment ``tidee/Tidy-v0`` when gymnasium is
-installed (the environment module itself loads only on ``gymnasium.make``).
+Importing it (or ``tidee``) registers the Gymnasium environment ``tidee/Tidy-v0`` when
+gymnasium is installed (the environment module itself loads only on ``gymnasium.make``).
 """
 
+GYM_ENV_ID = "tidee/Tidy-v0"
 
-def _register_gym_env() -> None:
+
+def register_gym_env() -> None:
+    """Register ``tidee/Tidy-v0`` with Gymnasium (idempotent; a no-op without gymnasium)."""
     try:
         import gymnasium
     except ImportError:
         return
-    if "tidee/Tidy-v0" not in gymnasium.registry:
-        gymnasium.register(id="tidee/Tidy-v0", entry_point="tidee.protocol.gym_env:TidyEnv")
+    if GYM_ENV_ID not in gymnasium.registry:
+        gymnasium.register(id=GYM_ENV_ID, entry_point="tidee.protocol.gym_env:TidyEnv")
 
 
-_register_gym_env()
+register_gym_env()

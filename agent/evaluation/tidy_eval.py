@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from tidee.agent.perception import TRAINED_RENDERER
-from tidee.agent.config import (AGENT_VARIANTS, BUILT_VARIANTS, REFERENCE_VARIANTS, AgentConfig, PolicyConfig,
+from tidee.agent.config import (BUILT_VARIANTS, REFERENCE_VARIANTS, AgentConfig, PolicyConfig,
                                check_variant_built)
 
 
@@ -85,10 +85,7 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
     variants = variants or list(BUILT_VARIANTS)
     agents = [v for v in variants if v not in REFERENCE_VARIANTS]
     for v in agents:
-        check_variant_built(v)
-    unknown = [v for v in variants if v not in AGENT_VARIANTS + REFERENCE_VARIANTS]
-    if unknown:
-        raise ValueError(f"unknown variants {unknown}; choose from {AGENT_VARIANTS + REFERENCE_VARIANTS}")
+        check_variant_built(v)      # reads the placement registry: a registered variant of yours is an agent
     if not agents:
         raise ValueError("give at least one agent variant (the reference rows need an agent's episodes)")
     out = Path(out)

@@ -4,11 +4,22 @@ Every OOP detector scores a tracked object given the other tracked objects and t
 type, returning P(out of place). The non-learned twin here reads the placement
 statistics of the training rooms; the learned visual / language / fused classifiers
 (issues 5 and 6) implement the same ``OOPDetector`` protocol.
+
+``OOP_DETECTORS`` maps each ``AgentConfig.oop`` name to a no-argument factory. Add your own
+with the decorator; ``AgentConfig(oop="my_detector")`` then selects it::
+
+    @register_oop_detector("my_detector")
+    class MyDetector:
+        name = "my_detector"
+
+        def score_all(self, targets, objects, room_type):
+            return {t.id: 0.0 for t in targets}
 """
 
 from __future__ import annotations
 
-from typing import Protocol
+from collections.abc import Callable
+from typing import Any, Protocol, TypeVar
 
 from tidee.agent.classes import RECEPTACLES
 from tidee.agent.mapping.memory import TrackedObject
@@ -52,6 +63,41 @@ class OOPDetector(Protocol):
         ...
 
 
+F = TypeVar("F", bound=Callable[..., Any])
+
+OOP_DETECTORS: dict[str, Callable[[], OOPDetector]] = {}
+"""OOP detectors by name, in registration order; the shipped four are registered below."""
+
+
+def register_oop_detector(name: str) -> Callable[[F], F]:
+    """Decorator: register an OOP detector class (or a no-argument factory) under ``name``."""
+
+    def register(factory: F) -> F:
+        if name == "auto":
+            raise ValueError("'auto' is AgentConfig's choice by perception, not a detector name")
+        if name in OOP_DETECTORS:
+            raise ValueError(f"OOP detector {name!r} is already registered ({OOP_DETECTORS[name]!r}); "
+                             f"register yours under another name")
+        OOP_DETECTORS[name] = factory
+        return factory
+
+    return register
+
+
+def check_oop_detector(name: str) -> Callable[[], OOPDetector]:
+    """The factory registered as ``name``; a ValueError naming the registered ones if there is none."""
+    try:
+        return OOP_DETECTORS[name]
+    except KeyError:
+        raise ValueError(f"unknown OOP detector {name!r}; registered: {', '.join(OOP_DETECTORS)} "
+                         f"(register_oop_detector adds one)") from None
+
+
+def make_oop(name: str) -> OOPDetector:
+    return check_oop_detector(name)()
+
+
+@register_oop_detector("relation_stats")
 class RelationStatsOOP:
     """Out of place when the supporting receptacle is rare for the category (training rooms).
 
@@ -78,6 +124,7 @@ class RelationStatsOOP:
         return 1.0 - min(rarity / (2 * self.rare), 1.0)
 
 
+@register_oop_detector("visual")
 class VisualOOP:
     """The detector's OOP head (dDETR-OOP): the running mean of the per-view P(out of place)
     the learned detector attached to each detection merged into the tracked object."""
@@ -93,20 +140,17 @@ class VisualOOP:
         return {t.id: float(t.oop_prob) for t in targets}  # type: ignore[arg-type]
 
 
-OOP_DETECTORS = ("relation_stats", "visual", "language", "fused")
+@register_oop_detector("language")
+def _language() -> OOPDetector:
+    """BERT-OOP: the language classifier (loads torch and the sentence encoder, so only when chosen)."""
+    from tidee.agent.reasoning.language_oop import LanguageOOP
+
+    return LanguageOOP()
 
 
-def make_oop(name: str) -> OOPDetector:
-    if name == "relation_stats":
-        return RelationStatsOOP()
-    if name == "visual":
-        return VisualOOP()
-    if name == "language":
-        from tidee.agent.reasoning.language_oop import LanguageOOP
+@register_oop_detector("fused")
+def _fused() -> OOPDetector:
+    """dDETR+BERT-OOP: the language paragraph and the detector's feature."""
+    from tidee.agent.reasoning.language_oop import FusedLanguageOOP
 
-        return LanguageOOP()
-    if name == "fused":
-        from tidee.agent.reasoning.language_oop import FusedLanguageOOP
-
-        return FusedLanguageOOP()
-    raise ValueError(f"unknown OOP detector {name!r}; choose one of {OOP_DETECTORS}")
+    return FusedLanguageOOP()
