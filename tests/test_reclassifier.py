@@ -13,9 +13,8 @@ from tidee.agent.perception.reclassifier import (DEFAULT_RECLASSIFIER, CropClass
                                                  crop_inputs, frame_tensor, fuse)
 
 torch.set_num_threads(2)
-# the shipped detector (run 7) + reclassifier (r4) on the 24 test-room frames of test_detector's floor
-# test score 0.81 (run 7 alone 0.73; with run 5: r3 0.74, r2 0.74, r1 0.71, run 5 alone 0.67); an
-# untrained reclassifier renames everything at random (~0)
+# the shipped detector + reclassifier on the 24 test-room frames of test_detector's floor test
+# score 0.81 (the detector alone 0.73); an untrained reclassifier renames everything at random (~0)
 RECLASSIFIED_FLOOR_MAP50 = 0.65
 
 

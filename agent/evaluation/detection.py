@@ -920,7 +920,7 @@ def oracle_label_row(frames: Mapping[str, np.ndarray], dets: list[list[Detection
 
 
 def _language_rows() -> dict[str, OopRowFn | None]:
-    """The language, fused and oracle-language rows (issue 6), from the shipped language heads."""
+    """The language, fused and oracle-language rows, from the shipped language heads."""
     from tidee.agent.reasoning.language_oop import (DEFAULT_FUSED_WEIGHTS, LanguageOOPClassifier, language_row,
                                                     oracle_language_row)
 

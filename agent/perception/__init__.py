@@ -7,8 +7,8 @@ from tidee.agent.perception.base import Detection, Perception
 PERCEPTIONS = ("oracle", "learned")
 # The renderer the shipped vision models (detector, depth network) were trained on. The
 # simulator's own default is EGL when it loads (faster); its frames are lit differently and
-# the detector scores lower on them (run 1's weights: box mAP@0.5 36.2 vs 38.7 on the same 300 test frames,
-# `tidee eval detector --split test --renderer egl`), so the
+# the detector scores lower on them (`tidee eval detector --split test --renderer egl`:
+# docs/eval/detector_egl), so the
 # agent's commands ask for this one until the models are retrained on EGL frames.
 TRAINED_RENDERER = "tiny"
 # How the detector's heatmap peaks become detections (``detector.decode``); the agent's is the first.

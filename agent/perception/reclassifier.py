@@ -1,9 +1,9 @@
 """The second stage of the detector: a crop classifier that renames what the detector boxed.
 
 The CenterNet-style detector finds and boxes most objects and then names some of them wrongly
-(docs/known-issues.md, "class confusions"): on the validation frames, giving every detection
-the class of the ground-truth box it overlaps would lift box mAP@0.5 from 54.8 to 70.1. This
-network looks at each detection again, at a fixed scale: the RGB-D crop around its box
+(docs/limitations.md, "Perception"): on the validation frames, giving every detection of an
+earlier detector the class of the ground-truth box it overlaps lifted box mAP@0.5 from 54.8
+to 70.1. This network looks at each detection again, at a fixed scale: the RGB-D crop around its box
 (resampled to ``crop`` x ``crop`` pixels, depth relative to the object's own), with the box's
 size in the image and in metres as side inputs, and outputs a distribution over the catalog's
 classes plus "background" (the box holds no object).
@@ -17,12 +17,13 @@ Trained by ``tidee train reclassifier`` on frames of ``tidee gen detection``: cr
 ground-truth boxes, jittered as the detector's boxes are, and background crops (boxes that
 overlap no object by IoU 0.3). Reproducible from a seed, resumable, progress bar, loss curve.
 
-``--boxes detector`` (r3) trains on the detector's own boxes instead: the shipped detector
-runs over the training frames (rooms it was not trained on) at the evaluation's threshold,
-each detection is labelled by the ground-truth box it overlaps (IoU >= 0.5: that class;
-< 0.4: background; between: ignored), and the network also reads the detector's class
-logits at the detection's cell and its peak score (``det_features``): a learned fusion,
-on the box errors the detector really makes, in place of the hand-set ``alpha``.
+``--boxes detector`` (how the shipped weights were trained) trains on the detector's own
+boxes instead: the shipped detector runs over the training frames (rooms it was not trained
+on) at the evaluation's threshold, each detection is labelled by the ground-truth box it
+overlaps (IoU >= 0.5: that class; < 0.4: background; between: ignored), and the network also
+reads the detector's class logits at the detection's cell and its peak score
+(``det_features``): a learned fusion, on the box errors the detector really makes, in place
+of the hand-set ``alpha``.
 """
 
 from __future__ import annotations
