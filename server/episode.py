@@ -8,17 +8,20 @@ Ground truth is attached only when the caller asks for it.
 
 from __future__ import annotations
 
+import json
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from tidee.protocol.messages import (Action, ActionError, ActionName, EpisodeSpec, GroundTruth,
                                      Observation)
 from tidee.server.messup import mess_up
-from tidee.server.rooms import AGENT_RADIUS, NAV_CELL, generate_scene, main_component, nav_grid
+from tidee.server.rooms import AGENT_RADIUS, NAV_CELL, generate_scene, main_component, nav_grid, rooms_version
 from tidee.server.scene import Scene
+from tidee.server.scene_cache import SceneCache
 from tidee.server.splits import check_mess_index
 from tidee.server.world import FOV_DEG, World
 
@@ -35,22 +38,54 @@ MOVES = {ActionName.MoveAhead: (1, 0), ActionName.MoveBack: (-1, 0),
 
 
 class SceneLibrary:
-    """Tidy and messy scenes by key, generated on demand and kept in a small LRU."""
+    """Tidy and messy scenes by key: a small in-memory LRU over the on-disk :class:`SceneCache`,
+    generated (physics and all) only when neither has them.
 
-    def __init__(self, capacity: int = 32) -> None:
+    ``disk``: a SceneCache, or None for no disk cache; default: the user's cache directory.
+    """
+
+    def __init__(self, capacity: int = 32, disk: SceneCache | None | Literal["default"] = "default") -> None:
         self.capacity = capacity
         self._cache: OrderedDict[tuple, dict] = OrderedDict()
+        self._disk_arg = disk
+        self._disks: dict[int, SceneCache] = {}
+
+    def disk(self) -> SceneCache | None:
+        """The disk cache for the room generator version in force (None: disabled)."""
+        if self._disk_arg is None:
+            return None
+        version = rooms_version()
+        if version not in self._disks:
+            given = self._disk_arg
+            if given == "default":
+                self._disks[version] = SceneCache(version=version)
+            else:
+                assert isinstance(given, SceneCache)
+                self._disks[version] = given if given.version == version else SceneCache(given.root, version)
+        return self._disks[version]
 
     def _get(self, key: tuple) -> dict | None:
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
-        return None
+        disk = self.disk()
+        stored = disk.load(*key) if disk is not None else None
+        if stored is not None:
+            self._remember(key, stored)
+        return stored
 
-    def _put(self, key: tuple, scene: Scene) -> None:
-        self._cache[key] = scene.to_dict()
+    def _remember(self, key: tuple, scene: dict) -> None:
+        self._cache[key] = scene
         while len(self._cache) > self.capacity:
             self._cache.popitem(last=False)
+
+    def _put(self, key: tuple, scene: Scene) -> None:
+        # Through JSON, so a fresh scene is built from exactly what a later load from disk gives.
+        d = json.loads(json.dumps(scene.to_dict()))
+        disk = self.disk()
+        if disk is not None:
+            disk.store(*key, d)
+        self._remember(key, d)
 
     def scene(self, world: World, room_type: str, seed: int, mess_index: int | None) -> Scene:
         """The scene, built into ``world`` as a side effect; refuses a mess index outside the room's split."""

@@ -25,7 +25,7 @@ def _cmd_server(args: argparse.Namespace) -> int:
     from tidee.server.service import ServerConfig, serve
 
     cfg = ServerConfig(endpoint=args.endpoint, router=args.router, max_sessions=args.max_sessions,
-                       renderer=args.renderer, server_id=args.server_id)
+                       renderer=args.renderer, server_id=args.server_id, processes=args.processes)
     serve(cfg)
     return 0
 
@@ -61,6 +61,32 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
     result = run_sim_bench(args.resolution, args.steps, args.out, renderer=args.renderer,
                            room_type=args.room_type, seed=args.seed)
     print(json.dumps(result, indent=1))
+    return 0
+
+
+def _cmd_bench_reset(args: argparse.Namespace) -> int:
+    from tidee.server.bench_reset import run_reset_bench
+
+    result = run_reset_bench(args.out, split=args.split, limit=args.limit)
+    print(json.dumps(result, indent=1))
+    return 0
+
+
+def _cmd_bench_episode(args: argparse.Namespace) -> int:
+    from tidee.agent.bench_episode import run_episode_bench
+
+    result = run_episode_bench(args.out, repeats=args.repeats, room_type=args.room_type, seed=args.seed,
+                               mess_index=args.mess_index, variant=args.variant, max_steps=args.max_steps,
+                               browser=args.browser)
+    print(json.dumps(result, indent=1))
+    return 0
+
+
+def _cmd_gen_cache(args: argparse.Namespace) -> int:
+    from tidee.server.bench_reset import fill_cache
+
+    print(json.dumps(fill_cache(args.split, workers=args.workers, directory=args.cache_dir, limit=args.limit),
+                     indent=1))
     return 0
 
 
@@ -113,6 +139,9 @@ AGENT_OPTIONS: list[tuple[str, dict]] = [
     ("--session", {"default": None}),
     ("--server-id", {"default": "sim0"}),
     ("--agent-seed", {"type": int, "default": 0}),
+    ("--threads", {"type": int, "default": 0,
+                   "help": "torch/OpenMP threads (0: the cores this process may use; tidee run gives the agent "
+                           "the cores the server does not use)"}),
 ]
 
 
@@ -143,6 +172,9 @@ def _cmd_agent(args: argparse.Namespace) -> int:
     from tidee.protocol.messages import EpisodeSpec
 
     _check_episodes(args)
+    from tidee.threads import threads_per_process, use_threads
+
+    use_threads(args.threads or threads_per_process(1))
     spec = EpisodeSpec(room_type=args.room_type, seed=args.seed, mess_index=args.mess_index,
                        resolution=args.resolution, max_steps=args.max_steps, pose_noise=args.pose_noise,
                        depth_noise=args.depth_noise)
@@ -156,6 +188,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from tidee.launch import RunConfig, run_all
 
     _check_episodes(args)
+    from tidee.threads import threads_per_process
+
+    if not args.threads:    # the server renders on one core while the agent thinks: never oversubscribe
+        args.threads = threads_per_process(2)
     forwarded: list[str] = []
     for flag, kw in AGENT_OPTIONS:
         if flag == "--server-id":       # tidee run starts its own server under the default id
@@ -252,6 +288,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default=TRAINED_RENDERER,
                    help=AGENT_RENDERER_HELP)
     p.add_argument("--server-id", default="sim0")
+    p.add_argument("--processes", type=int, default=0,
+                   help="simulator processes, sessions spread over them (default 0: one per available core)")
     p.set_defaults(func=_cmd_server)
 
     scene = sub.add_parser("scene", help="generate, render and export rooms").add_subparsers(dest="scene_cmd", required=True)
@@ -276,6 +314,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=200)
     p.add_argument("--out", default="bench/sim.json")
     p.set_defaults(func=_cmd_bench_sim)
+    p = bench.add_parser("reset", help="reset time over a split's configurations: cold (physics) vs cached")
+    p.add_argument("--split", choices=("train", "val", "test"), default="test")
+    p.add_argument("--limit", type=int, default=None, help="only the first N configurations (default: all)")
+    p.add_argument("--out", default="bench/reset.json")
+    p.set_defaults(func=_cmd_bench_reset)
+    p = bench.add_parser("episode", help="one episode in process vs live (tidee run: server + agent + viewer), "
+                                         "side by side")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--room-type", choices=ROOM_TYPES, default="LivingRoom")
+    p.add_argument("--seed", type=int, default=200)
+    p.add_argument("--mess-index", type=int, default=0)
+    p.add_argument("--variant", default="TIDEE")
+    p.add_argument("--max-steps", type=int, default=1000)
+    p.add_argument("--browser", action="store_true", help="a headless Chromium shows the viewer during live runs")
+    p.add_argument("--out", default="bench/episode.json")
+    p.set_defaults(func=_cmd_bench_episode)
     p = bench.add_parser("transport", help="in-process vs Zenoh step latency")
     p.add_argument("--resolution", type=int, default=256)
     p.add_argument("--steps", type=int, default=200)
@@ -351,6 +405,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_bench_agent)
 
     gen = sub.add_parser("gen", help="generate data from training rooms").add_subparsers(dest="gen_cmd", required=True)
+    p = gen.add_parser("cache", help="store a split's settled rooms and messy configurations on disk, so resets "
+                                     "load them instead of re-running physics")
+    p.add_argument("--split", choices=("train", "val", "test"), default="test")
+    p.add_argument("--limit", type=int, default=None, help="only the first N configurations (default: all)")
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--cache-dir", default=None, help="default: $XDG_CACHE_HOME/tidee/scenes (~/.cache/tidee/scenes)")
+    p.set_defaults(func=_cmd_gen_cache)
     p = gen.add_parser("stats", help="placement statistics of the training rooms (OOP + CommonMemory baselines)")
     p.add_argument("--seeds", default="0-19,10000-10179", help="training seeds, e.g. 0-19,10000-10179")
     p.add_argument("--out", default=None, help="default: agent/data/placement_stats.json")

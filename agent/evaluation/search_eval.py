@@ -275,7 +275,7 @@ def save_examples(cfg: SearchEvalConfig, jobs: list[dict[str, Any]], path: Path)
 def run_search_eval(cfg: SearchEvalConfig, command: str = "", progress: bool = True) -> dict[str, Any]:
     from tqdm import tqdm
 
-    from tidee.agent.evaluation.tidy_eval import _one_torch_thread
+    from tidee.threads import threads_per_process, use_threads
     from tidee.protocol.episode_log import write_json_atomic
 
     t0 = time.time()
@@ -286,12 +286,12 @@ def run_search_eval(cfg: SearchEvalConfig, command: str = "", progress: bool = T
     bar = tqdm(total=len(jobs), desc="search episodes", disable=not progress)
     if cfg.workers > 1 and len(jobs) > 1:
         with cf.ProcessPoolExecutor(cfg.workers, mp_context=mp.get_context("spawn"),
-                                    initializer=_one_torch_thread) as pool:
+                                    initializer=use_threads, initargs=(threads_per_process(cfg.workers),)) as pool:
             for rec in pool.map(_worker, [(j, cfg) for j in jobs]):
                 records.append(rec)
                 bar.update()
     else:
-        _one_torch_thread()
+        use_threads(1)      # measured with one thread in process
         for j in jobs:
             records.append(_one_episode(j, cfg))
             bar.update()

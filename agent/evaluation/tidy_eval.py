@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from tidee.agent.perception import TRAINED_RENDERER
+from tidee.threads import threads_per_process
 from tidee.agent.config import (BUILT_VARIANTS, REFERENCE_VARIANTS, AgentConfig, PolicyConfig,
                                check_variant_built)
 
@@ -42,11 +43,9 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
     from tidee.protocol.messages import EpisodeSpec
     from tidee.protocol.transport import InProcessTransport
 
-    global _TRANSPORT
-    try:
-        transport = _TRANSPORT
-    except NameError:
-        transport = _TRANSPORT = InProcessTransport(renderer=job["renderer"])
+    transport = _WORKER.get("transport")
+    if transport is None:        # a caller that did not run _init_worker: make this process's simulator now
+        transport = _WORKER["transport"] = InProcessTransport(renderer=job["renderer"])
     cfg = AgentConfig(variant=job["variant"], perception=job["perception"], oop=job["oop"], depth=job["depth"],
                       explorer=job["explorer"], seed=job["agent_seed"],
                       detection_threshold=job.get("detection_threshold"),
@@ -62,11 +61,16 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
     return record
 
 
-def _one_torch_thread() -> None:
-    """Each worker process gets one core: torch's default thread count would oversubscribe."""
-    import torch
+_WORKER: dict[str, Any] = {}     # this process's simulator, reused by every episode it runs
 
-    torch.set_num_threads(1)
+
+def _init_worker(renderer: str, threads: int) -> None:
+    """Set up a worker process: its share of the cores (tidee.threads) and its own simulator."""
+    from tidee.protocol.transport import InProcessTransport
+    from tidee.threads import use_threads
+
+    use_threads(threads)
+    _WORKER["transport"] = InProcessTransport(renderer=renderer)
 
 
 def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = None,
@@ -100,12 +104,16 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
     t0 = time.time()
     records: list[dict[str, Any]] = []
     bar = tqdm(total=len(jobs), desc="tidy episodes", disable=not progress)
+    threads = threads_per_process(max(1, workers))
     if workers <= 1:
+        if "transport" not in _WORKER:
+            _init_worker(renderer, threads)
         for job in jobs:
             records.append(_run_one(job))
             bar.update()
     else:
-        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_one_torch_thread) as pool:
+        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                                    initargs=(renderer, threads)) as pool:
             for rec in pool.map(_run_one, jobs):
                 records.append(rec)
                 bar.update()

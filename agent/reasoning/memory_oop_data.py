@@ -150,14 +150,15 @@ def _chain(*gens: Any) -> Any:
         yield from g
 
 
+_WORKER: dict[str, Any] = {}     # this process's simulator, reused by every configuration it samples
+
+
 def _worker(job: dict[str, Any]) -> list[dict[str, Any]]:
     from tidee.protocol.transport import InProcessTransport
 
-    global _TRANSPORT
-    try:
-        transport = _TRANSPORT
-    except NameError:
-        transport = _TRANSPORT = InProcessTransport(renderer=job["renderer"])
+    transport = _WORKER.get("transport")
+    if transport is None:
+        transport = _WORKER["transport"] = InProcessTransport(renderer=job["renderer"])
     return config_memory_samples(transport, job["room_type"], job["seed"], job["mess_index"], job["perception"],
                                  job["resolution"], agent_seed=job["agent_seed"])
 
@@ -197,10 +198,10 @@ def gen_memory_samples(out: str | Path, split: str = "train", rooms_per_type: in
             rows += _worker(job)
             bar.update()
     else:
-        from tidee.agent.evaluation.tidy_eval import _one_torch_thread
+        from tidee.threads import threads_per_process, use_threads
 
         with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
-                                    initializer=_one_torch_thread) as pool:
+                                    initializer=use_threads, initargs=(threads_per_process(workers),)) as pool:
             for part in pool.map(_worker, jobs):
                 rows += part
                 bar.update()

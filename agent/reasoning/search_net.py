@@ -465,7 +465,6 @@ def snapshot_config(job: tuple[str, int, int | None], cfg: SearchGenConfig, tran
 
 
 def _gen_worker(args: tuple[tuple[str, int, int | None], SearchGenConfig]) -> dict[str, Any]:
-    from tidee.agent.evaluation.tidy_eval import _one_torch_thread  # noqa: F401  (pool initializer)
     from tidee.agent.perception import make_perception
     from tidee.protocol.transport import InProcessTransport
 
@@ -490,7 +489,7 @@ def generate_search_data(cfg: SearchGenConfig, command: str = "", progress: bool
 
     from tqdm import tqdm
 
-    from tidee.agent.evaluation.tidy_eval import _one_torch_thread
+    from tidee.threads import threads_per_process, use_threads
     from tidee.protocol.episode_log import write_json_atomic
 
     out = Path(cfg.out)
@@ -513,7 +512,8 @@ def generate_search_data(cfg: SearchGenConfig, command: str = "", progress: bool
     bar = tqdm(total=len(todo), desc=f"search data ({cfg.split})", disable=not progress)
     if cfg.workers > 1 and len(todo) > 1:
         ctx = mp.get_context("spawn")
-        with cf.ProcessPoolExecutor(cfg.workers, mp_context=ctx, initializer=_one_torch_thread) as pool:
+        with cf.ProcessPoolExecutor(cfg.workers, mp_context=ctx, initializer=use_threads,
+                                    initargs=(threads_per_process(cfg.workers),)) as pool:
             for res in pool.map(_gen_worker, [(j, cfg) for j in todo]):
                 save(res)
                 bar.update()

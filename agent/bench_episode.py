@@ -1,0 +1,137 @@
+"""``tidee bench episode``: the same episode in process and live, side by side.
+
+Each repeat runs the configuration twice, in alternating order so that machine noise falls
+on both: **in-process** (a fresh ``python`` process running ``EpisodeRunner`` over the
+in-process transport, as ``tidee eval tidy --workers 1`` does) and **live** (``tidee run``:
+server, agent and viewer as three processes on embedded Zenoh, the viewer subscribed to the
+agent's telemetry; optionally a headless Chromium showing the viewer page). Both report the
+agent's own episode wall time (reset to end, from the episode record) and the steps; the
+live run also its whole command time (process start-up and model load included). Writes
+JSON and Markdown with median, p90 and max, the live / in-process ratio of the medians, and
+the load average before and after.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+_INPROC = """
+import json, sys, time
+t0 = time.perf_counter()
+from tidee.agent.config import AgentConfig
+from tidee.agent.perception import TRAINED_RENDERER
+from tidee.agent.runner import EpisodeRunner
+from tidee.protocol.messages import EpisodeSpec
+from tidee.protocol.transport import InProcessTransport
+from tidee.threads import threads_per_process, use_threads
+use_threads(threads_per_process(1))
+a = json.loads(sys.argv[1])
+with InProcessTransport(renderer=TRAINED_RENDERER) as transport:
+    runner = EpisodeRunner(AgentConfig(variant=a["variant"]), transport, session="bench")
+    res = runner.run(EpisodeSpec(room_type=a["room_type"], seed=a["seed"], mess_index=a["mess_index"],
+                                 max_steps=a["max_steps"]))
+print(json.dumps({"steps": res.steps, "episode_s": res.wall_s, "command_s": time.perf_counter() - t0,
+                  "put_away": res.objects_fixed}))
+"""
+
+
+def _inprocess(args: dict[str, Any]) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-c", _INPROC, json.dumps(args)], capture_output=True, text=True,
+                       timeout=1800)
+    if r.returncode != 0:
+        raise RuntimeError(f"in-process episode failed: {r.stderr[-1500:]}")
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    out["command_s"] = time.perf_counter() - t0
+    return out
+
+
+def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
+    from tidee.launch import free_port
+
+    port = free_port()
+    with tempfile.TemporaryDirectory(prefix="tidee-bench-episode-") as logs:
+        cmd = [sys.executable, "-m", "tidee.cli", "run", "--variant", args["variant"], "--room-type",
+               args["room_type"], "--seed", str(args["seed"]), "--mess-index", str(args["mess_index"]),
+               "--max-steps", str(args["max_steps"]), "--linger", "0", "--port", str(port), "--log-dir", logs]
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        chromium = None
+        try:
+            if browser:
+                from tidee.viewer.browser import HeadlessChromium, find_chromium
+
+                if find_chromium() is None:
+                    raise RuntimeError("--browser: no chromium found")
+                chromium = HeadlessChromium()
+                deadline = time.monotonic() + 60
+                while time.monotonic() < deadline:
+                    try:
+                        chromium.navigate(f"http://127.0.0.1:{port}", timeout=10)
+                        break
+                    except Exception:                      # the viewer is not listening yet
+                        time.sleep(0.5)
+            rc = proc.wait(timeout=1800)
+        finally:
+            if chromium is not None:
+                chromium.close()
+            if proc.poll() is None:
+                proc.kill()
+        command_s = time.perf_counter() - t0
+        if rc != 0:
+            raise RuntimeError(f"tidee run exited {rc}")
+        name = f"{args['room_type']}_{args['seed']}_mess{args['mess_index']}"
+        summary = json.loads((Path(logs) / name / "summary.json").read_text())
+    return {"steps": summary["steps"], "episode_s": summary["wall_s"], "command_s": command_s,
+            "put_away": summary["objects_fixed"]}
+
+
+def _stats(xs: list[float]) -> dict[str, float]:
+    a = np.asarray(xs, float)
+    return {"median": round(float(np.median(a)), 2), "p90": round(float(np.percentile(a, 90)), 2),
+            "max": round(float(a.max()), 2)}
+
+
+def run_episode_bench(out: str, repeats: int = 3, room_type: str = "LivingRoom", seed: int = 200,
+                      mess_index: int = 0, variant: str = "TIDEE", max_steps: int = 1000,
+                      browser: bool = False) -> dict[str, Any]:
+    from tidee.server.bench_reset import write_bench
+
+    args = {"room_type": room_type, "seed": seed, "mess_index": mess_index, "variant": variant,
+            "max_steps": max_steps}
+    load0 = os.getloadavg()[0]
+    runs: dict[str, list[dict[str, Any]]] = {"inprocess": [], "live": []}
+    for k in range(repeats):
+        order = ("inprocess", "live") if k % 2 == 0 else ("live", "inprocess")
+        for mode in order:
+            runs[mode].append(_inprocess(args) if mode == "inprocess" else _live(args, browser))
+    result: dict[str, Any] = {
+        "configuration": f"{room_type} seed {seed} mess {mess_index}, {variant}, max {max_steps} steps",
+        "repeats": repeats, "browser_attached": browser,
+        "steps": {m: [r["steps"] for r in rs] for m, rs in runs.items()},
+    }
+    for mode, rs in runs.items():
+        result[f"{mode}_episode_s"] = _stats([r["episode_s"] for r in rs])
+        result[f"{mode}_command_s"] = _stats([r["command_s"] for r in rs])
+    result["live_over_inprocess_episode"] = round(result["live_episode_s"]["median"]
+                                                  / result["inprocess_episode_s"]["median"], 3)
+    result["live_over_inprocess_per_step"] = round(
+        float(np.median([r["episode_s"] / r["steps"] for r in runs["live"]]))
+        / float(np.median([r["episode_s"] / r["steps"] for r in runs["inprocess"]])), 3)
+    result["machine"] = f"{platform.machine()} {os.cpu_count()} cores"
+    result["load_avg_1m_before_after"] = [round(load0, 2), round(os.getloadavg()[0], 2)]
+    result["command"] = (f"tidee bench episode --repeats {repeats} --room-type {room_type} --seed {seed} "
+                         f"--mess-index {mess_index} --variant {variant} --max-steps {max_steps}"
+                         + (" --browser" if browser else "") + f" --out {out}")
+    write_bench(result, out, "Episode benchmark (`tidee bench episode`): in-process vs live (`tidee run`)")
+    return result

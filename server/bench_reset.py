@@ -1,0 +1,114 @@
+"""``tidee gen cache`` and ``tidee bench reset``: settled scenes stored ahead of a run, and
+what a reset costs without and with them.
+
+``bench reset`` resets every configuration of a split twice in one run, side by side: cold
+(an empty cache directory, so every room is generated and messed up with physics, then
+stored) and cached (a new scene library reading that directory, as a new process would).
+It writes JSON and Markdown with the median, p90 and max of each, and the machine's load.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import tempfile
+import time
+from collections.abc import Iterable
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from tidee.protocol.messages import EpisodeSpec
+from tidee.server.episode import Episode, SceneLibrary
+from tidee.server.scene_cache import SceneCache
+from tidee.server.splits import mess_config, num_configs
+
+RESET_RESOLUTION = 64      # a reset's cost is the scene, not the first frame: keep the render small
+
+
+def split_configs(split: str, limit: int | None = None) -> list[tuple[str, int, int]]:
+    n = num_configs(split) if limit is None else min(limit, num_configs(split))
+    return [(c.room_type, c.seed, c.mess_index) for c in (mess_config(split, i) for i in range(n))]
+
+
+def _reset_times(configs: Iterable[tuple[str, int, int]], cache: SceneCache | None) -> list[float]:
+    library = SceneLibrary(disk=cache)
+    ep = Episode(renderer="tiny", library=library)
+    times = []
+    try:
+        for room_type, seed, mess in configs:
+            t0 = time.perf_counter()
+            ep.reset(EpisodeSpec(room_type=room_type, seed=seed, mess_index=mess, resolution=RESET_RESOLUTION))
+            times.append(time.perf_counter() - t0)
+    finally:
+        ep.close()
+    return times
+
+
+def _fill_chunk(args: tuple[list[tuple[str, int, int]], str | None]) -> int:
+    configs, directory = args
+    cache = SceneCache(directory) if directory else SceneCache()
+    _reset_times(configs, cache)
+    return len(configs)
+
+
+def fill_cache(split: str, workers: int = 1, directory: str | None = None, limit: int | None = None) -> dict:
+    """Generate and store every configuration of ``split`` (rooms in order, each room's messes
+    in one worker so its tidy room is generated once)."""
+    configs = split_configs(split, limit)
+    by_room: dict[tuple[str, int], list[tuple[str, int, int]]] = {}
+    for c in configs:
+        by_room.setdefault(c[:2], []).append(c)
+    chunks = [(chunk, directory) for chunk in by_room.values()]
+    cache = SceneCache(directory) if directory else SceneCache()
+    before = sum(1 for c in configs if cache.path(*c).exists())
+    t0 = time.perf_counter()
+    if workers <= 1:
+        for c in chunks:
+            _fill_chunk(c)
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            list(pool.map(_fill_chunk, chunks))
+    return {"split": split, "configurations": len(configs), "already_cached": before,
+            "generated": len(configs) - before, "wall_s": round(time.perf_counter() - t0, 1),
+            "directory": str(cache.dir)}
+
+
+def _stats(xs: list[float]) -> dict[str, float]:
+    a = np.asarray(xs)
+    return {"n": int(a.size), "median_s": round(float(np.median(a)), 4), "p90_s": round(float(np.percentile(a, 90)), 4),
+            "max_s": round(float(a.max()), 4), "mean_s": round(float(a.mean()), 4)}
+
+
+def run_reset_bench(out_path: str, split: str = "test", limit: int | None = None) -> dict:
+    configs = split_configs(split, limit)
+    load_before = os.getloadavg()
+    with tempfile.TemporaryDirectory(prefix="tidee-reset-bench-") as d:
+        cold = _reset_times(configs, SceneCache(d))
+        cached = _reset_times(configs, SceneCache(d))
+    slowest = int(np.argmax(cold))
+    result = {
+        "split": split, "configurations": len(configs), "renderer": "tiny", "resolution": RESET_RESOLUTION,
+        "cold": _stats(cold), "cached": _stats(cached),
+        "speedup_median": round(float(np.median(cold) / np.median(cached)), 1),
+        "slowest_cold": {"config": list(configs[slowest]), "s": round(cold[slowest], 2)},
+        "machine": f"{platform.machine()} {os.cpu_count()} cores",
+        "load_avg_1m_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
+        "command": f"tidee bench reset --split {split}" + (f" --limit {limit}" if limit else "") + f" --out {out_path}",
+    }
+    write_bench(result, out_path, "Reset benchmark (`tidee bench reset`): cold (generate + physics) vs cached")
+    return result
+
+
+def write_bench(result: dict, out_path: str, title: str) -> None:
+    path = Path(out_path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=1) + "\n")
+    lines = [f"# {title}", "", "| metric | value |", "|---|---|"]
+    for k, v in result.items():
+        if isinstance(v, dict):
+            v = ", ".join(f"{kk} {vv}" for kk, vv in v.items())
+        lines.append(f"| {k} | {v} |")
+    path.with_suffix(".md").write_text("\n".join(lines) + "\n")
