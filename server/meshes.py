@@ -20,7 +20,6 @@ import hashlib
 import os
 import tempfile
 import threading
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -83,43 +82,61 @@ def color_uv(rgb: tuple[int, int, int]) -> tuple[float, float]:
     return (col + 0.5) / ATLAS_W, 1.0 - (row + 0.5) / ATLAS_H
 
 
-@dataclass
 class Mesh:
-    vertices: list[list[float]] = field(default_factory=list)
-    normals: list[list[float]] = field(default_factory=list)
-    uvs: list[list[float]] = field(default_factory=list)
-    indices: list[int] = field(default_factory=list)
+    """Triangles gathered part by part; written once as an OBJ file PyBullet can load.
+
+    The file's name is a digest of the arrays the parts added (not of the OBJ text), so a
+    mesh whose file exists already costs no text formatting: rebuilding a cached room is
+    mostly PyBullet's own work."""
+
+    def __init__(self) -> None:
+        self._v: list[np.ndarray] = []
+        self._n: list[np.ndarray] = []
+        self._uv: list[tuple[float, float, int]] = []
+        self._t: list[np.ndarray] = []
+        self._count = 0
+        self._hash = hashlib.sha1()
 
     def add(self, v: np.ndarray, n: np.ndarray, tris: np.ndarray, uv: tuple[float, float]) -> None:
-        base = len(self.vertices)
-        self.vertices.extend(v.tolist())
-        self.normals.extend(n.tolist())
-        self.uvs.extend([list(uv)] * len(v))
-        self.indices.extend((tris + base).ravel().tolist())
+        v, n = np.asarray(v, np.float64), np.asarray(n, np.float64)
+        t = np.asarray(tris, np.int64) + self._count
+        self._v.append(v)
+        self._n.append(n)
+        self._uv.append((float(uv[0]), float(uv[1]), len(v)))
+        self._t.append(t)
+        self._count += len(v)
+        for a in (v, n, t, np.asarray(uv, np.float64)):
+            self._hash.update(np.ascontiguousarray(a).tobytes())
+            self._hash.update(str(a.shape).encode())
 
     @property
     def empty(self) -> bool:
-        return not self.indices
+        return not any(len(t) for t in self._t)
+
+    @property
+    def vertices(self) -> np.ndarray:
+        return np.concatenate(self._v) if self._v else np.zeros((0, 3))
 
     def obj_text(self) -> str:
         """Wavefront OBJ with positions, UVs and normals, textured by the palette MTL
         (PyBullet's EGL renderer loads meshes only from files, not from vertex lists)."""
         lines = [f"mtllib {MATERIAL_FILE}", f"usemtl {MATERIAL}"]
-        lines += [f"v {x:.5f} {y:.5f} {z:.5f}" for x, y, z in self.vertices]
-        lines += [f"vt {u:.6f} {v:.6f}" for u, v in self.uvs]
-        lines += [f"vn {x:.4f} {y:.4f} {z:.4f}" for x, y, z in self.normals]
-        idx = self.indices
+        lines += [f"v {x:.5f} {y:.5f} {z:.5f}" for x, y, z in self.vertices.tolist()]
+        for u, v, k in self._uv:
+            lines += [f"vt {u:.6f} {v:.6f}"] * k
+        normals = np.concatenate(self._n).tolist() if self._n else []
+        lines += [f"vn {x:.4f} {y:.4f} {z:.4f}" for x, y, z in normals]
+        idx = np.concatenate([t.ravel() for t in self._t]).tolist() if self._t else []
         for k in range(0, len(idx), 3):
             a, b, c = idx[k] + 1, idx[k + 1] + 1, idx[k + 2] + 1
             lines.append(f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}")
         return "\n".join(lines) + "\n"
 
     def obj_file(self) -> str:
-        """Write the mesh to a content-addressed OBJ file in the cache dir; return its path."""
-        text = self.obj_text()
-        digest = hashlib.sha1(text.encode()).hexdigest()[:20]
-        path = os.path.join(mesh_dir(), f"{digest}.obj")
-        _write_once(path, text.encode())
+        """The mesh's OBJ file in the cache dir (written the first time); its path."""
+        path = os.path.join(mesh_dir(), f"m{self._hash.hexdigest()[:20]}.obj")
+        if not os.path.exists(path):
+            _write_once(path, self.obj_text().encode())
         return path
 
 

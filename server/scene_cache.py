@@ -33,9 +33,8 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 _SERVER_DIR = Path(__file__).resolve().parent
-# Modules that do not shape a scene (a change to them keeps the cache).
-_NOT_SCENE_SOURCES = frozenset({"bench_sim.py", "bench_transport.py", "demo.py", "render.py", "service.py",
-                                "scene_cache.py"})
+# What shapes a scene: the catalog, the generator, the mess-up, the world's bodies and physics.
+_SCENE_SOURCES = ("bullet.py", "meshes.py", "messup.py", "rooms.py", "scene.py", "world.py")
 
 
 def default_cache_dir() -> Path:
@@ -47,8 +46,9 @@ def default_cache_dir() -> Path:
 def generator_fingerprint(version: int) -> str:
     """A digest of everything that decides what a generated (and messed-up) scene is."""
     h = hashlib.sha256(f"rooms v{version}".encode())
-    files = sorted(p for p in _SERVER_DIR.rglob("*") if p.suffix in (".py", ".json")
-                   and p.name not in _NOT_SCENE_SOURCES and "__pycache__" not in p.parts)
+    catalog = _SERVER_DIR / "catalog"
+    files = [_SERVER_DIR / name for name in _SCENE_SOURCES]
+    files += sorted(p for p in catalog.rglob("*") if p.suffix in (".py", ".json") and "__pycache__" not in p.parts)
     for p in files:
         h.update(str(p.relative_to(_SERVER_DIR)).encode())
         h.update(p.read_bytes())

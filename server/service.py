@@ -1,14 +1,23 @@
-"""The Zenoh simulation server: one process, many concurrent episodes, one per session id.
+"""The Zenoh simulation server: many concurrent episodes, one per session id.
 
 Threads: the queryable and the client-liveliness subscriber deliver into Zenoh FIFO
 channels; one dispatcher thread per channel only turns each item into a job on a worker
 queue (no decoding, no simulation, no Zenoh calls); worker threads do everything else. No
 Python callback runs on Zenoh's threads, and a process that forgets ``stop()`` still exits
-(Zenoh's Python callbacks run on non-daemon threads that would keep it alive). A session
-is pinned to one worker (by a hash of its id), so its requests run in order and its
-episode (and its renderer's GL context) is only ever touched by one thread. One worker is
-the default: PyBullet holds the GIL, so more workers only make a slow reset of one
-session delay the others less.
+(Zenoh's Python callbacks run on non-daemon threads that would keep it alive). A new
+session goes to the worker holding the fewest sessions and stays pinned to it for its life,
+so its requests run in order and its episode is only ever touched by one thread.
+
+Processes: PyBullet holds the GIL, so threads alone would simulate every session on one
+core. By default the episodes live in child processes (``tidee.server.workers``): worker
+thread *i* owns child process *i* and is the only thread that talks to it, and the server
+holds a proxy per episode. ``ServerConfig.processes`` sets how many (0: one per available
+core, never more than ``max_sessions``); each starts with its first session, so N sessions
+run on min(N, processes) cores. A child that dies fails its sessions' next request (a
+reset starts them again in a fresh child) and the other sessions carry on. A server given
+its own ``episode_factory`` (a test's fake, an ``Episode`` in this process) runs the
+episodes in ``ServerConfig.workers`` threads of this process instead; pass an
+``EpisodeProcesses`` to run a factory of your own in child processes.
 
 Robustness: every request is decoded strictly; a bad one gets an ``ErrorReply`` saying
 what was wrong; an exception inside an episode becomes ``ErrorReply(internal)`` and the
@@ -28,7 +37,6 @@ import dataclasses
 import logging
 import queue
 import threading
-import zlib
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -42,6 +50,7 @@ from tidee.protocol.messages import (CloseReply, CloseRequest, ErrorCode, ErrorR
 from tidee.protocol.transport import EpisodeLike
 from tidee.protocol.zenoh_config import make_config
 from tidee.server.splits import check_mess_index
+from tidee.server.workers import EpisodeProcesses, available_cores
 
 log = logging.getLogger("tidee.server")
 
@@ -59,7 +68,8 @@ class ServerConfig:
     max_sessions: int = 16
     renderer: str = "tiny"             # auto | egl | tiny; tiny: the frames the shipped detector was trained on
     server_id: str = "sim0"
-    workers: int = 1                   # threads running episodes (see the module docstring)
+    processes: int = 0                 # child processes running episodes; 0: one per available core
+    workers: int = 1                   # threads running episodes when a factory is given (module docstring)
     max_request_bytes: int = 1 << 20   # requests carry no arrays
 
     def __post_init__(self) -> None:
@@ -69,6 +79,12 @@ class ServerConfig:
         for name in ("max_sessions", "workers", "max_request_bytes"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if int(self.processes) < 0:
+            raise ValueError(f"processes must be >= 0 (0: one per available core), got {self.processes}")
+
+    def process_count(self) -> int:
+        """How many child processes the default episodes run in."""
+        return min(self.processes or available_cores(), self.max_sessions)
 
 
 @dataclass
@@ -81,29 +97,55 @@ class _Job:
 
 
 @dataclass
+class _Pin:
+    worker: int                        # the worker (and so the child process) that serves the session
+    pending: int = 0                   # its jobs queued or running
+
+
+@dataclass
 class _Session:
+    worker: int
     episode: EpisodeLike | None        # None while the episode is being built
     token: Any = None                  # liveliness: tidee/alive/session/{server}/{session}
     publisher: zenoh.Publisher | None = None
 
 
 class SimServer:
-    """Serve episodes over Zenoh until ``stop()``. ``episode_factory`` builds one episode
-    (called on the session's worker thread); default: ``tidee.server.episode.Episode``."""
+    """Serve episodes over Zenoh until ``stop()``.
+
+    ``episode_factory``: None (default) runs real ``tidee.server.episode.Episode``s in
+    ``config.process_count()`` child processes; an ``EpisodeProcesses`` runs its own episodes
+    in its processes; any other callable builds an episode on the session's worker thread,
+    in this process (``config.workers`` threads). The server stops the processes it uses.
+    """
 
     def __init__(self, config: ServerConfig,
-                 episode_factory: Callable[[], EpisodeLike] | None = None) -> None:
+                 episode_factory: Callable[[], EpisodeLike] | EpisodeProcesses | None = None) -> None:
         self.config = config
-        self._factory = episode_factory or self._default_factory()
+        if episode_factory is None:
+            episode_factory = EpisodeProcesses(config.process_count(), config.renderer,
+                                               name=f"tidee-sim-{config.server_id}")
+        self.processes: EpisodeProcesses | None = None
+        if isinstance(episode_factory, EpisodeProcesses):
+            self.processes = episode_factory
+            self._open: Callable[[int], EpisodeLike] = episode_factory.open
+            workers = len(episode_factory)
+        else:
+            factory = episode_factory
+            self._open = lambda worker: factory()
+            workers = config.workers
         self._sessions: dict[str, _Session] = {}
-        self._lock = threading.Lock()              # guards _sessions and _departed
+        self._lock = threading.Lock()              # guards _sessions, _departed, _pins and _load
         # Sessions whose client's token went away: a request the client sent just before it
         # vanished must not create a session nobody will ever free.
         self._departed: OrderedDict[str, None] = OrderedDict()
+        # Which worker serves a session: set by its first job, kept while it lives or has jobs queued.
+        self._pins: dict[str, _Pin] = {}
+        self._load = [0] * workers                 # pinned sessions per worker
         self._queues: list[queue.SimpleQueue[_Job | None]] = [
-            queue.SimpleQueue() for _ in range(config.workers)]
+            queue.SimpleQueue() for _ in range(workers)]
         self._workers = [threading.Thread(target=self._work, args=(i,), name=f"tidee-sim-worker-{i}",
-                                          daemon=True) for i in range(config.workers)]
+                                          daemon=True) for i in range(workers)]
         self._z: zenoh.Session | None = None
         self._inbound: list[Any] = []              # queryable + liveliness subscriber
         self._dispatchers: list[threading.Thread] = []
@@ -132,8 +174,9 @@ class SimServer:
             dispatcher.start()
         # Declared last: a client that sees this token can already reach the queryable.
         self._server_token = self._z.liveliness().declare_token(keys.alive_server(cfg.server_id))
-        log.info("tidee server %r ready: max %d sessions, %d worker(s)", cfg.server_id, cfg.max_sessions,
-                 cfg.workers)
+        where = "a simulator process each" if self.processes is not None else "episodes in this process"
+        log.info("tidee server %r ready: max %d sessions, %d worker(s), %s", cfg.server_id, cfg.max_sessions,
+                 len(self._workers), where)
         return self
 
     def stop(self) -> None:
@@ -204,7 +247,24 @@ class SimServer:
             self._route(session).put(_Job(session, "gone"))
 
     def _route(self, session: str) -> queue.SimpleQueue[_Job | None]:
-        return self._queues[zlib.crc32(session.encode()) % len(self._queues)]
+        """The queue of the session's worker: its pinned one, else the least loaded (pinned now)."""
+        with self._lock:
+            pin = self._pins.get(session)
+            if pin is None:
+                worker = min(range(len(self._load)), key=self._load.__getitem__)
+                pin = self._pins[session] = _Pin(worker)
+                self._load[worker] += 1
+            pin.pending += 1
+        return self._queues[pin.worker]
+
+    def _job_done(self, session: str) -> None:
+        """Unpin a session that has no episode and no job left (closed, refused, never opened)."""
+        with self._lock:
+            pin = self._pins[session]
+            pin.pending -= 1
+            if pin.pending == 0 and session not in self._sessions:
+                del self._pins[session]
+                self._load[pin.worker] -= 1
 
     # --- workers ------------------------------------------------------------------------
     def _work(self, index: int) -> None:
@@ -213,11 +273,16 @@ class SimServer:
             if job.op == "gone":
                 if self._free(job.session):  # type: ignore[arg-type]
                     log.info("session %s: client gone, freed", job.session)
-                continue
-            self._answer(job)
-        for session in self.sessions:  # stopping: free the sessions this worker owns
-            if self._route(session) is q:
-                self._free(session)
+            else:
+                self._answer(job)
+            if job.session is not None:
+                self._job_done(job.session)
+        with self._lock:  # stopping: free the sessions this worker owns, then its simulator process
+            mine = [session for session, entry in self._sessions.items() if entry.worker == index]
+        for session in mine:
+            self._free(session)
+        if self.processes is not None:
+            self.processes.stop(index)
 
     def _answer(self, job: _Job) -> None:
         assert job.query is not None
@@ -307,14 +372,15 @@ class SimServer:
                         ErrorCode.server_busy,
                         f"server {self.config.server_id!r} holds {len(self._sessions)} sessions, its "
                         f"maximum (max_sessions); close one or start another server")
-                entry = self._sessions[session] = _Session(episode=None)  # reserve the slot
+                worker = self._pins[session].worker
+                entry = self._sessions[session] = _Session(worker, episode=None)  # reserve the slot
         if entry is None:
             raise ProtocolError(ErrorCode.unknown_session,
                                 f"no session {session!r} on server {self.config.server_id!r}: "
                                 f"send reset first (or it was closed)")
         if entry.episode is None:
             try:
-                entry.episode = self._factory()
+                entry.episode = self._open(entry.worker)
             except BaseException:
                 with self._lock:
                     self._sessions.pop(session, None)
@@ -343,22 +409,9 @@ class SimServer:
                 log.exception("session %s: error while freeing it", session)
         return True
 
-    # --- default episodes ------------------------------------------------------------------
-    def _default_factory(self) -> Callable[[], EpisodeLike]:
-        """Real episodes; scene caches are per worker thread (``SceneLibrary`` is not thread-safe)."""
-        local = threading.local()
-        renderer = self.config.renderer
 
-        def make_episode() -> EpisodeLike:
-            from tidee.server.episode import Episode, SceneLibrary
-            if not hasattr(local, "library"):
-                local.library = SceneLibrary()
-            return Episode(renderer=renderer, library=local.library)
-
-        return make_episode
-
-
-def serve(config: ServerConfig, episode_factory: Callable[[], EpisodeLike] | None = None) -> None:
+def serve(config: ServerConfig,
+          episode_factory: Callable[[], EpisodeLike] | EpisodeProcesses | None = None) -> None:
     """Run a server until SIGINT or SIGTERM, then shut it down cleanly."""
     from tidee.launch import wait_for_signal
 

@@ -82,6 +82,15 @@ def _cmd_bench_episode(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_scale(args: argparse.Namespace) -> int:
+    from tidee.agent.bench_scale import run_scale_bench
+
+    result = run_scale_bench(args.out, configs=args.configs, variants=args.variants, repeats=args.repeats,
+                             split=args.split)
+    print(json.dumps(result, indent=1))
+    return 0
+
+
 def _cmd_gen_cache(args: argparse.Namespace) -> int:
     from tidee.server.bench_reset import fill_cache
 
@@ -94,6 +103,15 @@ def _cmd_bench_transport(args: argparse.Namespace) -> int:
     from tidee.server.bench_transport import run_transport_bench
 
     result = run_transport_bench(args.resolution, args.steps, args.out)
+    print(json.dumps(result, indent=1))
+    return 0
+
+
+def _cmd_bench_scale_server(args: argparse.Namespace) -> int:
+    from tidee.server.bench_scale import run_scale_server_bench
+
+    result = run_scale_server_bench(args.out, steps=args.steps, resolution=args.resolution,
+                                    processes=tuple(args.processes), renderer=args.renderer)
     print(json.dumps(result, indent=1))
     return 0
 
@@ -330,11 +348,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--browser", action="store_true", help="a headless Chromium shows the viewer during live runs")
     p.add_argument("--out", default="bench/episode.json")
     p.set_defaults(func=_cmd_bench_episode)
+    p = bench.add_parser("scale", help="tidy episodes per minute with 1 vs 2 worker processes, side by side")
+    p.add_argument("--configs", type=int, default=4, help="test configurations (spread over the room types)")
+    p.add_argument("--variants", default="TIDEE", help="comma list of agents")
+    p.add_argument("--repeats", type=int, default=1)
+    p.add_argument("--split", choices=("val", "test"), default="test")
+    p.add_argument("--out", default="bench/scale.json")
+    p.set_defaults(func=_cmd_bench_scale)
     p = bench.add_parser("transport", help="in-process vs Zenoh step latency")
     p.add_argument("--resolution", type=int, default=256)
     p.add_argument("--steps", type=int, default=200)
     p.add_argument("--out", default="bench/transport.json")
     p.set_defaults(func=_cmd_bench_transport)
+    p = bench.add_parser("scale-server", help="server steps/s for 1 vs 2 concurrent sessions, per process count")
+    p.add_argument("--processes", type=int, nargs="+", default=[1, 2], help="server sizes to compare")
+    p.add_argument("--resolution", type=int, default=256)
+    p.add_argument("--steps", type=int, default=200, help="timed steps per session")
+    p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="tiny")
+    p.add_argument("--out", default="bench/scale_server.json")
+    p.set_defaults(func=_cmd_bench_scale_server)
 
     p = scene.add_parser("tour", help="start a server, look around a messy room over Zenoh, save what a client sees")
     p.add_argument("--out", default="demo_out")

@@ -43,7 +43,8 @@ def wait_for_signal() -> None:
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        stop.wait()
+        while not stop.wait(0.2):   # a bounded wait: the handler runs within 0.2 s of any signal
+            pass
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -1,0 +1,312 @@
+"""Episodes in child processes: N sessions simulate on N cores instead of sharing one GIL.
+
+An :class:`EpisodeProcess` is one child process (``multiprocessing``, "spawn" context: no
+forked Zenoh or GL state) that hosts any number of episodes, each under an integer id, and
+executes ``open`` / ``reset`` / ``step`` / ``state`` / ``close`` sent over a Pipe, one
+request at a time. Its episodes share one ``SceneLibrary`` (and so its in-memory LRU; the
+on-disk scene cache is shared by every process). A :class:`RemoteEpisode` is the parent's
+handle on one of them: it implements ``EpisodeLike``, so the server holds it exactly as it
+would hold an ``Episode``. :class:`EpisodeProcesses` is the server's set of them, one per
+worker thread; the thread with index *i* is the only one that talks to process *i*, so a
+pipe is never shared between threads and needs no lock.
+
+Errors: an exception raised in the child is pickled and raised again in the parent with its
+type and message (the child's traceback rides along as its ``__cause__``, as in
+``concurrent.futures``); one that cannot make the trip becomes a :class:`RemoteEpisodeError`
+naming the original type. A child that dies (killed, out of memory, a crash in native code)
+makes the next request of each of its episodes raise :class:`EpisodeProcessDied`; the
+process is started afresh for the next episode opened on it, and a ``reset`` of an episode
+that lived there reopens it in the new process (as an episode's exception leaves its session
+usable for a new reset).
+
+Children ignore SIGINT (a Ctrl-C reaches the whole process group; the parent decides when
+they stop) and exit when asked, or when the pipe closes because the parent is gone, so a
+killed server leaves no simulator behind once the child's current request is done.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import multiprocessing
+import multiprocessing.connection
+import os
+import pickle
+import signal
+import traceback
+from typing import Any, Callable
+
+from tidee.protocol.messages import Action, EpisodeSpec, Observation
+
+log = logging.getLogger("tidee.server")
+
+EpisodeMaker = Callable[[], Any]      # picklable (a module-level class or function, or a partial of one)
+_CONTEXT = multiprocessing.get_context("spawn")
+_STOP_GRACE_S = 5.0
+_OPS = ("reset", "step", "state")
+
+
+class EpisodeProcessDied(RuntimeError):
+    """The child process that held an episode is gone; the episode's state went with it."""
+
+
+class RemoteEpisodeError(RuntimeError):
+    """An exception from the child that could not be pickled; the message names its type."""
+
+
+class _RemoteTraceback(Exception):
+    """Carries the child's formatted traceback into the parent's log (as ``__cause__``)."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__(text)
+        self.text = text
+
+    def __str__(self) -> str:
+        return self.text
+
+
+# --- the child ------------------------------------------------------------------------------
+def _child_main(conn: multiprocessing.connection.Connection, renderer: str,
+                make_episode: EpisodeMaker | None) -> None:
+    """Serve requests from ``conn`` until told to stop (``None``) or the parent goes away."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if make_episode is None:
+        from tidee.server.episode import Episode, SceneLibrary
+        library = SceneLibrary()
+
+        def make_episode() -> Any:
+            return Episode(renderer=renderer, library=library)
+
+    episodes: dict[int, Any] = {}
+    while True:
+        try:
+            request = conn.recv()
+        except (EOFError, OSError):   # the parent is gone
+            break
+        if request is None:
+            break
+        op, episode_id, args, kwargs = request
+        try:
+            if op == "open":
+                episode = episodes[episode_id] = make_episode()
+                value: Any = getattr(episode, "renderer", renderer)
+            elif op == "close":
+                episode = episodes.pop(episode_id, None)
+                value = episode.close() if episode is not None else None
+            elif op in _OPS:
+                value = getattr(episodes[episode_id], op)(*args, **kwargs)
+            else:
+                raise ValueError(f"unknown episode request {op!r}; expected open, close or one of {_OPS}")
+            reply: tuple = (True, value)
+        except Exception as e:
+            reply = (False, _portable(e), traceback.format_exc())
+        try:
+            conn.send(reply)
+        except (BrokenPipeError, EOFError):
+            break
+        except Exception as e:  # the value would not pickle: say so instead of leaving the parent waiting
+            conn.send((False, RemoteEpisodeError(f"cannot send the {op} result to the server: "
+                                                 f"{type(e).__name__}: {e}"), traceback.format_exc()))
+    for episode in episodes.values():
+        try:
+            episode.close()
+        except Exception:
+            pass
+
+
+def _portable(e: Exception) -> Exception:
+    """``e`` if it survives pickling with its type and message, else a stand-in that names it."""
+    try:
+        back = pickle.loads(pickle.dumps(e))
+        if type(back) is type(e) and str(back) == str(e):
+            return e
+    except Exception:
+        pass
+    return RemoteEpisodeError(f"{type(e).__name__}: {e}")
+
+
+# --- the parent -----------------------------------------------------------------------------
+class EpisodeProcess:
+    """One child process hosting episodes; started on the first ``open()``, and again after it dies.
+
+    Not thread-safe: one thread (the server's worker *i*) talks to it.
+    ``make_episode``: builds an episode in the child (picklable); default: a real ``Episode``
+    with ``renderer`` and the child's shared ``SceneLibrary``.
+    """
+
+    def __init__(self, renderer: str = "tiny", make_episode: EpisodeMaker | None = None,
+                 name: str = "tidee-sim") -> None:
+        self.renderer = renderer
+        self.make_episode = make_episode
+        self.name = name
+        self.generation = 0                       # bumped at every start: episodes of a dead child are stale
+        self._process: Any = None                 # multiprocessing.Process
+        self._conn: multiprocessing.connection.Connection | None = None
+        self._ids = itertools.count()
+        self._deaths: dict[int, str] = {}         # generation -> how that child ended
+
+    @property
+    def pid(self) -> int | None:
+        """The live child's pid (None before the first start or once it has died)."""
+        return self._process.pid if self.alive else None
+
+    @property
+    def alive(self) -> bool:
+        return self._conn is not None and self._process is not None and self._process.is_alive()
+
+    def open(self) -> RemoteEpisode:
+        """A new episode in the child (starting or restarting the child if needed)."""
+        if not self.alive:
+            self._start()
+        episode_id = next(self._ids)
+        renderer = self.call(self.generation, "open", episode_id)
+        return RemoteEpisode(self, episode_id, self.generation, renderer)
+
+    def call(self, generation: int, op: str, episode_id: int, *args: Any, **kwargs: Any) -> Any:
+        """Run ``op`` on an episode in the child; its exception is raised here."""
+        if generation != self.generation or self._conn is None:
+            raise self._died_error(generation)
+        try:
+            self._conn.send((op, episode_id, args, kwargs))
+            ok, value, *child_traceback = self._conn.recv()
+        except (EOFError, OSError):   # BrokenPipeError, ConnectionResetError: the child is gone
+            self._reap()
+            raise self._died_error(generation) from None
+        if ok:
+            return value
+        value.__cause__ = _RemoteTraceback(child_traceback[0])
+        raise value
+
+    def stop(self) -> None:
+        """Ask the child to close its episodes and exit; terminate it if it does not."""
+        conn, process = self._conn, self._process
+        if conn is not None:
+            try:
+                conn.send(None)
+            except (OSError, EOFError):
+                pass
+        if process is not None:
+            process.join(_STOP_GRACE_S)
+            if process.is_alive():
+                log.warning("%s (pid %d) did not exit in %.0f s; terminating it", self.name, process.pid,
+                            _STOP_GRACE_S)
+                process.terminate()
+                process.join(2.0)
+            if process.is_alive():
+                process.kill()
+                process.join()
+        self._reap(stopping=True)
+
+    def _start(self) -> None:
+        self._reap()
+        parent_end, child_end = _CONTEXT.Pipe()
+        process = _CONTEXT.Process(target=_child_main, args=(child_end, self.renderer, self.make_episode),
+                                   name=self.name, daemon=True)
+        process.start()
+        child_end.close()   # else the parent's copy keeps the pipe open and a dead child is never noticed
+        self._process, self._conn = process, parent_end
+        self.generation += 1
+        log.info("%s: started simulator process pid %d", self.name, process.pid)
+
+    def _reap(self, stopping: bool = False) -> None:
+        """Forget a dead (or stopped) child, remembering how it ended."""
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        process, self._process = self._process, None
+        if process is None:
+            return
+        process.join(1.0)
+        if process.is_alive():   # its pipe broke but it runs on: it can serve nobody now
+            process.kill()
+            process.join()
+        code = process.exitcode
+        how = f"killed by {_signal_name(-code)}" if code < 0 else f"exit code {code}"
+        self._deaths[self.generation] = (f"{self.name} (pid {process.pid}) "
+                                         + ("was stopped" if stopping else f"died: {how}"))
+        if not stopping:
+            log.error("simulator process %s", self._deaths[self.generation])
+        process.close()
+
+    def _died_error(self, generation: int) -> EpisodeProcessDied:
+        how = self._deaths.get(generation, f"{self.name} is not running")
+        return EpisodeProcessDied(f"the simulator process that held this episode is gone ({how}); the "
+                                  f"episode is lost: send reset to start it again in a new process")
+
+
+class RemoteEpisode:
+    """``EpisodeLike`` for an episode that lives in an :class:`EpisodeProcess`."""
+
+    def __init__(self, process: EpisodeProcess, episode_id: int, generation: int, renderer: str) -> None:
+        self.process = process
+        self.episode_id = episode_id
+        self.generation = generation
+        self.renderer = renderer
+        self.pid = process.pid
+
+    def reset(self, spec: EpisodeSpec, session: str = "local", ground_truth: bool = False) -> Observation:
+        if self.generation != self.process.generation or not self.process.alive:
+            self._reopen()   # its child died: start over in a fresh one, as a reset starts over anyway
+        return self._call("reset", spec, session=session, ground_truth=ground_truth)
+
+    def step(self, action: Action, ground_truth: bool = False) -> Observation:
+        return self._call("step", action, ground_truth=ground_truth)
+
+    def state(self) -> dict[str, Any]:
+        return self._call("state")
+
+    def close(self) -> None:
+        if self.generation == self.process.generation and self.process.alive:
+            try:
+                self._call("close")
+            except EpisodeProcessDied:
+                pass
+
+    def _call(self, op: str, *args: Any, **kwargs: Any) -> Any:
+        return self.process.call(self.generation, op, self.episode_id, *args, **kwargs)
+
+    def _reopen(self) -> None:
+        fresh = self.process.open()
+        self.episode_id, self.generation, self.renderer, self.pid = (fresh.episode_id, fresh.generation,
+                                                                     fresh.renderer, fresh.pid)
+
+
+class EpisodeProcesses:
+    """The server's child processes: ``open(i)`` makes an episode in process ``i``.
+
+    Processes start lazily, on their first episode, so a server sized for every core costs
+    nothing until sessions arrive. ``make_episode``: see :class:`EpisodeProcess` (tests pass a
+    fake episode class here to run the process machinery without physics).
+    """
+
+    def __init__(self, processes: int, renderer: str = "tiny", make_episode: EpisodeMaker | None = None,
+                 name: str = "tidee-sim") -> None:
+        if processes < 1:
+            raise ValueError(f"processes must be >= 1, got {processes}")
+        self.processes = [EpisodeProcess(renderer, make_episode, name=f"{name}-{i}")
+                          for i in range(processes)]
+
+    def __len__(self) -> int:
+        return len(self.processes)
+
+    def open(self, index: int) -> RemoteEpisode:
+        return self.processes[index].open()
+
+    def stop(self, index: int) -> None:
+        self.processes[index].stop()
+
+    @property
+    def pids(self) -> list[int | None]:
+        return [p.pid for p in self.processes]
+
+
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:
+        return f"signal {number}"
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity, which a container or taskset narrows)."""
+    return len(os.sched_getaffinity(0))

@@ -1,0 +1,180 @@
+"""Episodes in child processes behind the Zenoh server: placement, errors, dead children, shutdown."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from typing import Iterator
+
+import numpy as np
+import pytest
+
+from tests.fakes import FakeEpisode
+from tests.test_service import REPO, SPEC, client, free_endpoint, start_server, wait_until
+from tidee.protocol.client import RemoteError, SimClient
+from tidee.protocol.messages import Action, ActionName, EpisodeSpec, ErrorCode, Observation
+from tidee.server.service import ServerConfig, SimServer
+from tidee.server.workers import EpisodeProcesses, RemoteEpisodeError, _portable
+
+
+@pytest.fixture
+def two_process_server() -> Iterator[SimServer]:
+    """Fake episodes (no physics) in two child processes: the process machinery, fast."""
+    srv = start_server(EpisodeProcesses(2, make_episode=FakeEpisode), max_sessions=4)
+    yield srv
+    srv.stop()
+
+
+def pid_of(server: SimServer, session: str) -> int:
+    episode = server._sessions[session].episode
+    assert episode is not None
+    return episode.pid  # type: ignore[attr-defined]
+
+
+def assert_same_observation(a: Observation, b: Observation) -> None:
+    for field in dataclasses.fields(Observation):
+        x, y = getattr(a, field.name), getattr(b, field.name)
+        if field.name == "ground_truth" and x is not None:
+            assert np.array_equal(x.instance_seg, y.instance_seg) and x.objects == y.objects
+        elif isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype and np.array_equal(x, y), field.name
+        else:
+            assert x == y, field.name
+
+
+def test_process_count_follows_the_cores_and_the_session_limit() -> None:
+    assert ServerConfig(processes=3).process_count() == 3
+    assert ServerConfig(processes=0, max_sessions=1).process_count() == 1
+    assert ServerConfig(processes=0, max_sessions=64).process_count() == len(os.sched_getaffinity(0))
+    with pytest.raises(ValueError, match="processes must be >= 0"):
+        ServerConfig(processes=-1)
+
+
+def test_real_episode_in_a_child_process_matches_one_in_this_process() -> None:
+    pytest.importorskip("pybullet")
+    from tidee.server.episode import Episode
+
+    spec = EpisodeSpec(room_type="Kitchen", seed=3, mess_index=None, resolution=64, max_steps=20)
+    actions = [Action(ActionName.RotateLeft), Action(ActionName.MoveAhead), Action(ActionName.LookDown),
+               Action(ActionName.PickupObject, 0.5, 0.6)]
+    srv = start_server(None, renderer="tiny", processes=1)   # None: real episodes in child processes
+    local = Episode(renderer="tiny")
+    try:
+        assert srv.processes is not None and len(srv.processes) == 1
+        with client(srv) as c:
+            remote_obs = [c.reset(spec, ground_truth=True)] + [c.step(a, ground_truth=True) for a in actions]
+            assert pid_of(srv, c.session_id) not in (None, os.getpid())
+            local_obs = [local.reset(spec, session=c.session_id, ground_truth=True)]
+            local_obs += [local.step(a, ground_truth=True) for a in actions]
+            assert c.state() == local.state()
+        for remote, here in zip(remote_obs, local_obs):
+            assert_same_observation(remote, here)
+    finally:
+        local.close()
+        srv.stop()
+    assert srv.processes.pids == [None]   # stop() ended the child
+
+
+def test_new_sessions_go_to_the_least_loaded_process(two_process_server: SimServer) -> None:
+    srv = two_process_server
+    a, b, c = client(srv), client(srv), client(srv)
+    a.reset(SPEC)
+    b.reset(SPEC)
+    assert pid_of(srv, a.session_id) != pid_of(srv, b.session_id)
+    assert {srv._sessions[s].worker for s in (a.session_id, b.session_id)} == {0, 1}
+    freed = pid_of(srv, a.session_id)
+    a.close()
+    c.reset(SPEC)   # the process a left has no session now: c goes there, not beside b
+    assert pid_of(srv, c.session_id) == freed
+    assert b.step(Action(ActionName.MoveAhead)).step == 1 and c.step(Action(ActionName.MoveAhead)).step == 1
+    b.close()
+    c.close()
+
+
+def test_an_exception_in_the_child_becomes_internal_error_and_the_session_survives() -> None:
+    srv = start_server(EpisodeProcesses(1, make_episode=functools.partial(FakeEpisode, fail_on="LookUp")))
+    try:
+        with client(srv) as c:
+            c.reset(SPEC)
+            with pytest.raises(RemoteError) as info:
+                c.step(Action(ActionName.LookUp))
+            assert info.value.code == ErrorCode.internal
+            assert "step failed: RuntimeError: fake failure on LookUp" in info.value.message
+            assert c.step(Action(ActionName.MoveAhead)).step == 1
+    finally:
+        srv.stop()
+
+
+def test_an_exception_that_cannot_be_pickled_is_named() -> None:
+    class Local(Exception):   # a local class does not pickle
+        pass
+
+    portable = _portable(Local("boom"))
+    assert isinstance(portable, RemoteEpisodeError) and str(portable) == "Local: boom"
+    same = ValueError("kept")
+    assert _portable(same) is same
+
+
+def test_a_killed_child_fails_its_session_clearly_and_others_keep_working(
+        two_process_server: SimServer) -> None:
+    srv = two_process_server
+    victim, survivor = client(srv), client(srv)
+    victim.reset(SPEC)
+    survivor.reset(SPEC)
+    dead_pid = pid_of(srv, victim.session_id)
+    os.kill(dead_pid, signal.SIGKILL)
+    with pytest.raises(RemoteError) as info:
+        victim.step(Action(ActionName.MoveAhead))
+    assert info.value.code == ErrorCode.internal
+    assert "EpisodeProcessDied" in info.value.message and "killed by SIGKILL" in info.value.message
+    assert "send reset" in info.value.message
+    with pytest.raises(RemoteError, match="EpisodeProcessDied"):   # still lost, until a reset
+        victim.state()
+    assert survivor.step(Action(ActionName.MoveAhead)).step == 1
+    # A reset starts the session again in a fresh child on the same worker.
+    assert victim.reset(SPEC).step == 0
+    assert pid_of(srv, victim.session_id) not in (dead_pid, pid_of(srv, survivor.session_id))
+    assert victim.step(Action(ActionName.MoveAhead)).step == 1
+    newcomer = client(srv)
+    assert newcomer.reset(SPEC).step == 0
+    for c in (victim, survivor, newcomer):
+        c.close()
+
+
+def test_sigterm_to_tidee_server_leaves_no_process_behind() -> None:
+    pytest.importorskip("pybullet")
+    endpoint, sid = free_endpoint(), f"t{uuid.uuid4().hex[:8]}"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    command = [sys.executable, "-m", "tidee.cli", "server", "--endpoint", endpoint, "--server-id", sid,
+               "--renderer", "tiny", "--processes", "2"]
+    # Its own process group: what must be empty at the end.
+    proc = subprocess.Popen(command, cwd=REPO, env=env, start_new_session=True)
+    group = proc.pid
+
+    def group_alive() -> bool:
+        try:
+            os.killpg(group, 0)
+            return True
+        except ProcessLookupError:
+            return False
+
+    try:
+        with SimClient(endpoint=endpoint, server_id=sid, timeout=60.0, connect_timeout=30.0) as a, \
+                SimClient(endpoint=endpoint, server_id=sid, timeout=60.0, connect_timeout=30.0) as b:
+            small = EpisodeSpec(room_type="Kitchen", seed=3, resolution=32)
+            a.reset(small)
+            b.reset(small)
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(timeout=20) == 0
+        assert wait_until(lambda: not group_alive(), timeout=10.0), "processes of the server's group remain"
+    finally:
+        if group_alive():
+            os.killpg(group, signal.SIGKILL)
+        if proc.poll() is None:
+            proc.wait()
