@@ -80,24 +80,53 @@ def format_summary(s: EpisodeSummary) -> str:
     return line + (f". Replay: {s.replay}" if s.replay else "")
 
 
+@dataclass
+class AgentModels:
+    """The loaded models an agent configuration needs. Loading them takes seconds, so a batch
+    worker keeps one set per ``key`` and reuses it across episodes (none keeps state between
+    calls; a typed preference retrains the language OOP head, so a live agent owns its set)."""
+
+    key: tuple[Any, ...]
+    perception: Any
+    depth_net: Any
+    oop: Any
+    placement: Any
+    searcher: Any
+
+    @staticmethod
+    def key_of(config: AgentConfig) -> tuple[Any, ...]:
+        return (config.perception, config.detection_threshold, config.depth, config.oop, config.variant)
+
+    @staticmethod
+    def load(config: AgentConfig) -> AgentModels:
+        perception = make_perception(config.perception, config.detection_threshold)
+        depth_net = None
+        if config.depth == "estimated":
+            from tidee.agent.perception.depth_net import DepthEstimator
+
+            depth_net = DepthEstimator.load()
+        oop = make_oop(config.oop)
+        placement, searcher = make_placement(config.variant)
+        return AgentModels(AgentModels.key_of(config), perception, depth_net, oop, placement, searcher)
+
+
 class EpisodeRunner:
     def __init__(self, config: AgentConfig, transport: SimTransport, session: str = "agent",
                  publisher: TelemetryPublisher | None = None, log_dir: str | Path | None = None,
-                 on_step: Callable[[int], None] | None = None) -> None:
+                 on_step: Callable[[int], None] | None = None, models: AgentModels | None = None) -> None:
         self.cfg = config
         self.transport = transport
         self.session = session
         self.publisher = publisher
         self.log_dir = Path(log_dir) if log_dir else None
         self.on_step = on_step
-        self.perception = make_perception(config.perception, config.detection_threshold)
-        self.depth_net = None
-        if config.depth == "estimated":
-            from tidee.agent.perception.depth_net import DepthEstimator
-
-            self.depth_net = DepthEstimator.load()
-        self.oop = make_oop(config.oop)
-        self.placement, self.searcher = make_placement(config.variant)
+        m = models if models is not None else AgentModels.load(config)
+        if m.key != AgentModels.key_of(config):
+            raise ValueError(f"models loaded for {m.key} cannot serve an agent configured as "
+                             f"{AgentModels.key_of(config)}")
+        self.models = m
+        self.perception, self.depth_net, self.oop = m.perception, m.depth_net, m.oop
+        self.placement, self.searcher = m.placement, m.searcher
         self._search_sent: tuple[str, int] | None = None
         self.paused = False
         self._single_steps = 0

@@ -39,7 +39,7 @@ def select_configs(split: str, episodes: int | None) -> list[Any]:
 
 def _run_one(job: dict[str, Any]) -> dict[str, Any]:
     """One episode in this worker's own simulator (module-level so it pickles)."""
-    from tidee.agent.runner import EpisodeRunner
+    from tidee.agent.runner import AgentModels, EpisodeRunner
     from tidee.protocol.messages import EpisodeSpec
     from tidee.protocol.transport import InProcessTransport
 
@@ -52,7 +52,11 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
                       policy=PolicyConfig(missing_top=job["missing_top"]))
     spec = EpisodeSpec(room_type=job["room_type"], seed=job["seed"], mess_index=job["mess_index"],
                        resolution=job["resolution"], max_steps=job["max_steps"])
-    runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.get("log_dir"))
+    models = _WORKER.setdefault("models", {})
+    key = AgentModels.key_of(cfg)
+    if key not in models:
+        models[key] = AgentModels.load(cfg)
+    runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.get("log_dir"), models=models[key])
     res = runner.run(spec, evaluate=True,
                      episode_name=f"{job['variant']}_{spec.room_type}_{spec.seed}_mess{spec.mess_index}")
     assert res.record is not None
@@ -61,7 +65,7 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
     return record
 
 
-_WORKER: dict[str, Any] = {}     # this process's simulator, reused by every episode it runs
+_WORKER: dict[str, Any] = {}     # this process's simulator and loaded models, reused by every episode it runs
 
 
 def _init_worker(renderer: str, threads: int) -> None:
