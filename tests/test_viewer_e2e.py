@@ -2,8 +2,15 @@
 
 The telemetry comes from the real system: ``tidee server`` and ``tidee agent`` start as
 separate processes on a loopback endpoint (a small test room at a small resolution, oracle
-perception), the viewer runs in this process, and Chromium loads its page.
-Set ``TIDEE_VIEWER_SCREENSHOT=docs/viewer.png`` to refresh the README's screenshot.
+perception, a short step budget), the viewer runs in this process, and Chromium loads its
+page. Three moments are screenshotted and checked panel by panel (each panel's region, found
+in the page's DOM, must hold a picture): early (the first map), mid-episode (an object
+labelled out of place, the agent paused from the page) and after the episode ended (the
+"Episode finished" panel with the agent's summary, the page still live, not dimmed).
+Set ``TIDEE_VIEWER_SHOTS=DIR`` to keep the screenshots (early.png, mid.png, finished.png, and
+finished_rgb.png: the 3D map in camera colours). The docs' pictures come from a replayed
+episode instead: ``tidee viewer --replay LOG --screenshot docs/viewer.png --annotated
+docs/viewer_annotated.png --window 1280x960``.
 """
 
 from __future__ import annotations
@@ -19,7 +26,7 @@ import cv2
 import numpy as np
 import pytest
 from tidee.viewer.browser import (CANVAS, DISMISS_SOFTWARE_GL_NOTE, HEIGHT, WIDTH, HeadlessChromium,
-                                  distinct_colors, find_chromium, map_drawn)
+                                  distinct_colors, find_chromium, map_drawn, region_drawn)
 from tidee.agent.classes import CLASSES  # the agent's class list (plain data, no torch)
 
 from tests.test_service import free_endpoint
@@ -30,6 +37,10 @@ pytestmark = pytest.mark.skipif(find_chromium() is None,
 CLICK_BUTTON = """(label => {
   const b = [...document.querySelectorAll('button')].find(b => b.textContent.trim() === label);
   if (b) { b.click(); return true; } return false; })"""
+# viser dims the whole GUI (opacity 0.5) while its websocket is down: count the dimmed wrappers
+DIMMED = """[...document.querySelectorAll('div')].filter(d => d.style.transition.startsWith('opacity')
+  && d.style.opacity === '0.5').length"""
+MAX_STEPS = 180         # the episode ends on its step budget (about 6 steps/s here) after the agent flags objects
 
 
 @dataclass
@@ -46,7 +57,8 @@ def telemetry_source(tmp_path) -> Iterator[TelemetrySource]:
     server = subprocess.Popen(tidee + ["server", "--endpoint", endpoint, "--renderer", "tiny"])
     agent = subprocess.Popen(tidee + ["agent", "--endpoint", endpoint, "--session", session,
                                       "--room-type", "LivingRoom", "--seed", "200", "--mess-index", "0",
-                                      "--resolution", "128", "--max-steps", "800", "--serve", "--perception", "oracle",
+                                      "--resolution", "128", "--max-steps", str(MAX_STEPS), "--serve",
+                                      "--perception", "oracle",
                                       "--oop", "relation_stats",   # flags the most: labels to see
                                       "--log-dir", str(tmp_path / "runs")])
     try:
@@ -69,52 +81,96 @@ def wait_until(predicate, timeout: float, what: str) -> None:
         time.sleep(0.1)
 
 
-def test_viewer_draws_the_map_and_objects_in_headless_chromium(telemetry_source: TelemetrySource, tmp_path):
+def check_panels(shot: np.ndarray, boxes: dict, names: tuple[str, ...], moment: str) -> None:
+    """Each named panel is on the page and its region holds a picture."""
+    for name in names:
+        assert name in boxes, f"{moment}: no {name} panel on the page (found {sorted(boxes)})"
+        assert region_drawn(shot, boxes[name]), f"{moment}: the {name} panel at {boxes[name]} is blank"
+
+
+def save(shot: np.ndarray, directory: str, name: str) -> None:
+    os.makedirs(directory, exist_ok=True)
+    cv2.imwrite(os.path.join(directory, name), cv2.cvtColor(shot, cv2.COLOR_RGB2BGR))
+
+
+def test_viewer_early_mid_and_finished_in_headless_chromium(telemetry_source: TelemetrySource, tmp_path):
     from tidee.viewer.app import ViewerConfig, run_viewer
 
     t0 = time.monotonic()
+    shots_dir = os.environ.get("TIDEE_VIEWER_SHOTS") or str(tmp_path / "shots")
     viewer = run_viewer(ViewerConfig(endpoint=telemetry_source.endpoint, port=0, session=telemetry_source.session))
     try:
         app = viewer.app
-        wait_until(lambda: app.stats.applied["maps"] > 0 and app.stats.applied["memory"] > 0, 60,
-                   "the viewer to receive a map and the object memory")
-        # After mapping, the agent flags out-of-place objects (the viewer labels them).
-        wait_until(lambda: any("out of place" in h.text
-                               for h in app.scene.labels.handles[:app.scene.labels.shown]), 60,
-                   "an out-of-place object in the viewer's scene")
         with HeadlessChromium(width=WIDTH, height=HEIGHT) as browser:
             browser.navigate(viewer.url)
             wait_until(lambda: browser.evaluate("document.querySelectorAll('canvas').length") or False, 20,
                        "the page's canvas")
-            first = browser.wait_for(lambda img: map_drawn(img, len(CLASSES)), timeout=30)
-            assert distinct_colors(first[CANVAS]) > 500
-
-            # the controls reach the agent, and its acknowledgement comes back to the page
+            # 1. early: the first map reaches the page. The agent is paused meanwhile (a browser
+            # drawing WebGL in software is slow beside a running agent on a small machine).
+            wait_until(lambda: app.stats.applied["maps"] > 0 and app.stats.applied["frame"] > 0, 60,
+                       "the viewer to receive a map and a frame")
+            app.command("pause")
+            browser.wait_for(lambda img: map_drawn(img, len(CLASSES)), timeout=60)
             browser.evaluate(DISMISS_SOFTWARE_GL_NOTE)
+            early = browser.wait_settled(timeout=15)
+            save(early, shots_dir, "early.png")
+            check_panels(early, browser.panel_boxes(), ("camera", "map", "canvas", "plot", "episode"), "early")
+            assert distinct_colors(early[CANVAS]) > 500
+            assert app.stats.last_step < MAX_STEPS / 2, f"not early: step {app.stats.last_step}"
+            app.command("resume")
+
+            # 2. mid-episode: the agent flags objects (labelled in 3D) and is paused at once (its
+            # episode would otherwise run on while the browser draws); then the page's own Pause
+            # button reaches the agent, and its acknowledgement comes back to the page
+            wait_until(lambda: any("out of place" in h.text
+                                   for h in app.scene.labels.handles[:app.scene.labels.shown]), 90,
+                       "an out-of-place object labelled in the viewer's scene")
+            app.command("pause")
             assert browser.evaluate(f"{CLICK_BUTTON}('Pause')") is True
             wait_until(lambda: "pause" in app.panels.ack.content and "agent: ok" in app.panels.ack.content, 15,
                        "the agent's ack of the pause command")
-            time.sleep(1.5)  # the paused status and a last frame reach the page
+            assert "summary" not in app._latest, "the episode ended before the agent was paused"
             browser.evaluate(DISMISS_SOFTWARE_GL_NOTE)
-            shot = browser.screenshot()
+            mid = browser.wait_settled(timeout=15)   # the paused status, a last frame and the labels drawn
+            save(mid, shots_dir, "mid.png")
+            boxes = browser.panel_boxes()
+            check_panels(mid, boxes, ("camera", "map", "canvas", "plot", "controls"), "mid")
+            assert map_drawn(mid, len(CLASSES))
+            assert float(mid[CANVAS].astype(np.float32).std()) > 20.0
+            assert distinct_colors(mid[CANVAS]) > 500 and distinct_colors(mid) > 2000
+            shown = app.scene.node_names()
+            assert shown["/map/voxels"] and shown["/objects/boxes"] and shown["/agent/camera"]
+            assert app.scene.counts["voxels"] > 300 and app.scene.counts["objects"] >= 3
+            # only the objects that matter are labelled (out of place, target, held), not all
+            assert 1 <= app.scene.counts["labels"] <= app.scene.counts["objects"]
+            assert app.feed is not None and app.feed.selected == telemetry_source.session
 
-        # the viewer's scene holds the map and the object memory
-        shown = app.scene.node_names()
-        assert shown["/map/voxels"] and shown["/objects/boxes"] and shown["/agent/camera"]
-        assert app.scene.counts["voxels"] > 300 and app.scene.counts["objects"] >= 3
-        # (the out-of-place label was waited for above: by now the agent may have put that
-        # object away, which removes its label)
-        labels = [h.text for h in app.scene.labels.handles[:app.scene.labels.shown]]
-        assert len(labels) >= 3, labels
-        assert app.feed is not None and app.feed.selected == telemetry_source.session
+            # 3. the end: resumed, the agent spends its step budget and sends its summary
+            assert browser.evaluate(f"{CLICK_BUTTON}('Resume')") is True
+            wait_until(lambda: "summary" in app._latest, 150, "the agent's episode summary")
+            wait_until(lambda: "Episode finished" in browser.text(), 10, "the Episode finished panel on the page")
+            browser.evaluate(DISMISS_SOFTWARE_GL_NOTE)
+            finished = browser.wait_settled(timeout=15)
+            save(finished, shots_dir, "finished.png")
+            boxes = browser.panel_boxes()
+            check_panels(finished, boxes, ("summary", "camera", "map", "canvas"), "finished")
+            text = browser.text()
+            summary = app._latest["summary"]
+            for words in ("Episode finished", "moved", "found", "put away", "plausible", "false picks",
+                          f"{summary.steps} steps", "tidee viewer --replay"):
+                assert words in text, f"{words!r} is not on the finished page"
+            assert browser.evaluate(DIMMED) == 0, "the page is dimmed: its connection to the viewer dropped"
+            assert map_drawn(finished, len(CLASSES))
 
-        # and the browser drew it: a varied picture, not a blank page
-        canvas = shot[CANVAS]
-        assert map_drawn(shot, len(CLASSES))
-        assert float(canvas.astype(np.float32).std()) > 20.0
-        assert distinct_colors(canvas) > 500 and distinct_colors(shot) > 2000
-        path = os.environ.get("TIDEE_VIEWER_SCREENSHOT") or str(tmp_path / "viewer.png")
-        cv2.imwrite(path, cv2.cvtColor(shot, cv2.COLOR_RGB2BGR))
-        assert time.monotonic() - t0 < 150
+            # the 3D map in camera colours: the agent's frames fused into a coloured cloud
+            app.set_colour_mode("rgb")
+            wait_until(lambda: app.scene.node_names()["/map/rgb"], 10, "the camera-coloured cloud")
+            assert app.scene.counts["rgb_points"] > 1000
+            rgb = browser.wait_settled(timeout=15)
+            save(rgb, shots_dir, "finished_rgb.png")
+            canvas, semantic = rgb[CANVAS], finished[CANVAS]
+            assert region_drawn(rgb, boxes["canvas"]) and distinct_colors(canvas) > 500
+            assert float(np.any(canvas != semantic, axis=2).mean()) > 0.05   # other colours than the semantic map's
+        assert time.monotonic() - t0 < 240
     finally:
         viewer.stop()

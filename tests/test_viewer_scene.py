@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from tidee.protocol.messages import AgentCommand, Detection2D
+from tidee.protocol.messages import AgentCommand, Detection2D, EpisodeSummary, TrackedObjectMsg
 from tidee.viewer import geometry, images, palette
 from tidee.viewer.synthetic import CLASSES, SyntheticEpisode, write_synthetic_log
 
@@ -156,6 +156,71 @@ def test_known_plane_frames_the_mapped_cells_only():
     assert plane.center[:2] == pytest.approx((-6.4 + 6.0, -6.4 + 7.5))
 
 
+def _overlapping_pairs(boxes: np.ndarray, gap: float) -> list[tuple[int, int]]:
+    pairs = []
+    for i in range(len(boxes)):
+        for j in range(i):
+            a, b = boxes[i], boxes[j]
+            if a[0] < b[2] + gap and b[0] < a[2] + gap and a[1] < b[3] + gap and b[1] < a[3] + gap:
+                pairs.append((i, j))
+    return pairs
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_placed_labels_never_overlap_on_screen(seed):
+    rng = np.random.default_rng(seed)
+    plane = geometry.FloorPlane((0.5, 0.5, 0.0), 5.0, 4.0)
+    view = geometry.screen_view_looking_at(geometry.overview_camera(plane), 1.3, 720)
+    n = 40
+    anchors = np.c_[rng.normal(0.5, 0.4, (n, 2)), rng.uniform(0.2, 1.2, n)]   # a tight cluster
+    sizes = np.c_[rng.uniform(40, 190, n), np.full(n, 17.0)]
+    placed = geometry.place_labels(anchors, sizes, view, gap_px=3.0)
+    before = geometry.label_boxes(view.project(anchors)[0], sizes)
+    assert _overlapping_pairs(before, 3.0)                              # crowded as given ...
+    boxes = geometry.label_boxes(view.project(placed)[0], sizes)
+    assert _overlapping_pairs(boxes, 3.0 - 1e-6) == []                 # ... and apart once placed
+    assert np.allclose(placed[0], anchors[0])                           # the first keeps its spot
+    lift = view.project(anchors)[0][:, 1] - view.project(placed)[0][:, 1]
+    assert np.all(lift >= -1e-6)                                        # labels only move up on screen
+    assert np.allclose(view.project(placed)[0][:, 0], view.project(anchors)[0][:, 0])   # never sideways
+    assert np.array_equal(placed, geometry.place_labels(anchors, sizes, view, gap_px=3.0))   # deterministic
+
+
+def test_labels_apart_stay_put_and_labels_behind_the_camera_too():
+    view = geometry.screen_view((0.0, 0.0, 5.0), geometry.rotation_to_wxyz(np.diag([1.0, -1.0, -1.0])), 1.0, 600)
+    anchors = np.array([[-2.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 9.0]])   # the last is behind the camera
+    placed = geometry.place_labels(anchors, np.array([[60.0, 17.0]] * 3), view)
+    assert np.allclose(placed, anchors)
+    with pytest.raises(ValueError, match="one size per anchor"):
+        geometry.place_labels(anchors, np.zeros((2, 2)), view)
+
+
+def test_screen_view_projects_like_a_pinhole():
+    # a camera 4 m above the origin looking straight down, image +x along world +x
+    view = geometry.screen_view((0.0, 0.0, 4.0), geometry.rotation_to_wxyz(np.diag([1.0, -1.0, -1.0])),
+                                2 * math.atan(0.5), 400)       # focal length 400 px
+    uv, depth = view.project(np.array([[1.0, 0.5, 0.0]]))
+    assert depth[0] == pytest.approx(4.0)
+    assert uv[0] == pytest.approx((100.0, -50.0))               # +y world is up on screen (-v)
+    look = geometry.screen_view_looking_at(geometry.CameraView((0.0, 0.0, 4.0), (0.0, 0.0, 0.0)), 1.0, 400,
+                                           up=(0.0, 1.0, 0.0))
+    assert look.project(np.array([[0.0, 1.0, 0.0]]))[0][0, 1] < 0   # up in the world is up on screen
+
+
+def test_unproject_depth_follows_the_protocol_convention():
+    k = np.array([[2.0, 0, 2.0], [0, 2.0, 2.0], [0, 0, 1.0]])
+    pose = geometry.camera_pose_from_agent(1.0, 0.0, 0.0, 0.0, 1.0)    # at (1, 0, 1) looking along +x
+    depth = np.full((4, 4), 2.0, np.float32)
+    depth[0, 0], depth[3, 3] = 0.0, np.nan                              # invalid: dropped
+    pts, pix = geometry.unproject_depth(depth, k, pose)
+    assert len(pts) == 14 and pts.dtype == np.float32
+    centre = pts[(pix[:, 0] == 2) & (pix[:, 1] == 2)][0]               # pixel (u, v) = (cx, cy)
+    assert centre == pytest.approx((3.0, 0.0, 1.0))                    # 2 m straight ahead
+    right = pts[(pix[:, 0] == 2) & (pix[:, 1] == 3)][0]                # one column right: -y, 1 m over
+    assert right == pytest.approx((3.0, -1.0, 1.0))
+    assert len(geometry.unproject_depth(depth, k, pose, stride=2)[0]) == 3
+
+
 # --- images -----------------------------------------------------------------------------------
 
 def test_heatmap_texture_is_the_transposed_grid_with_alpha():
@@ -206,6 +271,70 @@ def test_detections_drawn_with_warning_colour_for_out_of_place():
     assert np.any(np.all(img == palette.TRACKED_RGB, axis=2))
 
 
+def test_progress_plot_has_a_fixed_size_for_any_history():
+    empty = images.progress_plot(np.zeros((0, 3)))
+    one = images.progress_plot(np.array([[0.0, 0.0, 1.0]]))
+    many = images.progress_plot(np.array([(s, s // 40, min(1 + s // 25, 5)) for s in range(193)], float))
+    for img in (empty, one, many):
+        assert img.shape == (images.PLOT_SIZE[1], images.PLOT_SIZE[0], 3) and img.dtype == np.uint8
+    put_away, found = (np.all(many == c, axis=2) for c in (palette.WARNING_RGB, palette.TRAJECTORY_RGB))
+    assert put_away.sum() > 300 and found.sum() > 300                  # both series drawn
+    def has(img: np.ndarray, color: palette.RGB) -> bool:
+        return bool(np.any(np.all(img == color, axis=2)))
+
+    legend, plot_area = slice(0, 22), slice(22, None)
+    assert has(empty[legend], palette.WARNING_RGB) and not has(empty[plot_area], palette.WARNING_RGB)
+    assert has(one[plot_area], palette.WARNING_RGB) and has(one[plot_area], palette.TRAJECTORY_RGB)  # a dot each
+    assert float(empty.std()) > 10                                       # axes and ticks, not a blank
+
+
+def test_crop_to_known_keeps_the_mapped_part_square():
+    occ = np.zeros((256, 256), np.uint8)
+    occ[100:140, 120:180] = 1
+    explored = occ > 0
+    crop, exp, origin = images.crop_to_known(occ, explored, (-6.4, -6.4), 0.05, margin=0.5)
+    assert crop.shape[0] == crop.shape[1] == 60 + 20                   # the longer side plus margins
+    assert exp.shape == crop.shape and crop.sum() == occ.sum()         # every known cell kept
+    # rows 100-139 and columns 120-179, 10 cells of margin: an 80-cell square centred on (120, 150)
+    assert origin == pytest.approx((-6.4 + 0.05 * 80, -6.4 + 0.05 * 110))
+    whole = images.crop_to_known(np.zeros((8, 8), np.uint8), None, (0.0, 0.0), 0.1)
+    assert whole[0].shape == (8, 8) and whole[2] == (0.0, 0.0)
+    edge = np.zeros((50, 50), np.uint8)
+    edge[0:3, 45:50] = 1                                               # at a corner: the crop stays inside
+    c, _, _ = images.crop_to_known(edge, None, (0.0, 0.0), 0.1, margin=1.0)
+    assert c.shape == (25, 25) and c.sum() == edge.sum()
+
+
+# --- the camera-coloured cloud ------------------------------------------------------------------
+
+def test_colour_cloud_fuses_frames_latest_colour_wins_and_stays_capped():
+    from tidee.viewer.colour_cloud import ColourCloud
+
+    k = np.array([[8.0, 0, 8.0], [0, 8.0, 8.0], [0, 0, 1.0]])
+    pose = geometry.camera_pose_from_agent(0.0, 0.0, 0.0, 0.0, 1.0)    # looking along +x from 1 m up
+    depth = np.full((16, 16), 2.0, np.float32)                         # a wall 2 m ahead
+    red, blue = np.zeros((16, 16, 3), np.uint8), np.zeros((16, 16, 3), np.uint8)
+    red[..., 0], blue[..., 2] = 200, 200
+    cloud = ColourCloud(voxel=0.1, cap=10_000, stride=1, floor_z=0.05, ceiling_z=2.4)
+    n = cloud.add(red, depth, pose, k)
+    pts = cloud.points()
+    assert n == len(pts) > 20 and np.allclose(pts[:, 0], 2.05)        # voxel centres on the wall
+    assert pts[:, 2].min() > 0.0 and pts[:, 2].max() < 2.4
+    assert np.all(cloud.colors() == (200, 0, 0))
+    assert cloud.add(blue, depth, pose, k) == n                         # the same voxels, seen again ...
+    assert np.all(cloud.colors() == (0, 0, 200))                        # ... take the newest colour
+    down = geometry.camera_pose_from_agent(0.0, 0.0, 0.0, 90.0, 1.0)   # looking straight down at the floor
+    assert cloud.add(red, np.full((16, 16), 1.0, np.float32), down, k) == n   # floor points: dropped
+    small = ColourCloud(voxel=0.1, cap=30, stride=1)
+    small.add(red, depth, pose, k)
+    shifted = pose.copy()
+    shifted[1, 3] = 5.0                                                 # another wall, elsewhere
+    small.add(blue, depth, shifted, k)
+    assert len(small) == 30 and np.all(small.colors() == (0, 0, 200))  # over the cap: the newest stay
+    small.clear()
+    assert len(small) == 0 and small.points().shape == (0, 3)
+
+
 def test_depth_colormap_blacks_out_invalid_depth():
     depth = np.array([[0.0, 1.0], [np.nan, 4.0]], np.float32)
     img = images.colorize_depth(depth, min_width=2)
@@ -249,13 +378,19 @@ def test_scene_updates_assign_to_the_same_nodes(scene_view):
     assert scene_view.heatmap.render_width == pytest.approx(maps.occupancy.shape[0] * maps.cell)
 
 
-def test_scene_layers_occupancy_only_and_clear(scene_view):
+def test_scene_layers_colour_modes_and_clear(scene_view):
     ep = SyntheticEpisode()
     for kind, msg in ep.messages(300).items():
         scene_view.apply(kind, msg)
     by_class = scene_view.voxels.colors.copy()
-    scene_view.set_occupancy_only(True)
+    scene_view.set_colour_mode("height")
     assert not np.array_equal(by_class, scene_view.voxels.colors)
+    scene_view.set_colour_mode("rgb")              # the camera-coloured cloud replaces the voxel map
+    assert scene_view.rgb_cloud.visible and not scene_view.voxels.visible
+    scene_view.set_colour_mode("semantic")
+    assert scene_view.voxels.visible and not scene_view.rgb_cloud.visible
+    with pytest.raises(ValueError, match="colour mode must be one of"):
+        scene_view.set_colour_mode("infrared")
     scene_view.set_layer("objects", False)
     assert not scene_view.boxes.visible
     assert not any(h.visible for h in scene_view.labels.handles)
@@ -397,3 +532,135 @@ def test_scene_survives_empty_and_inconsistent_maps(scene_view):
                                 points=np.zeros((0, 3), np.float32), point_labels=np.zeros(0, np.int16))
     scene_view.apply_maps(empty)
     assert not scene_view.voxels.visible
+
+
+# --- labels: only what matters, laid out apart ------------------------------------------------------
+
+def _tracked(i: int, label: str, x: float, oop: bool = False, held: bool = False) -> TrackedObjectMsg:
+    return TrackedObjectMsg(id=i, label=label, score=0.9 - 0.01 * i, centroid=(x, 0.0, 0.5), box_min=(x - 0.1, -0.1, 0.4),
+                            box_max=(x + 0.1, 0.1, 0.6), oop_prob=0.8 if oop else 0.1, out_of_place=oop, held=held)
+
+
+def test_labelled_objects_are_those_that_matter_unless_all_are_asked_for():
+    from tidee.viewer.scene_view import labelled_objects
+
+    objs = [_tracked(0, "Sofa", 0.0), _tracked(1, "Mug", 0.1, oop=True), _tracked(2, "Book", 0.2),
+            _tracked(3, "Laptop", 0.3, held=True), _tracked(4, "Chair", 0.4)]
+    assert [o.label for o in labelled_objects(objs, target_id=2, label_all=False)] == ["Laptop", "Book", "Mug"]
+    assert [o.label for o in labelled_objects(objs, target_id=None, label_all=False)] == ["Laptop", "Mug"]
+    every = [o.label for o in labelled_objects(objs, target_id=2, label_all=True)]
+    assert every[:3] == ["Laptop", "Book", "Mug"] and sorted(every) == sorted(o.label for o in objs)
+
+
+def test_scene_labels_a_crowd_without_overlap_and_all_on_request(scene_view):
+    from tidee.protocol.messages import ObjectMemoryMsg
+    from tidee.viewer.scene_view import LABEL_CHAR_PX, LABEL_LINE_PX
+
+    crowd = [_tracked(i, f"Thing{i}", 0.05 * i, oop=i % 3 == 0) for i in range(12)]     # 12 objects in 60 cm
+    scene_view.apply_maps(SyntheticEpisode().maps(300))                                 # a floor: the overview view
+    scene_view.apply_memory(ObjectMemoryMsg("s", 1, crowd))
+    shown = scene_view.labels.handles[:scene_view.labels.shown]
+    assert len(shown) == 4 and all("out of place" in h.text for h in shown)            # 0, 3, 6, 9 only
+    scene_view.set_label_all(True)
+    shown = scene_view.labels.handles[:scene_view.labels.shown]
+    assert len(shown) == 12 and scene_view.counts["labels"] == 12
+    view = scene_view._fallback_view()
+    uv = view.project(np.array([h.position for h in shown]))[0]
+    sizes = np.array([(len(h.text) * LABEL_CHAR_PX + 10, LABEL_LINE_PX) for h in shown])
+    assert _overlapping_pairs(geometry.label_boxes(uv, sizes), 2.9) == []
+    assert scene_view.leaders.visible and len(scene_view.leaders.points) >= 6          # lifted labels: a line each
+    scene_view.set_label_all(False)
+    assert scene_view.labels.shown == 4
+
+
+# --- the episode's end: feed, replay, panel --------------------------------------------------------
+
+def test_summary_panel_says_how_the_episode_ended_and_escapes_text():
+    from tidee.viewer.panels import SUMMARY_ID, summary_html
+
+    s = EpisodeSummary(session="s", episode={"room_type": "Kitchen", "seed": 200, "mess_index": 0, "variant": "TIDEE",
+                                             "perception": "learned"}, steps=192, wall_s=142.6,
+                       end_reason="no <b>more</b> objects", put_away=4, moved=5, found=4, plausible=3, false_picks=0,
+                       replay="tidee viewer --replay runs/Kitchen_200_mess0")
+    page = summary_html(s)
+    assert f"id='{SUMMARY_ID}'" in page and "Episode finished" in page and "Kitchen seed 200 mess 0" in page
+    for text in ("moved <b>5</b>", "found <b>4</b>/5", "put away <b>4</b>", "plausible <b>3</b>/5",
+                 "false picks <b>0</b>", "<b>192</b> steps", "<b>143</b> s", "tidee viewer --replay runs/Kitchen_200_mess0"):
+        assert text in page, text
+    assert "&lt;b&gt;more" in page and "<b>more" not in page
+    unscored = summary_html(EpisodeSummary("s", {}, 10, 1.0, "step budget", 0))
+    assert "not scored" in unscored and "moved –" in unscored
+
+
+def test_replay_shows_the_summary_from_the_last_step_only(tmp_path):
+    import json
+
+    from tidee.protocol.episode_log import LogReader, LogWriter
+    from tidee.viewer.replay import ReplayLog
+
+    write_synthetic_log(str(tmp_path / "new"), steps=23)
+    log = ReplayLog(tmp_path / "new")
+    assert "summary" not in log.at(21)
+    summary = log.at(22)["summary"]
+    assert isinstance(summary, EpisodeSummary) and summary.steps == 23 and summary.moved == 3
+    assert log.steps("summary") == [22]
+    # a log whose telemetry lacks it (an older agent's): the summary comes from summary.json
+    record = json.loads((tmp_path / "new" / "summary.json").read_text())
+    with LogWriter(tmp_path / "old") as writer:
+        for kind, msg in LogReader(tmp_path / "new").messages():
+            if kind != "summary":
+                writer.message(kind, msg)
+        writer.finish(record)
+    old = ReplayLog(tmp_path / "old")
+    assert old.messages == log.messages - 1 and old.at(22)["summary"] == summary
+
+
+def test_replay_viewer_shows_the_finished_panel_at_the_end_and_hides_it_before(tmp_path):
+    from tidee.viewer.app import ViewerConfig, run_viewer
+
+    write_synthetic_log(str(tmp_path), steps=40)
+    with run_viewer(ViewerConfig(replay=str(tmp_path), port=0)) as viewer:
+        app = viewer.app
+        app.replay_seek(39)
+        assert wait_until(lambda: app.panels.summary.visible and "episode finished" in app.panels.title.content, 10.0)
+        assert "Episode finished" in app.panels.summary.content
+        assert app.panels.plot.image.shape[:2] == (170, 360)
+        app.set_colour_mode("rgb")                       # the frames up to here, fused
+        assert wait_until(lambda: app.scene.node_names()["/map/rgb"], 10.0)
+        assert app.scene.counts["rgb_points"] > 500 and not app.scene.voxels.visible
+        app.replay_seek(10)
+        assert wait_until(lambda: not app.panels.summary.visible and app.stats.last_step == 10, 10.0)
+        assert app.scene.colour_cloud.frames <= 11       # slid back: the cloud holds what was seen by step 10
+
+
+def test_live_feed_delivers_the_episode_summary():
+    from tidee.viewer.feed import LiveFeed
+
+    with synthetic_source() as src:
+        assert src.agent is not None
+        feed = LiveFeed(endpoint=src.endpoint)
+        try:
+            seen: dict = {}
+            assert wait_until(lambda: seen.update(feed.poll()) or "status" in seen, 10.0)
+            src.agent.stop()                              # the episode ends: the agent says how
+            src.agent.publish_summary(wall_s=1.5)
+            assert wait_until(lambda: seen.update(feed.poll()) or "summary" in seen, 10.0)
+            assert isinstance(seen["summary"], EpisodeSummary) and seen["summary"].session == src.session
+            assert seen["summary"].steps == src.agent.step and seen["summary"].wall_s == 1.5
+            assert feed.decode_errors == 0
+        finally:
+            feed.close()
+
+
+def test_annotated_screenshot_numbers_the_panels_found_and_names_them_below():
+    from tidee.viewer.annotate import INK, PANELS, annotate
+
+    shot = np.full((400, 640, 3), 255, np.uint8)
+    boxes = {"camera": (10, 40, 200, 200), "canvas": (220, 0, 420, 400), "summary": (440, 60, 630, 160)}
+    out = annotate(shot, boxes)
+    assert out.shape[1] == 640 and out.shape[0] > 400                  # the key goes below the picture
+    ink = np.all(out == INK, axis=2)
+    assert ink[40:200, 10:14].any() and ink[40:200, 197:201].any()     # the camera's box is drawn
+    assert not ink[250:400, 0:200].any()                               # nothing where no panel is
+    assert ink[400:].sum() > 3 * 100                                    # three numbered badges in the key
+    assert {k for k, _ in PANELS} >= set(boxes) | {"map", "plot", "predictions", "controls"}

@@ -4,7 +4,12 @@ One update worker thread does all decoding and drawing, at most ``rate_hz`` time
 second, applying only the newest message of each kind (latest wins), every batch inside
 ``server.atomic()``. GUI callbacks (viser's thread pool) only record what was asked or
 put a command on Zenoh. Memory stays flat: no list grows with the episode (the live plot
-is a bounded deque; the trajectory arrives whole in each status message).
+is a bounded deque; the trajectory arrives whole in each status message; the camera-coloured
+cloud keeps at most ``scene_view.RGB_MAX_POINTS`` voxels).
+
+When the agent reports the episode's end (an ``EpisodeSummary``), the page shows it in an
+"Episode finished" panel and stays live; when the viewer itself stops, it first tells the
+open pages so (they freeze, dimmed, once the connection closes).
 
 ``run_viewer(config)`` starts it in-process and returns a handle (``.url``, ``.stop()``);
 ``serve(config)`` runs it until SIGINT/SIGTERM (``tidee viewer``).
@@ -25,17 +30,20 @@ import numpy as np
 import viser
 from tidee.launch import free_port, wait_for_signal
 from tidee.protocol import keys
-from tidee.protocol.messages import AgentCommand, AgentFrame, AgentStatus, MapSnapshot, SearchHeatmap
+from tidee.protocol.messages import AgentCommand, AgentFrame, AgentStatus, EpisodeSummary, MapSnapshot, SearchHeatmap
 from tidee.viewer import geometry, images, palette
 from tidee.viewer.feed import OBSERVATION, LiveFeed
 from tidee.viewer.panels import Panels
-from tidee.viewer.replay import ReplayLog
-from tidee.viewer.scene_view import SceneView, oracle_objects
+from tidee.viewer.replay import REPLAYED_KINDS, ReplayLog
+from tidee.viewer.scene_view import LABEL_FALLBACK_HEIGHT, SceneView, oracle_objects
 
 log = logging.getLogger("tidee.viewer")
 
 HISTORY_POINTS = 600             # live plot: (step, fixed, OOP found) rows kept
 SESSION_REFRESH_S = 1.0
+DRAW_ORDER = ("maps", "memory", "search", "frame", OBSERVATION, "status", "ack", "summary")
+REPLAY_FUSE_MAX = 150            # replay: frames fused into the coloured cloud when jumping ahead, at most
+STOP_NOTE_S = 0.3                # on stop: time for the "viewer stopped" note to reach the browsers
 
 
 @dataclass
@@ -96,10 +104,12 @@ class ViewerApp:
         self._replay_step = self.replay.first_step if self.replay else 0
         self._replay_playing, self._replay_rate = False, 10.0
         self._replay_shown: dict[str, int | None] = {}
+        self._cloud_upto = -1                     # replay: the last frame index fused into the coloured cloud
 
         port = config.port or free_port(config.host)
         self.server = viser.ViserServer(host=config.host, port=port, label="tidee", verbose=False)
         self.url = f"http://{_display_host(config.host)}:{self.server.get_port()}"
+        self.server.on_client_connect(self._on_client_connect)
         try:
             self.scene = SceneView(self.server, max_points=config.max_points)
             steps = (self.replay.first_step, self.replay.last_step) if self.replay else None
@@ -125,6 +135,11 @@ class ViewerApp:
             self._oracle_thread.join(timeout=5)
         if self.feed is not None:
             self.feed.close()
+        if self.server.get_clients():  # a page left open freezes (dimmed) once we go: say why
+            summary: EpisodeSummary | None = self._latest.get("summary")
+            again = f"Replay the episode: `{summary.replay}`" if summary is not None and summary.replay else ""
+            self.panels.show_stopped(again)
+            time.sleep(STOP_NOTE_S)
         self.server.stop()
 
     # --- the update worker -----------------------------------------------------------------------
@@ -161,10 +176,13 @@ class ViewerApp:
             msgs = {k: m for k, m in msgs.items() if getattr(m, "session", selected) == selected}
         if msgs:
             self._draw(msgs)
+        with self.server.atomic():
+            self.scene.push_cloud()  # the last frames' colours, once due (frames may have stopped)
 
     def _switch_session(self, session: str | None) -> None:
         with self.server.atomic():
             self.scene.clear()
+            self.panels.show_summary(None)
         self._session_shown, self._latest, self._agent_frames = session, {}, False
         self._camera_aimed = False
         self._history.clear()
@@ -177,7 +195,7 @@ class ViewerApp:
         if status is not None and shown is not None and status.step < shown.step:
             self._switch_session(self._session_shown)  # a new episode: drop the old one's layers
         with self.server.atomic():
-            for kind in ("maps", "memory", "search", "frame", OBSERVATION, "status", "ack"):
+            for kind in DRAW_ORDER:
                 msg = msgs.get(kind)
                 if msg is None:
                     continue
@@ -191,6 +209,10 @@ class ViewerApp:
     def _apply(self, kind: str, msg: Any) -> None:
         if kind == "ack":
             self.panels.show_ack(msg)
+            return
+        if kind == "summary":
+            self._latest[kind] = msg
+            self.panels.show_summary(msg)
             return
         if kind == OBSERVATION:
             if self._agent_frames:
@@ -231,23 +253,26 @@ class ViewerApp:
             return
         status: AgentStatus | None = self._latest.get("status")
         search: SearchHeatmap | None = self._latest.get("search")
+        # the mapped part only (a 12.8 m grid is mostly unknown): the room fills the panel
+        occupancy, explored, origin = images.crop_to_known(maps.occupancy, maps.explored, maps.origin, maps.cell)
         img = images.occupancy_image(
-            maps.occupancy, maps.explored, maps.origin, maps.cell,
+            occupancy, explored, origin, maps.cell,
             pose=status.pose if status else None, trajectory=status.trajectory if status else None,
             path=status.path if status else None, goal=status.goal if status else None,
             search_points=search.points if search is not None else None)
         self.panels.show_map(img)
 
     def _title(self) -> str:
+        finished = " · **episode finished**" if "summary" in self._latest else ""
         if self.replay is not None:
             return (f"**tidee viewer** · replay of `{os.path.basename(os.path.abspath(self.replay.directory))}` "
-                    f"· session {self.replay.session or '?'}")
+                    f"· session {self.replay.session or '?'}{finished}")
         assert self.feed is not None
         session = self._session_shown or "none yet"
         mode = "pinned" if self.feed.pinned else "newest"
         err = f" · **{self.feed.decode_errors} undecodable**" if self.feed.decode_errors else ""
         step = f" · step {self.stats.last_step}" if self.stats.last_step >= 0 else ""
-        return f"**tidee viewer** · session `{session}` ({mode}){step} · via {self.feed.where}{err}"
+        return f"**tidee viewer** · session `{session}` ({mode}){step}{finished} · via {self.feed.where}{err}"
 
     def _refresh_sessions(self) -> None:
         assert self.feed is not None
@@ -257,6 +282,9 @@ class ViewerApp:
         view = geometry.overview_camera(plane)
         self.server.initial_camera.position = view.position
         self.server.initial_camera.look_at = view.look_at
+        # labels laid out for this view until a browser reports its own camera
+        self.scene.set_label_view(geometry.screen_view_looking_at(view, self.server.initial_camera.fov,
+                                                                  LABEL_FALLBACK_HEIGHT))
         for client in self.server.get_clients().values():
             try:
                 with client.atomic():
@@ -264,6 +292,19 @@ class ViewerApp:
                     client.camera.look_at = view.look_at
             except (AssertionError, ValueError):
                 pass  # the client has not reported its camera yet; it gets the initial camera
+
+    def _on_client_connect(self, client: viser.ClientHandle) -> None:
+        client.camera.on_update(self._camera_moved)
+
+    def _camera_moved(self, camera: viser.CameraHandle) -> None:
+        """A browser's camera moved: lay the 3D labels out again for what it sees."""
+        try:
+            view = geometry.screen_view(camera.position, camera.wxyz, camera.fov, camera.image_height)
+        except (AssertionError, ValueError):
+            return  # not reported yet, or a degenerate canvas
+        with self._lock:
+            self._requests["label_view"] = view
+        self._wake.set()
 
     # --- replay ----------------------------------------------------------------------------------
     def _replay_tick(self, period: float) -> None:
@@ -275,23 +316,39 @@ class ViewerApp:
                 if self._replay_step >= self.replay.last_step:
                     self._replay_playing = False
             step = self._replay_step
-        current = {kind: self.replay.index_at(kind, step) for kind in ("status", "frame", "maps", "memory", "search")}
-        changed = [k for k, i in current.items() if i != self._replay_shown.get(k, -1)]
+        current = {kind: self.replay.index_at(kind, step) for kind in REPLAYED_KINDS}
+        shown = self._replay_shown
+        changed = [k for k, i in current.items() if i != shown.get(k, -1)]
         if not changed:
             return
         msgs = {k: v for k, v in self.replay.at(step).items() if k in changed}
-        if any(current[k] is None and self._replay_shown.get(k) is not None for k in changed):
-            with self.server.atomic():  # slid back before a kind's first message: start clean
+        if any(shown.get(k) is not None and (current[k] is None or current[k] < shown[k]) for k in changed):
+            # slid back: start clean and draw everything current at this step
+            with self.server.atomic():
                 self.scene.clear()
-            self._latest, self._agent_frames = {}, False
+                self.panels.show_summary(None)
+            self._latest, self._agent_frames, self._cloud_upto = {}, False, -1
             msgs = self.replay.at(step)
         self._replay_shown = current
+        self._catch_up_cloud(current["frame"])
         if msgs:
             self._draw(msgs)
+        with self.server.atomic():
+            self.scene.push_cloud(force=True)
         self.panels.show_plot(self.replay.history(step))
         trunc = f" · **log truncated** ({self.replay.corrupt_message})" if self.replay.truncated else ""
         self.panels.show_replay_step(step, f"step {step} of {self.replay.first_step}–{self.replay.last_step} · "
                                            f"{self.replay.messages} messages{trunc}")
+
+    def _catch_up_cloud(self, frame: int | None) -> None:
+        """Replay: fuse the frames up to ``frame`` (its index in the log) not fused yet, so the
+        coloured cloud holds what the camera saw up to this step, however the slider moved."""
+        assert self.replay is not None
+        if frame is None or frame <= self._cloud_upto:
+            return
+        for logged in self.replay.frames(self._cloud_upto + 1, frame, max_frames=REPLAY_FUSE_MAX):
+            self.scene.fuse_frame(logged)
+        self._cloud_upto = frame
 
     # --- PanelActions (viser's thread pool) -------------------------------------------------------
     def select_session(self, session: str | None) -> None:
@@ -315,9 +372,14 @@ class ViewerApp:
             self._requests[f"layer:{layer}"] = on
         self._wake.set()
 
-    def set_occupancy_only(self, on: bool) -> None:
+    def set_colour_mode(self, mode: str) -> None:
         with self._lock:
-            self._requests["occupancy_only"] = on
+            self._requests["colour_mode"] = mode
+        self._wake.set()
+
+    def set_label_all(self, on: bool) -> None:
+        with self._lock:
+            self._requests["label_all"] = on
         self._wake.set()
 
     def reset_view(self) -> None:
@@ -348,8 +410,12 @@ class ViewerApp:
                     self.scene.set_layer(layer, bool(value))
                     if layer == "oracle":
                         self._set_oracle(bool(value))
-                elif name == "occupancy_only":
-                    self.scene.set_occupancy_only(bool(value))
+                elif name == "colour_mode":
+                    self.scene.set_colour_mode(str(value))
+                elif name == "label_all":
+                    self.scene.set_label_all(bool(value))
+                elif name == "label_view":
+                    self.scene.set_label_view(value)
                 elif name == "reset_view" and self.scene.plane is not None:
                     self._aim_camera(self.scene.plane)
                 elif name == "oracle_objects" and self._oracle_on:

@@ -43,6 +43,36 @@ DISMISS_SOFTWARE_GL_NOTE = """(() => { let n = 0;
   }); return n; })()"""
 
 
+# Where each panel of the viewer's page is (viewport pixels: x0, y0, x1, y1), found in the DOM:
+# images by their label (the 2D map's has none), HTML panels by id, folders by their title.
+PANEL_BOXES = """(() => {
+  const box = el => { if (!el) return null; const b = el.getBoundingClientRect();
+    return b.width > 4 && b.height > 4 ? [b.left, b.top, b.right, b.bottom].map(Math.round) : null; };
+  const out = {};
+  document.querySelectorAll('img').forEach(img => {
+    const p = img.parentElement && img.parentElement.parentElement && img.parentElement.parentElement.querySelector('p');
+    const label = p ? p.textContent : '';
+    const b = box(img);
+    if (!b || b[2] - b[0] < 40) return;                       // hidden tabs, icons
+    if (label.startsWith('RGB')) out.camera = b;
+    else if (label.startsWith('Progress')) out.plot = b;
+    else if (!label && b[0] < window.innerWidth / 2) out.map = b;
+  });
+  const canvas = document.querySelector('canvas');
+  if (canvas) out.canvas = box(canvas);
+  for (const [name, id] of [['summary', 'tidee-summary'], ['predictions', 'tidee-predictions']]) {
+    const b = box(document.getElementById(id)); if (b) out[name] = b; }
+  const walker = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);
+  const folders = {Episode: 'episode', Agent: 'controls', Replay: 'controls', Layers: 'layers'};
+  while (walker.nextNode()) {
+    const name = folders[walker.currentNode.textContent.trim()];
+    const label = name && walker.currentNode.parentElement.closest('.mantine-Paper-root');   // the folder's title bar
+    const folder = label && label.parentElement && label.parentElement.closest('.mantine-Paper-root');
+    if (folder && !out[name]) { const b = box(folder); if (b) out[name] = b; }
+  }
+  return out; })()"""
+
+
 def find_chromium() -> str | None:
     """Path of a Chromium binary (``TIDEE_CHROMIUM`` first), or None."""
     override = os.environ.get("TIDEE_CHROMIUM")
@@ -177,6 +207,36 @@ class HeadlessChromium:
                 raise TimeoutError(f"the page did not reach the expected state within {timeout} s")
             time.sleep(interval)
 
+    def wait_settled(self, timeout: float, interval: float = 0.7, max_changed: float = 0.002) -> np.ndarray:
+        """Screenshots until two in a row differ in at most ``max_changed`` of their pixels (the
+        page has finished drawing: fades, new nodes, labels); returns the last. On timeout, the
+        last one taken (a page that never settles is for the caller's checks to judge)."""
+        deadline = time.monotonic() + timeout
+        last = self.screenshot()
+        while time.monotonic() < deadline:
+            time.sleep(interval)
+            img = self.screenshot()
+            changed = float(np.any(img != last, axis=2).mean())
+            last = img
+            if changed <= max_changed:
+                break
+        return last
+
+    def panel_boxes(self) -> dict[str, tuple[int, int, int, int]]:
+        """Where the viewer's panels are on the page now (``PANEL_BOXES``), clipped to the window."""
+        found = self.evaluate(PANEL_BOXES) or {}
+        out = {}
+        for name, (x0, y0, x1, y1) in found.items():
+            x0, y0 = max(0, int(x0)), max(0, int(y0))
+            x1, y1 = min(self.width, int(x1)), min(self.height, int(y1))
+            if x1 - x0 > 4 and y1 - y0 > 4:
+                out[name] = (x0, y0, x1, y1)
+        return out
+
+    def text(self) -> str:
+        """The page's visible text (``document.body.innerText``)."""
+        return str(self.evaluate("document.body.innerText") or "")
+
     def close(self) -> None:
         ws = getattr(self, "_ws", None)
         if ws is not None:
@@ -221,3 +281,11 @@ def map_drawn(img: np.ndarray, n_classes: int) -> bool:
     labelled = palette_pixels(img[CANVAS], colors, tolerance=20)
     grey = palette_pixels(img[CANVAS], np.array([UNLABELLED_RGB]), tolerance=30)
     return labelled > 300 and labelled + grey > 3000
+
+
+def region_drawn(img: np.ndarray, box: tuple[int, int, int, int], min_std: float = 12.0,
+                 min_colors: int = 64) -> bool:
+    """A panel's region of a screenshot holds a picture, not a blank or flat area."""
+    x0, y0, x1, y1 = box
+    crop = img[y0:y1, x0:x1]
+    return crop.size > 0 and float(crop.astype(np.float32).std()) > min_std and distinct_colors(crop) >= min_colors

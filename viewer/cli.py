@@ -24,17 +24,35 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --replay: write the page as headless Chromium draws it at --at, then exit")
     p.add_argument("--at", default="end", help="with --screenshot: a step number, 'search' (the first search "
                                                "heatmap) or 'end' (default)")
+    p.add_argument("--annotated", default=None, metavar="PNG",
+                   help="with --screenshot: also write the picture with each panel outlined, numbered and named")
+    p.add_argument("--window", default="1280x800", type=_window_size, metavar="WxH",
+                   help="with --screenshot: the browser window's size in pixels (default 1280x800)")
     p.set_defaults(func=_run)
 
 
+def _window_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--window must be WIDTHxHEIGHT in pixels, e.g. 1280x800; got {text!r}")
+    if not (320 <= w <= 4096 and 240 <= h <= 4096):
+        raise argparse.ArgumentTypeError(f"--window {w}x{h}: each side must be within 320x240 to 4096x4096")
+    return w, h
+
+
 def _run(args: argparse.Namespace) -> int:
+    if args.annotated and not args.screenshot:
+        raise SystemExit("tidee viewer: --annotated needs --screenshot PNG (and --replay LOGDIR)")
     if args.screenshot:
         if not args.replay:
             raise SystemExit("tidee viewer: --screenshot needs --replay LOGDIR")
         from tidee.viewer.screenshot import screenshot_replay
 
-        step = screenshot_replay(args.replay, args.screenshot, at=args.at)
-        print(f"viewer: {args.screenshot} (step {step} of {args.replay})")
+        step = screenshot_replay(args.replay, args.screenshot, at=args.at, annotated_png=args.annotated,
+                                 size=args.window)
+        also = f" and {args.annotated}" if args.annotated else ""
+        print(f"viewer: {args.screenshot}{also} (step {step} of {args.replay})")
         return 0
     from tidee.viewer.app import ViewerConfig, serve
 

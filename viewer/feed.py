@@ -25,6 +25,7 @@ from tidee.protocol.messages import (
     AgentFrame,
     AgentStatus,
     CommandAck,
+    EpisodeSummary,
     ErrorReply,
     MapSnapshot,
     ObjectMemoryMsg,
@@ -40,7 +41,7 @@ log = logging.getLogger("tidee.viewer.feed")
 OBSERVATION = "observation"            # the server's raw feed, beside the agent's telemetry kinds
 MESSAGE_TYPES: dict[str, type] = {"status": AgentStatus, "frame": AgentFrame, "maps": MapSnapshot,
                                   "memory": ObjectMemoryMsg, "search": SearchHeatmap, "ack": CommandAck,
-                                  OBSERVATION: Observation}
+                                  "summary": EpisodeSummary, OBSERVATION: Observation}
 RING_CAPACITY = 8                      # per kind, all sessions together
 MAX_SESSIONS = 64                      # known sessions kept (the oldest gone ones are forgotten first)
 LIVELINESS_INBOX = 256                  # liveliness events between two polls (a ring: Zenoh never waits on us)
@@ -88,7 +89,7 @@ class LiveFeed:
         try:
             self._subs: dict[str, Any] = {
                 kind: self._z.declare_subscriber(_telemetry_of_kind(kind), zenoh.handlers.RingChannel(RING_CAPACITY))
-                for kind in TELEMETRY_KINDS}
+                for kind in TELEMETRY_KINDS if kind in MESSAGE_TYPES}   # a kind this viewer cannot show: not heard
             self._subs[OBSERVATION] = self._z.declare_subscriber(keys.observations_wildcard(),
                                                                  zenoh.handlers.RingChannel(RING_CAPACITY))
             self._alive = self._z.liveliness().declare_subscriber(

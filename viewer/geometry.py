@@ -185,3 +185,117 @@ def overview_camera(plane: FloorPlane) -> CameraView:
     cx, cy, _ = plane.center
     extent = max(plane.size_x, plane.size_y, 2.0)
     return CameraView((cx - 0.55 * extent, cy - 0.35 * extent, 1.4 * extent), (cx, cy, 0.0))
+
+
+# --- screen-sized labels ----------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ScreenView:
+    """A pinhole camera, enough to lay out labels drawn at a fixed screen size: its
+    position, its OpenCV axes in the world (columns: right, down, forward) and its focal
+    length in pixels."""
+
+    position: tuple[float, float, float]
+    axes: tuple[tuple[float, float, float], ...]   # 3x3 rows of the rotation matrix
+    focal_px: float
+
+    def rotation(self) -> np.ndarray:
+        return np.asarray(self.axes, np.float64)
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``Nx2`` pixel offsets from the image centre (x right, y down) and ``N`` depths."""
+        cam = (np.asarray(points, np.float64).reshape(-1, 3) - np.asarray(self.position)) @ self.rotation()
+        depth = cam[:, 2]
+        safe = np.where(depth > 1e-6, depth, 1e-6)
+        return cam[:, :2] * (self.focal_px / safe)[:, None], depth
+
+
+def screen_view(position: Sequence[float], wxyz: Sequence[float], fov_y: float, image_height: int) -> ScreenView:
+    """The view of a viser client camera (its ``position``, ``wxyz``, vertical ``fov`` and canvas height)."""
+    if not 0 < fov_y < math.pi or image_height <= 0:
+        raise ValueError(f"need a vertical fov in (0, pi) and a positive image height, got {fov_y}, {image_height}")
+    w, x, y, z = (float(v) for v in wxyz)
+    rot = quat_xyzw_to_matrix((x, y, z, w))
+    return ScreenView(tuple(float(v) for v in position), tuple(tuple(float(v) for v in row) for row in rot),
+                      image_height / (2.0 * math.tan(fov_y / 2.0)))
+
+
+def screen_view_looking_at(view: CameraView, fov_y: float, image_height: int,
+                           up: Sequence[float] = (0.0, 0.0, 1.0)) -> ScreenView:
+    """The view of a camera at ``view.position`` looking at ``view.look_at`` with ``up`` up
+    (the page's initial camera, before any client has reported its own)."""
+    eye, target = np.asarray(view.position, np.float64), np.asarray(view.look_at, np.float64)
+    forward = target - eye
+    if np.linalg.norm(forward) < 1e-9:
+        raise ValueError("the camera's position and look_at coincide")
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, np.asarray(up, np.float64))
+    if np.linalg.norm(right) < 1e-9:             # looking straight along up: any right will do
+        right = np.cross(forward, (1.0, 0.0, 0.0))
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rot = np.stack([right, down, forward], axis=1)
+    return screen_view(view.position, rotation_to_wxyz(rot), fov_y, image_height)
+
+
+def place_labels(anchors: np.ndarray, sizes_px: np.ndarray, view: ScreenView, gap_px: float = 3.0) -> np.ndarray:
+    """Where to draw labels so that none overlaps another on screen: ``Nx3`` world positions.
+
+    ``anchors`` (``Nx3``, in priority order) are the points the labels belong to; each label is
+    a box of ``sizes_px`` (``Nx2``: width, height in pixels) drawn above its point (anchored
+    bottom-centre). Greedy and deterministic: in order, a label stays on its point unless its
+    box comes within ``gap_px`` of one already placed; then it is lifted, on screen, to just
+    above the highest box it meets, until it meets none. The lift goes back into the world at
+    the anchor's depth along the camera's up axis, so for this view the label lands on that
+    screen spot. Labels behind the camera stay on their points.
+    """
+    pts = np.asarray(anchors, np.float64).reshape(-1, 3)
+    sizes = np.asarray(sizes_px, np.float64).reshape(-1, 2)
+    if len(sizes) != len(pts):
+        raise ValueError(f"need one size per anchor, got {len(sizes)} sizes for {len(pts)} anchors")
+    uv, depth = view.project(pts)
+    out = pts.copy()
+    placed = label_boxes(uv[:0], sizes[:0])
+    up_world = -view.rotation()[:, 1]
+    for i in range(len(pts)):
+        if depth[i] <= 1e-6:
+            continue
+        (w, h), (u, v) = sizes[i], uv[i]
+        x0, x1, bottom = u - w / 2, u + w / 2, v
+        while True:
+            hits = placed[(placed[:, 0] < x1 + gap_px) & (x0 - gap_px < placed[:, 2])
+                          & (placed[:, 1] < bottom + gap_px) & (bottom - h - gap_px < placed[:, 3])]
+            if not len(hits):
+                break
+            bottom = float(hits[:, 1].min()) - gap_px     # just above the highest box it meets
+        placed = np.vstack([placed, (x0, bottom - h, x1, bottom)])
+        out[i] = pts[i] + up_world * ((v - bottom) * depth[i] / view.focal_px)
+    return out
+
+
+def label_boxes(uv: np.ndarray, sizes_px: np.ndarray) -> np.ndarray:
+    """``Nx4`` screen boxes (x0, y0, x1, y1; y down) of labels anchored bottom-centre at ``uv``."""
+    uv, sizes = np.asarray(uv, np.float64).reshape(-1, 2), np.asarray(sizes_px, np.float64).reshape(-1, 2)
+    return np.stack([uv[:, 0] - sizes[:, 0] / 2, uv[:, 1] - sizes[:, 1], uv[:, 0] + sizes[:, 0] / 2, uv[:, 1]],
+                    axis=1)
+
+
+def unproject_depth(depth: np.ndarray, intrinsics: np.ndarray, camera_pose: np.ndarray, stride: int = 1,
+                    max_depth: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
+    """Start-frame points of a depth image (every ``stride``-th pixel with depth in
+    (0, ``max_depth``]): ``Nx3`` float32 points and the ``Nx2`` (row, column) of their pixels.
+    ``camera_pose`` maps the optical frame to the start frame (protocol/messages.py)."""
+    d = np.asarray(depth, np.float32)
+    k, pose = np.asarray(intrinsics, np.float64), np.asarray(camera_pose, np.float64)
+    if d.ndim != 2 or k.shape != (3, 3) or pose.shape != (4, 4):
+        raise ValueError(f"need an HxW depth, 3x3 intrinsics and a 4x4 pose, got {d.shape}, {k.shape}, {pose.shape}")
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    rows, cols = np.mgrid[0:d.shape[0]:stride, 0:d.shape[1]:stride]
+    z = d[rows, cols]
+    valid = np.isfinite(z) & (z > 0) & (z <= max_depth)
+    rows, cols, z = rows[valid], cols[valid], z[valid].astype(np.float64)
+    x = (cols - k[0, 2]) * z / k[0, 0]           # pixel (u, v) -> d (u - cx) / fx: the protocol's convention
+    y = (rows - k[1, 2]) * z / k[1, 1]
+    pts = np.stack([x, y, z], axis=1) @ pose[:3, :3].T + pose[:3, 3]
+    return pts.astype(np.float32), np.stack([rows, cols], axis=1)

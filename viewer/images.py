@@ -195,3 +195,98 @@ def placeholder(text: str, width: int = 512, height: int = 288) -> np.ndarray:
                 (200, 200, 200), 1, cv2.LINE_AA)
     return img
 
+
+
+PLOT_SIZE = (360, 170)                # width, height of the progress plot image (px): about its size on the page
+PLOT_SERIES = (("put away", WARNING_RGB), ("out of place found", TRAJECTORY_RGB))
+
+
+def _nice_ticks(top: float, max_ticks: int = 6) -> np.ndarray:
+    """Round tick values 0, s, 2s, ... covering [0, top] (s = 1, 2 or 5 x 10^k, integers at least)."""
+    top = max(float(top), 1.0)
+    raw = top / max(max_ticks - 1, 1)
+    mag = 10.0 ** math.floor(math.log10(raw))
+    step = next((m * mag for m in (1, 2, 5, 10) if m * mag >= raw), 10 * mag)
+    step = max(step, 1.0)
+    return np.arange(0.0, top + step * 0.999, step)
+
+
+def progress_plot(history: np.ndarray, size: tuple[int, int] = PLOT_SIZE) -> np.ndarray:
+    """The progress plot as an RGB image of a fixed ``size``: objects put away and
+    out-of-place objects found against the agent's step (x), as step lines, with axes,
+    ticks and a legend row above the plot area. ``history`` is ``K x 3`` (step, put away, found); an
+    empty one gives the empty axes with a note, one row a dot per series."""
+    width, height = size
+    rows = np.asarray(history, np.float64).reshape(-1, 3)
+    img = np.full((height, width, 3), 255, np.uint8)
+    font, scale, ink, grid = cv2.FONT_HERSHEY_SIMPLEX, 0.45, (60, 60, 60), (228, 228, 228)
+    left, right, top, bottom = 34, 14, 26, 26                   # margins: ticks, legend row, x labels
+    x0, x1, y0, y1 = left, width - right, top, height - bottom  # plot area (y down)
+    # legend row: swatch + name per series, above the plot area so it never covers a line
+    x = left
+    for name, color in PLOT_SERIES:
+        cv2.line(img, (x, 11), (x + 18, 11), color, 3, cv2.LINE_AA)
+        cv2.putText(img, name, (x + 23, 16), font, scale, ink, 1, cv2.LINE_AA)
+        x += 23 + cv2.getTextSize(name, font, scale, 1)[0][0] + 16
+    last_step = float(rows[:, 0].max()) if len(rows) else 0.0
+    xticks = _nice_ticks(max(last_step, 10.0))
+    yticks = _nice_ticks(max(float(rows[:, 1:].max()) if len(rows) else 0.0, 3.0), max_ticks=5)
+    x_top, y_top = float(xticks[-1]), float(yticks[-1])
+
+    def px(step: np.ndarray, value: np.ndarray) -> np.ndarray:
+        u = x0 + (np.asarray(step) / x_top) * (x1 - x0)
+        v = y1 - (np.asarray(value) / y_top) * (y1 - y0)
+        return np.round(np.stack([u, v], axis=-1)).astype(np.int32)
+
+    for t in yticks:
+        (_, v), = px(np.array([0.0]), np.array([t]))
+        cv2.line(img, (x0, int(v)), (x1, int(v)), grid, 1)
+        label = f"{t:g}"
+        tw = cv2.getTextSize(label, font, scale, 1)[0][0]
+        cv2.putText(img, label, (x0 - 6 - tw, int(v) + 5), font, scale, ink, 1, cv2.LINE_AA)
+    for t in xticks:
+        (u, _), = px(np.array([t]), np.array([0.0]))
+        cv2.line(img, (int(u), y1), (int(u), y1 + 4), ink, 1)
+        label = f"{t:g}"
+        tw = cv2.getTextSize(label, font, scale, 1)[0][0]
+        cv2.putText(img, label, (int(u) - tw // 2, y1 + 18), font, scale, ink, 1, cv2.LINE_AA)
+    cv2.line(img, (x0, y1), (x1, y1), ink, 1)
+    cv2.line(img, (x0, y0), (x0, y1), ink, 1)
+    if not len(rows):
+        note = "no steps yet"
+        tw = cv2.getTextSize(note, font, scale, 1)[0][0]
+        cv2.putText(img, note, ((x0 + x1 - tw) // 2, (y0 + y1) // 2), font, scale, (150, 150, 150), 1, cv2.LINE_AA)
+        return img
+    for k, (_, color) in reversed(list(enumerate(PLOT_SERIES, start=1))):
+        steps, values = rows[:, 0], rows[:, k]
+        if len(rows) == 1:
+            cv2.circle(img, tuple(int(c) for c in px(steps, values)[0]), 4, color, -1, cv2.LINE_AA)
+            continue
+        # a step line: each value holds until the next step
+        stairs_x = np.repeat(steps, 2)[1:]
+        stairs_y = np.repeat(values, 2)[:-1]
+        cv2.polylines(img, [px(stairs_x, stairs_y)], False, color, 3 if k == 1 else 2, cv2.LINE_AA)
+    return img
+
+
+def crop_to_known(occupancy: np.ndarray, explored: np.ndarray | None, origin: Sequence[float], cell: float,
+                  margin: float = 0.75) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
+    """The square part of a top-down grid around its known cells (occupancy > 0 or explored),
+    ``margin`` metres wider on each side: ``(occupancy, explored, origin)`` of the crop. The
+    whole grid when nothing is known yet."""
+    occ = np.asarray(occupancy)
+    known = occ > 0
+    if explored is not None:
+        known = known | np.asarray(explored, bool)
+    idx = np.argwhere(known)
+    if idx.size == 0 or cell <= 0:
+        return occ, explored, (float(origin[0]), float(origin[1]))
+    pad = int(math.ceil(margin / cell))
+    lo, hi = idx.min(axis=0) - pad, idx.max(axis=0) + 1 + pad
+    side = int(max(hi - lo))
+    lo = np.clip((lo + hi) // 2 - side // 2, 0, None)
+    hi = np.minimum(lo + side, occ.shape[:2])
+    lo = np.maximum(hi - side, 0)
+    sl = (slice(int(lo[0]), int(hi[0])), slice(int(lo[1]), int(hi[1])))
+    crop_origin = (float(origin[0]) + lo[0] * cell, float(origin[1]) + lo[1] * cell)
+    return occ[sl], (np.asarray(explored)[sl] if explored is not None else None), crop_origin

@@ -1,4 +1,5 @@
-"""The GUI around the 3D scene: camera and map panels, episode status, plot, controls.
+"""The GUI around the 3D scene: camera and map panels, episode status, plot, controls,
+and the "Episode finished" summary.
 
 ``Panels`` builds every widget once and exposes ``show_*`` methods that assign to the
 widgets' handles. What a person does (pick a session, pause, type a preference, move the
@@ -14,23 +15,29 @@ from typing import Protocol
 
 import numpy as np
 import viser
-from tidee.protocol.messages import ROOM_TYPES, AgentStatus, CommandAck
+from tidee.protocol.messages import ROOM_TYPES, AgentStatus, CommandAck, EpisodeSummary
 from tidee.viewer import images, palette
 from tidee.viewer.feed import SessionInfo
-from tidee.viewer.scene_view import LAYERS
+from tidee.viewer.scene_view import COLOUR_MODES, LAYERS
 
 AUTO_SESSION = "(follow newest)"
-LAYER_LABELS = {"voxels": "Voxel map", "objects": "Object memory", "agent": "Agent (camera, paths)",
+LAYER_LABELS = {"voxels": "3D map", "objects": "Object memory", "agent": "Agent (camera, paths)",
                 "search": "Search heatmap", "oracle": "Ground truth (oracle)"}
 LAYER_HINTS = {"oracle": "Privileged: the server's true object boxes (moved objects in red), fetched "
                          "about once a second from the server's state. Not what the agent knows."}
+COLOUR_LABELS = {"semantic": "semantic classes", "rgb": "camera RGB", "height": "height"}
+COLOUR_HINT = ("semantic classes: the agent's voxel map, one colour per class (the legend below); camera RGB: "
+               "the agent's RGB-D frames fused into coloured points; height: the voxel map coloured by height")
+SUMMARY_ID = "tidee-summary"            # DOM ids: the screenshot tools find these panels by them
+PREDICTIONS_ID = "tidee-predictions"
 
 
 class PanelActions(Protocol):
     def select_session(self, session: str | None) -> None: ...
     def command(self, kind: str, **fields: object) -> None: ...
     def set_layer(self, layer: str, on: bool) -> None: ...
-    def set_occupancy_only(self, on: bool) -> None: ...
+    def set_colour_mode(self, mode: str) -> None: ...
+    def set_label_all(self, on: bool) -> None: ...
     def reset_view(self) -> None: ...
     def replay_seek(self, step: int) -> None: ...
     def replay_play(self, playing: bool, steps_per_s: float) -> None: ...
@@ -64,14 +71,17 @@ class Panels:
         gui.main_panel.dock_right()
         gui.main_panel.set_width(330)
         self.title = gui.add_markdown("**tidee viewer** · connecting…")
+        # shown when the agent reports the episode's end (EpisodeSummary); above everything else
+        self.summary = gui.add_html("", visible=False)
+        self._summary_shown: EpisodeSummary | None = None
         with gui.add_folder("Episode"):
             self.status = gui.add_markdown("_no status yet_")
             self.predictions = gui.add_html("")
-            self.plot = gui.add_uplot(
-                (np.zeros(1), np.zeros(1), np.zeros(1)),
-                ({"label": "step"}, {"label": "objects fixed", "stroke": palette.css(palette.WARNING_RGB), "width": 2},
-                 {"label": "OOP found", "stroke": palette.css(palette.TRAJECTORY_RGB), "width": 1.5}),
-                title="progress", scales={"x": {"time": False}}, height=140)
+            # drawn here as an image of a fixed size: it cannot collapse, whatever the panel's
+            # layout when it first appears, and it shows the same in every browser and screenshot
+            self._plot_key: tuple[int, tuple[float, ...]] | None = None
+            self.plot = gui.add_image(images.progress_plot(np.zeros((0, 3))), label="Progress (by step)",
+                                      format="png")
         if self.replay:
             assert replay_steps is not None
             self._build_replay(gui, *replay_steps)
@@ -84,8 +94,14 @@ class Panels:
                                        hint=LAYER_HINTS.get(layer))
                 box.on_update(lambda e, layer=layer: actions.set_layer(layer, bool(e.target.value)))
                 self.layer_boxes[layer] = box
-            self.occupancy_only = gui.add_checkbox("Occupancy only (colour by height)", initial_value=False)
-            self.occupancy_only.on_update(lambda e: actions.set_occupancy_only(bool(e.target.value)))
+            self.colour_mode = gui.add_dropdown("3D map colours", tuple(COLOUR_LABELS[m] for m in COLOUR_MODES),
+                                                initial_value=COLOUR_LABELS["semantic"], hint=COLOUR_HINT)
+            by_label = {label: mode for mode, label in COLOUR_LABELS.items()}
+            self.colour_mode.on_update(lambda e: actions.set_colour_mode(by_label[str(e.target.value)]))
+            self.label_all = gui.add_checkbox("Label all objects", initial_value=False,
+                                              hint="Off: only objects out of place, the current target and the "
+                                                   "held object are labelled")
+            self.label_all.on_update(lambda e: actions.set_label_all(bool(e.target.value)))
             gui.add_button("Reset view", icon=viser.Icon.FOCUS_CENTERED).on_click(lambda _: actions.reset_view())
             gui.add_markdown("**Classes** (voxel colours)")
             self.legend = gui.add_html(palette.legend_html([], np.zeros(0)))
@@ -156,12 +172,33 @@ class Panels:
         if s.message:
             lines.append(f"_{html.escape(s.message)}_")
         self.status.content = "  \n".join(lines)
-        self.predictions.content = predictions_html([(p.label, p.prob) for p in s.predictions[:5]])
+        predictions = predictions_html([(p.label, p.prob) for p in s.predictions[:5]])
+        if self.predictions.content != predictions:
+            self.predictions.content = predictions
 
     def show_plot(self, history: np.ndarray) -> None:
-        if len(history) == 0:
+        """Redraw the progress plot when its data changed (``K x 3``: step, put away, found)."""
+        rows = np.asarray(history, np.float64).reshape(-1, 3)
+        key = (len(rows), tuple(rows[-1]) if len(rows) else ())
+        if key != self._plot_key:
+            self._plot_key = key
+            self.plot.image = images.progress_plot(rows)
+
+    def show_summary(self, summary: EpisodeSummary | None) -> None:
+        """The "Episode finished" panel (None hides it: a new episode began, or a replay slid back)."""
+        if summary == self._summary_shown:
             return
-        self.plot.data = (history[:, 0].copy(), history[:, 1].copy(), history[:, 2].copy())
+        self._summary_shown = summary
+        if summary is None:
+            self.summary.visible = False
+            return
+        self.summary.content = summary_html(summary)
+        self.summary.visible = True
+
+    def show_stopped(self, note: str) -> None:
+        """The viewer is shutting down: say so on the page (which freezes, dimmed, once the
+        connection closes) so the last thing a person sees explains it."""
+        self.title.content = f"**tidee viewer stopped** · this page no longer updates. {note}"
 
     def show_camera(self, rgb: np.ndarray, depth: np.ndarray | None) -> None:
         self.rgb.image = rgb
@@ -224,7 +261,38 @@ def predictions_html(preds: Sequence[tuple[str, float]]) -> str:
             f"<span style='display:block;width:{pct:.0f}%;height:10px;border-radius:3px;"
             f"background:{palette.css(palette.PATH_RGB)}'></span></span>"
             f"<span style='width:3.2em;text-align:right'>{prob:.2f}</span></div>")
-    return "<div style='font-size:0.8em;color:#666'>where it belongs (top 5)</div>" + "".join(rows)
+    return (f"<div id='{PREDICTIONS_ID}'><div style='font-size:0.8em;color:#666'>where it belongs (top 5)</div>"
+            + "".join(rows) + "</div>")
+
+
+def summary_html(s: EpisodeSummary) -> str:
+    """The "Episode finished" box: how the episode ended, its scores and the replay command.
+    Every string is escaped (it comes from the network)."""
+    ep = s.episode or {}
+    mess = ep.get("mess_index")
+    room = f"{ep.get('room_type', '?')} seed {ep.get('seed', '?')}" + (f" mess {mess}" if mess is not None else "")
+    who = " ".join(str(ep[k]) for k in ("variant", "perception") if ep.get(k))
+
+    def count(v: int | None, of: int | None = None) -> str:
+        if v is None:
+            return "–"
+        return f"<b>{v}</b>" + (f"/{of}" if of is not None else "")
+
+    cells = [("moved", count(s.moved)), ("found", count(s.found, s.moved)), ("put away", count(s.put_away)),
+             ("plausible", count(s.plausible, s.moved)), ("false picks", count(s.false_picks))]
+    chips = "".join(f"<span style='display:inline-block;white-space:nowrap;background:#fff;border-radius:4px;"
+                    f"padding:0 5px;margin:2px 4px 0 0'>{html.escape(k)} {v}</span>" for k, v in cells)
+    unscored = ("<div style='color:#777'>moved, found, plausible, false picks: not scored (the server gave no "
+                "state)</div>" if s.moved is None else "")
+    replay = (f"<div style='margin-top:3px'>replay: <code style='font-size:0.9em;word-break:break-all'>"
+              f"{html.escape(s.replay)}</code></div>" if s.replay else "")
+    return (f"<div id='{SUMMARY_ID}' style='border:2px solid #2e7d32;background:#eef7ee;border-radius:6px;"
+            f"padding:5px 8px;margin:2px 8px 6px;font-size:0.85em;line-height:1.4'>"
+            f"<div style='font-size:1.15em;font-weight:700;color:#1b5e20'>&#10004; Episode finished</div>"
+            f"<div>{html.escape(room)} · {html.escape(who)} · <b>{s.steps}</b> steps · <b>{s.wall_s:.0f}</b> s</div>"
+            f"<div style='color:#555'>ended: {html.escape(s.end_reason or '–')}</div>"
+            f"<div title='found and plausible are out of the objects the mess-up moved; plausible by the "
+            f"simulated judge'>{chips}</div>{unscored}{replay}</div>")
 
 
 def _swatch(rgb: palette.RGB, text: str) -> str:

@@ -8,16 +8,18 @@ JPEG, are kept encoded and decoded only when shown, so memory stays near the log
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from tidee.protocol import codec
 from tidee.protocol.episode_log import LogReader
-from tidee.protocol.messages import AgentFrame, AgentStatus
+from tidee.protocol.messages import AgentFrame, AgentStatus, EpisodeSummary
 
-REPLAYED_KINDS = ("status", "frame", "maps", "memory", "search")
+REPLAYED_KINDS = ("status", "frame", "maps", "memory", "search", "summary")
 
 
 @dataclass
@@ -50,13 +52,18 @@ class ReplayLog:
         self.directory = str(directory)
         self._tracks: dict[str, _Track] = {kind: _Track() for kind in REPLAYED_KINDS}
         self.session: str | None = None
-        count = 0
+        count, last = 0, 0
         for kind, msg in reader.messages():
-            if kind not in self._tracks or not hasattr(msg, "step"):
+            if isinstance(msg, EpisodeSummary):
+                step = last  # the episode's end: shown from the last step logged before it
+            elif kind in self._tracks and hasattr(msg, "step"):
+                step = int(msg.step)
+            else:
                 continue  # acks and unknown kinds: nothing to show at a step
             item = codec.encode(msg, "jpeg") if isinstance(msg, AgentFrame) else msg
-            self._tracks[kind].add(int(msg.step), item)
+            self._tracks[kind].add(step, item)
             self.session = self.session or getattr(msg, "session", None)
+            last = max(last, step)
             count += 1
         if count == 0:
             why = f" ({reader.corrupt_message})" if reader.truncated else ""
@@ -66,6 +73,10 @@ class ReplayLog:
         self.summary = reader.summary()
         all_steps = [s for t in self._tracks.values() for s in t.steps[:1] + t.steps[-1:]]
         self.first_step, self.last_step = min(all_steps), max(all_steps)
+        if not self._tracks["summary"].steps and isinstance(self.summary, dict):
+            logged = episode_summary(self.summary.get("summary"))   # a log whose tlog lacks it
+            if logged is not None:
+                self._tracks["summary"].add(self.last_step, logged)
         status = self._tracks["status"]
         self._history = np.array([(m.step, m.objects_fixed, m.oop_found) for m in status.items],
                                  dtype=np.float64).reshape(-1, 3)
@@ -92,6 +103,15 @@ class ReplayLog:
             rows = rows[np.linspace(0, len(rows) - 1, max_points).astype(int)]
         return rows
 
+    def frames(self, first: int, last: int, max_frames: int | None = None) -> Iterator[AgentFrame]:
+        """The logged frames with index ``first`` to ``last`` (inclusive, in step order),
+        decoded; at most ``max_frames`` of them, evenly spread, the last always among them."""
+        idx = np.arange(max(first, 0), min(last, len(self._tracks["frame"].items) - 1) + 1)
+        if max_frames is not None and len(idx) > max_frames:
+            idx = idx[np.unique(np.linspace(len(idx) - 1, 0, max_frames).round().astype(int))]
+        for i in idx:
+            yield codec.decode(self._tracks["frame"].items[int(i)])
+
     def count(self, kind: str) -> int:
         return len(self._tracks[kind].steps)
 
@@ -102,3 +122,14 @@ class ReplayLog:
     def latest_status(self, step: int) -> AgentStatus | None:
         i = self._tracks["status"].index_at(step)
         return None if i is None else self._tracks["status"].items[i]
+
+
+def episode_summary(record: Any) -> EpisodeSummary | None:
+    """An ``EpisodeSummary`` from ``summary.json``'s ``summary`` entry (None when absent or not one)."""
+    if not isinstance(record, dict):
+        return None
+    names = {f.name for f in dataclasses.fields(EpisodeSummary)}
+    try:
+        return EpisodeSummary(**{k: v for k, v in record.items() if k in names})
+    except TypeError:              # a required field is missing: not a summary this viewer knows
+        return None

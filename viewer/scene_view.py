@@ -1,13 +1,16 @@
 """The 3D scene: one viser node per layer, created once and updated in place.
 
-Layers: the voxel map (coloured by class, or by height with "occupancy only"), the
-object memory (wireframe boxes and labels: out of place in orange, held in blue), the
-agent (camera frustum, trajectory, planned path and goal), the search heatmap on the
-floor with its ranked points, and the server's ground truth (oracle, off by default).
+Layers: the 3D map (the semantic voxel map coloured by class or by height, or the
+camera-coloured point cloud fused from the agent's RGB-D frames), the object memory
+(wireframe boxes and labels: out of place in orange, held in blue), the agent (camera
+frustum, trajectory, planned path and goal), the search heatmap on the floor with its
+ranked points, and the server's ground truth (oracle, off by default).
 
 Nodes are never re-created per message: each update assigns to a node handle's props,
 inside ``server.atomic()`` (the caller groups a whole batch). Labels come from a pool
-that grows to the most objects seen at once (capped) and hides what it does not use.
+that grows to the most objects seen at once (capped) and hides what it does not use. By
+default only the objects that matter now are labelled (out of place, the current target,
+the held object); labels are laid out for the viewer's camera so none covers another.
 """
 
 from __future__ import annotations
@@ -15,13 +18,25 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import time
+
 import cv2
 import numpy as np
 import viser
 from tidee.protocol.messages import AgentFrame, AgentStatus, MapSnapshot, ObjectMemoryMsg, SearchHeatmap
 from tidee.viewer import geometry, images, palette
+from tidee.viewer.colour_cloud import ColourCloud
 
 LAYERS = ("voxels", "objects", "agent", "search", "oracle")
+COLOUR_MODES = ("semantic", "rgb", "height")   # how the 3D map is coloured (the "voxels" layer)
+RGB_VOXEL = 0.05                     # the camera-coloured cloud's voxel edge (m) and its point cap
+RGB_MAX_POINTS = 150_000
+RGB_PUSH_PERIOD_S = 1.0              # the coloured cloud goes to the browser at most this often
+RGB_FUSE_PERIOD_S = 0.3              # live frames are fused at most this often (~15 ms each at 256 px)
+LABEL_FONT_SCALE = 0.9               # viser screen-size labels: a 12 px em at scale 1
+LABEL_CHAR_PX, LABEL_LINE_PX = 6.2, 17.0   # a label's box on screen: per character, and its height
+LABEL_FALLBACK_FOV = 1.3             # rad, viser's default camera, until a browser reports its own
+LABEL_FALLBACK_HEIGHT = 720          # px
 MAX_LABELS = 96
 MAX_ORACLE_LABELS = 48
 FRUSTUM_IMAGE_SIZE = 64
@@ -76,12 +91,14 @@ class _LabelPool:
         items = items[:self.cap]
         while len(self.handles) < len(items):
             self.handles.append(self.scene.add_label(f"{self.prefix}/{len(self.handles)}", "", visible=False,
-                                                     anchor="bottom-center", font_screen_scale=0.8))
+                                                     anchor="bottom-center", font_screen_scale=LABEL_FONT_SCALE))
         for handle, (text, position) in zip(self.handles, items):
             if handle.text != text:
                 handle.text = text
-            handle.position = position
-            handle.visible = self.enabled
+            if not np.allclose(handle.position, position, atol=1e-4):   # a camera drag moves few labels
+                handle.position = position
+            if handle.visible != self.enabled:
+                handle.visible = self.enabled
         for handle in self.handles[len(items):self.shown]:
             handle.visible = False
         self.shown = len(items)
@@ -100,11 +117,20 @@ class SceneView:
         self.max_points = max_points
         scene = server.scene
         scene.set_up_direction("+z")  # the start frame is z-up; say so rather than rely on a default
-        self.occupancy_only = False
+        self.colour_mode = "semantic"
+        self.label_all = False                    # label every tracked object, not only those that matter now
+        self.label_view: geometry.ScreenView | None = None   # the browser's camera, for laying labels out
         self.layer_on = {layer: layer != "oracle" for layer in LAYERS}
-        self._has = {name: False for name in ("voxels", "boxes", "frustum", "trajectory", "path", "goal",
-                                              "heatmap", "search_points", "oracle")}
+        self._has = {name: False for name in ("voxels", "rgb_cloud", "boxes", "leaders", "frustum", "trajectory",
+                                              "path", "goal", "heatmap", "search_points", "oracle")}
         self._map: MapSnapshot | None = None
+        self._memory: ObjectMemoryMsg | None = None
+        self._target_id: int | None = None
+        self.colour_cloud = ColourCloud(voxel=RGB_VOXEL, cap=RGB_MAX_POINTS, floor_z=FLOOR_LAYER_TOP)
+        self._cloud_step: int | None = None       # the step of the last frame fused
+        self._cloud_fused = 0.0                   # when the last live frame was fused (monotonic)
+        self._cloud_pushed = 0.0                  # when the cloud last went to the browser (monotonic)
+        self._cloud_dirty = False
         self._has_frame = False                   # frames place the frustum; else the status pose does
         self.plane: geometry.FloorPlane | None = None
         self.counts: dict[str, int] = {}          # what the scene holds now (tests and the status line)
@@ -117,8 +143,12 @@ class SceneView:
         empty_seg = np.zeros((1, 2, 3), np.float32)
         self.voxels = scene.add_point_cloud("/map/voxels", empty_pts, empty_rgb, point_size=0.05,
                                             point_shape="square", point_shading="flat", visible=False)
+        self.rgb_cloud = scene.add_point_cloud("/map/rgb", empty_pts, empty_rgb, point_size=RGB_VOXEL,
+                                               point_shape="square", point_shading="flat", visible=False)
         self.boxes = scene.add_line_segments("/objects/boxes", empty_seg, (0, 0, 0), thickness=0.012,
                                              visible=False)
+        self.leaders = scene.add_line_segments("/objects/leaders", empty_seg, (110, 110, 110), thickness=1.5,
+                                               thickness_units="screen", visible=False)
         self.labels = _LabelPool(scene, "/objects/labels", MAX_LABELS)
         self.frustum = scene.add_camera_frustum("/agent/camera", fov=STATUS_FOV, aspect=1.0, scale=0.35,
                                                 thickness=0.02, color=palette.FRUSTUM_RGB, visible=False)
@@ -140,7 +170,8 @@ class SceneView:
     # --- visibility ---------------------------------------------------------------------
     def _nodes(self) -> dict[str, tuple[str, Any]]:
         """node name -> (layer, handle) for the nodes whose visibility is data AND layer."""
-        return {"voxels": ("voxels", self.voxels), "boxes": ("objects", self.boxes),
+        return {"voxels": ("voxels", self.voxels), "rgb_cloud": ("voxels", self.rgb_cloud),
+                "boxes": ("objects", self.boxes), "leaders": ("objects", self.leaders),
                 "frustum": ("agent", self.frustum), "trajectory": ("agent", self.trajectory),
                 "path": ("agent", self.path), "goal": ("agent", self.goal), "heatmap": ("search", self.heatmap),
                 "search_points": ("search", self.search_points), "oracle": ("oracle", self.oracle_boxes)}
@@ -148,6 +179,8 @@ class SceneView:
     def _refresh(self, name: str) -> None:
         layer, handle = self._nodes()[name]
         visible = self._has[name] and self.layer_on[layer]
+        if name in ("voxels", "rgb_cloud"):       # one 3D map at a time: the colour mode picks which
+            visible = visible and (name == "rgb_cloud") == (self.colour_mode == "rgb")
         if handle.visible != visible:
             handle.visible = visible
 
@@ -166,10 +199,26 @@ class SceneView:
         if pool is not None:
             pool.set_enabled(on)
 
-    def set_occupancy_only(self, on: bool) -> None:
-        self.occupancy_only = on
-        if self._map is not None:
+    def set_colour_mode(self, mode: str) -> None:
+        """Colour the 3D map by ``semantic`` class, by camera ``rgb`` (the fused frames) or by ``height``."""
+        if mode not in COLOUR_MODES:
+            raise ValueError(f"colour mode must be one of {COLOUR_MODES}, got {mode!r}")
+        self.colour_mode = mode
+        if self._map is not None and mode != "rgb":
             self.voxels.colors = self._voxel_colors(self._map)
+        if mode == "rgb":
+            self.push_cloud(force=True)
+        self._refresh("voxels")
+        self._refresh("rgb_cloud")
+
+    def set_label_all(self, on: bool) -> None:
+        self.label_all = on
+        self._layout_labels()
+
+    def set_label_view(self, view: geometry.ScreenView | None) -> None:
+        """Lay labels out for this camera (a browser's; None: the overview camera)."""
+        self.label_view = view
+        self._layout_labels()
 
     def clear(self) -> None:
         """Hide every layer's data (another session was chosen)."""
@@ -178,6 +227,9 @@ class SceneView:
         for pool in (self.labels, self.search_labels, self.oracle_labels):
             pool.show([])
         self._map, self.counts, self._has_frame = None, {}, False
+        self._memory, self._target_id = None, None
+        self.colour_cloud.clear()
+        self._cloud_step, self._cloud_dirty = None, False
 
     # --- updates (one per telemetry kind) ---------------------------------------------------
     def apply(self, kind: str, msg: Any) -> None:
@@ -188,7 +240,7 @@ class SceneView:
 
     def _voxel_colors(self, msg: MapSnapshot) -> np.ndarray:
         points, labels = self._subsample(msg)
-        if self.occupancy_only:
+        if self.colour_mode == "height":
             return palette.height_colors(points[:, 2])
         return palette.class_colors(labels)
 
@@ -233,10 +285,36 @@ class SceneView:
                                24, axis=0).reshape(-1, 2, 3)
             self.boxes.points, self.boxes.colors = segments, colors
         self._set_has("boxes", bool(objs))
-        self.labels.show([(_object_text(o), (float((o.box_min[0] + o.box_max[0]) / 2),
-                                             float((o.box_min[1] + o.box_max[1]) / 2), float(o.box_max[2]) + 0.03))
-                          for o in objs])
+        self._memory = msg
+        self._layout_labels()
         self.counts["objects"] = len(objs)
+
+    def _layout_labels(self) -> None:
+        """Label the objects that matter now (or all of them), placed so that none covers
+        another in ``label_view``; a leader line joins a lifted label to its object."""
+        objs = self._memory.objects if self._memory is not None else []
+        chosen = labelled_objects(objs, self._target_id, self.label_all)[:MAX_LABELS]
+        texts = [_object_text(o, o.id == self._target_id) for o in chosen]
+        anchors = np.array([((o.box_min[0] + o.box_max[0]) / 2, (o.box_min[1] + o.box_max[1]) / 2,
+                             o.box_max[2] + 0.03) for o in chosen], np.float64).reshape(-1, 3)
+        view = self.label_view or self._fallback_view()
+        if view is not None and len(anchors):
+            sizes = np.array([(len(t) * LABEL_CHAR_PX + 10, LABEL_LINE_PX) for t in texts])
+            placed = geometry.place_labels(anchors, sizes, view)
+        else:
+            placed = anchors
+        self.labels.show([(t, (float(p[0]), float(p[1]), float(p[2]))) for t, p in zip(texts, placed)])
+        lifted = np.linalg.norm(placed - anchors, axis=1) > 0.02
+        if lifted.any():
+            self.leaders.points = np.stack([anchors[lifted], placed[lifted]], axis=1).astype(np.float32)
+        self._set_has("leaders", bool(lifted.any()))
+        self.counts["labels"] = len(chosen)
+
+    def _fallback_view(self) -> geometry.ScreenView | None:
+        if self.plane is None:
+            return None
+        return geometry.screen_view_looking_at(geometry.overview_camera(self.plane), LABEL_FALLBACK_FOV,
+                                               LABEL_FALLBACK_HEIGHT)
 
     def apply_status(self, msg: AgentStatus) -> None:
         traj = geometry.polyline_segments(msg.trajectory, z=0.02)
@@ -250,6 +328,9 @@ class SceneView:
         if msg.goal is not None:
             self.goal.position = (float(msg.goal[0]), float(msg.goal[1]), 0.06)
         self._set_has("goal", msg.goal is not None)
+        if msg.target_id != self._target_id:
+            self._target_id = msg.target_id
+            self._layout_labels()
         if not self._has_frame:
             x, y, yaw, pitch = (float(v) for v in msg.pose)
             pose = geometry.camera_pose_from_agent(x, y, yaw, pitch, STATUS_CAMERA_HEIGHT)
@@ -270,6 +351,33 @@ class SceneView:
         self.frustum.image = small
         self._has_frame = True
         self._set_has("frustum", True)
+        now = time.monotonic()
+        # each frame once (a replay redraws the same one), a few a second (the agent moves slowly)
+        if msg.step != self._cloud_step and now - self._cloud_fused >= RGB_FUSE_PERIOD_S:
+            self._cloud_fused = now
+            self.fuse_frame(msg)
+            self.push_cloud()
+
+    def fuse_frame(self, msg: AgentFrame | Any) -> None:
+        """Add a frame to the camera-coloured cloud (``apply_frame`` does; a replay catching up
+        on the frames it skipped calls it directly)."""
+        self.colour_cloud.add(msg.rgb, msg.depth, msg.camera_pose, msg.intrinsics)
+        self._cloud_step, self._cloud_dirty = msg.step, True
+
+    def push_cloud(self, force: bool = False) -> None:
+        """Send the coloured cloud to the browser if it changed and is shown, at most every
+        ``RGB_PUSH_PERIOD_S`` unless ``force`` (it is large; the semantic map is what updates live)."""
+        now = time.monotonic()
+        if self.colour_mode != "rgb" or not self._cloud_dirty or (
+                not force and now - self._cloud_pushed < RGB_PUSH_PERIOD_S):
+            return
+        if len(self.colour_cloud):
+            self.rgb_cloud.points = self.colour_cloud.points()
+            self.rgb_cloud.colors = self.colour_cloud.colors()
+        self.counts["rgb_points"] = len(self.colour_cloud)
+        self._set_has("rgb_cloud", len(self.colour_cloud) > 0)
+        self._cloud_pushed, self._cloud_dirty = now, False
+
 
     def apply_search(self, msg: SearchHeatmap) -> None:
         heat = np.asarray(msg.heatmap)
@@ -306,10 +414,27 @@ class SceneView:
         return {handle.name: bool(handle.visible) for _, handle in self._nodes().values()}
 
 
-def _object_text(o: Any) -> str:
+def labelled_objects(objects: list[Any], target_id: int | None, label_all: bool) -> list[Any]:
+    """The tracked objects to label, most important first: held, the current target, out of
+    place (most likely first); then, with ``label_all``, the rest (best detected first)."""
+    def rank(o: Any) -> tuple[int, float]:
+        if o.held:
+            return 0, 0.0
+        if target_id is not None and o.id == target_id:
+            return 1, 0.0
+        if o.out_of_place:
+            return 2, -(o.oop_prob or 0.0)
+        return 3, -float(o.score)
+    ranked = sorted(objects, key=rank)
+    return ranked if label_all else [o for o in ranked if rank(o)[0] < 3]
+
+
+def _object_text(o: Any, target: bool = False) -> str:
     if o.held:
         return f"{o.label} (held)"
     if o.out_of_place:
         p = f" {o.oop_prob:.2f}" if o.oop_prob is not None else ""
-        return f"{o.label}: out of place{p}"
-    return o.label
+        text = f"{o.label}: out of place{p}"
+    else:
+        text = o.label
+    return f"{text} (target)" if target else text

@@ -2,8 +2,10 @@
 
 Starts the replay viewer in this process on a free port, seeks to the asked step (or to
 the first search heatmap the agent published, ``--at search``), loads the page in a
-headless Chromium, waits until the 3D canvas has drawn the map, and writes the
-screenshot. For documentation and bug reports: the picture a person would see.
+headless Chromium, waits until the 3D canvas has drawn the map and the page has settled,
+and writes the screenshot; with ``annotated``, also the same picture with each panel
+outlined and named (``viewer/annotate.py``). For documentation and bug reports: the
+picture a person would see.
 """
 
 from __future__ import annotations
@@ -11,8 +13,10 @@ from __future__ import annotations
 import time
 
 import cv2
+import numpy as np
+from tidee.viewer.annotate import annotate
 from tidee.viewer.app import ViewerConfig, run_viewer
-from tidee.viewer.browser import DISMISS_SOFTWARE_GL_NOTE, HeadlessChromium, map_drawn
+from tidee.viewer.browser import DISMISS_SOFTWARE_GL_NOTE, HEIGHT, WIDTH, HeadlessChromium, map_drawn
 
 
 def resolve_step(log, at: str) -> int:
@@ -34,8 +38,10 @@ def resolve_step(log, at: str) -> int:
     return step
 
 
-def screenshot_replay(log_dir: str, out_png: str, at: str = "end", timeout: float = 60.0) -> int:
-    """Write the page at ``at`` to ``out_png``; return the step shown."""
+def screenshot_replay(log_dir: str, out_png: str, at: str = "end", timeout: float = 60.0,
+                      annotated_png: str | None = None, size: tuple[int, int] = (WIDTH, HEIGHT)) -> int:
+    """Write the page at ``at`` to ``out_png`` (and its annotated copy to ``annotated_png``);
+    return the step shown. ``size``: the browser window (width, height)."""
     handle = run_viewer(ViewerConfig(replay=log_dir, port=0))
     try:
         app = handle.app
@@ -47,16 +53,22 @@ def screenshot_replay(log_dir: str, out_png: str, at: str = "end", timeout: floa
             if time.monotonic() > deadline:
                 raise TimeoutError(f"the viewer did not draw step {step} within {timeout} s")
             time.sleep(0.1)
-        with HeadlessChromium() as browser:
+        with HeadlessChromium(width=size[0], height=size[1]) as browser:
             browser.navigate(handle.url)
             maps = app.replay.at(step).get("maps")
             n_classes = len(maps.classes) if maps is not None else 1
             browser.wait_for(lambda img: map_drawn(img, n_classes), timeout=timeout)
             browser.evaluate(DISMISS_SOFTWARE_GL_NOTE)
-            time.sleep(1.0)  # the closed notification fades out
-            shot = browser.screenshot()
-        if not cv2.imwrite(out_png, cv2.cvtColor(shot, cv2.COLOR_RGB2BGR)):
-            raise OSError(f"could not write {out_png}")
+            shot = browser.wait_settled(timeout=15)  # fades, labels and the closed notification done
+            boxes = browser.panel_boxes()
+        _write_png(out_png, shot)
+        if annotated_png:
+            _write_png(annotated_png, annotate(shot, boxes))
         return step
     finally:
         handle.stop()
+
+
+def _write_png(path: str, rgb: np.ndarray) -> None:
+    if not cv2.imwrite(path, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+        raise OSError(f"could not write {path}")

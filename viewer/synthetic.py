@@ -2,10 +2,10 @@
 
 Used by the viewer's tests and benchmark (and handy to try the viewer alone):
 ``SyntheticEpisode(seed).messages(step)`` gives the telemetry an agent would publish at
-``step`` (status, frame, maps, memory, search); ``SyntheticAgent`` publishes them over
-Zenoh, declares the session's liveliness as a server would, and answers viewer commands
-(pause, resume, step, new_episode, preference) with ``CommandAck``. Deterministic in
-(seed, step). No torch, no agent code.
+``step`` (status, frame, maps, memory, search), ``summary(steps)`` the episode's end;
+``SyntheticAgent`` publishes them over Zenoh, declares the session's liveliness as a server
+would, and answers viewer commands (pause, resume, step, new_episode, preference) with
+``CommandAck``. Deterministic in (seed, step). No torch, no agent code.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from tidee.protocol.messages import (
     AgentStatus,
     CommandAck,
     Detection2D,
+    EpisodeSummary,
     MapSnapshot,
     ObjectMemoryMsg,
     ReceptaclePrediction,
@@ -251,6 +252,15 @@ class SyntheticEpisode:
         return SearchHeatmap(session=self.session, step=step, target=box.label, origin=self.origin, cell=CELL,
                              heatmap=heat, points=points, source="synthetic")
 
+    def summary(self, steps: int, wall_s: float = 0.0, replay: str = "") -> EpisodeSummary:
+        """How an episode of ``steps`` steps ended (kind ``summary``, sent once at the end)."""
+        last = self.status(max(steps - 1, 0))
+        moved = sum(oop for *_, oop in SMALL)
+        return EpisodeSummary(session=self.session, episode=dict(last.episode), steps=steps, wall_s=round(wall_s, 2),
+                              end_reason="step budget", put_away=last.objects_fixed, moved=moved,
+                              found=min(last.oop_found, moved), plausible=min(last.objects_fixed, moved),
+                              false_picks=0, replay=replay)
+
     def messages(self, step: int, paused: bool = False, kinds: tuple[str, ...] | None = None) -> dict[str, Any]:
         """The telemetry of ``step`` (``kinds``: a subset of status, frame, maps, memory, search)."""
         makers = {"status": lambda: self.status(step, paused), "frame": lambda: self.frame(step),
@@ -289,7 +299,7 @@ class SyntheticAgent:
         self._token = self._z.liveliness().declare_token(keys.alive_session(server_id, session))
         self._pubs = {kind: self._z.declare_publisher(keys.agent_telemetry(session, kind),
                                                       congestion_control=zenoh.CongestionControl.DROP)
-                      for kind in (*PUBLISH_EVERY, "ack")}
+                      for kind in (*PUBLISH_EVERY, "ack", "summary")}
         self._commands = self._z.declare_subscriber(keys.agent_cmd(session), zenoh.handlers.FifoChannel(64))
         self._thread: threading.Thread | None = None
 
@@ -319,7 +329,13 @@ class SyntheticAgent:
                 next_t += period
                 self._stop.wait(max(0.0, next_t - time.perf_counter()))
         elapsed = time.perf_counter() - t0
+        if steps is not None and published >= steps:   # the episode's end, as an agent reports it
+            self.publish_summary(elapsed)
         return published / elapsed if elapsed > 0 else 0.0
+
+    def publish_summary(self, wall_s: float = 0.0) -> None:
+        """Report the episode's end (``EpisodeSummary``) at the current step."""
+        self._pubs["summary"].put(encode(self.episode.summary(self.step, wall_s)))
 
     def publish_step(self, step: int) -> None:
         if self.work_ms > 0:
@@ -399,7 +415,10 @@ def _burn(seconds: float) -> None:
 
 
 def write_synthetic_log(directory: str, steps: int, seed: int = 0, session: str = "synthetic") -> None:
-    """An episode log (``protocol/episode_log.py`` format) of ``steps`` synthetic steps, for replay."""
+    """An episode log (``protocol/episode_log.py`` format) of ``steps`` synthetic steps, for
+    replay, ending with the episode's summary (in the log and in ``summary.json``), as an agent's."""
+    import dataclasses
+
     from tidee.protocol.episode_log import LogWriter
 
     episode = SyntheticEpisode(seed=seed, session=session)
@@ -409,7 +428,9 @@ def write_synthetic_log(directory: str, steps: int, seed: int = 0, session: str 
             for kind, msg in episode.messages(step, kinds=kinds).items():
                 writer.message(kind, msg)
             writer.event(step=step, kind="step")
-        writer.finish({"steps": steps, "session": session, "synthetic": True})
+        summary = episode.summary(steps, replay=f"tidee viewer --replay {directory}")
+        writer.message("summary", summary)
+        writer.finish({"steps": steps, "session": session, "synthetic": True, "summary": dataclasses.asdict(summary)})
 
 
 def main(argv: list[str] | None = None) -> int:
