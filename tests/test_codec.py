@@ -12,7 +12,7 @@ import pytest
 
 from tidee.protocol.codec import (ALIGN, DEFAULT_MAX_BYTES, MAGIC, MESSAGE_TYPES, ProtocolError, decode,
                                   encode)
-from tidee.protocol.messages import (AgentCommand, AgentFrame, AgentStatus, CommandAck, Detection2D,
+from tidee.protocol.messages import (AgentCommand, AgentFrame, AgentStatus, CommandAck, Detection2D, EpisodeSummary,
                                      MapSnapshot, ObjectMemoryMsg, ReceptaclePrediction, SearchHeatmap,
                                      TrackedObjectMsg, PROTOCOL_VERSION, Action, ActionName, CloseReply, CloseRequest,
                                      EpisodeSpec, ErrorCode, ErrorReply, GroundTruth, Observation,
@@ -75,6 +75,8 @@ EXAMPLES: list[Any] = [
                   np.zeros((2, 2), np.float32)),
     AgentCommand(kind="preference", command_id="c1", text="I want my alarm clock on the desk"),
     CommandAck("s1", "c1", "preference", True, "noted"),
+    EpisodeSummary("s1", {"room_type": "Kitchen", "seed": 200, "mess_index": 0}, 120, 33.5, "done", 4,
+                   moved=5, found=5, plausible=4, false_picks=0, replay="tidee viewer --replay runs/Kitchen_200_mess0"),
 ]
 
 

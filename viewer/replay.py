@@ -69,8 +69,8 @@ class ReplayLog:
             why = f" ({reader.corrupt_message})" if reader.truncated else ""
             raise ValueError(f"{self.directory}: the log holds no telemetry to replay{why}")
         self.messages = count
+        self.summary = reader.summary()        # before the damage report, which counts a damaged summary
         self.truncated, self.corrupt_message = reader.truncated, reader.corrupt_message
-        self.summary = reader.summary()
         all_steps = [s for t in self._tracks.values() for s in t.steps[:1] + t.steps[-1:]]
         self.first_step, self.last_step = min(all_steps), max(all_steps)
         if not self._tracks["summary"].steps and isinstance(self.summary, dict):
