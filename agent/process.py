@@ -15,14 +15,12 @@ import time
 import uuid
 from dataclasses import dataclass
 
-import zenoh
-
 from tidee.agent.config import AgentConfig
 from tidee.agent.runner import EpisodeRunner, format_summary
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.protocol.client import RemoteError, SimClient
 from tidee.protocol.messages import AgentCommand, EpisodeSpec
-from tidee.protocol.zenoh_config import make_config
+from tidee.protocol.zenoh_config import ZenohOpenError, open_session
 
 log = logging.getLogger("tidee.agent")
 
@@ -51,7 +49,11 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, _sigterm)
-    z = zenoh.open(make_config(False, cfg.endpoint, cfg.router))
+    try:
+        z = open_session(False, cfg.endpoint, cfg.router)
+    except ZenohOpenError as e:     # a bad endpoint, an unreachable router
+        print(f"agent: error: {e}", file=sys.stderr, flush=True)
+        return 1
     publisher = None
     try:
         client = SimClient(cfg.endpoint, cfg.router, server_id=cfg.server_id, session=session, timeout=120.0,

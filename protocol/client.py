@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import threading
 import uuid
 from typing import Any
@@ -13,7 +14,7 @@ from tidee.protocol.codec import ProtocolError, decode, encode
 from tidee.protocol.messages import (IMAGE_ENCODINGS, Action, CloseReply, CloseRequest, EpisodeSpec,
                                      ErrorCode, ErrorReply, Observation, ResetRequest, StateReply,
                                      StateRequest, StepRequest)
-from tidee.protocol.zenoh_config import make_config, resolve_endpoint, resolve_router
+from tidee.protocol.zenoh_config import open_session, resolve_endpoint, resolve_router
 
 DEFAULT_SERVER_ID = "sim0"
 _ZENOH_TIMEOUT = b"Timeout"   # what Zenoh itself answers when a query's time runs out
@@ -48,9 +49,11 @@ class SimClient:
         self.server_id = keys.check_id("server_id", server_id)
         self.session_id = keys.check_id("session", session or uuid.uuid4().hex[:16])
         self.timeout, self.encoding = timeout, encoding
-        self._where = resolve_router(router) or resolve_endpoint(endpoint)
+        self._sequence = itertools.count()
+        self._router = resolve_router(router)
+        self._where = self._router or resolve_endpoint(endpoint)
         self._owns_zenoh = zsession is None
-        self._z: zenoh.Session | None = zsession or zenoh.open(make_config(False, endpoint, router))
+        self._z: zenoh.Session | None = zsession or open_session(False, endpoint, router)
         try:
             token_key = keys.alive_client(self.server_id, self.session_id)
             self._token = self._z.liveliness().declare_token(token_key)
@@ -94,8 +97,10 @@ class SimClient:
             raise RuntimeError(f"session {self.session_id} is closed")
         key = keys.sim_op(self.server_id, self.session_id, op)
         timeout = self.timeout if timeout is None else timeout
+        # source_info names this Zenoh session: the server's per-client quota counts by it.
         replies = self._z.get(key, payload=encode(request), timeout=timeout,
-                              congestion_control=zenoh.CongestionControl.BLOCK)  # the reply inherits it
+                              congestion_control=zenoh.CongestionControl.BLOCK,  # the reply inherits it
+                              source_info=zenoh.SourceInfo(self._z.id, next(self._sequence)))
         try:
             reply = replies.recv()
         except zenoh.ZError:  # the query finished with no reply: nobody serves that key
@@ -124,8 +129,9 @@ class SimClient:
                                                       lambda sample: seen.set(), history=True)
         try:
             if not seen.wait(timeout):
-                raise TimeoutError(f"no tidee server {self.server_id!r} at {self._where} "
-                                   f"within {timeout} s (start one with: tidee server)")
+                flag = "--router" if self._where == self._router else "--endpoint"
+                raise TimeoutError(f"no tidee server {self.server_id!r} at {self._where} within {timeout:g} s "
+                                   f"(start one with: tidee server {flag} {self._where})")
         finally:
             sub.undeclare()
 

@@ -126,6 +126,8 @@ class EpisodeSpec:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
         if self.mess_index is not None and int(self.mess_index) < 0:
             raise ValueError(f"mess_index must be >= 0 or None, got {self.mess_index}")
+        if self.start_seed is not None and int(self.start_seed) < 0:
+            raise ValueError(f"start_seed must be >= 0 or None, got {self.start_seed}")
 
 
 @dataclass

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 
 import zenoh
 
@@ -66,3 +67,47 @@ def make_config(listen: bool, endpoint: str | None = None, router: str | None = 
 
 def _set(conf: zenoh.Config, key: str, value: object) -> None:
     conf.insert_json5(key, json.dumps(value))
+
+
+class ZenohOpenError(ConnectionError):
+    """A Zenoh session could not be opened: a bad endpoint, a port in use, an unreachable router."""
+
+
+def open_session(listen: bool, endpoint: str | None = None, router: str | None = None) -> zenoh.Session:
+    """``zenoh.open(make_config(...))``, with Zenoh's refusal turned into a ``ZenohOpenError`` naming the endpoint."""
+    try:
+        return zenoh.open(make_config(listen, endpoint, router))
+    except zenoh.ZError as e:
+        raise open_error(e, listen, endpoint, router) from None
+
+
+def open_error(error: Exception, listen: bool, endpoint: str | None = None,
+               router: str | None = None) -> ZenohOpenError:
+    """One line for a failed ``zenoh.open``: which endpoint (and which flag or variable gave it) and why."""
+    router = resolve_router(router)
+    if router:
+        where, verb = _origin(router, ROUTER_ENV, "--router", "router"), "connect to it"
+        hint = " (is a Zenoh router, zenohd, running there? Without --router, tidee runs in peer mode)"
+    else:
+        where = _origin(endpoint, ENDPOINT_ENV, "--endpoint", "endpoint")
+        verb, hint = ("listen on it" if listen else "connect to it"), ""
+    return ZenohOpenError(f"{where}: Zenoh could not {verb}: {zenoh_error_text(error)}{hint}")
+
+
+def zenoh_error_text(error: Exception) -> str:
+    """Zenoh's message without its Rust source locations and debug wrappers."""
+    text = str(error)
+    m = re.search(r'msg: "(.*?)"', text)
+    if m:
+        text = m.group(1)
+    text = re.sub(r"\s*at /\S+\.rs:\d+\.?", "", text)     # "... at /root/.cargo/.../tcp.rs:61."
+    return " ".join(text.split()).rstrip(" .!")
+
+
+def _origin(given: str | None, env: str, flag: str, what: str) -> str:
+    """``--endpoint X``, ``TIDEE_ZENOH_ENDPOINT=X`` or ``the default endpoint X``: where a value came from."""
+    if given:
+        return f"{flag} {given}"
+    if os.environ.get(env):
+        return f"{env}={os.environ[env]}"
+    return f"the default {what} {DEFAULT_ENDPOINT}"

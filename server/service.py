@@ -21,8 +21,19 @@ episodes in ``ServerConfig.workers`` threads of this process instead; pass an
 
 Robustness: every request is decoded strictly; a bad one gets an ``ErrorReply`` saying
 what was wrong; an exception inside an episode becomes ``ErrorReply(internal)`` and the
-session stays usable (its next reset starts afresh). Sessions are freed on ``close``,
-when their client's liveliness token disappears, or when the server stops.
+session stays usable (its next reset starts afresh). A request's size is checked before its
+payload is copied out of Zenoh, so an oversized one costs no Python memory. Sessions are
+freed on ``close``, when their client's liveliness token disappears, when they have had no
+request for ``ServerConfig.idle_timeout_s`` (a reaper thread; the session's next step or
+state says it was reclaimed and why), or when the server stops.
+
+Quota: one client holds at most ``ServerConfig.max_sessions_per_client`` sessions. Zenoh does
+not tell a queryable who sent a query, so a client is what the query says it is
+(``client_of``): the Zenoh session id in the query's ``source_info`` (``SimClient`` sends
+its own; clients that share a Zenoh session share a quota), else the session id up to its
+last ``-`` (``agent7-0``, ``agent7-1`` are one client), else the session id alone. The quota
+keeps a well-behaved but careless client from filling the server; it is no defence against a
+client that lies, which only ``max_sessions`` and the idle timeout bound.
 
 Congestion: replies travel with the query's congestion control, which ``SimClient`` sets
 to ``BLOCK`` (the agent must get every frame; Zenoh 1.x ignores a reply's own setting);
@@ -37,6 +48,7 @@ import dataclasses
 import logging
 import queue
 import threading
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -58,7 +70,8 @@ REQUEST_TYPES: dict[str, type] = {"reset": ResetRequest, "step": StepRequest, "s
                                   "close": CloseRequest}
 RENDERERS = ("auto", "egl", "tiny")
 INBOX_CAPACITY = 1024                  # queries or liveliness events waiting for a dispatcher
-DEPARTED_MEMORY = 4096                 # how many vanished clients' session ids are remembered
+DEPARTED_MEMORY = 4096                 # how many vanished or reclaimed session ids are remembered
+REAPER_PERIOD_S = 5.0                  # the idle reaper looks this often (at timeout/4 for short timeouts)
 
 
 @dataclass
@@ -71,29 +84,43 @@ class ServerConfig:
     processes: int = 0                 # child processes running episodes; 0: one per available core
     workers: int = 1                   # threads running episodes when a factory is given (module docstring)
     max_request_bytes: int = 1 << 20   # requests carry no arrays
+    max_sessions_per_client: int = 4   # sessions one client (``client_of``) may hold at once
+    idle_timeout_s: float = 300.0      # free a session after this long without a request; 0: never
 
     def __post_init__(self) -> None:
         keys.check_id("server_id", self.server_id)
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
-        for name in ("max_sessions", "workers", "max_request_bytes"):
+        for name in ("max_sessions", "workers", "max_request_bytes", "max_sessions_per_client"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if int(self.processes) < 0:
             raise ValueError(f"processes must be >= 0 (0: one per available core), got {self.processes}")
+        if not float(self.idle_timeout_s) >= 0:
+            raise ValueError(f"idle_timeout_s must be >= 0 seconds (0: never), got {self.idle_timeout_s}")
 
     def process_count(self) -> int:
         """How many child processes the default episodes run in."""
         return min(self.processes or available_cores(), self.max_sessions)
 
 
+def client_of(query: zenoh.Query, session: str) -> str:
+    """Who sent ``query`` for ``session``, as far as the query says (module docstring, Quota)."""
+    source = query.source_info
+    if source is not None:
+        return f"zenoh session {source.source_id.zid}"
+    prefix, dash, _ = session.rpartition("-")
+    return f"session prefix {prefix!r}" if dash and prefix else f"session {session!r}"
+
+
 @dataclass
 class _Job:
     session: str | None                # None when the key did not parse
-    op: str                            # reset | step | state | close | gone (client token deleted)
+    op: str                            # reset | step | state | close | gone (client token deleted) | idle
     query: zenoh.Query | None = None
     payload: bytes = b""
-    key_error: str | None = None
+    refusal: ProtocolError | None = None  # decided on receipt (a bad key, an oversized payload)
+    client: str = ""
 
 
 @dataclass
@@ -105,9 +132,12 @@ class _Pin:
 @dataclass
 class _Session:
     worker: int
+    client: str                        # client_of() its first reset
     episode: EpisodeLike | None        # None while the episode is being built
     token: Any = None                  # liveliness: tidee/alive/session/{server}/{session}
     publisher: zenoh.Publisher | None = None
+    last_request: float = dataclasses.field(default_factory=time.monotonic)  # receipt or answer
+    reclaiming: bool = False           # an idle job is queued for it
 
 
 class SimServer:
@@ -135,10 +165,14 @@ class SimServer:
             self._open = lambda worker: factory()
             workers = config.workers
         self._sessions: dict[str, _Session] = {}
-        self._lock = threading.Lock()              # guards _sessions, _departed, _pins and _load
+        self._lock = threading.Lock()              # guards _sessions, _departed, _reclaimed, _pins, _load
         # Sessions whose client's token went away: a request the client sent just before it
         # vanished must not create a session nobody will ever free.
         self._departed: OrderedDict[str, None] = OrderedDict()
+        # Sessions the idle reaper freed, with the message their next request gets.
+        self._reclaimed: OrderedDict[str, str] = OrderedDict()
+        self._stopping = threading.Event()
+        self._reaper: threading.Thread | None = None
         # Which worker serves a session: set by its first job, kept while it lives or has jobs queued.
         self._pins: dict[str, _Pin] = {}
         self._load = [0] * workers                 # pinned sessions per worker
@@ -172,6 +206,10 @@ class SimServer:
                              name="tidee-sim-clients")]
         for dispatcher in self._dispatchers:
             dispatcher.start()
+        self._stopping.clear()
+        if cfg.idle_timeout_s > 0:
+            self._reaper = threading.Thread(target=self._reap_idle, daemon=True, name="tidee-sim-reaper")
+            self._reaper.start()
         # Declared last: a client that sees this token can already reach the queryable.
         self._server_token = self._z.liveliness().declare_token(keys.alive_server(cfg.server_id))
         where = "a simulator process each" if self.processes is not None else "episodes in this process"
@@ -188,6 +226,10 @@ class SimServer:
         for dispatcher in self._dispatchers:
             dispatcher.join()
         self._inbound, self._dispatchers = [], []
+        self._stopping.set()
+        if self._reaper is not None:
+            self._reaper.join()
+            self._reaper = None
         for q in self._queues:
             q.put(None)
         for worker in self._workers:
@@ -220,13 +262,22 @@ class SimServer:
 
     def _on_query(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
-        payload = query.payload.to_bytes() if query.payload is not None else b""
+        # The size first: an oversized payload is never copied out of Zenoh's buffers.
+        size, limit = (len(query.payload) if query.payload is not None else 0), self.config.max_request_bytes
+        refusal, payload = None, b""
+        if size > limit:
+            refusal = ProtocolError(ErrorCode.oversized, f"request is {size} bytes, the limit is {limit} "
+                                                         f"(max_request_bytes); requests carry no arrays")
+        elif query.payload is not None:
+            payload = query.payload.to_bytes()
         try:
             _, session, op = keys.parse_sim_op(key)
         except ValueError as e:
-            self._queues[0].put(_Job(None, "invalid", query, payload, key_error=str(e)))
+            refusal = ProtocolError(ErrorCode.malformed, str(e))
+            self._queues[0].put(_Job(None, "invalid", query, refusal=refusal))
             return
-        self._route(session).put(_Job(session, op, query, payload))
+        job = _Job(session, op, query, payload, refusal, client_of(query, session))
+        self._route(session, touch=True).put(job)
 
     def _on_client_liveliness(self, sample: zenoh.Sample) -> None:
         try:
@@ -246,9 +297,15 @@ class SimServer:
         if gone:
             self._route(session).put(_Job(session, "gone"))
 
-    def _route(self, session: str) -> queue.SimpleQueue[_Job | None]:
-        """The queue of the session's worker: its pinned one, else the least loaded (pinned now)."""
+    def _route(self, session: str, touch: bool = False) -> queue.SimpleQueue[_Job | None]:
+        """The queue of the session's worker: its pinned one, else the least loaded (pinned now).
+
+        ``touch``: a request arrived for it, so it is not idle.
+        """
         with self._lock:
+            entry = self._sessions.get(session)
+            if touch and entry is not None:
+                entry.last_request = time.monotonic()
             pin = self._pins.get(session)
             if pin is None:
                 worker = min(range(len(self._load)), key=self._load.__getitem__)
@@ -262,7 +319,10 @@ class SimServer:
         with self._lock:
             pin = self._pins[session]
             pin.pending -= 1
-            if pin.pending == 0 and session not in self._sessions:
+            entry = self._sessions.get(session)
+            if entry is not None:  # idle from the end of its last request, however long that took
+                entry.last_request = time.monotonic()
+            if pin.pending == 0 and entry is None:
                 del self._pins[session]
                 self._load[pin.worker] -= 1
 
@@ -273,6 +333,8 @@ class SimServer:
             if job.op == "gone":
                 if self._free(job.session):  # type: ignore[arg-type]
                     log.info("session %s: client gone, freed", job.session)
+            elif job.op == "idle":
+                self._reclaim(job.session)  # type: ignore[arg-type]
             else:
                 self._answer(job)
             if job.session is not None:
@@ -290,7 +352,7 @@ class SimServer:
         try:
             request = self._parse(job)
             encoding = getattr(request, "encoding", "raw")
-            reply = self._handlers[job.op](request)
+            reply = self._handlers[job.op](request, job.client)
         except ProtocolError as e:
             reply = ErrorReply(e.code, e.message, job.session)
         except Exception as e:  # an episode's bug must not take the server or other sessions down
@@ -299,8 +361,8 @@ class SimServer:
         self._send(job, reply, encoding)
 
     def _parse(self, job: _Job) -> Any:
-        if job.key_error is not None:
-            raise ProtocolError(ErrorCode.malformed, job.key_error)
+        if job.refusal is not None:
+            raise job.refusal
         request = decode(job.payload, max_bytes=self.config.max_request_bytes, expected=REQUEST_TYPES[job.op])
         if request.session != job.session:
             raise ProtocolError(ErrorCode.invalid_field, f"field 'session' is {request.session!r} but "
@@ -339,44 +401,57 @@ class SimServer:
         entry.publisher.put(frame)
 
     # --- requests (on the session's worker) ----------------------------------------------
-    def _reset(self, request: ResetRequest) -> Observation:
+    # Each takes the request and its client (client_of); only a reset, which may open a session, uses it.
+    def _reset(self, request: ResetRequest, client: str) -> Observation:
         try:
             check_mess_index(request.spec.seed, request.spec.mess_index)
         except ValueError as e:
             raise ProtocolError(ErrorCode.invalid_field, f"field 'spec.mess_index': {e}") from None
-        episode = self._episode(request.session, create=True)
+        episode = self._episode(request.session, create_for=client)
         return episode.reset(request.spec, session=request.session, ground_truth=request.ground_truth)
 
-    def _step(self, request: StepRequest) -> Observation:
+    def _step(self, request: StepRequest, client: str) -> Observation:
         return self._episode(request.session).step(request.action, ground_truth=request.ground_truth)
 
-    def _state(self, request: StateRequest) -> StateReply:
+    def _state(self, request: StateRequest, client: str) -> StateReply:
         return StateReply(request.session, self._episode(request.session).state())
 
-    def _close(self, request: CloseRequest) -> CloseReply:
+    def _close(self, request: CloseRequest, client: str) -> CloseReply:
         closed = self._free(request.session)
         if closed:
             log.info("session %s: closed by its client", request.session)
         return CloseReply(request.session, closed)
 
     # --- sessions -------------------------------------------------------------------------
-    def _episode(self, session: str, create: bool = False) -> EpisodeLike:
+    def _episode(self, session: str, create_for: str | None = None) -> EpisodeLike:
+        """The session's episode; ``create_for``: open it for this client if there is none (a reset)."""
+        cfg = self.config
         with self._lock:
             entry = self._sessions.get(session)
-            if entry is None and create:
+            if entry is None and create_for is not None:
                 if session in self._departed:
                     raise ProtocolError(ErrorCode.unknown_session,
                                         f"the client of session {session!r} has disconnected")
-                if len(self._sessions) >= self.config.max_sessions:
+                if len(self._sessions) >= cfg.max_sessions:
                     raise ProtocolError(
                         ErrorCode.server_busy,
-                        f"server {self.config.server_id!r} holds {len(self._sessions)} sessions, its "
+                        f"server {cfg.server_id!r} holds {len(self._sessions)} sessions, its "
                         f"maximum (max_sessions); close one or start another server")
+                held = sum(1 for other in self._sessions.values() if other.client == create_for)
+                if held >= cfg.max_sessions_per_client:
+                    raise ProtocolError(
+                        ErrorCode.server_busy,
+                        f"{create_for} holds {held} sessions on server {cfg.server_id!r}, its quota "
+                        f"(max_sessions_per_client={cfg.max_sessions_per_client}); close one of them first")
+                self._reclaimed.pop(session, None)  # a reset starts afresh, as after a close
                 worker = self._pins[session].worker
-                entry = self._sessions[session] = _Session(worker, episode=None)  # reserve the slot
+                entry = self._sessions[session] = _Session(worker, create_for, episode=None)  # reserve a slot
+            reclaimed = self._reclaimed.get(session) if entry is None else None
+        if reclaimed is not None:
+            raise ProtocolError(ErrorCode.unknown_session, reclaimed)
         if entry is None:
             raise ProtocolError(ErrorCode.unknown_session,
-                                f"no session {session!r} on server {self.config.server_id!r}: "
+                                f"no session {session!r} on server {cfg.server_id!r}: "
                                 f"send reset first (or it was closed)")
         if entry.episode is None:
             try:
@@ -392,6 +467,39 @@ class SimServer:
                                                         congestion_control=zenoh.CongestionControl.DROP)
             log.info("session %s: opened (%d held)", session, len(self.sessions))
         return entry.episode
+
+    def _reap_idle(self) -> None:
+        """Reaper thread: queue an ``idle`` job for each session idle past the timeout."""
+        timeout = self.config.idle_timeout_s
+        while not self._stopping.wait(min(timeout / 4, REAPER_PERIOD_S)):
+            now = time.monotonic()
+            with self._lock:
+                idle = [session for session, entry in self._sessions.items()
+                        if entry.episode is not None and not entry.reclaiming
+                        and now - entry.last_request >= timeout and self._pins[session].pending == 0]
+                for session in idle:
+                    self._sessions[session].reclaiming = True
+            for session in idle:  # on the session's worker: only that thread touches its episode
+                self._route(session).put(_Job(session, "idle"))
+
+    def _reclaim(self, session: str) -> None:
+        """Free ``session`` if it is still idle (a request may have come since the reaper looked)."""
+        timeout = self.config.idle_timeout_s
+        with self._lock:
+            entry = self._sessions.get(session)
+            if entry is None:
+                return
+            entry.reclaiming = False
+            idle_s = time.monotonic() - entry.last_request
+            if idle_s < timeout:
+                return
+            self._reclaimed[session] = (f"session {session!r} was reclaimed after {timeout:g} s idle "
+                                        f"(idle_timeout_s on server {self.config.server_id!r}); "
+                                        f"send reset to start a new episode")
+            while len(self._reclaimed) > DEPARTED_MEMORY:
+                self._reclaimed.popitem(last=False)
+        if self._free(session):
+            log.info("session %s: reclaimed after %.0f s without a request", session, idle_s)
 
     def _free(self, session: str) -> bool:
         """Close and forget ``session``; False if there was no such session."""

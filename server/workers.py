@@ -4,7 +4,8 @@ An :class:`EpisodeProcess` is one child process (``multiprocessing``, "spawn" co
 forked Zenoh or GL state) that hosts any number of episodes, each under an integer id, and
 executes ``open`` / ``reset`` / ``step`` / ``state`` / ``close`` sent over a Pipe, one
 request at a time. Its episodes share one ``SceneLibrary`` (and so its in-memory LRU; the
-on-disk scene cache is shared by every process). A :class:`RemoteEpisode` is the parent's
+on-disk scene cache is shared by every process), and a closed real episode is kept for the
+next ``open`` (PyBullet does not give back all of a disconnected client's memory). A :class:`RemoteEpisode` is the parent's
 handle on one of them: it implements ``EpisodeLike``, so the server holds it exactly as it
 would hold an ``Episode``. :class:`EpisodeProcesses` is the server's set of them, one per
 worker thread; the thread with index *i* is the only one that talks to process *i*, so a
@@ -70,6 +71,11 @@ def _child_main(conn: multiprocessing.connection.Connection, renderer: str,
                 make_episode: EpisodeMaker | None) -> None:
     """Serve requests from ``conn`` until told to stop (``None``) or the parent goes away."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # PyBullet keeps about 0.3 MB of every client it ever connected, so a real Episode (which
+    # starts afresh at every reset, and is only ever opened to be reset) is kept when closed and
+    # handed to the next open: spares never outnumber the most episodes this child held at once.
+    reuse = make_episode is None
+    spares: list[Any] = []
     if make_episode is None:
         from tidee.server.episode import Episode, SceneLibrary
         library = SceneLibrary()
@@ -88,11 +94,15 @@ def _child_main(conn: multiprocessing.connection.Connection, renderer: str,
         op, episode_id, args, kwargs = request
         try:
             if op == "open":
-                episode = episodes[episode_id] = make_episode()
+                episode = episodes[episode_id] = spares.pop() if spares else make_episode()
                 value: Any = getattr(episode, "renderer", renderer)
             elif op == "close":
                 episode = episodes.pop(episode_id, None)
-                value = episode.close() if episode is not None else None
+                value = None
+                if episode is not None and reuse:
+                    spares.append(episode)
+                elif episode is not None:
+                    value = episode.close()
             elif op in _OPS:
                 value = getattr(episodes[episode_id], op)(*args, **kwargs)
             else:
@@ -107,7 +117,7 @@ def _child_main(conn: multiprocessing.connection.Connection, renderer: str,
         except Exception as e:  # the value would not pickle: say so instead of leaving the parent waiting
             conn.send((False, RemoteEpisodeError(f"cannot send the {op} result to the server: "
                                                  f"{type(e).__name__}: {e}"), traceback.format_exc()))
-    for episode in episodes.values():
+    for episode in [*episodes.values(), *spares]:
         try:
             episode.close()
         except Exception:

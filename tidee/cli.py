@@ -11,8 +11,9 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NoReturn
 
+from tidee import argtypes
 from tidee.agent.perception import TRAINED_RENDERER   # a constant (no torch)
 
 AGENT_RENDERER_HELP = (f"default {TRAINED_RENDERER}: the renderer the shipped detector was trained on (auto picks "
@@ -22,12 +23,35 @@ ROOM_TYPES = ("Kitchen", "LivingRoom", "Bedroom", "Bathroom")
 
 
 def _cmd_server(args: argparse.Namespace) -> int:
+    import zenoh
+
+    from tidee.protocol.zenoh_config import open_error
     from tidee.server.service import ServerConfig, serve
 
     cfg = ServerConfig(endpoint=args.endpoint, router=args.router, max_sessions=args.max_sessions,
-                       renderer=args.renderer, server_id=args.server_id, processes=args.processes)
-    serve(cfg)
+                       renderer=args.renderer, server_id=args.server_id, processes=args.processes,
+                       idle_timeout_s=args.idle_timeout, max_sessions_per_client=args.max_sessions_per_client)
+    if not args.router:     # before the simulator processes start: a port in use is refused at once
+        _check_listen_endpoint(args.endpoint)
+    try:
+        serve(cfg)
+    except zenoh.ZError as e:   # opening the session: a bad endpoint, an unreachable router
+        raise open_error(e, True, args.endpoint, args.router) from None
     return 0
+
+
+def _check_listen_endpoint(endpoint: str | None) -> None:
+    """Refuse a tcp/HOST:PORT listen endpoint whose port is taken, naming it (Zenoh's own error is long)."""
+    from tidee.launch import check_bindable
+    from tidee.protocol.zenoh_config import resolve_endpoint
+
+    where = resolve_endpoint(endpoint)
+    proto, _, address = where.partition("/")
+    host, _, port = address.split("?", 1)[0].rpartition(":")
+    if proto == "tcp" and port.isdigit() and int(port) > 0:
+        flag = "--endpoint" if endpoint else "the default endpoint"
+        check_bindable(host.strip("[]"), int(port), f"{flag} {where}",
+                       " (another tidee server? give it another --endpoint port)")
 
 
 def _cmd_scene_render(args: argparse.Namespace) -> int:
@@ -107,6 +131,13 @@ def _cmd_bench_transport(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_soak(args: argparse.Namespace) -> int:
+    from tidee.server.bench_soak import run_soak_bench
+
+    run_soak_bench(args.sessions, args.rooms, args.steps, args.resolution, args.processes, Path(args.out))
+    return 0
+
+
 def _cmd_bench_scale_server(args: argparse.Namespace) -> int:
     from tidee.server.bench_scale import run_scale_server_bench
 
@@ -141,23 +172,25 @@ AGENT_OPTIONS: list[tuple[str, dict]] = [
     ("--explorer", {"default": "random", "choices": ("random", "frontier")}),
     ("--missing-top", {"default": "skip", "choices": MISSING_TOP_CHOICES,
                        "help": MISSING_TOP_HELP}),
-    ("--detection-threshold", {"type": float, "default": None,
+    ("--detection-threshold", {"type": argtypes.non_negative_float, "default": None,
                                "help": "learned detector's score threshold (default: 0.3, "
                                        "perception.AGENT_THRESHOLD)"}),
     ("--room-type", {"default": "LivingRoom", "choices": ROOM_TYPES}),
-    ("--seed", {"type": int, "default": 200, "help": "room seed (200-204 are test rooms)"}),
-    ("--mess-index", {"type": int, "default": 0}),
-    ("--resolution", {"type": int, "default": 256}),
-    ("--max-steps", {"type": int, "default": 1000}),
+    ("--seed", {"type": argtypes.non_negative_int, "default": 200, "help": "room seed (200-204 are test rooms)"}),
+    ("--mess-index", {"type": argtypes.non_negative_int, "default": 0}),
+    ("--resolution", {"type": argtypes.resolution, "default": 256}),
+    ("--max-steps", {"type": argtypes.max_steps, "default": 1000}),
     ("--pose-noise", {"action": "store_true"}),
     ("--depth-noise", {"action": "store_true"}),
-    ("--episodes", {"type": int, "default": 1, "help": "episodes on consecutive mess indices"}),
+    ("--episodes", {"type": argtypes.positive_int, "default": 1, "help": "episodes on consecutive mess indices"}),
     ("--serve", {"action": "store_true", "help": "afterwards, wait for new_episode commands from a viewer"}),
-    ("--log-dir", {"default": "runs", "help": "episode logs (replay with tidee viewer --replay)"}),
+    ("--log-dir", {"default": "runs", "type": argtypes.output_path, "help": "episode logs (replay with tidee viewer --replay)"}),
     ("--session", {"default": None}),
     ("--server-id", {"default": "sim0"}),
-    ("--agent-seed", {"type": int, "default": 0}),
-    ("--threads", {"type": int, "default": 0,
+    ("--agent-seed", {"type": argtypes.non_negative_int, "default": 0}),
+    ("--connect-timeout", {"type": argtypes.non_negative_float, "default": 60.0,
+                           "help": "seconds to wait for the server to appear before giving up"}),
+    ("--threads", {"type": argtypes.non_negative_int, "default": 0,
                    "help": "torch/OpenMP threads (0: the cores this process may use; tidee run gives the agent "
                            "the cores the server does not use)"}),
 ]
@@ -199,7 +232,7 @@ def _cmd_agent(args: argparse.Namespace) -> int:
     return run_agent_process(AgentProcessConfig(
         agent=_agent_config(args), spec=spec, endpoint=args.endpoint, router=args.router,
         server_id=args.server_id, session=args.session, episodes=args.episodes, serve=args.serve,
-        log_dir=args.log_dir))
+        log_dir=args.log_dir, connect_timeout=args.connect_timeout))
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -248,7 +281,7 @@ def _cmd_eval_tidy_merge(args: argparse.Namespace) -> int:
     try:
         merge_reports(sources, args.out, variants=variants, command=command)
     except ValueError as e:
-        print(f"tidee eval tidy-merge: {e}", file=sys.stderr)
+        print(f"tidee eval tidy-merge: error: {e}", file=sys.stderr)
         return 2
     print((Path(args.out) / "report.md").read_text())
     return 0
@@ -269,6 +302,8 @@ def _cmd_gen_stats(args: argparse.Namespace) -> int:
     seeds: list[int] = []
     for part in args.seeds.split(","):
         lo, _, hi = part.partition("-")
+        if not (lo.isdigit() and (hi.isdigit() or not hi)):
+            raise ValueError(f"--seeds {args.seeds!r}: {part!r} is not a seed or a range; expected e.g. 0-19,10000-10179")
         seeds += list(range(int(lo), int(hi or lo) + 1))
     data = build_stats(seeds, args.out or DEFAULT_PATH, command=f"tidee gen stats --seeds {args.seeds}")
     print(json.dumps(data["meta"], indent=1))
@@ -290,24 +325,39 @@ def _cmd_gen_detection(args: argparse.Namespace) -> int:
 
 
 def _add_zenoh_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--endpoint", default=None, help="Zenoh rendezvous endpoint (default: loopback, see protocol/README.md)")
-    p.add_argument("--router", default=None, help="connect to this Zenoh router instead of peer mode")
+    p.add_argument("--endpoint", default=None, type=argtypes.endpoint,
+                   help="Zenoh rendezvous endpoint (default: loopback, see protocol/README.md)")
+    p.add_argument("--router", default=None, type=argtypes.endpoint,
+                   help="connect to this Zenoh router instead of peer mode")
+
+
+class _Parser(argparse.ArgumentParser):
+    """Refuses a bad command line in one line (argparse would print the whole usage first)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tidee", description=__doc__)
+    parser = _Parser(prog="tidee", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("server", help="run a simulation server on Zenoh")
-    p.add_argument("--endpoint", default=None, help="Zenoh endpoint to listen on (default: loopback, see protocol/README.md)")
-    p.add_argument("--router", default=None, help="connect to this Zenoh router instead of peer mode")
-    p.add_argument("--max-sessions", type=int, default=16)
+    p.add_argument("--endpoint", default=None, type=argtypes.endpoint,
+                   help="Zenoh endpoint to listen on (default: loopback, see protocol/README.md)")
+    p.add_argument("--router", default=None, type=argtypes.endpoint,
+                   help="connect to this Zenoh router instead of peer mode")
+    p.add_argument("--max-sessions", type=argtypes.positive_int, default=16)
     p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default=TRAINED_RENDERER,
                    help=AGENT_RENDERER_HELP)
     p.add_argument("--server-id", default="sim0")
-    p.add_argument("--processes", type=int, default=0,
+    p.add_argument("--processes", type=argtypes.non_negative_int, default=0,
                    help="simulator processes, sessions spread over them (default 0: one per available core)")
+    p.add_argument("--idle-timeout", type=argtypes.non_negative_float, default=300.0, metavar="S",
+                   help="free a session after S seconds without a request (default 300; 0: never)")
+    p.add_argument("--max-sessions-per-client", type=argtypes.positive_int, default=4, metavar="N",
+                   help="sessions one client may hold at once (default 4)")
     p.set_defaults(func=_cmd_server)
 
     scene = sub.add_parser("scene", help="generate, render and export rooms").add_subparsers(dest="scene_cmd", required=True)
@@ -315,64 +365,74 @@ def build_parser() -> argparse.ArgumentParser:
                               ("export", _cmd_scene_export, "the room as JSON")):
         p = scene.add_parser(name, help=help_)
         p.add_argument("--room-type", choices=ROOM_TYPES, required=True)
-        p.add_argument("--seed", type=int, required=True)
-        p.add_argument("--mess-index", type=int, default=None, help="messy configuration index (default: tidy)")
-        p.add_argument("--out", required=True, help="output directory (render) or file (export)")
+        p.add_argument("--seed", type=argtypes.non_negative_int, required=True)
+        p.add_argument("--mess-index", type=argtypes.non_negative_int, default=None,
+                       help="messy configuration index (default: tidy)")
+        p.add_argument("--out", required=True, type=argtypes.output_path,
+                       help="output directory (render) or file (export)")
         if name == "render":
-            p.add_argument("--resolution", type=int, default=480)
+            p.add_argument("--resolution", type=argtypes.resolution, default=480)
             p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="auto")
         p.set_defaults(func=func)
 
     bench = sub.add_parser("bench", help="benchmarks that write JSON + Markdown").add_subparsers(dest="bench_cmd", required=True)
     p = bench.add_parser("sim", help="simulator step and render time")
-    p.add_argument("--resolution", type=int, default=300)
-    p.add_argument("--steps", type=int, default=200)
+    p.add_argument("--resolution", type=argtypes.resolution, default=300)
+    p.add_argument("--steps", type=argtypes.positive_int, default=200)
     p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="auto")
     p.add_argument("--room-type", choices=ROOM_TYPES, default="LivingRoom")
-    p.add_argument("--seed", type=int, default=200)
-    p.add_argument("--out", default="bench/sim.json")
+    p.add_argument("--seed", type=argtypes.non_negative_int, default=200)
+    p.add_argument("--out", type=argtypes.output_path, default="bench/sim.json")
     p.set_defaults(func=_cmd_bench_sim)
     p = bench.add_parser("reset", help="reset time over a split's configurations: cold (physics) vs cached")
     p.add_argument("--split", choices=("train", "val", "test"), default="test")
-    p.add_argument("--limit", type=int, default=None, help="only the first N configurations (default: all)")
-    p.add_argument("--out", default="bench/reset.json")
+    p.add_argument("--limit", type=argtypes.positive_int, default=None, help="only the first N configurations (default: all)")
+    p.add_argument("--out", type=argtypes.output_path, default="bench/reset.json")
     p.set_defaults(func=_cmd_bench_reset)
     p = bench.add_parser("episode", help="one episode in process vs live (tidee run: server + agent + viewer), "
                                          "side by side")
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--repeats", type=argtypes.positive_int, default=3)
     p.add_argument("--room-type", choices=ROOM_TYPES, default="LivingRoom")
-    p.add_argument("--seed", type=int, default=200)
-    p.add_argument("--mess-index", type=int, default=0)
+    p.add_argument("--seed", type=argtypes.non_negative_int, default=200)
+    p.add_argument("--mess-index", type=argtypes.non_negative_int, default=0)
     p.add_argument("--variant", default="TIDEE")
-    p.add_argument("--max-steps", type=int, default=1000)
+    p.add_argument("--max-steps", type=argtypes.max_steps, default=1000)
     p.add_argument("--browser", action="store_true", help="a headless Chromium shows the viewer during live runs")
-    p.add_argument("--out", default="bench/episode.json")
+    p.add_argument("--out", type=argtypes.output_path, default="bench/episode.json")
     p.set_defaults(func=_cmd_bench_episode)
     p = bench.add_parser("scale", help="tidy episodes per minute with 1 vs 2 worker processes, side by side")
-    p.add_argument("--configs", type=int, default=4, help="test configurations (spread over the room types)")
+    p.add_argument("--configs", type=argtypes.positive_int, default=4, help="test configurations (spread over the room types)")
     p.add_argument("--variants", default="TIDEE", help="comma list of agents")
-    p.add_argument("--repeats", type=int, default=1)
+    p.add_argument("--repeats", type=argtypes.positive_int, default=1)
     p.add_argument("--split", choices=("val", "test"), default="test")
-    p.add_argument("--out", default="bench/scale.json")
+    p.add_argument("--out", type=argtypes.output_path, default="bench/scale.json")
     p.set_defaults(func=_cmd_bench_scale)
     p = bench.add_parser("transport", help="in-process vs Zenoh step latency")
-    p.add_argument("--resolution", type=int, default=256)
-    p.add_argument("--steps", type=int, default=200)
-    p.add_argument("--out", default="bench/transport.json")
+    p.add_argument("--resolution", type=argtypes.resolution, default=256)
+    p.add_argument("--steps", type=argtypes.positive_int, default=200)
+    p.add_argument("--out", type=argtypes.output_path, default="bench/transport.json")
     p.set_defaults(func=_cmd_bench_transport)
     p = bench.add_parser("scale-server", help="server steps/s for 1 vs 2 concurrent sessions, per process count")
-    p.add_argument("--processes", type=int, nargs="+", default=[1, 2], help="server sizes to compare")
-    p.add_argument("--resolution", type=int, default=256)
-    p.add_argument("--steps", type=int, default=200, help="timed steps per session")
+    p.add_argument("--processes", type=argtypes.non_negative_int, nargs="+", default=[1, 2], help="server sizes to compare")
+    p.add_argument("--resolution", type=argtypes.resolution, default=256)
+    p.add_argument("--steps", type=argtypes.positive_int, default=200, help="timed steps per session")
     p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="tiny")
-    p.add_argument("--out", default="bench/scale_server.json")
+    p.add_argument("--out", type=argtypes.output_path, default="bench/scale_server.json")
     p.set_defaults(func=_cmd_bench_scale_server)
+    p = bench.add_parser("soak", help="server memory while many sessions open and close over many rooms")
+    p.add_argument("--sessions", type=argtypes.positive_int, default=1000, help="sessions opened and closed, one after another")
+    p.add_argument("--rooms", type=argtypes.positive_int, default=200, help="distinct room configurations cycled over")
+    p.add_argument("--steps", type=argtypes.non_negative_int, default=2, help="steps per session after its reset")
+    p.add_argument("--resolution", type=argtypes.resolution, default=64)
+    p.add_argument("--processes", type=argtypes.positive_int, default=1, help="the server's simulator processes")
+    p.add_argument("--out", type=argtypes.output_path, default="bench/soak.json")
+    p.set_defaults(func=_cmd_bench_soak)
 
     p = scene.add_parser("tour", help="start a server, look around a messy room over Zenoh, save what a client sees")
-    p.add_argument("--out", default="demo_out")
+    p.add_argument("--out", type=argtypes.output_path, default="demo_out")
     p.add_argument("--room-type", choices=ROOM_TYPES, default="LivingRoom")
-    p.add_argument("--seed", type=int, default=200)
-    p.add_argument("--mess-index", type=int, default=0)
+    p.add_argument("--seed", type=argtypes.non_negative_int, default=200)
+    p.add_argument("--mess-index", type=argtypes.non_negative_int, default=0)
     p.set_defaults(func=_cmd_scene_tour)
 
     p = sub.add_parser("agent", help="the tidying agent: connects to a server over Zenoh and runs episodes")
@@ -389,9 +449,9 @@ def build_parser() -> argparse.ArgumentParser:
             if flag != "--server-id":
                 p.add_argument(flag, **kw)
         p.add_argument("--no-viewer", action="store_true")
-        p.add_argument("--host", default="127.0.0.1", help="viewer host (loopback by default)")
-        p.add_argument("--port", type=int, default=8080, help="viewer port")
-        p.add_argument("--linger", type=float, default=30.0, help="seconds to keep the viewer up after the episodes")
+        p.add_argument("--host", type=argtypes.host, default="127.0.0.1", help="viewer host (loopback by default)")
+        p.add_argument("--port", type=argtypes.port, default=8080, help="viewer port")
+        p.add_argument("--linger", type=argtypes.non_negative_float, default=30.0, help="seconds to keep the viewer up after the episodes")
         p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default=TRAINED_RENDERER,
                        help=AGENT_RENDERER_HELP)
         p.set_defaults(func=_cmd_run)
@@ -400,7 +460,7 @@ def build_parser() -> argparse.ArgumentParser:
         dest="eval_cmd", required=True)
     p = ev.add_parser("tidy", help="tidy episodes on held-out rooms, scored by the simulated judge (Table 1)")
     p.add_argument("--split", choices=("val", "test"), default="test")
-    p.add_argument("--episodes", type=int, default=None, help="configurations (default: all; test has 100)")
+    p.add_argument("--episodes", type=argtypes.positive_int, default=None, help="configurations (default: all; test has 100)")
     p.add_argument("--variants", default="TIDEE,WithoutMemex,3DSmntMap2Place,CommonMemory,RandomReceptacle,"
                                          "AI2THORPlacement,MessyPlacement")
     p.add_argument("--perception", default="learned", choices=("learned", "oracle"))
@@ -408,14 +468,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--oop", default="auto", help="auto | relation_stats | visual | language | fused")
     p.add_argument("--explorer", default="random", choices=("random", "frontier"))
     p.add_argument("--missing-top", default="skip", choices=MISSING_TOP_CHOICES, help=MISSING_TOP_HELP)
-    p.add_argument("--detection-threshold", type=float, default=None,
+    p.add_argument("--detection-threshold", type=argtypes.non_negative_float, default=None,
                    help="learned detector's score threshold (default: perception.AGENT_THRESHOLD)")
-    p.add_argument("--resolution", type=int, default=256)
-    p.add_argument("--max-steps", type=int, default=1000)
-    p.add_argument("--workers", type=int, default=1, help="parallel simulator processes")
+    p.add_argument("--resolution", type=argtypes.resolution, default=256)
+    p.add_argument("--max-steps", type=argtypes.max_steps, default=1000)
+    p.add_argument("--workers", type=argtypes.positive_int, default=1, help="parallel simulator processes")
     p.add_argument("--renderer", choices=("auto", "egl", "tiny"), default=TRAINED_RENDERER, help=AGENT_RENDERER_HELP)
     p.add_argument("--keep-logs", action="store_true", help="write every episode's log under OUT/logs")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", type=argtypes.output_path, required=True)
     p.set_defaults(func=_cmd_eval_tidy)
 
     p = ev.add_parser("tidy-merge", help="one Table 1 report from the episodes of several tidy runs "
@@ -424,42 +484,42 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma list of report directories (report.json or report.json.gz) or report files, each "
                         "optionally =VARIANT+VARIANT to take only those variants from it")
     p.add_argument("--variants", default=None, help="comma list of agent variants to take (default: all)")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", type=argtypes.output_path, required=True)
     p.set_defaults(func=_cmd_eval_tidy_merge)
 
     p = bench.add_parser("agent", help="agent mapping/planning/step time and episode wall time")
-    p.add_argument("--episodes", type=int, default=3)
-    p.add_argument("--resolution", type=int, default=256)
+    p.add_argument("--episodes", type=argtypes.positive_int, default=3)
+    p.add_argument("--resolution", type=argtypes.resolution, default=256)
     p.add_argument("--variant", default="TIDEE")
     p.add_argument("--perception", default="learned", choices=("learned", "oracle"))
-    p.add_argument("--max-steps", type=int, default=1000)
-    p.add_argument("--out", default="bench/agent.json")
+    p.add_argument("--max-steps", type=argtypes.max_steps, default=1000)
+    p.add_argument("--out", type=argtypes.output_path, default="bench/agent.json")
     p.set_defaults(func=_cmd_bench_agent)
 
     gen = sub.add_parser("gen", help="generate data from training rooms").add_subparsers(dest="gen_cmd", required=True)
     p = gen.add_parser("cache", help="store a split's settled rooms and messy configurations on disk, so resets "
                                      "load them instead of re-running physics")
     p.add_argument("--split", choices=("train", "val", "test"), default="test")
-    p.add_argument("--limit", type=int, default=None, help="only the first N configurations (default: all)")
-    p.add_argument("--workers", type=int, default=1)
-    p.add_argument("--cache-dir", default=None, help="default: $XDG_CACHE_HOME/tidee/scenes (~/.cache/tidee/scenes)")
+    p.add_argument("--limit", type=argtypes.positive_int, default=None, help="only the first N configurations (default: all)")
+    p.add_argument("--workers", type=argtypes.positive_int, default=1)
+    p.add_argument("--cache-dir", type=argtypes.output_path, default=None, help="default: $XDG_CACHE_HOME/tidee/scenes (~/.cache/tidee/scenes)")
     p.set_defaults(func=_cmd_gen_cache)
     p = gen.add_parser("stats", help="placement statistics of the training rooms (OOP + CommonMemory baselines)")
     p.add_argument("--seeds", default="0-19,10000-10179", help="training seeds, e.g. 0-19,10000-10179")
-    p.add_argument("--out", default=None, help="default: agent/data/placement_stats.json")
+    p.add_argument("--out", type=argtypes.output_path, default=None, help="default: agent/data/placement_stats.json")
     p.set_defaults(func=_cmd_gen_stats)
     p = gen.add_parser("detection", help="RGB-D frames + instance targets from random walks in training rooms")
-    p.add_argument("--out", default="data/detection", help="directory of shards (default: data/detection)")
-    p.add_argument("--rooms-per-type", type=int, default=60, help="training rooms per type: seeds 0-19, then the pool")
-    p.add_argument("--skip-rooms", type=int, default=0,
+    p.add_argument("--out", type=argtypes.output_path, default="data/detection", help="directory of shards (default: data/detection)")
+    p.add_argument("--rooms-per-type", type=argtypes.positive_int, default=60, help="training rooms per type: seeds 0-19, then the pool")
+    p.add_argument("--skip-rooms", type=argtypes.non_negative_int, default=0,
                    help="start after this many rooms per type (e.g. 60: rooms the shipped detector never saw)")
-    p.add_argument("--messes", type=int, default=2, help="messy configurations per room (plus the tidy one)")
-    p.add_argument("--walks", type=int, default=2, help="random walks per configuration")
-    p.add_argument("--frames-per-walk", type=int, default=6)
-    p.add_argument("--resolution", type=int, default=256)
-    p.add_argument("--shard-size", type=int, default=256)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--messes", type=argtypes.non_negative_int, default=2, help="messy configurations per room (plus the tidy one)")
+    p.add_argument("--walks", type=argtypes.positive_int, default=2, help="random walks per configuration")
+    p.add_argument("--frames-per-walk", type=argtypes.positive_int, default=6)
+    p.add_argument("--resolution", type=argtypes.resolution, default=256)
+    p.add_argument("--shard-size", type=argtypes.positive_int, default=256)
+    p.add_argument("--seed", type=argtypes.non_negative_int, default=0)
+    p.add_argument("--workers", type=argtypes.positive_int, default=2)
     p.set_defaults(func=_cmd_gen_detection)
 
     train = sub.add_parser("train", help="train the agent's learned models (GPU if present, else CPU)")
@@ -512,6 +572,17 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as e:
         print(f"tidee: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:        # the environment refused: a port in use, a path that cannot be written, ...
+        print(f"tidee {_command_name(argv)}: error: {_os_error_text(e)}".replace("  ", " "), file=sys.stderr)
+        return 1
+
+
+def _os_error_text(e: OSError) -> str:
+    """``e`` in words, with the path it concerns: "Permission denied: 'runs/x'" rather than "[Errno 13] ..."."""
+    text = e.strerror or str(e)
+    if e.filename is not None:
+        text += f": {e.filename!r}" + (f" -> {e.filename2!r}" if e.filename2 is not None else "")
+    return text
 
 
 def _command_name(argv: list[str] | None) -> str:

@@ -8,6 +8,7 @@ processes in reverse order. Nothing here imports torch or pybullet.
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import socket
@@ -15,6 +16,8 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.error
+import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -24,6 +27,28 @@ def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket() as s:
         s.bind((host if host not in ("0.0.0.0", "") else "127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def check_bindable(host: str, port: int, what: str, hint: str = "") -> None:
+    """Raise ``OSError`` naming ``what`` unless a TCP server could listen on ``host``:``port`` now.
+
+    A probe, not a reservation: the caller binds right after. ``port`` 0 checks the host alone.
+    """
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM,
+                                                             flags=socket.AI_PASSIVE)[0]
+    except (socket.gaierror, UnicodeError) as e:
+        raise OSError(f"{what}: cannot resolve host {host!r} ({getattr(e, 'strerror', None) or e}); "
+                      f"give an IP address of this machine, e.g. 127.0.0.1 or 0.0.0.0") from None
+    with socket.socket(family, kind, proto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)   # as servers bind: TIME_WAIT is no conflict
+        try:
+            s.bind(address)
+        except OSError as e:
+            if e.errno == errno.EADDRINUSE:
+                raise OSError(errno.EADDRINUSE, f"{what}: port {port} on {host} is already in use by another "
+                                                f"process{hint}") from None
+            raise OSError(e.errno, f"{what}: cannot listen on {host}:{port} ({e.strerror}){hint}") from None
 
 
 @dataclass
@@ -81,7 +106,42 @@ def stop_children(procs: list[tuple[str, subprocess.Popen]], grace: float = 15.0
                 p.wait()
 
 
+VIEWER_START_S = 60.0       # the viewer imports viser and binds its port well within this
+CHILD_POLL_S = 0.2          # how often the server and viewer are checked while the agent runs
+_NO_PROXY = urllib.request.build_opener(urllib.request.ProxyHandler({}))   # loopback never goes via a proxy
+
+
+def _wait_until_listening(proc: subprocess.Popen, host: str, port: int, timeout: float) -> bool:
+    """Wait until ``proc`` answers HTTP on ``port``; False if it exits first or never does.
+
+    A whole request, not a bare connect: the viewer's web server logs a connection that sends nothing as a
+    failed handshake, with a traceback.
+    """
+    target = "127.0.0.1" if host in ("0.0.0.0", "") else "::1" if host == "::" else host
+    url = f"http://[{target}]:{port}/" if ":" in target else f"http://{target}:{port}/"
+    deadline = time.monotonic() + timeout
+    while proc.poll() is None and time.monotonic() < deadline:
+        try:
+            with _NO_PROXY.open(url, timeout=2):
+                return True
+        except urllib.error.HTTPError:  # an answer all the same
+            return True
+        except OSError:
+            time.sleep(0.1)
+    return False
+
+
+def _child_failed(name: str, proc: subprocess.Popen) -> int:
+    """One line naming the child (server or viewer) that exited or never listened; exit status 1."""
+    rc = proc.poll()
+    why = f"exited with status {rc} (its error is above)" if rc is not None else "did not start listening in time"
+    print(f"run: error: the {name} {why}; stopping the others", file=sys.stderr, flush=True)
+    return 1
+
+
 def run_all(cfg: RunConfig) -> int:
+    if cfg.viewer:      # refused before anything starts (the viewer would refuse it too, in its own process)
+        check_bindable(cfg.host, cfg.port, f"--host {cfg.host} --port {cfg.port}", " (choose another --port)")
     endpoint = cfg.endpoint or f"tcp/127.0.0.1:{free_port()}"
     procs: list[tuple[str, subprocess.Popen]] = []
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -93,10 +153,18 @@ def run_all(cfg: RunConfig) -> int:
         if cfg.viewer:
             procs.append(("viewer", subprocess.Popen(_tidee("viewer", "--endpoint", endpoint, "--host", cfg.host,
                                                             "--port", str(cfg.port)), env=env)))
-            print(f"run: viewer at http://{cfg.host}:{cfg.port}  (open it in a browser)", flush=True)
         agent = subprocess.Popen(_tidee("agent", "--endpoint", endpoint, *cfg.agent_args), env=env)
         procs.append(("agent", agent))
-        rc = agent.wait()
+        if cfg.viewer:
+            viewer = procs[1][1]
+            if not _wait_until_listening(viewer, cfg.host, cfg.port, VIEWER_START_S):
+                return _child_failed("viewer", viewer)
+            print(f"run: viewer at http://{cfg.host}:{cfg.port}  (open it in a browser)", flush=True)
+        while (rc := agent.poll()) is None:
+            for name, p in procs:
+                if name != "agent" and p.poll() is not None:
+                    return _child_failed(name, p)
+            time.sleep(CHILD_POLL_S)
         print(f"run: agent finished (exit {rc})", flush=True)
         if cfg.viewer and cfg.linger > 0:
             print(f"run: keeping the viewer up for {cfg.linger:.0f} s (Ctrl-C to stop now)", flush=True)

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 import viser
-from tidee.launch import free_port, wait_for_signal
+from tidee.launch import check_bindable, free_port, wait_for_signal
 from tidee.protocol import keys
 from tidee.protocol.messages import AgentCommand, AgentFrame, AgentStatus, EpisodeSummary, MapSnapshot, SearchHeatmap
 from tidee.viewer import geometry, images, palette
@@ -106,8 +106,16 @@ class ViewerApp:
         self._replay_shown: dict[str, int | None] = {}
         self._cloud_upto = -1                     # replay: the last frame index fused into the coloured cloud
 
+        # viser moves to the next free port when one is taken (and retries forever on a host it cannot
+        # bind): check first, and refuse a moved port, so the printed URL is the one asked for.
+        check_bindable(config.host, config.port, f"viewer --host {config.host} --port {config.port}",
+                       " (choose another --port, or --port 0 for any free port)")
         port = config.port or free_port(config.host)
         self.server = viser.ViserServer(host=config.host, port=port, label="tidee", verbose=False)
+        if self.server.get_port() != port:
+            self.server.stop()
+            raise OSError(f"viewer --port {port}: port {port} on {config.host} was taken while the viewer "
+                          f"started (choose another --port, or --port 0 for any free port)")
         self.url = f"http://{_display_host(config.host)}:{self.server.get_port()}"
         self.server.on_client_connect(self._on_client_connect)
         try:

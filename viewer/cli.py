@@ -4,31 +4,43 @@ from __future__ import annotations
 
 import argparse
 
+from tidee import argtypes
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("viewer", help="the live web viewer (viser): watch and steer agents in a browser")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--endpoint", default=None,
+    where.add_argument("--endpoint", default=None, type=argtypes.endpoint,
                        help="Zenoh rendezvous to connect to (peer mode; default: TIDEE_ZENOH_ENDPOINT or "
                             "tcp/127.0.0.1:7447)")
-    where.add_argument("--router", default=None, help="connect through this Zenoh router instead (client mode)")
-    p.add_argument("--host", default="127.0.0.1",
+    where.add_argument("--router", default=None, type=argtypes.endpoint, help="connect through this Zenoh router instead (client mode)")
+    p.add_argument("--host", default="127.0.0.1", type=argtypes.host,
                    help="address to serve the page on (default: loopback only; 0.0.0.0 exposes the agent "
                         "controls to the network)")
-    p.add_argument("--port", type=int, default=8080, help="HTTP port (0: any free port); the URL is printed")
+    p.add_argument("--port", type=argtypes.port_or_any, default=8080, help="HTTP port (0: any free port); the URL is printed")
     p.add_argument("--session", default=None, help="show this session (default: follow the newest)")
     p.add_argument("--replay", default=None, metavar="LOGDIR",
                    help="play back a saved episode log with a time slider instead of live telemetry")
-    p.add_argument("--rate", type=float, default=10.0, help="scene updates per second, at most (default 10)")
-    p.add_argument("--screenshot", default=None, metavar="PNG",
+    p.add_argument("--rate", type=_rate, default=10.0, help="scene updates per second, at most (default 10)")
+    p.add_argument("--screenshot", default=None, metavar="PNG", type=argtypes.output_path,
                    help="with --replay: write the page as headless Chromium draws it at --at, then exit")
     p.add_argument("--at", default="end", help="with --screenshot: a step number, 'search' (the first search "
                                                "heatmap) or 'end' (default)")
-    p.add_argument("--annotated", default=None, metavar="PNG",
+    p.add_argument("--annotated", default=None, metavar="PNG", type=argtypes.output_path,
                    help="with --screenshot: also write the picture with each panel outlined, numbered and named")
     p.add_argument("--window", default="1280x800", type=_window_size, metavar="WxH",
                    help="with --screenshot: the browser window's size in pixels (default 1280x800)")
     p.set_defaults(func=_run)
+
+
+def _rate(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected updates per second in (0, 60], got {text!r}") from None
+    if not 0 < value <= 60:
+        raise argparse.ArgumentTypeError(f"expected updates per second in (0, 60], got {text}")
+    return value
 
 
 def _window_size(text: str) -> tuple[int, int]:
@@ -54,8 +66,15 @@ def _run(args: argparse.Namespace) -> int:
         also = f" and {args.annotated}" if args.annotated else ""
         print(f"viewer: {args.screenshot}{also} (step {step} of {args.replay})")
         return 0
+    import zenoh
+
+    from tidee.protocol.zenoh_config import open_error
     from tidee.viewer.app import ViewerConfig, serve
 
-    serve(ViewerConfig(endpoint=args.endpoint, router=args.router, host=args.host, port=args.port,
-                       session=args.session, replay=args.replay, rate_hz=args.rate))
+    config = ViewerConfig(endpoint=args.endpoint, router=args.router, host=args.host, port=args.port,
+                          session=args.session, replay=args.replay, rate_hz=args.rate)
+    try:
+        serve(config)
+    except zenoh.ZError as e:   # opening the live feed's session: an unreachable router
+        raise open_error(e, False, args.endpoint, args.router) from None
     return 0
