@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import os
 import platform
-import signal
 import subprocess
 import sys
 import tempfile
@@ -28,7 +27,7 @@ from typing import Iterator
 
 import numpy as np
 
-from tidee.launch import free_port
+from tidee.launch import end_process, free_port
 from tidee.protocol.client import SimClient
 from tidee.protocol.episode_log import write_atomic, write_json_atomic
 from tidee.protocol.messages import Action, EpisodeSpec
@@ -79,12 +78,7 @@ def _server(processes: int, renderer: str, max_sessions: int) -> Iterator[tuple[
             sys.stderr.write(log.read()[-4000:].decode(errors="replace"))
             raise
         finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+            end_process(proc)
 
 
 def _phase(endpoint: str, server_id: str, spec: EpisodeSpec, steps: int, sessions: int) -> dict:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import os
 import platform
-import signal
 import subprocess
 import sys
 import tempfile
@@ -27,7 +26,7 @@ from pathlib import Path
 
 import zenoh
 
-from tidee.launch import free_port
+from tidee.launch import end_process, free_port
 from tidee.protocol.client import SimClient
 from tidee.protocol.episode_log import write_atomic, write_json_atomic
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
@@ -81,12 +80,7 @@ def run_soak_bench(sessions: int = 1000, rooms: int = 200, steps: int = 2, resol
             raise
         finally:
             z.close()
-            server.send_signal(signal.SIGTERM)
-            try:
-                server.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                server.kill()
-                server.wait()
+            end_process(server)
     at = {s["sessions"]: s for s in samples}
     warm, end = at[warmup]["total_mb"], at[sessions]["total_mb"]
     growth = 100.0 * (end - warm) / warm

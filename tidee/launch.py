@@ -88,6 +88,17 @@ def _interrupt_on_sigterm() -> Callable[[], None]:
     return lambda: signal.signal(signal.SIGTERM, previous)
 
 
+def end_process(proc: subprocess.Popen, sig: int = signal.SIGTERM, grace: float = 30.0) -> None:
+    """Send ``sig`` and wait up to ``grace`` seconds, then kill: the process is gone on return."""
+    if proc.poll() is None:
+        proc.send_signal(sig)
+    try:
+        proc.wait(timeout=grace)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def stop_children(procs: list[tuple[str, subprocess.Popen]], grace: float = 15.0) -> None:
     """SIGINT every child still running (in reverse start order), wait, then SIGTERM / SIGKILL stragglers."""
     for _, p in reversed(procs):
