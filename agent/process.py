@@ -16,13 +16,15 @@ import uuid
 from dataclasses import dataclass
 
 from tidee.agent.config import AgentConfig
-from tidee.agent.runner import EpisodeRunner, format_summary
+from tidee.agent.runner import EpisodeResult, EpisodeRunner, format_summary
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.protocol.client import RemoteError, SimClient
-from tidee.protocol.messages import AgentCommand, EpisodeSpec
+from tidee.protocol.messages import AgentCommand, EpisodeSpec, ErrorCode
 from tidee.protocol.zenoh_config import ZenohOpenError, open_session
 
 log = logging.getLogger("tidee.agent")
+
+MAX_RECONNECTS = 3          # re-runs of one episode after its server went away
 
 
 @dataclass
@@ -38,6 +40,11 @@ class AgentProcessConfig:
     log_dir: str | None = "runs"
     connect_timeout: float = 60.0
     score: bool = True            # score each episode at its end (the summary's moved / found / plausible)
+    reconnect_timeout: float = 60.0   # s to wait for a vanished server to come back (0: give up at once)
+
+    def __post_init__(self) -> None:
+        if not self.reconnect_timeout >= 0:
+            raise ValueError(f"reconnect_timeout must be a number of seconds >= 0, got {self.reconnect_timeout}")
 
 
 def run_agent_process(cfg: AgentProcessConfig) -> int:
@@ -59,7 +66,13 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
         client = SimClient(cfg.endpoint, cfg.router, server_id=cfg.server_id, session=session, timeout=120.0,
                            zsession=z, connect_timeout=cfg.connect_timeout)
         publisher = TelemetryPublisher(z, session)
-        runner = EpisodeRunner(cfg.agent, client, session=session, publisher=publisher, log_dir=cfg.log_dir)
+        step = {"last": 0}      # the episode's last step, for the "went away" line
+
+        def _on_step(n: int) -> None:
+            step["last"] = n
+
+        runner = EpisodeRunner(cfg.agent, client, session=session, publisher=publisher, log_dir=cfg.log_dir,
+                               on_step=_on_step)
         print(f"agent: session {session}, variant {cfg.agent.variant}, perception {cfg.agent.perception}"
               f"{' (ORACLE)' if cfg.agent.perception == 'oracle' else ''}; logs in {cfg.log_dir}", flush=True)
         queue: list[EpisodeSpec] = []
@@ -74,7 +87,7 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
                 cmd = _wait_for_new_episode(publisher)
                 queue.append(_spec_from(cmd, base))
             spec = queue.pop(0)
-            res = runner.run(spec, evaluate=cfg.score)
+            res = _run_until_done(runner, client, spec, cfg, step)
             assert res.summary is not None
             print(f"agent: {format_summary(res.summary)}", flush=True)
             if res.aborted_by is not None:
@@ -91,6 +104,38 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
         if publisher is not None:
             publisher.close()
         z.close()
+
+
+def _run_until_done(runner: EpisodeRunner, client: SimClient, spec: EpisodeSpec, cfg: AgentProcessConfig,
+                    step: dict[str, int]) -> EpisodeResult:
+    """Play ``spec``; if its server goes away, wait for it and play the episode again from the start.
+
+    The reset of a re-run opens a new session on the restarted server, and the runner's
+    new log writer replaces the aborted run's log (same episode name).
+    """
+    for attempt in range(MAX_RECONNECTS + 1):
+        step["last"] = 0
+        try:
+            return runner.run(spec, evaluate=cfg.score)
+        except (TimeoutError, RemoteError) as e:
+            if attempt == MAX_RECONNECTS or cfg.reconnect_timeout <= 0 or not _server_went_away(e):
+                raise
+            log.debug("episode failed: %s", e)
+        print(f"agent: server {cfg.server_id!r} went away at step {step['last']}; "
+              f"waiting up to {cfg.reconnect_timeout:g} s for it to come back", flush=True)
+        try:
+            client.wait_for_server(cfg.reconnect_timeout)
+        except TimeoutError:
+            raise TimeoutError(f"server {cfg.server_id!r} did not come back within "
+                               f"{cfg.reconnect_timeout:g} s") from None
+        print(f"agent: server {cfg.server_id!r} is back; running {spec.room_type} seed {spec.seed} "
+              f"mess {spec.mess_index} again from the start", flush=True)
+    raise AssertionError("unreachable")
+
+
+def _server_went_away(e: Exception) -> bool:
+    """No reply at all, or a server that no longer knows our session (it restarted)."""
+    return isinstance(e, TimeoutError) or (isinstance(e, RemoteError) and e.code == ErrorCode.unknown_session)
 
 
 def _spec_from(cmd: AgentCommand, base: EpisodeSpec) -> EpisodeSpec:

@@ -104,8 +104,11 @@ class SimClient:
         try:
             reply = replies.recv()
         except zenoh.ZError:  # the query finished with no reply: nobody serves that key
-            raise TimeoutError(f"no reply to {op} on {key}: is server {self.server_id!r} running at "
-                               f"{self._where}?") from None
+            if self._server_visible():
+                raise TimeoutError(f"no reply to {op} on {key}: is server {self.server_id!r} running at "
+                                   f"{self._where}?") from None
+            raise TimeoutError(f"no reply to {op} on {key}: server {self.server_id!r} at {self._where} went away "
+                               f"(its liveliness token is gone)") from None
         if reply.ok is not None:
             return self._decode(reply.ok.payload.to_bytes(), (reply_type, ErrorReply), op)
         payload = reply.err.payload.to_bytes()
@@ -122,6 +125,15 @@ class SimClient:
             raise RemoteError(msg.code, msg.message, msg.session)
         return msg
 
+    def wait_for_server(self, timeout: float) -> None:
+        """Block until the server's liveliness token is visible (e.g. after a restart).
+
+        Raises TimeoutError when it does not appear within ``timeout`` s.
+        """
+        if self._z is None:
+            raise RuntimeError(f"session {self.session_id} is closed")
+        self._wait_for_server(timeout)
+
     def _wait_for_server(self, timeout: float) -> None:
         assert self._z is not None
         seen = threading.Event()
@@ -134,6 +146,12 @@ class SimClient:
                                    f"(start one with: tidee server {flag} {self._where})")
         finally:
             sub.undeclare()
+
+    def _server_visible(self, timeout: float = 1.0) -> bool:
+        """Whether the server's liveliness token is there now (asked once, at most ``timeout`` s)."""
+        assert self._z is not None
+        replies = self._z.liveliness().get(keys.alive_server(self.server_id), timeout=timeout)
+        return any(reply.ok is not None for reply in replies)
 
     def _release(self) -> None:
         z, self._z = self._z, None

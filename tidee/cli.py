@@ -190,6 +190,10 @@ AGENT_OPTIONS: list[tuple[str, dict]] = [
     ("--agent-seed", {"type": argtypes.non_negative_int, "default": 0}),
     ("--connect-timeout", {"type": argtypes.non_negative_float, "default": 60.0,
                            "help": "seconds to wait for the server to appear before giving up"}),
+    ("--reconnect-timeout", {"type": argtypes.non_negative_float, "default": 60.0,
+                             "help": "if the server goes away mid-episode, seconds to wait for it to come back "
+                                     "before giving up; the episode then runs again from the start "
+                                     "(at most 3 times; 0: give up at once)"}),
     ("--threads", {"type": argtypes.non_negative_int, "default": 0,
                    "help": "torch/OpenMP threads (0: the cores this process may use; tidee run gives the agent "
                            "the cores the server does not use)"}),
@@ -232,7 +236,7 @@ def _cmd_agent(args: argparse.Namespace) -> int:
     return run_agent_process(AgentProcessConfig(
         agent=_agent_config(args), spec=spec, endpoint=args.endpoint, router=args.router,
         server_id=args.server_id, session=args.session, episodes=args.episodes, serve=args.serve,
-        log_dir=args.log_dir, connect_timeout=args.connect_timeout))
+        log_dir=args.log_dir, connect_timeout=args.connect_timeout, reconnect_timeout=args.reconnect_timeout))
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -252,7 +256,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
             forwarded += [flag] if value else []
         elif value is not None:
             forwarded += [flag, str(value)]
-    return run_all(RunConfig(agent_args=forwarded, viewer=not args.no_viewer, host=args.host, port=args.port,
+    return run_all(RunConfig(agent_args=forwarded, viewer=not args.no_viewer,
+                             viewer_read_only=args.viewer_read_only, host=args.host, port=args.port,
                              linger=args.linger, renderer=args.renderer))
 
 
@@ -449,6 +454,8 @@ def build_parser() -> argparse.ArgumentParser:
             if flag != "--server-id":
                 p.add_argument(flag, **kw)
         p.add_argument("--no-viewer", action="store_true")
+        p.add_argument("--viewer-read-only", action="store_true",
+                       help="the viewer shows the agent but has no controls that send it commands")
         p.add_argument("--host", type=argtypes.host, default="127.0.0.1", help="viewer host (loopback by default)")
         p.add_argument("--port", type=argtypes.port, default=8080, help="viewer port")
         p.add_argument("--linger", type=argtypes.non_negative_float, default=30.0, help="seconds to keep the viewer up after the episodes")

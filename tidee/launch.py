@@ -55,6 +55,7 @@ def check_bindable(host: str, port: int, what: str, hint: str = "") -> None:
 class RunConfig:
     agent_args: list[str] = field(default_factory=list)   # passed through to `tidee agent`
     viewer: bool = True
+    viewer_read_only: bool = False      # `tidee viewer --read-only`: no controls that send commands
     host: str = "127.0.0.1"
     port: int = 8080
     linger: float = 30.0
@@ -163,7 +164,9 @@ def run_all(cfg: RunConfig) -> int:
         print(f"run: server on {endpoint}", flush=True)
         if cfg.viewer:
             procs.append(("viewer", subprocess.Popen(_tidee("viewer", "--endpoint", endpoint, "--host", cfg.host,
-                                                            "--port", str(cfg.port)), env=env)))
+                                                            "--port", str(cfg.port),
+                                                            *(["--read-only"] if cfg.viewer_read_only else [])),
+                                                     env=env)))
         agent = subprocess.Popen(_tidee("agent", "--endpoint", endpoint, *cfg.agent_args), env=env)
         procs.append(("agent", agent))
         if cfg.viewer:

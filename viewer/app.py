@@ -11,6 +11,9 @@ When the agent reports the episode's end (an ``EpisodeSummary``), the page shows
 "Episode finished" panel and stays live; when the viewer itself stops, it first tells the
 open pages so (they freeze, dimmed, once the connection closes).
 
+Who may send commands: ``access.AccessGate`` (``read_only``, and a token when the page
+is served beyond loopback).
+
 ``run_viewer(config)`` starts it in-process and returns a handle (``.url``, ``.stop()``);
 ``serve(config)`` runs it until SIGINT/SIGTERM (``tidee viewer``).
 """
@@ -31,7 +34,7 @@ import viser
 from tidee.launch import check_bindable, free_port, wait_for_signal
 from tidee.protocol import keys
 from tidee.protocol.messages import AgentCommand, AgentFrame, AgentStatus, EpisodeSummary, MapSnapshot, SearchHeatmap
-from tidee.viewer import geometry, images, palette
+from tidee.viewer import access, geometry, images, palette
 from tidee.viewer.feed import OBSERVATION, LiveFeed
 from tidee.viewer.panels import Panels
 from tidee.viewer.replay import REPLAYED_KINDS, ReplayLog
@@ -57,6 +60,8 @@ class ViewerConfig:
     rate_hz: float = 10.0                # scene/panel updates per second, at most (per kind)
     max_points: int = 200_000            # voxel points sent to the browser, at most
     oracle_period_s: float = 1.0         # ground-truth layer: how often to ask the server
+    read_only: bool = False              # no controls that send commands; every command refused
+    token: str | None = None             # the controls' access token (default: random unless host is loopback)
 
     def __post_init__(self) -> None:
         if not 0 <= int(self.port) <= 65535:
@@ -70,6 +75,8 @@ class ViewerConfig:
         if self.replay is not None and not os.path.isdir(self.replay):
             raise FileNotFoundError(f"--replay {self.replay!r} is not a directory (expected an episode log "
                                     f"directory holding telemetry.tlog)")
+        if self.token is not None and not self.token.strip():
+            raise ValueError("token must not be empty (leave it out for a random one off loopback)")
         if self.endpoint and self.router:
             raise ValueError("give either endpoint (peer mode) or router (client mode), not both")
 
@@ -105,6 +112,7 @@ class ViewerApp:
         self._replay_playing, self._replay_rate = False, 10.0
         self._replay_shown: dict[str, int | None] = {}
         self._cloud_upto = -1                     # replay: the last frame index fused into the coloured cloud
+        self.access = access.AccessGate(access.required_token(config.host, config.token), config.read_only)
 
         # viser moves to the next free port when one is taken (and retries forever on a host it cannot
         # bind): check first, and refuse a moved port, so the printed URL is the one asked for.
@@ -118,10 +126,12 @@ class ViewerApp:
                           f"started (choose another --port, or --port 0 for any free port)")
         self.url = f"http://{_display_host(config.host)}:{self.server.get_port()}"
         self.server.on_client_connect(self._on_client_connect)
+        self.server.on_client_disconnect(lambda client: self.access.forget(client.client_id))
         try:
             self.scene = SceneView(self.server, max_points=config.max_points)
             steps = (self.replay.first_step, self.replay.last_step) if self.replay else None
-            self.panels = Panels(self.server, self, steps, initial_session=config.session)
+            self.panels = Panels(self.server, self, steps, initial_session=config.session,
+                                 read_only=config.read_only)
             if self.replay is None:
                 self.feed = LiveFeed(config.endpoint, config.router, config.session)
         except BaseException:
@@ -303,6 +313,8 @@ class ViewerApp:
 
     def _on_client_connect(self, client: viser.ClientHandle) -> None:
         client.camera.on_update(self._camera_moved)
+        if self.access.needs_token and self.replay is None:
+            self.panels.add_token_input(client)
 
     def _camera_moved(self, camera: viser.CameraHandle) -> None:
         """A browser's camera moved: lay the 3D labels out again for what it sees."""
@@ -364,7 +376,14 @@ class ViewerApp:
             self.feed.select(session)
             self._wake.set()
 
-    def command(self, kind: str, **fields: object) -> None:
+    def command(self, kind: str, client_id: int | None = None, **fields: object) -> None:
+        """Send ``kind`` to the shown session's agent, if the access gate lets ``client_id``
+        (None: this process, not a browser) do so; a refused client is told why."""
+        refused = self.access.refusal(client_id)
+        if refused is not None:
+            log.warning("viewer: %s from client %s refused: %s", kind, client_id, refused)
+            self._notify(client_id, f"{kind} not sent", refused)
+            return
         if self.feed is None:
             return
         try:
@@ -374,6 +393,20 @@ class ViewerApp:
             self.panels.show_sent(f"**not sent**: {e}")
             return
         self.panels.show_sent(f"**{kind}** sent to `{target}` (id {cmd.command_id}); waiting for the agent's ack…")
+
+    def present_token(self, client_id: int | None, token: str) -> None:
+        if client_id is None or not token.strip():
+            return
+        if self.access.unlock(client_id, token):
+            self._notify(client_id, "Agent controls unlocked", "this page may now send commands to the agent")
+        else:
+            self._notify(client_id, "Wrong access token", "the agent controls stay locked on this page")
+
+    def _notify(self, client_id: int | None, title: str, body: str) -> None:
+        client = self.server.get_clients().get(client_id) if client_id is not None else None
+        if client is not None:
+            client.add_notification(title, body, auto_close_seconds=6.0,
+                                    color="green" if title.endswith("unlocked") else "red")
 
     def set_layer(self, layer: str, on: bool) -> None:
         with self._lock:
@@ -484,7 +517,7 @@ def run_viewer(config: ViewerConfig | None = None) -> ViewerHandle:
 def serve(config: ViewerConfig) -> None:
     """``tidee viewer``: run until SIGINT or SIGTERM, printing the URL first."""
     handle = run_viewer(config)
-    print(f"viewer: {handle.url}", flush=True)
+    print(access.announce(handle.url, handle.app.access.token, config.read_only), flush=True)
     try:
         wait_for_signal()
     finally:

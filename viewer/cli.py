@@ -16,7 +16,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     where.add_argument("--router", default=None, type=argtypes.endpoint, help="connect through this Zenoh router instead (client mode)")
     p.add_argument("--host", default="127.0.0.1", type=argtypes.host,
                    help="address to serve the page on (default: loopback only; 0.0.0.0 exposes the agent "
-                        "controls to the network)")
+                        "controls to the network, behind an access token)")
+    access = p.add_mutually_exclusive_group()
+    access.add_argument("--read-only", action="store_true",
+                        help="no controls that send commands to agents (pause, new episode, preference)")
+    access.add_argument("--token", default=None,
+                        help="the access token the agent controls need (default: a random one, printed, when "
+                             "--host is not loopback; none on loopback)")
     p.add_argument("--port", type=argtypes.port_or_any, default=8080, help="HTTP port (0: any free port); the URL is printed")
     p.add_argument("--session", default=None, help="show this session (default: follow the newest)")
     p.add_argument("--replay", default=None, metavar="LOGDIR",
@@ -72,7 +78,8 @@ def _run(args: argparse.Namespace) -> int:
     from tidee.viewer.app import ViewerConfig, serve
 
     config = ViewerConfig(endpoint=args.endpoint, router=args.router, host=args.host, port=args.port,
-                          session=args.session, replay=args.replay, rate_hz=args.rate)
+                          session=args.session, replay=args.replay, rate_hz=args.rate,
+                          read_only=args.read_only, token=args.token)
     try:
         serve(config)
     except zenoh.ZError as e:   # opening the live feed's session: an unreachable router

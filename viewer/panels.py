@@ -34,7 +34,8 @@ PREDICTIONS_ID = "tidee-predictions"
 
 class PanelActions(Protocol):
     def select_session(self, session: str | None) -> None: ...
-    def command(self, kind: str, **fields: object) -> None: ...
+    def command(self, kind: str, client_id: int | None, **fields: object) -> None: ...
+    def present_token(self, client_id: int | None, token: str) -> None: ...
     def set_layer(self, layer: str, on: bool) -> None: ...
     def set_colour_mode(self, mode: str) -> None: ...
     def set_label_all(self, on: bool) -> None: ...
@@ -45,10 +46,12 @@ class PanelActions(Protocol):
 
 class Panels:
     def __init__(self, server: viser.ViserServer, actions: PanelActions, replay_steps: tuple[int, int] | None,
-                 initial_session: str | None = None) -> None:
+                 initial_session: str | None = None, read_only: bool = False) -> None:
         gui = server.gui
         self.server, self.actions = server, actions
         self.replay = replay_steps is not None
+        self.read_only = read_only
+        self.command_controls: list[object] = []     # the widgets that send commands (none when read-only)
         gui.configure_theme(control_width="medium", show_share_button=False, brand_color=(40, 90, 220))
 
         # --- left: what the agent sees, and its 2D map -----------------------------------------
@@ -109,28 +112,42 @@ class Panels:
 
     def _build_controls(self, gui: viser.GuiApi, initial_session: str | None) -> None:
         actions = self.actions
-        with gui.add_folder("Agent"):
+        self.agent_folder = gui.add_folder("Agent")
+        with self.agent_folder:
             options = (AUTO_SESSION,) if initial_session is None else (AUTO_SESSION, initial_session)
             self.session = gui.add_dropdown("Session", options, initial_value=initial_session or AUTO_SESSION,
                                             hint="Live sessions (liveliness) and sessions publishing telemetry")
             self.session.on_update(lambda e: actions.select_session(
                 None if e.target.value == AUTO_SESSION else str(e.target.value)))
             self.sessions_info = gui.add_html("")
+            if self.read_only:
+                self.ack = gui.add_markdown("_read-only viewer: no agent controls_")
+                return
             run = gui.add_button_group("Run", ("Pause", "Resume", "Step"))
             kinds = {"Pause": "pause", "Resume": "resume", "Step": "step"}
-            run.on_click(lambda e: actions.command(kinds[e.target.value]))
+            run.on_click(lambda e: actions.command(kinds[e.target.value], e.client_id))
             self.ack = gui.add_markdown("_no command sent yet_")
         with gui.add_folder("New episode", expand_by_default=False):
             room = gui.add_dropdown("Room type", ROOM_TYPES, initial_value="LivingRoom")
             seed = gui.add_number("Seed", 0, min=0, step=1)
             mess = gui.add_number("Mess index", 0, min=0, step=1)
-            gui.add_button("Start new episode", icon=viser.Icon.PLAYER_PLAY).on_click(
-                lambda _: actions.command("new_episode", room_type=room.value, seed=int(seed.value),
-                                          mess_index=int(mess.value)))
+            new_episode = gui.add_button("Start new episode", icon=viser.Icon.PLAYER_PLAY)
+            new_episode.on_click(lambda e: actions.command("new_episode", e.client_id, room_type=room.value,
+                                                           seed=int(seed.value), mess_index=int(mess.value)))
         with gui.add_folder("Placement preference", expand_by_default=False):
             text = gui.add_text("Preference", "", hint='In plain language, e.g. "I want my alarm clock on the desk"')
-            gui.add_button("Send to the agent", icon=viser.Icon.SEND).on_click(
-                lambda _: actions.command("preference", text=text.value))
+            send = gui.add_button("Send to the agent", icon=viser.Icon.SEND)
+            send.on_click(lambda e: actions.command("preference", e.client_id, text=text.value))
+        self.command_controls = [run, new_episode, send]
+
+    def add_token_input(self, client: viser.ClientHandle) -> None:
+        """One client's own "Access token" field (client-scoped: what it types reaches no other
+        browser), at the top of the Agent folder."""
+        with self.agent_folder:
+            field = client.gui.add_text("Access token", "", order=-1.0,
+                                        hint="The token printed where the viewer started: it unlocks this "
+                                             "page's agent controls")
+        field.on_update(lambda e: self.actions.present_token(e.client_id, str(e.target.value)))
 
     def _build_replay(self, gui: viser.GuiApi, first: int, last: int) -> None:
         actions = self.actions

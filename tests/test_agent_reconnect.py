@@ -1,0 +1,145 @@
+"""An agent whose server disappears waits for it, and plays the episode again once it is back.
+
+Loopback only: a real ``tidee server`` and ``tidee agent`` as subprocesses; the server is
+killed mid-episode (SIGKILL, no goodbye) and a new one started on the same endpoint.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from tidee.agent.config import AgentConfig
+from tidee.agent.process import AgentProcessConfig, _run_until_done
+from tidee.launch import free_port
+from tidee.protocol.client import RemoteError
+from tidee.protocol.messages import EpisodeSpec, ErrorCode
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _start(*args: str, **kw: object) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "tidee.cli", *args], cwd=REPO, text=True,
+                            start_new_session=True, **kw)  # type: ignore[call-overload]
+
+
+def _kill(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=10)
+
+
+class _Lines:
+    """Collects a process's output lines in a thread, so waiting for one never blocks on the pipe."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.lines: list[str] = []
+        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._thread.start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    def wait_for(self, text: str, deadline: float) -> str:
+        while time.monotonic() < deadline:
+            for line in self.lines:
+                if text in line:
+                    return line
+            time.sleep(0.1)
+        raise AssertionError(f"no line with {text!r} in time; output so far:\n" + "\n".join(self.lines))
+
+    @property
+    def text(self) -> str:
+        self._thread.join(timeout=5)
+        return "\n".join(self.lines)
+
+
+@pytest.mark.timeout(90)
+def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
+    deadline = time.monotonic() + 60
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    server_args = ("server", "--endpoint", endpoint, "--processes", "1")
+    server = _start(*server_args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    agent = _start("agent", "--endpoint", endpoint, "--perception", "oracle", "--variant", "CommonMemory",
+                   "--oop", "relation_stats", "--max-steps", "150", "--reconnect-timeout", "40",
+                   "--log-dir", str(tmp_path / "runs"), stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    second = None
+    try:
+        out = _Lines(agent)
+        out.wait_for("agent: session", deadline)
+        time.sleep(3)                          # a few steps into the episode
+        assert agent.poll() is None, out.text
+        _kill(server)
+        second = _start(*server_args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        gone = out.wait_for("went away", deadline)
+        assert gone.startswith("agent: server 'sim0' went away at step ")
+        assert gone.endswith("; waiting up to 40 s for it to come back")
+        back = out.wait_for("is back", deadline)
+        assert back == "agent: server 'sim0' is back; running LivingRoom seed 200 mess 0 again from the start"
+        out.wait_for(" moved", deadline)
+        assert agent.wait(timeout=max(1.0, deadline - time.monotonic())) == 0, out.text
+        assert "Traceback" not in out.text, out.text
+        summaries = list((tmp_path / "runs").rglob("summary.json"))
+        assert len(summaries) == 1, summaries   # the re-run's log is the finished one
+    finally:
+        _kill(agent)
+        _kill(server)
+        if second is not None:
+            _kill(second)
+
+
+class _GoneClient:
+    """A SimClient stand-in whose server never comes back."""
+
+    def __init__(self) -> None:
+        self.waits: list[float] = []
+
+    def wait_for_server(self, timeout: float) -> None:
+        self.waits.append(timeout)
+        raise TimeoutError("not seen")
+
+
+class _FailingRunner:
+    def __init__(self, error: Exception) -> None:
+        self.error, self.runs = error, 0
+
+    def run(self, spec: EpisodeSpec, evaluate: bool = False) -> None:
+        self.runs += 1
+        raise self.error
+
+
+def _cfg(reconnect_timeout: float) -> AgentProcessConfig:
+    return AgentProcessConfig(agent=AgentConfig(), spec=EpisodeSpec(room_type="LivingRoom", seed=200, mess_index=0),
+                              reconnect_timeout=reconnect_timeout)
+
+
+def test_agent_gives_up_when_the_server_stays_away(capsys: pytest.CaptureFixture[str]) -> None:
+    cfg, client, runner = _cfg(0.2), _GoneClient(), _FailingRunner(TimeoutError("no reply to step"))
+    with pytest.raises(TimeoutError, match=r"^server 'sim0' did not come back within 0.2 s$"):
+        _run_until_done(runner, client, cfg.spec, cfg, {"last": 7})  # type: ignore[arg-type]
+    assert runner.runs == 1 and client.waits == [0.2]
+    assert capsys.readouterr().out == ("agent: server 'sim0' went away at step 0; "
+                                       "waiting up to 0.2 s for it to come back\n")
+
+
+def test_a_refused_episode_or_no_reconnect_fails_at_once() -> None:
+    refused = RemoteError(ErrorCode.invalid_field, "no such room")
+    for cfg, error in ((_cfg(5), refused), (_cfg(0), TimeoutError("no reply to step"))):
+        runner, client = _FailingRunner(error), _GoneClient()
+        with pytest.raises(type(error)):
+            _run_until_done(runner, client, cfg.spec, cfg, {"last": 0})  # type: ignore[arg-type]
+        assert runner.runs == 1 and client.waits == []
+
+
+def test_reconnect_timeout_must_not_be_negative() -> None:
+    with pytest.raises(ValueError, match="reconnect_timeout"):
+        _cfg(-1)
