@@ -96,16 +96,10 @@ def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
             "put_away": summary["objects_fixed"]}
 
 
-def _stats(xs: list[float]) -> dict[str, float]:
-    a = np.asarray(xs, float)
-    return {"median": round(float(np.median(a)), 2), "p90": round(float(np.percentile(a, 90)), 2),
-            "max": round(float(a.max()), 2)}
-
-
 def run_episode_bench(out: str, repeats: int = 3, room_type: str = "LivingRoom", seed: int = 200,
                       mess_index: int = 0, variant: str = "TIDEE", max_steps: int = 1000,
                       browser: bool = False) -> dict[str, Any]:
-    from tidee.server.bench_reset import write_bench
+    from tidee.server.bench_sim import spread, write_report
 
     args = {"room_type": room_type, "seed": seed, "mess_index": mess_index, "variant": variant,
             "max_steps": max_steps}
@@ -121,8 +115,8 @@ def run_episode_bench(out: str, repeats: int = 3, room_type: str = "LivingRoom",
         "steps": {m: [r["steps"] for r in rs] for m, rs in runs.items()},
     }
     for mode, rs in runs.items():
-        result[f"{mode}_episode_s"] = _stats([r["episode_s"] for r in rs])
-        result[f"{mode}_command_s"] = _stats([r["command_s"] for r in rs])
+        result[f"{mode}_episode_s"] = spread([r["episode_s"] for r in rs])
+        result[f"{mode}_command_s"] = spread([r["command_s"] for r in rs])
     result["live_over_inprocess_episode"] = round(result["live_episode_s"]["median"]
                                                   / result["inprocess_episode_s"]["median"], 3)
     result["live_over_inprocess_per_step"] = round(
@@ -133,5 +127,5 @@ def run_episode_bench(out: str, repeats: int = 3, room_type: str = "LivingRoom",
     result["command"] = (f"tidee bench episode --repeats {repeats} --room-type {room_type} --seed {seed} "
                          f"--mess-index {mess_index} --variant {variant} --max-steps {max_steps}"
                          + (" --browser" if browser else "") + f" --out {out}")
-    write_bench(result, out, "Episode benchmark (`tidee bench episode`): in-process vs live (`tidee run`)")
+    write_report(out, result, "Episode benchmark (`tidee bench episode`): in-process vs live (`tidee run`)")
     return result

@@ -23,16 +23,10 @@ import numpy as np
 
 def _warm_scene_cache(split: str, configs: int) -> None:
     from tidee.agent.evaluation.tidy_eval import select_configs
-    from tidee.server.episode import SceneLibrary
-    from tidee.server.world import World
+    from tidee.server.bench_reset import reset_times
+    from tidee.server.scene_cache import SceneCache
 
-    library = SceneLibrary()
-    world = World(renderer="tiny")
-    try:
-        for c in select_configs(split, configs):
-            library.scene(world, c.room_type, c.seed, c.mess_index)
-    finally:
-        world.close()
+    reset_times([(c.room_type, c.seed, c.mess_index) for c in select_configs(split, configs)], SceneCache())
 
 
 def _eval(workers: int, split: str, configs: int, variants: str) -> dict[str, Any]:
@@ -52,15 +46,9 @@ def _eval(workers: int, split: str, configs: int, variants: str) -> dict[str, An
     return {"wall_s": wall, "episodes": len(episodes), "episode_wall_s": [float(e["wall_s"]) for e in episodes]}
 
 
-def _stats(xs: list[float]) -> dict[str, float]:
-    a = np.asarray(xs, float)
-    return {"median": round(float(np.median(a)), 2), "p90": round(float(np.percentile(a, 90)), 2),
-            "max": round(float(a.max()), 2)}
-
-
 def run_scale_bench(out: str, configs: int = 4, variants: str = "TIDEE", repeats: int = 1,
                     split: str = "test") -> dict[str, Any]:
-    from tidee.server.bench_reset import write_bench
+    from tidee.server.bench_sim import spread, write_report
 
     _warm_scene_cache(split, configs)
     load0 = os.getloadavg()[0]
@@ -70,8 +58,8 @@ def run_scale_bench(out: str, configs: int = 4, variants: str = "TIDEE", repeats
             runs[workers].append(_eval(workers, split, configs, variants))
     result: dict[str, Any] = {"split": split, "configurations": configs, "agents": variants, "repeats": repeats}
     for workers, rs in runs.items():
-        result[f"workers_{workers}_command_s"] = _stats([r["wall_s"] for r in rs])
-        result[f"workers_{workers}_episode_wall_s"] = _stats([w for r in rs for w in r["episode_wall_s"]])
+        result[f"workers_{workers}_command_s"] = spread([r["wall_s"] for r in rs])
+        result[f"workers_{workers}_episode_wall_s"] = spread([w for r in rs for w in r["episode_wall_s"]])
         result[f"workers_{workers}_episodes_per_min"] = round(
             float(np.median([60.0 * r["episodes"] / r["wall_s"] for r in rs])), 2)
     result["speedup_1_to_2"] = round(result["workers_2_episodes_per_min"] / result["workers_1_episodes_per_min"], 2)
@@ -79,5 +67,5 @@ def run_scale_bench(out: str, configs: int = 4, variants: str = "TIDEE", repeats
     result["load_avg_1m_before_after"] = [round(load0, 2), round(os.getloadavg()[0], 2)]
     result["command"] = (f"tidee bench scale --configs {configs} --variants {variants} --repeats {repeats} "
                          f"--split {split} --out {out}")
-    write_bench(result, out, "Scaling benchmark (`tidee bench scale`): tidy episodes with 1 vs 2 workers")
+    write_report(out, result, "Scaling benchmark (`tidee bench scale`): tidy episodes with 1 vs 2 workers")
     return result

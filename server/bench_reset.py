@@ -9,18 +9,17 @@ It writes JSON and Markdown with the median, p90 and max of each, and the machin
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import tempfile
 import time
 from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
 
 import numpy as np
 
 from tidee.protocol.messages import EpisodeSpec
+from tidee.server.bench_sim import spread, write_report
 from tidee.server.episode import Episode, SceneLibrary
 from tidee.server.scene_cache import SceneCache
 from tidee.server.splits import mess_config, num_configs
@@ -33,7 +32,9 @@ def split_configs(split: str, limit: int | None = None) -> list[tuple[str, int, 
     return [(c.room_type, c.seed, c.mess_index) for c in (mess_config(split, i) for i in range(n))]
 
 
-def _reset_times(configs: Iterable[tuple[str, int, int]], cache: SceneCache | None) -> list[float]:
+def reset_times(configs: Iterable[tuple[str, int, int]], cache: SceneCache | None) -> list[float]:
+    """Reset one simulator to each (room type, seed, mess index) in turn (generating and storing
+    what ``cache`` lacks); the seconds each reset took."""
     library = SceneLibrary(disk=cache)
     ep = Episode(renderer="tiny", library=library)
     times = []
@@ -50,7 +51,7 @@ def _reset_times(configs: Iterable[tuple[str, int, int]], cache: SceneCache | No
 def _fill_chunk(args: tuple[list[tuple[str, int, int]], str | None]) -> int:
     configs, directory = args
     cache = SceneCache(directory) if directory else SceneCache()
-    _reset_times(configs, cache)
+    reset_times(configs, cache)
     return len(configs)
 
 
@@ -76,39 +77,25 @@ def fill_cache(split: str, workers: int = 1, directory: str | None = None, limit
             "directory": str(cache.dir)}
 
 
-def _stats(xs: list[float]) -> dict[str, float]:
-    a = np.asarray(xs)
-    return {"n": int(a.size), "median_s": round(float(np.median(a)), 4), "p90_s": round(float(np.percentile(a, 90)), 4),
-            "max_s": round(float(a.max()), 4), "mean_s": round(float(a.mean()), 4)}
+def _seconds(xs: list[float]) -> dict[str, float]:
+    return {"n": len(xs), **{f"{k}_s": v for k, v in spread(xs, 4).items()}, "mean_s": round(float(np.mean(xs)), 4)}
 
 
 def run_reset_bench(out_path: str, split: str = "test", limit: int | None = None) -> dict:
     configs = split_configs(split, limit)
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="tidee-reset-bench-") as d:
-        cold = _reset_times(configs, SceneCache(d))
-        cached = _reset_times(configs, SceneCache(d))
+        cold = reset_times(configs, SceneCache(d))
+        cached = reset_times(configs, SceneCache(d))
     slowest = int(np.argmax(cold))
     result = {
         "split": split, "configurations": len(configs), "renderer": "tiny", "resolution": RESET_RESOLUTION,
-        "cold": _stats(cold), "cached": _stats(cached),
+        "cold": _seconds(cold), "cached": _seconds(cached),
         "speedup_median": round(float(np.median(cold) / np.median(cached)), 1),
         "slowest_cold": {"config": list(configs[slowest]), "s": round(cold[slowest], 2)},
         "machine": f"{platform.machine()} {os.cpu_count()} cores",
         "load_avg_1m_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
         "command": f"tidee bench reset --split {split}" + (f" --limit {limit}" if limit else "") + f" --out {out_path}",
     }
-    write_bench(result, out_path, "Reset benchmark (`tidee bench reset`): cold (generate + physics) vs cached")
+    write_report(out_path, result, "Reset benchmark (`tidee bench reset`): cold (generate + physics) vs cached")
     return result
-
-
-def write_bench(result: dict, out_path: str, title: str) -> None:
-    path = Path(out_path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result, indent=1) + "\n")
-    lines = [f"# {title}", "", "| metric | value |", "|---|---|"]
-    for k, v in result.items():
-        if isinstance(v, dict):
-            v = ", ".join(f"{kk} {vv}" for kk, vv in v.items())
-        lines.append(f"| {k} | {v} |")
-    path.with_suffix(".md").write_text("\n".join(lines) + "\n")

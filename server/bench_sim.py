@@ -62,6 +62,13 @@ def run_sim_bench(resolution: int, steps: int, out_path: str, renderer: str = "a
     return result
 
 
+def spread(xs: list[float], digits: int = 2) -> dict[str, float]:
+    """Median, p90 and max of a benchmark's samples."""
+    a = np.asarray(xs, float)
+    return {"median": round(float(np.median(a)), digits), "p90": round(float(np.percentile(a, 90)), digits),
+            "max": round(float(a.max()), digits)}
+
+
 def write_report(out_path: str, result: dict, title: str) -> None:
     """JSON plus a Markdown table beside it, both written atomically."""
     from tidee.protocol.episode_log import write_atomic, write_json_atomic
@@ -69,5 +76,6 @@ def write_report(out_path: str, result: dict, title: str) -> None:
     os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
     write_json_atomic(out_path, result)
     lines = [f"# {title}", "", "| metric | value |", "|---|---|"]
-    lines += [f"| {k} | {v} |" for k, v in result.items()]
+    lines += [f"| {k} | {', '.join(f'{kk} {vv}' for kk, vv in v.items()) if isinstance(v, dict) else v} |"
+              for k, v in result.items()]
     write_atomic(os.path.splitext(out_path)[0] + ".md", ("\n".join(lines) + "\n").encode())

@@ -18,7 +18,6 @@ import numpy as np
 
 from tidee.protocol.messages import (Action, ActionError, ActionName, EpisodeSpec, GroundTruth,
                                      Observation)
-from tidee.server.bullet import pb
 from tidee.server.messup import mess_up
 from tidee.server.rooms import AGENT_RADIUS, NAV_CELL, generate_scene, main_component, nav_grid, rooms_version
 from tidee.server.scene import Scene
@@ -48,28 +47,17 @@ class SceneLibrary:
     def __init__(self, capacity: int = 32, disk: SceneCache | None | Literal["default"] = "default") -> None:
         self.capacity = capacity
         self._cache: OrderedDict[tuple, dict] = OrderedDict()
-        self._disk_arg = disk
-        self._disks: dict[int, SceneCache] = {}
+        self._disk = SceneCache(version=rooms_version()) if disk == "default" else disk
 
     def disk(self) -> SceneCache | None:
-        """The disk cache for the room generator version in force (None: disabled)."""
-        if self._disk_arg is None:
-            return None
-        version = rooms_version()
-        if version not in self._disks:
-            given = self._disk_arg
-            if given == "default":
-                self._disks[version] = SceneCache(version=version)
-            else:
-                assert isinstance(given, SceneCache)
-                self._disks[version] = given if given.version == version else SceneCache(given.root, version)
-        return self._disks[version]
+        """The disk cache (None: disabled)."""
+        return self._disk
 
     def _get(self, key: tuple) -> dict | None:
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
-        disk = self.disk()
+        disk = self._disk
         stored = disk.load(*key) if disk is not None else None
         if stored is not None:
             self._remember(key, stored)
@@ -83,7 +71,7 @@ class SceneLibrary:
     def _put(self, key: tuple, scene: Scene) -> None:
         # Through JSON, so a fresh scene is built from exactly what a later load from disk gives.
         d = json.loads(json.dumps(scene.to_dict()))
-        disk = self.disk()
+        disk = self._disk
         if disk is not None:
             disk.store(*key, d)
         self._remember(key, d)
@@ -114,19 +102,6 @@ class SceneLibrary:
         scene = Scene.from_dict(self._cache[key])
         world.build(scene)
         return scene
-
-
-def forget_parsed_meshes(world: World) -> None:
-    """Empty PyBullet's cache of parsed OBJ files before a new scene is built.
-
-    PyBullet keeps every OBJ file it has parsed, process-wide, keyed by path and never evicted
-    (``resetSimulation`` and ``disconnect`` leave it); meshes are files named by a digest, so
-    each distinct room added about 2.4 MB for the life of the process. Turning file caching
-    off empties that cache; turning it on again keeps one scene's files while it is built
-    (shapes repeated within a room are parsed once). Shapes already built keep their data.
-    """
-    pb.setPhysicsEngineParameter(enableFileCaching=0, physicsClientId=world.client)
-    pb.setPhysicsEngineParameter(enableFileCaching=1, physicsClientId=world.client)
 
 
 @dataclass
@@ -182,7 +157,6 @@ class Episode:
     # ----------------------------------------------------------------- reset
     def reset(self, spec: EpisodeSpec, session: str = "local", ground_truth: bool = False) -> Observation:
         self.spec, self.session = spec, session
-        forget_parsed_meshes(self.world)
         self.scene = self.library.scene(self.world, spec.room_type, spec.seed, spec.mess_index)
         self.steps, self.done = 0, False
         self.rng = np.random.default_rng(np.random.SeedSequence(
@@ -199,7 +173,6 @@ class Episode:
              session: str = "local", ground_truth: bool = False) -> Observation:
         """Start an episode in a given scene with the agent at a given pose (tests, tools)."""
         self.spec, self.session, self.scene = spec, session, scene
-        forget_parsed_meshes(self.world)
         self.world.build(scene)
         self.steps, self.done = 0, False
         self.rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5150]))

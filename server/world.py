@@ -192,6 +192,12 @@ class World:
         c = self.client
         self._use_gl()
         pb.resetSimulation(physicsClientId=c)
+        # PyBullet keeps every OBJ file it has parsed, process-wide, keyed by path, and neither
+        # resetSimulation nor disconnect frees it; meshes are files named by a digest, so each new
+        # room would add about 2.4 MB for the life of the process. Switching file caching off and
+        # on empties that cache (shapes repeated within this scene are still parsed once).
+        pb.setPhysicsEngineParameter(enableFileCaching=0, physicsClientId=c)
+        pb.setPhysicsEngineParameter(enableFileCaching=1, physicsClientId=c)
         pb.setGravity(0, 0, -9.81, physicsClientId=c)
         pb.setPhysicsEngineParameter(fixedTimeStep=1.0 / PHYSICS_HZ, numSolverIterations=30,
                                      deterministicOverlappingPairs=1, physicsClientId=c)
