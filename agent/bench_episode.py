@@ -47,8 +47,9 @@ print(json.dumps({"steps": res.steps, "episode_s": res.wall_s, "command_s": time
 
 def _inprocess(args: dict[str, Any]) -> dict[str, Any]:
     t0 = time.perf_counter()
-    r = subprocess.run([sys.executable, "-c", _INPROC, json.dumps(args)], capture_output=True, text=True,
-                       timeout=1800)
+    r = subprocess.run(
+        [sys.executable, "-c", _INPROC, json.dumps(args)], capture_output=True, text=True, timeout=1800
+    )
     if r.returncode != 0:
         raise RuntimeError(f"in-process episode failed: {r.stderr[-1500:]}")
     out = json.loads(r.stdout.strip().splitlines()[-1])
@@ -61,9 +62,28 @@ def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
 
     port = free_port()
     with tempfile.TemporaryDirectory(prefix="tidee-bench-episode-") as logs:
-        cmd = [sys.executable, "-m", "tidee.cli", "run", "--variant", args["variant"], "--room-type",
-               args["room_type"], "--seed", str(args["seed"]), "--mess-index", str(args["mess_index"]),
-               "--max-steps", str(args["max_steps"]), "--linger", "0", "--port", str(port), "--log-dir", logs]
+        cmd = [
+            sys.executable,
+            "-m",
+            "tidee.cli",
+            "run",
+            "--variant",
+            args["variant"],
+            "--room-type",
+            args["room_type"],
+            "--seed",
+            str(args["seed"]),
+            "--mess-index",
+            str(args["mess_index"]),
+            "--max-steps",
+            str(args["max_steps"]),
+            "--linger",
+            "0",
+            "--port",
+            str(port),
+            "--log-dir",
+            logs,
+        ]
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         chromium = None
@@ -79,7 +99,7 @@ def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
                     try:
                         chromium.navigate(f"http://127.0.0.1:{port}", timeout=10)
                         break
-                    except Exception:                      # the viewer is not listening yet
+                    except Exception:  # the viewer is not listening yet
                         time.sleep(0.5)
             rc = proc.wait(timeout=1800)
         finally:
@@ -92,17 +112,33 @@ def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
             raise RuntimeError(f"tidee run exited {rc}")
         name = f"{args['room_type']}_{args['seed']}_mess{args['mess_index']}"
         summary = json.loads((Path(logs) / name / "summary.json").read_text())
-    return {"steps": summary["steps"], "episode_s": summary["wall_s"], "command_s": command_s,
-            "put_away": summary["objects_fixed"]}
+    return {
+        "steps": summary["steps"],
+        "episode_s": summary["wall_s"],
+        "command_s": command_s,
+        "put_away": summary["objects_fixed"],
+    }
 
 
-def run_episode_bench(out: str, repeats: int = 3, room_type: str = "LivingRoom", seed: int = 200,
-                      mess_index: int = 0, variant: str = "TIDEE", max_steps: int = 1000,
-                      browser: bool = False) -> dict[str, Any]:
+def run_episode_bench(
+    out: str,
+    repeats: int = 3,
+    room_type: str = "LivingRoom",
+    seed: int = 200,
+    mess_index: int = 0,
+    variant: str = "TIDEE",
+    max_steps: int = 1000,
+    browser: bool = False,
+) -> dict[str, Any]:
     from tidee.server.bench_sim import spread, write_report
 
-    args = {"room_type": room_type, "seed": seed, "mess_index": mess_index, "variant": variant,
-            "max_steps": max_steps}
+    args = {
+        "room_type": room_type,
+        "seed": seed,
+        "mess_index": mess_index,
+        "variant": variant,
+        "max_steps": max_steps,
+    }
     load0 = os.getloadavg()[0]
     runs: dict[str, list[dict[str, Any]]] = {"inprocess": [], "live": []}
     for k in range(repeats):
@@ -111,21 +147,28 @@ def run_episode_bench(out: str, repeats: int = 3, room_type: str = "LivingRoom",
             runs[mode].append(_inprocess(args) if mode == "inprocess" else _live(args, browser))
     result: dict[str, Any] = {
         "configuration": f"{room_type} seed {seed} mess {mess_index}, {variant}, max {max_steps} steps",
-        "repeats": repeats, "browser_attached": browser,
+        "repeats": repeats,
+        "browser_attached": browser,
         "steps": {m: [r["steps"] for r in rs] for m, rs in runs.items()},
     }
     for mode, rs in runs.items():
         result[f"{mode}_episode_s"] = spread([r["episode_s"] for r in rs])
         result[f"{mode}_command_s"] = spread([r["command_s"] for r in rs])
-    result["live_over_inprocess_episode"] = round(result["live_episode_s"]["median"]
-                                                  / result["inprocess_episode_s"]["median"], 3)
+    result["live_over_inprocess_episode"] = round(
+        result["live_episode_s"]["median"] / result["inprocess_episode_s"]["median"], 3
+    )
     result["live_over_inprocess_per_step"] = round(
         float(np.median([r["episode_s"] / r["steps"] for r in runs["live"]]))
-        / float(np.median([r["episode_s"] / r["steps"] for r in runs["inprocess"]])), 3)
+        / float(np.median([r["episode_s"] / r["steps"] for r in runs["inprocess"]])),
+        3,
+    )
     result["machine"] = f"{platform.machine()} {os.cpu_count()} cores"
     result["load_avg_1m_before_after"] = [round(load0, 2), round(os.getloadavg()[0], 2)]
-    result["command"] = (f"tidee bench episode --repeats {repeats} --room-type {room_type} --seed {seed} "
-                         f"--mess-index {mess_index} --variant {variant} --max-steps {max_steps}"
-                         + (" --browser" if browser else "") + f" --out {out}")
+    result["command"] = (
+        f"tidee bench episode --repeats {repeats} --room-type {room_type} --seed {seed} "
+        f"--mess-index {mess_index} --variant {variant} --max-steps {max_steps}"
+        + (" --browser" if browser else "")
+        + f" --out {out}"
+    )
     write_report(out, result, "Episode benchmark (`tidee bench episode`): in-process vs live (`tidee run`)")
     return result

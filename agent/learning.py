@@ -43,7 +43,7 @@ def bf16_supported(device: str) -> bool:
 
 
 def resolve_precision(precision: str, device: str) -> str:
-    """"auto" -> "bf16" where ``device`` runs it natively, "fp32" elsewhere; "fp32" / "bf16" as asked."""
+    """ "auto" -> "bf16" where ``device`` runs it natively, "fp32" elsewhere; "fp32" / "bf16" as asked."""
     if precision not in ("auto", "fp32", "bf16"):
         raise ValueError(f"precision must be auto, fp32 or bf16, not {precision!r}")
     if precision == "auto":
@@ -79,8 +79,9 @@ def load_checkpoint(path: str | Path) -> dict[str, Any] | None:
     return torch.load(path, map_location="cpu", weights_only=False)
 
 
-def resume_training(path: str | Path, seed: int, model_config: dict[str, Any], model: Any, optimizer: Any,
-                    sampler: Any) -> tuple[int, list[dict[str, float]]]:
+def resume_training(
+    path: str | Path, seed: int, model_config: dict[str, Any], model: Any, optimizer: Any, sampler: Any
+) -> tuple[int, list[dict[str, float]]]:
     """Restore a training run from its checkpoint (model, optimiser, the sampler's and torch's
     random state); (step, history), or (0, []) when there is none. A checkpoint of another
     seed or architecture is refused."""
@@ -90,8 +91,10 @@ def resume_training(path: str | Path, seed: int, model_config: dict[str, Any], m
     if ck is None:
         return 0, []
     if ck["train_config"]["seed"] != seed or ck["model_config"] != model_config:
-        raise ValueError(f"{path} was written by a different run (seed or architecture); "
-                         "pass --no-resume or another --work-dir")
+        raise ValueError(
+            f"{path} was written by a different run (seed or architecture); "
+            "pass --no-resume or another --work-dir"
+        )
     model.load_state_dict(ck["model"])
     optimizer.load_state_dict(ck["optimizer"])
     sampler.set_state(ck["sampler"])
@@ -99,8 +102,9 @@ def resume_training(path: str | Path, seed: int, model_config: dict[str, Any], m
     return ck["step"], ck["history"]
 
 
-def ship_weights(out: str | Path, model: Any, config: dict[str, Any], loss_curve: str | Path,
-                 docs_name: str) -> str:
+def ship_weights(
+    out: str | Path, model: Any, config: dict[str, Any], loss_curve: str | Path, docs_name: str
+) -> str:
     """Write a trained model's weights for shipping (``config`` + CPU state dict); the path of
     its loss curve, for the manifest. Weights written to the shipped directory
     (``agent/weights/``) get their curve copied to ``docs/models/<docs_name>``; a candidate
@@ -137,15 +141,22 @@ def ships(out: str | Path) -> bool:
     return Path(out).resolve().parent == WEIGHTS_DIR
 
 
-def dataset_record(data_dir: str, data: dict[str, Any], manifests: list[dict[str, Any]], split: str,
-                   **extra: Any) -> dict[str, Any]:
+def dataset_record(
+    data_dir: str, data: dict[str, Any], manifests: list[dict[str, Any]], split: str, **extra: Any
+) -> dict[str, Any]:
     """The manifest's ``data`` entry for a model trained on ``tidee gen detection`` directories:
     frames, rooms, and the generating command and room seeds of each directory."""
-    return {"dir": data_dir, "frames": int(len(data["rgb"])), **extra,
-            "rooms": sum(len(m.get("rooms", [])) for m in manifests),
-            "parts": [{"command": m.get("command"), "rooms": len(m.get("rooms", [])),
-                       "room_seeds": m.get("config", {})} for m in manifests],
-            "split": split}
+    return {
+        "dir": data_dir,
+        "frames": int(len(data["rgb"])),
+        **extra,
+        "rooms": sum(len(m.get("rooms", [])) for m in manifests),
+        "parts": [
+            {"command": m.get("command"), "rooms": len(m.get("rooms", [])), "room_seeds": m.get("config", {})}
+            for m in manifests
+        ],
+        "split": split,
+    }
 
 
 def save_loss_curve(history: list[dict[str, float]], path: str | Path, title: str) -> None:
@@ -174,13 +185,21 @@ def save_loss_curve(history: list[dict[str, float]], path: str | Path, title: st
     plt.close(fig)
 
 
-def write_manifest(weights: str | Path, command: str, data: dict[str, Any], metrics: dict[str, Any],
-                   **extra: Any) -> dict[str, Any]:
+def write_manifest(
+    weights: str | Path, command: str, data: dict[str, Any], metrics: dict[str, Any], **extra: Any
+) -> dict[str, Any]:
     """``<weights>.json`` beside the weights: command, data seeds, metrics, checksum."""
     weights = Path(weights)
-    manifest = {"weights": weights.name, "sha256": sha256_file(weights), "bytes": weights.stat().st_size,
-                "command": command, "data": data, "metrics": metrics,
-                "written": time.strftime("%Y-%m-%dT%H:%M:%S"), **extra}
+    manifest = {
+        "weights": weights.name,
+        "sha256": sha256_file(weights),
+        "bytes": weights.stat().st_size,
+        "command": command,
+        "data": data,
+        "metrics": metrics,
+        "written": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        **extra,
+    }
     write_json_atomic(weights.with_suffix(".json"), manifest)
     return manifest
 
@@ -195,8 +214,10 @@ def read_manifest(weights: str | Path, verify: bool = True) -> dict[str, Any]:
         raise FileNotFoundError(f"{weights} has no manifest {man_path.name}")
     manifest = json.loads(man_path.read_text())
     if verify and manifest.get("sha256") != sha256_file(weights):
-        raise ValueError(f"{weights} does not match the sha256 in {man_path.name}: the weights were changed "
-                         "without retraining through the repo's command")
+        raise ValueError(
+            f"{weights} does not match the sha256 in {man_path.name}: the weights were changed "
+            "without retraining through the repo's command"
+        )
     return manifest
 
 
@@ -210,6 +231,16 @@ def update_manifest_metrics(weights: str | Path, metrics: dict[str, Any]) -> dic
     return manifest
 
 
-__all__ = ["WEIGHTS_DIR", "pick_device", "sha256_file", "save_checkpoint", "load_checkpoint", "save_loss_curve",
-           "loss_curve_path", "ships",
-           "write_manifest", "read_manifest", "update_manifest_metrics"]
+__all__ = [
+    "WEIGHTS_DIR",
+    "pick_device",
+    "sha256_file",
+    "save_checkpoint",
+    "load_checkpoint",
+    "save_loss_curve",
+    "loss_curve_path",
+    "ships",
+    "write_manifest",
+    "read_manifest",
+    "update_manifest_metrics",
+]

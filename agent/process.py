@@ -24,7 +24,7 @@ from tidee.protocol.zenoh_config import ZenohOpenError, open_session
 
 log = logging.getLogger("tidee.agent")
 
-MAX_RECONNECTS = 3          # re-runs of one episode after its server went away
+MAX_RECONNECTS = 3  # re-runs of one episode after its server went away
 
 
 @dataclass
@@ -35,16 +35,18 @@ class AgentProcessConfig:
     router: str | None = None
     server_id: str = "sim0"
     session: str | None = None
-    episodes: int = 1               # consecutive mess indices from spec.mess_index
-    serve: bool = False             # after them, wait for viewers' new_episode commands
+    episodes: int = 1  # consecutive mess indices from spec.mess_index
+    serve: bool = False  # after them, wait for viewers' new_episode commands
     log_dir: str | None = "runs"
     connect_timeout: float = 60.0
-    score: bool = True            # score each episode at its end (the summary's moved / found / plausible)
-    reconnect_timeout: float = 60.0   # s to wait for a vanished server to come back (0: give up at once)
+    score: bool = True  # score each episode at its end (the summary's moved / found / plausible)
+    reconnect_timeout: float = 60.0  # s to wait for a vanished server to come back (0: give up at once)
 
     def __post_init__(self) -> None:
         if not self.reconnect_timeout >= 0:
-            raise ValueError(f"reconnect_timeout must be a number of seconds >= 0, got {self.reconnect_timeout}")
+            raise ValueError(
+                f"reconnect_timeout must be a number of seconds >= 0, got {self.reconnect_timeout}"
+            )
 
 
 def run_agent_process(cfg: AgentProcessConfig) -> int:
@@ -58,23 +60,34 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
     signal.signal(signal.SIGTERM, _sigterm)
     try:
         z = open_session(False, cfg.endpoint, cfg.router)
-    except ZenohOpenError as e:     # a bad endpoint, an unreachable router
+    except ZenohOpenError as e:  # a bad endpoint, an unreachable router
         print(f"agent: error: {e}", file=sys.stderr, flush=True)
         return 1
     publisher = None
     try:
-        client = SimClient(cfg.endpoint, cfg.router, server_id=cfg.server_id, session=session, timeout=120.0,
-                           zsession=z, connect_timeout=cfg.connect_timeout)
+        client = SimClient(
+            cfg.endpoint,
+            cfg.router,
+            server_id=cfg.server_id,
+            session=session,
+            timeout=120.0,
+            zsession=z,
+            connect_timeout=cfg.connect_timeout,
+        )
         publisher = TelemetryPublisher(z, session)
-        step = {"last": 0}      # the episode's last step, for the "went away" line
+        step = {"last": 0}  # the episode's last step, for the "went away" line
 
         def _on_step(n: int) -> None:
             step["last"] = n
 
-        runner = EpisodeRunner(cfg.agent, client, session=session, publisher=publisher, log_dir=cfg.log_dir,
-                               on_step=_on_step)
-        print(f"agent: session {session}, variant {cfg.agent.variant}, perception {cfg.agent.perception}"
-              f"{' (ORACLE)' if cfg.agent.perception == 'oracle' else ''}; logs in {cfg.log_dir}", flush=True)
+        runner = EpisodeRunner(
+            cfg.agent, client, session=session, publisher=publisher, log_dir=cfg.log_dir, on_step=_on_step
+        )
+        print(
+            f"agent: session {session}, variant {cfg.agent.variant}, perception {cfg.agent.perception}"
+            f"{' (ORACLE)' if cfg.agent.perception == 'oracle' else ''}; logs in {cfg.log_dir}",
+            flush=True,
+        )
         queue: list[EpisodeSpec] = []
         base = cfg.spec
         for k in range(cfg.episodes):
@@ -97,7 +110,7 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
     except KeyboardInterrupt:
         print("agent: stopped (the episode in progress is not scored)", flush=True)
         return 0 if stop["flag"] else 130
-    except (TimeoutError, RemoteError) as e:   # the server went away, or refused the episode
+    except (TimeoutError, RemoteError) as e:  # the server went away, or refused the episode
         print(f"agent: error: {e}", file=sys.stderr, flush=True)
         return 1
     finally:
@@ -106,8 +119,9 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
         z.close()
 
 
-def _run_until_done(runner: EpisodeRunner, client: SimClient, spec: EpisodeSpec, cfg: AgentProcessConfig,
-                    step: dict[str, int]) -> EpisodeResult:
+def _run_until_done(
+    runner: EpisodeRunner, client: SimClient, spec: EpisodeSpec, cfg: AgentProcessConfig, step: dict[str, int]
+) -> EpisodeResult:
     """Play ``spec``; if its server goes away, wait for it and play the episode again from the start.
 
     The reset of a re-run opens a new session on the restarted server, and the runner's
@@ -121,15 +135,22 @@ def _run_until_done(runner: EpisodeRunner, client: SimClient, spec: EpisodeSpec,
             if attempt == MAX_RECONNECTS or cfg.reconnect_timeout <= 0 or not _server_went_away(e):
                 raise
             log.debug("episode failed: %s", e)
-        print(f"agent: server {cfg.server_id!r} went away at step {step['last']}; "
-              f"waiting up to {cfg.reconnect_timeout:g} s for it to come back", flush=True)
+        print(
+            f"agent: server {cfg.server_id!r} went away at step {step['last']}; "
+            f"waiting up to {cfg.reconnect_timeout:g} s for it to come back",
+            flush=True,
+        )
         try:
             client.wait_for_server(cfg.reconnect_timeout)
         except TimeoutError:
-            raise TimeoutError(f"server {cfg.server_id!r} did not come back within "
-                               f"{cfg.reconnect_timeout:g} s") from None
-        print(f"agent: server {cfg.server_id!r} is back; running {spec.room_type} seed {spec.seed} "
-              f"mess {spec.mess_index} again from the start", flush=True)
+            raise TimeoutError(
+                f"server {cfg.server_id!r} did not come back within {cfg.reconnect_timeout:g} s"
+            ) from None
+        print(
+            f"agent: server {cfg.server_id!r} is back; running {spec.room_type} seed {spec.seed} "
+            f"mess {spec.mess_index} again from the start",
+            flush=True,
+        )
     raise AssertionError("unreachable")
 
 
@@ -139,9 +160,14 @@ def _server_went_away(e: Exception) -> bool:
 
 
 def _spec_from(cmd: AgentCommand, base: EpisodeSpec) -> EpisodeSpec:
-    return EpisodeSpec(**{**base.__dict__, "room_type": cmd.room_type or base.room_type,
-                          "seed": base.seed if cmd.seed is None else cmd.seed,
-                          "mess_index": cmd.mess_index})
+    return EpisodeSpec(
+        **{
+            **base.__dict__,
+            "room_type": cmd.room_type or base.room_type,
+            "seed": base.seed if cmd.seed is None else cmd.seed,
+            "mess_index": cmd.mess_index,
+        }
+    )
 
 
 def _wait_for_new_episode(publisher: TelemetryPublisher) -> AgentCommand:
@@ -154,8 +180,11 @@ def _wait_for_new_episode(publisher: TelemetryPublisher) -> AgentCommand:
             if cmd.kind == "new_episode":
                 publisher.ack(cmd.command_id, cmd.kind, True, "starting")
                 return cmd
-            ok = cmd.kind in ("pause", "resume", "step")   # harmless while idle; a preference needs an episode
-            publisher.ack(cmd.command_id, cmd.kind, ok,
-                          "idle: no episode is running" if ok else "no episode is running; start one first")
+            ok = cmd.kind in ("pause", "resume", "step")  # harmless while idle; a preference needs an episode
+            publisher.ack(
+                cmd.command_id,
+                cmd.kind,
+                ok,
+                "idle: no episode is running" if ok else "no episode is running; start one first",
+            )
         time.sleep(0.1)
-

@@ -10,7 +10,6 @@ reads the server's privileged state: after the episode, for scoring).
 from __future__ import annotations
 
 import dataclasses
-
 import logging
 import time
 from collections.abc import Callable
@@ -31,9 +30,21 @@ from tidee.agent.reasoning.oop import make_oop
 from tidee.agent.reasoning.placement import make_placement
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.protocol.episode_log import LogWriter
-from tidee.protocol.messages import (Action, ActionName, AgentCommand, AgentFrame, AgentStatus,
-                                     Detection2D, EpisodeSpec, EpisodeSummary, ObjectMemoryMsg, Observation,
-                                     ReceptaclePrediction, SearchHeatmap, TrackedObjectMsg)
+from tidee.protocol.messages import (
+    Action,
+    ActionName,
+    AgentCommand,
+    AgentFrame,
+    AgentStatus,
+    Detection2D,
+    EpisodeSpec,
+    EpisodeSummary,
+    ObjectMemoryMsg,
+    Observation,
+    ReceptaclePrediction,
+    SearchHeatmap,
+    TrackedObjectMsg,
+)
 from tidee.protocol.transport import SimTransport
 
 log = logging.getLogger("tidee.agent")
@@ -46,14 +57,22 @@ class EpisodeResult:
     wall_s: float
     end_reason: str
     objects_fixed: int
-    timings: dict[str, list[float]] = field(default_factory=dict)   # ms per step
-    record: dict[str, Any] | None = None                             # evaluation record
-    aborted_by: AgentCommand | None = None                           # a new_episode command
-    summary: EpisodeSummary | None = None                            # what a person reads at the end
+    timings: dict[str, list[float]] = field(default_factory=dict)  # ms per step
+    record: dict[str, Any] | None = None  # evaluation record
+    aborted_by: AgentCommand | None = None  # a new_episode command
+    summary: EpisodeSummary | None = None  # what a person reads at the end
 
 
-def episode_summary(session: str, info: dict[str, Any], steps: int, wall: float, end_reason: str, put_away: int,
-                    record: dict[str, Any] | None, replay: str = "") -> EpisodeSummary:
+def episode_summary(
+    session: str,
+    info: dict[str, Any],
+    steps: int,
+    wall: float,
+    end_reason: str,
+    put_away: int,
+    record: dict[str, Any] | None,
+    replay: str = "",
+) -> EpisodeSummary:
     """How the episode ended; the moved / found / plausible / false-pick counts come from the
     evaluation ``record`` (scored against the server's privileged state), None without one."""
     counts: dict[str, Any] = {}
@@ -62,8 +81,16 @@ def episode_summary(session: str, info: dict[str, Any], steps: int, wall: float,
 
         m = variant_metrics([record])[record["variant"]]
         counts = {k: int(m[k]) for k in ("moved", "found", "plausible", "false_picks")}
-    return EpisodeSummary(session=session, episode=dict(info), steps=int(steps), wall_s=round(float(wall), 2),
-                          end_reason=end_reason, put_away=int(put_away), replay=replay, **counts)
+    return EpisodeSummary(
+        session=session,
+        episode=dict(info),
+        steps=int(steps),
+        wall_s=round(float(wall), 2),
+        end_reason=end_reason,
+        put_away=int(put_away),
+        replay=replay,
+        **counts,
+    )
 
 
 def format_summary(s: EpisodeSummary) -> str:
@@ -74,8 +101,10 @@ def format_summary(s: EpisodeSummary) -> str:
     if s.moved is None:
         scored = f"put away {s.put_away}"
     else:
-        scored = (f"moved {s.moved}, found {s.found}, put away {s.put_away}, plausible {s.plausible}/{s.moved} "
-                  f"(catalog judge), false picks {s.false_picks}")
+        scored = (
+            f"moved {s.moved}, found {s.found}, put away {s.put_away}, plausible {s.plausible}/{s.moved} "
+            f"(catalog judge), false picks {s.false_picks}"
+        )
     line = f"{where}: {scored}; {s.steps} steps, {s.wall_s:.1f} s ({s.end_reason})"
     return line + (f". Replay: {s.replay}" if s.replay else "")
 
@@ -111,9 +140,16 @@ class AgentModels:
 
 
 class EpisodeRunner:
-    def __init__(self, config: AgentConfig, transport: SimTransport, session: str = "agent",
-                 publisher: TelemetryPublisher | None = None, log_dir: str | Path | None = None,
-                 on_step: Callable[[int], None] | None = None, models: AgentModels | None = None) -> None:
+    def __init__(
+        self,
+        config: AgentConfig,
+        transport: SimTransport,
+        session: str = "agent",
+        publisher: TelemetryPublisher | None = None,
+        log_dir: str | Path | None = None,
+        on_step: Callable[[int], None] | None = None,
+        models: AgentModels | None = None,
+    ) -> None:
         self.cfg = config
         self.transport = transport
         self.session = session
@@ -122,8 +158,9 @@ class EpisodeRunner:
         self.on_step = on_step
         m = models if models is not None else AgentModels.load(config)
         if m.key != AgentModels.key_of(config):
-            raise ValueError(f"models loaded for {m.key} cannot serve an agent configured as "
-                             f"{AgentModels.key_of(config)}")
+            raise ValueError(
+                f"models loaded for {m.key} cannot serve an agent configured as {AgentModels.key_of(config)}"
+            )
         self.models = m
         self.perception, self.depth_net, self.oop = m.perception, m.depth_net, m.oop
         self.placement, self.searcher = m.placement, m.searcher
@@ -135,19 +172,24 @@ class EpisodeRunner:
         """A placement preference in plain language: the language OOP head learns it (seconds)."""
         classifier = getattr(self.oop, "classifier", None)
         if classifier is None:
-            return True, (f"noted preference {text!r}; only the language / fused OOP classifiers learn from "
-                          f"instructions (this agent runs --oop {self.cfg.oop})")
+            return True, (
+                f"noted preference {text!r}; only the language / fused OOP classifiers learn from "
+                f"instructions (this agent runs --oop {self.cfg.oop})"
+            )
         from tidee.agent.reasoning.language_oop import apply_instruction
 
         try:
             report = apply_instruction(classifier, text)
         except ValueError as e:
             return False, f"could not use {text!r}: {e}"
-        return True, f"learned {text!r}: " + ", ".join(f"{k}={v}" for k, v in report.items()
-                                                      if isinstance(v, (int, float, str)))[:300]
+        return True, f"learned {text!r}: " + ", ".join(
+            f"{k}={v}" for k, v in report.items() if isinstance(v, (int, float, str))
+        )[:300]
 
     # ------------------------------------------------------------------ the loop
-    def run(self, spec: EpisodeSpec, evaluate: bool = False, episode_name: str | None = None) -> EpisodeResult:
+    def run(
+        self, spec: EpisodeSpec, evaluate: bool = False, episode_name: str | None = None
+    ) -> EpisodeResult:
         gt = self.perception.needs_ground_truth
         t_start = time.perf_counter()
         obs = self.transport.reset(spec, ground_truth=gt)
@@ -163,14 +205,34 @@ class EpisodeRunner:
             if writer:
                 writer.event(**kw)
 
-        policy = TidyPolicy(self.cfg, body, self.oop, self.placement, spec.room_type, on_event=on_event,
-                            searcher=self.searcher)
+        policy = TidyPolicy(
+            self.cfg,
+            body,
+            self.oop,
+            self.placement,
+            spec.room_type,
+            on_event=on_event,
+            searcher=self.searcher,
+        )
         gen = policy.run()
-        info = {"room_type": spec.room_type, "seed": spec.seed, "mess_index": spec.mess_index,
-                "variant": self.cfg.variant, "perception": self.cfg.perception, "oop": self.cfg.oop,
-                "depth": self.cfg.depth, "explorer": self.cfg.explorer, "resolution": spec.resolution}
-        timings: dict[str, list[float]] = {"perception_ms": [], "mapping_ms": [], "planning_ms": [], "step_ms": [],
-                                           "sim_ms": []}
+        info = {
+            "room_type": spec.room_type,
+            "seed": spec.seed,
+            "mess_index": spec.mess_index,
+            "variant": self.cfg.variant,
+            "perception": self.cfg.perception,
+            "oop": self.cfg.oop,
+            "depth": self.cfg.depth,
+            "explorer": self.cfg.explorer,
+            "resolution": spec.resolution,
+        }
+        timings: dict[str, list[float]] = {
+            "perception_ms": [],
+            "mapping_ms": [],
+            "planning_ms": [],
+            "step_ms": [],
+            "sim_ms": [],
+        }
         trajectory: list[tuple[float, float]] = []
         picked: set[str] = set()
         aborted: AgentCommand | None = None
@@ -178,7 +240,7 @@ class EpisodeRunner:
         try:
             while True:
                 t0 = time.perf_counter()
-                if self.depth_net is not None:      # the "+est. depth" agent never reads the depth sensor
+                if self.depth_net is not None:  # the "+est. depth" agent never reads the depth sensor
                     obs = dataclasses.replace(obs, depth=self.depth_net.predict(obs.rgb))
                 dets = self.perception.detect(obs)
                 t1 = time.perf_counter()
@@ -205,8 +267,14 @@ class EpisodeRunner:
                 if aborted is not None or action is None:
                     break
                 if writer:
-                    writer.event(kind="action", step=obs.step, action=action.name.value, x=action.x, y=action.y,
-                                 pose=list(obs.agent_pose))
+                    writer.event(
+                        kind="action",
+                        step=obs.step,
+                        action=action.name.value,
+                        x=action.x,
+                        y=action.y,
+                        pose=list(obs.agent_pose),
+                    )
                 t4 = time.perf_counter()
                 obs = self.transport.step(action, ground_truth=gt)
                 t5 = time.perf_counter()
@@ -215,33 +283,64 @@ class EpisodeRunner:
                 if self.on_step:
                     self.on_step(obs.step)
                 if writer and not obs.success:
-                    writer.event(kind="action_failed", step=obs.step, action=obs.last_action, error=obs.error,
-                                 message=obs.message)
+                    writer.event(
+                        kind="action_failed",
+                        step=obs.step,
+                        action=obs.last_action,
+                        error=obs.error,
+                        message=obs.message,
+                    )
         except Exception:
             if writer:
                 writer.event(kind="crash", step=obs.step)
-                writer.close()   # the log stays readable: every record so far is complete
+                writer.close()  # the log stays readable: every record so far is complete
             raise
         wall = time.perf_counter() - t_start
         end_reason = policy.state.end_reason or ("aborted" if aborted else "step cap")
         record = None
         if evaluate:
-            record = self.evaluation_record(spec, initial, self.transport.state(), events, picked, obs, wall,
-                                            end_reason)
+            record = self.evaluation_record(
+                spec, initial, self.transport.state(), events, picked, obs, wall, end_reason
+            )
         replay = f"tidee viewer --replay {writer.dir}" if writer else ""
-        summary = episode_summary(self.session, info, int(obs.step), wall, end_reason, policy.state.objects_fixed,
-                                  record, replay)
-        result = EpisodeResult(spec, int(obs.step), wall, end_reason, policy.state.objects_fixed, timings, record,
-                               aborted, summary)
+        summary = episode_summary(
+            self.session, info, int(obs.step), wall, end_reason, policy.state.objects_fixed, record, replay
+        )
+        result = EpisodeResult(
+            spec,
+            int(obs.step),
+            wall,
+            end_reason,
+            policy.state.objects_fixed,
+            timings,
+            record,
+            aborted,
+            summary,
+        )
         if self.publisher:
             self.publisher.offer("summary", lambda: summary, force=True)
         if writer:
             writer.message("summary", summary)
-            writer.finish({"episode": info, "steps": result.steps, "wall_s": round(wall, 2),
-                           "end_reason": end_reason, "objects_fixed": result.objects_fixed,
-                           "events": len(events), "summary": dataclasses.asdict(summary), "record": record})
-        log.info("episode %s: %d steps, %.1f s, fixed %d (%s)", self._name(spec), result.steps, wall,
-                 result.objects_fixed, end_reason)
+            writer.finish(
+                {
+                    "episode": info,
+                    "steps": result.steps,
+                    "wall_s": round(wall, 2),
+                    "end_reason": end_reason,
+                    "objects_fixed": result.objects_fixed,
+                    "events": len(events),
+                    "summary": dataclasses.asdict(summary),
+                    "record": record,
+                }
+            )
+        log.info(
+            "episode %s: %d steps, %.1f s, fixed %d (%s)",
+            self._name(spec),
+            result.steps,
+            wall,
+            result.objects_fixed,
+            end_reason,
+        )
         return result
 
     @staticmethod
@@ -250,23 +349,47 @@ class EpisodeRunner:
         return f"{spec.room_type}_{spec.seed}_{mess}"
 
     # ------------------------------------------------------------------ telemetry
-    def _status(self, obs: Observation, body: Body, policy: TidyPolicy, info: dict,
-                trajectory: list[tuple[float, float]]) -> AgentStatus:
+    def _status(
+        self,
+        obs: Observation,
+        body: Body,
+        policy: TidyPolicy,
+        info: dict,
+        trajectory: list[tuple[float, float]],
+    ) -> AgentStatus:
         st = policy.state
         traj = np.asarray(trajectory[-2000:], np.float32).reshape(-1, 2)
         return AgentStatus(
-            session=self.session, step=int(obs.step), phase=st.phase, episode=info,
-            pose=tuple(float(v) for v in obs.agent_pose), paused=self.paused,
-            target_object=st.target.label if st.target else None, target_id=st.target.id if st.target else None,
+            session=self.session,
+            step=int(obs.step),
+            phase=st.phase,
+            episode=info,
+            pose=tuple(float(v) for v in obs.agent_pose),
+            paused=self.paused,
+            target_object=st.target.label if st.target else None,
+            target_id=st.target.id if st.target else None,
             target_receptacle=st.target_receptacle,
             predictions=[ReceptaclePrediction(r, float(p)) for r, p in st.predictions[:5]],
-            held=obs.held, objects_fixed=st.objects_fixed, oop_found=st.oop_found, done=bool(obs.done),
-            message=st.message, trajectory=traj,
+            held=obs.held,
+            objects_fixed=st.objects_fixed,
+            oop_found=st.oop_found,
+            done=bool(obs.done),
+            message=st.message,
+            trajectory=traj,
             path=body.path if body.path is not None and len(body.path) else None,
-            goal=body.goal)
+            goal=body.goal,
+        )
 
-    def _emit(self, obs: Observation, dets: list, body: Body, policy: TidyPolicy, info: dict,
-              trajectory: list[tuple[float, float]], writer: LogWriter | None) -> None:
+    def _emit(
+        self,
+        obs: Observation,
+        dets: list,
+        body: Body,
+        policy: TidyPolicy,
+        info: dict,
+        trajectory: list[tuple[float, float]],
+        writer: LogWriter | None,
+    ) -> None:
         if self.publisher is None and writer is None:
             return
         mapper = body.mapper
@@ -277,27 +400,66 @@ class EpisodeRunner:
             for k, d in enumerate(dets):
                 tid = ids[k] if k < len(ids) else None
                 tracked = mapper.memory.get(tid) if tid is not None else None
-                d2.append(Detection2D(d.label, float(d.score), tuple(float(v) for v in d.box),
-                                      oop_prob=tracked.oop_prob if tracked else d.oop_prob, track_id=tid))
-            return AgentFrame(self.session, int(obs.step), np.asarray(obs.rgb), np.asarray(obs.depth, np.float32),
-                              np.asarray(obs.camera_pose), np.asarray(obs.intrinsics), d2, self.perception.name)
+                d2.append(
+                    Detection2D(
+                        d.label,
+                        float(d.score),
+                        tuple(float(v) for v in d.box),
+                        oop_prob=tracked.oop_prob if tracked else d.oop_prob,
+                        track_id=tid,
+                    )
+                )
+            return AgentFrame(
+                self.session,
+                int(obs.step),
+                np.asarray(obs.rgb),
+                np.asarray(obs.depth, np.float32),
+                np.asarray(obs.camera_pose),
+                np.asarray(obs.intrinsics),
+                d2,
+                self.perception.name,
+            )
 
         def memory() -> ObjectMemoryMsg:
-            return ObjectMemoryMsg(self.session, int(obs.step), [
-                TrackedObjectMsg(o.id, o.label, float(o.score), tuple(map(float, o.centroid)),
-                                 tuple(map(float, o.box_min)), tuple(map(float, o.box_max)),
-                                 o.oop_prob, bool(o.out_of_place), False) for o in mapper.memory])
+            return ObjectMemoryMsg(
+                self.session,
+                int(obs.step),
+                [
+                    TrackedObjectMsg(
+                        o.id,
+                        o.label,
+                        float(o.score),
+                        tuple(map(float, o.centroid)),
+                        tuple(map(float, o.box_min)),
+                        tuple(map(float, o.box_max)),
+                        o.oop_prob,
+                        bool(o.out_of_place),
+                        False,
+                    )
+                    for o in mapper.memory
+                ],
+            )
 
         def search() -> SearchHeatmap:
             view = policy.search_view
             assert view is not None
             grid = mapper.voxel_grid if view.heatmap.shape == mapper.voxel_grid.shape else mapper.grid
-            return SearchHeatmap(self.session, int(obs.step), view.label, tuple(grid.origin), float(grid.cell),
-                                 np.clip(view.heatmap, 0, 1).astype(np.float32),
-                                 np.asarray(view.points, np.float32).reshape(-1, 2))
+            return SearchHeatmap(
+                self.session,
+                int(obs.step),
+                view.label,
+                tuple(grid.origin),
+                float(grid.cell),
+                np.clip(view.heatmap, 0, 1).astype(np.float32),
+                np.asarray(view.points, np.float32).reshape(-1, 2),
+            )
 
-        builders = {"status": lambda: self._status(obs, body, policy, info, trajectory), "frame": frame,
-                    "maps": lambda: mapper.snapshot(self.session, int(obs.step)), "memory": memory}
+        builders = {
+            "status": lambda: self._status(obs, body, policy, info, trajectory),
+            "frame": frame,
+            "maps": lambda: mapper.snapshot(self.session, int(obs.step)),
+            "memory": memory,
+        }
         view = policy.search_view
         new_search = view is not None and (view.label, view.step) != self._search_sent
         if new_search:
@@ -317,8 +479,9 @@ class EpisodeRunner:
                     writer.message(kind, msg)
 
     # ------------------------------------------------------------------ commands
-    def _handle_commands(self, body: Body, policy: TidyPolicy, info: dict, trajectory: list,
-                         writer: LogWriter | None) -> AgentCommand | None:
+    def _handle_commands(
+        self, body: Body, policy: TidyPolicy, info: dict, trajectory: list, writer: LogWriter | None
+    ) -> AgentCommand | None:
         if self.publisher is None:
             return None
         while True:
@@ -337,7 +500,12 @@ class EpisodeRunner:
                     self.paused, self._single_steps = True, self._single_steps + 1
                     self.publisher.ack(cmd.command_id, cmd.kind, True, "one step")
                 elif cmd.kind == "new_episode":
-                    self.publisher.ack(cmd.command_id, cmd.kind, True, f"starting {cmd.room_type} seed {cmd.seed} mess {cmd.mess_index}")
+                    self.publisher.ack(
+                        cmd.command_id,
+                        cmd.kind,
+                        True,
+                        f"starting {cmd.room_type} seed {cmd.seed} mess {cmd.mess_index}",
+                    )
                     return cmd
                 elif cmd.kind == "preference":
                     if writer:
@@ -349,17 +517,30 @@ class EpisodeRunner:
             if self._single_steps > 0:
                 self._single_steps -= 1
                 return None
-            self.publisher.offer("status", lambda: self._status(body.obs, body, policy, info, trajectory), force=True)
+            self.publisher.offer(
+                "status", lambda: self._status(body.obs, body, policy, info, trajectory), force=True
+            )
             time.sleep(0.05)
 
     # ------------------------------------------------------------------ evaluation
-    def evaluation_record(self, spec: EpisodeSpec, initial: dict | None, final: dict, events: list[dict[str, Any]],
-                          picked: set[str], obs: Observation, wall: float, end_reason: str) -> dict[str, Any]:
+    def evaluation_record(
+        self,
+        spec: EpisodeSpec,
+        initial: dict | None,
+        final: dict,
+        events: list[dict[str, Any]],
+        picked: set[str],
+        obs: Observation,
+        wall: float,
+        end_reason: str,
+    ) -> dict[str, Any]:
         """Score the episode against the server's privileged state (evaluation only)."""
         assert initial is not None
         mess = {m["id"]: m for m in initial.get("mess", [])}
         start = final["start"]
-        flagged = [(e["label"], start_to_world_xy(start, e["centroid"])) for e in events if e["kind"] == "oop_found"]
+        flagged = [
+            (e["label"], start_to_world_xy(start, e["centroid"])) for e in events if e["kind"] == "oop_found"
+        ]
         init_objs = {o["id"]: o for o in initial["objects"]}
         objects = []
         for o in final["objects"]:
@@ -368,17 +549,39 @@ class EpisodeRunner:
             first = init_objs[o["id"]]
             moved = o["id"] in mess
             pos0 = np.asarray(first["position"][:2])
-            found = o["id"] in picked or (moved and any(
-                lbl == o["type"] and float(np.linalg.norm(xy - pos0)) < 0.75 for lbl, xy in flagged))
-            objects.append({
-                "id": o["id"], "type": o["type"], "variant": o.get("variant"), "moved": moved,
-                "found": bool(found), "picked": o["id"] in picked,
-                "original_parent_type": mess[o["id"]]["original_parent_type"] if moved else first["parent_type"],
-                "messy_parent_type": first["parent_type"],
-                "final_parent_type": o["parent_type"]})
-        receptacles = sorted({o["type"] for o in final["objects"] if o.get("receptacle") and not o.get("pickupable")})
-        return {"variant": self.cfg.variant, "perception": self.cfg.perception, "oop": self.cfg.oop,
-                "split": None, "room_type": spec.room_type, "seed": spec.seed, "mess_index": spec.mess_index,
-                "steps": int(obs.step), "wall_s": round(wall, 2), "end_reason": end_reason,
-                "present_receptacles": receptacles, "objects": objects}
-
+            found = o["id"] in picked or (
+                moved
+                and any(lbl == o["type"] and float(np.linalg.norm(xy - pos0)) < 0.75 for lbl, xy in flagged)
+            )
+            objects.append(
+                {
+                    "id": o["id"],
+                    "type": o["type"],
+                    "variant": o.get("variant"),
+                    "moved": moved,
+                    "found": bool(found),
+                    "picked": o["id"] in picked,
+                    "original_parent_type": mess[o["id"]]["original_parent_type"]
+                    if moved
+                    else first["parent_type"],
+                    "messy_parent_type": first["parent_type"],
+                    "final_parent_type": o["parent_type"],
+                }
+            )
+        receptacles = sorted(
+            {o["type"] for o in final["objects"] if o.get("receptacle") and not o.get("pickupable")}
+        )
+        return {
+            "variant": self.cfg.variant,
+            "perception": self.cfg.perception,
+            "oop": self.cfg.oop,
+            "split": None,
+            "room_type": spec.room_type,
+            "seed": spec.seed,
+            "mess_index": spec.mess_index,
+            "steps": int(obs.step),
+            "wall_s": round(wall, 2),
+            "end_reason": end_reason,
+            "present_receptacles": receptacles,
+            "objects": objects,
+        }

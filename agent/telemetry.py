@@ -22,11 +22,21 @@ from tidee.protocol.messages import AgentCommand, CommandAck
 log = logging.getLogger("tidee.agent.telemetry")
 
 # Maximum publish rate per kind (Hz). ``status`` is tiny and goes every step.
-DEFAULT_RATES = {"status": 1000.0, "frame": 10.0, "maps": 4.0, "memory": 5.0, "search": 2.0, "ack": 1000.0, "summary": 1000.0}
+DEFAULT_RATES = {
+    "status": 1000.0,
+    "frame": 10.0,
+    "maps": 4.0,
+    "memory": 5.0,
+    "search": 2.0,
+    "ack": 1000.0,
+    "summary": 1000.0,
+}
 
 
 class RateLimiter:
-    def __init__(self, rates: dict[str, float] | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, rates: dict[str, float] | None = None, clock: Callable[[], float] = time.monotonic
+    ) -> None:
         self.rates = dict(DEFAULT_RATES if rates is None else rates)
         self.clock = clock
         self._last: dict[str, float] = {}
@@ -46,17 +56,21 @@ class RateLimiter:
 class TelemetryPublisher:
     """Publishes telemetry for one session over a Zenoh session (which it does not own)."""
 
-    def __init__(self, zsession: Any, session_id: str, rates: dict[str, float] | None = None,
-                 encoding: str = "jpeg") -> None:
+    def __init__(
+        self, zsession: Any, session_id: str, rates: dict[str, float] | None = None, encoding: str = "jpeg"
+    ) -> None:
         import zenoh
 
         self.session_id = keys.check_id("session", session_id)
         self.limiter = RateLimiter(rates)
         self.encoding = encoding
         self._z = zsession
-        self._pubs = {k: zsession.declare_publisher(keys.agent_telemetry(session_id, k),
-                                                    congestion_control=zenoh.CongestionControl.DROP)
-                      for k in DEFAULT_RATES}
+        self._pubs = {
+            k: zsession.declare_publisher(
+                keys.agent_telemetry(session_id, k), congestion_control=zenoh.CongestionControl.DROP
+            )
+            for k in DEFAULT_RATES
+        }
         self._slots: dict[str, Any] = {}
         self._cv = threading.Condition()
         self._stop = False
@@ -64,7 +78,9 @@ class TelemetryPublisher:
         self.dropped = 0
         self._worker = threading.Thread(target=self._run, name="telemetry", daemon=True)
         self._worker.start()
-        self._cmd_sub = zsession.declare_subscriber(keys.agent_cmd(session_id), zenoh.handlers.FifoChannel(64))
+        self._cmd_sub = zsession.declare_subscriber(
+            keys.agent_cmd(session_id), zenoh.handlers.FifoChannel(64)
+        )
 
     def offer(self, kind: str, build: Callable[[], Any], force: bool = False) -> Any | None:
         """Build and queue a message of ``kind`` if it is due (or ``force``); returns it or None."""

@@ -17,13 +17,17 @@ import tidee  # noqa: F401  (registers tidee/Tidy-v0)
 from tidee.protocol.gym_env import ACTIONS
 from tidee.protocol.messages import EpisodeSpec
 
-env = gymnasium.make("tidee/Tidy-v0", spec=EpisodeSpec(room_type="Kitchen", mess_index=0, max_steps=20),
-                     transport="inproc", transport_kwargs={"renderer": "tiny"})
+env = gymnasium.make(
+    "tidee/Tidy-v0",
+    spec=EpisodeSpec(room_type="Kitchen", mess_index=0, max_steps=20),
+    transport="inproc",
+    transport_kwargs={"renderer": "tiny"},
+)
 print("action space:", env.action_space)
 print("observation space:", env.observation_space)
 
-obs, info = env.reset(seed=200)      # room seed 200: a test room
-env.action_space.seed(0)             # the random actions below are reproducible too
+obs, info = env.reset(seed=200)  # room seed 200: a test room
+env.action_space.seed(0)  # the random actions below are reproducible too
 print(f"reset: rgb {obs['rgb'].shape}, depth {obs['depth'].shape}, pose {obs['pose']}")
 # Random actions, all but Done (which would end the episode at once).
 not_done = np.array([a.value != "Done" for a in ACTIONS], np.int8)

@@ -27,15 +27,21 @@ with InProcessTransport(renderer="tiny") as sim:
     runner = EpisodeRunner(config, sim)
     result = runner.run(spec, evaluate=True)
 
-print(f"{config.variant} (OOP detector {config.oop!r}): {result.steps} steps, {result.wall_s:.1f} s, "
-      f"ended by {result.end_reason}, {result.objects_fixed} objects put away")
+print(
+    f"{config.variant} (OOP detector {config.oop!r}): {result.steps} steps, {result.wall_s:.1f} s, "
+    f"ended by {result.end_reason}, {result.objects_fixed} objects put away"
+)
 record = result.record
 assert record is not None
 print(f"{'object':<16} {'moved':>5} {'found':>5} {'picked':>6}  tidy on -> ended on")
 for o in record["objects"]:
     if o["moved"] or o["found"] or o["picked"]:
-        print(f"{o['id']:<16} {o['moved']!s:>5} {o['found']!s:>5} {o['picked']!s:>6}  "
-              f"{o['original_parent_type']} -> {o['final_parent_type']}")
+        print(
+            f"{o['id']:<16} {o['moved']!s:>5} {o['found']!s:>5} {o['picked']!s:>6}  "
+            f"{o['original_parent_type']} -> {o['final_parent_type']}"
+        )
 moved = [o for o in record["objects"] if o["moved"]]
-print(f"found {sum(o['found'] for o in moved)} of {len(moved)} moved objects, "
-      f"picked up {sum(o['picked'] for o in record['objects'])} objects")
+print(
+    f"found {sum(o['found'] for o in moved)} of {len(moved)} moved objects, "
+    f"picked up {sum(o['picked'] for o in record['objects'])} objects"
+)

@@ -28,7 +28,7 @@ class NearestReceptacle:
     name = "NearestReceptacle"
 
     def predict(self, obj: TrackedObject, memory: ObjectMemory, room_type: str) -> list[tuple[str, float]]:
-        distance: dict[str, float] = {}      # receptacle class -> its nearest mapped instance (metres)
+        distance: dict[str, float] = {}  # receptacle class -> its nearest mapped instance (metres)
         for other in memory:
             if other.label in PLACEABLE_RECEPTACLES:
                 d = float(np.linalg.norm(other.xy - obj.xy))
@@ -40,8 +40,12 @@ class NearestReceptacle:
 
 print("registered placement models:", ", ".join(PLACEMENT_MODELS))
 # relation_stats: the statistics-based OOP detector, no learned model to load.
-config = AgentConfig(variant="NearestReceptacle", perception="oracle", oop="relation_stats",
-                     policy=PolicyConfig(mapping_step_budget=25))
+config = AgentConfig(
+    variant="NearestReceptacle",
+    perception="oracle",
+    oop="relation_stats",
+    policy=PolicyConfig(mapping_step_budget=25),
+)
 spec = EpisodeSpec(room_type="Bathroom", seed=200, mess_index=0, resolution=128, max_steps=60)
 with InProcessTransport(renderer="tiny") as sim:
     result = EpisodeRunner(config, sim).run(spec, evaluate=True)
@@ -50,5 +54,7 @@ assert result.record is not None
 print(f"{result.record['variant']}: {result.steps} steps, {result.objects_fixed} objects put away")
 for o in result.record["objects"]:
     if o["picked"]:
-        print(f"  picked {o['id']:<14} found on {o['messy_parent_type']:<10} "
-              f"put on {o['final_parent_type']:<10} (tidy on {o['original_parent_type']})")
+        print(
+            f"  picked {o['id']:<14} found on {o['messy_parent_type']:<10} "
+            f"put on {o['final_parent_type']:<10} (tidy on {o['original_parent_type']})"
+        )

@@ -24,15 +24,20 @@ from tidee.protocol.transport import InProcessTransport
 class OnTheFloor:
     name = "on_the_floor"
 
-    def score_all(self, targets: list[TrackedObject], objects: list[TrackedObject],
-                  room_type: str) -> dict[int, float]:
+    def score_all(
+        self, targets: list[TrackedObject], objects: list[TrackedObject], room_type: str
+    ) -> dict[int, float]:
         support = support_labels(targets, objects)
         return {t.id: 0.9 if support[t.id] == "Floor" else 0.1 for t in targets}
 
 
 print("registered OOP detectors:", ", ".join(OOP_DETECTORS))
-config = AgentConfig(variant="CommonMemory", perception="oracle", oop="on_the_floor",
-                     policy=PolicyConfig(mapping_step_budget=25))
+config = AgentConfig(
+    variant="CommonMemory",
+    perception="oracle",
+    oop="on_the_floor",
+    policy=PolicyConfig(mapping_step_budget=25),
+)
 spec = EpisodeSpec(room_type="Bathroom", seed=200, mess_index=0, resolution=128, max_steps=60)
 with InProcessTransport(renderer="tiny") as sim:
     result = EpisodeRunner(config, sim).run(spec, evaluate=True)
@@ -42,5 +47,7 @@ assert record is not None
 print(f"OOP detector {record['oop']}: {result.steps} steps, {result.objects_fixed} objects put away")
 for o in record["objects"]:
     if o["moved"] or o["found"] or o["picked"]:
-        print(f"  {o['id']:<14} lay on {o['messy_parent_type']:<8} moved={o['moved']!s:<5} "
-              f"found={o['found']!s:<5} picked={o['picked']}")
+        print(
+            f"  {o['id']:<14} lay on {o['messy_parent_type']:<8} moved={o['moved']!s:<5} "
+            f"found={o['found']!s:<5} picked={o['picked']}"
+        )

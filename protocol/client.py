@@ -11,13 +11,24 @@ import zenoh
 
 from tidee.protocol import keys
 from tidee.protocol.codec import ProtocolError, decode, encode
-from tidee.protocol.messages import (IMAGE_ENCODINGS, Action, CloseReply, CloseRequest, EpisodeSpec,
-                                     ErrorCode, ErrorReply, Observation, ResetRequest, StateReply,
-                                     StateRequest, StepRequest)
+from tidee.protocol.messages import (
+    IMAGE_ENCODINGS,
+    Action,
+    CloseReply,
+    CloseRequest,
+    EpisodeSpec,
+    ErrorCode,
+    ErrorReply,
+    Observation,
+    ResetRequest,
+    StateReply,
+    StateRequest,
+    StepRequest,
+)
 from tidee.protocol.zenoh_config import open_session, resolve_endpoint, resolve_router
 
 DEFAULT_SERVER_ID = "sim0"
-_ZENOH_TIMEOUT = b"Timeout"   # what Zenoh itself answers when a query's time runs out
+_ZENOH_TIMEOUT = b"Timeout"  # what Zenoh itself answers when a query's time runs out
 
 
 class RemoteError(RuntimeError):
@@ -40,10 +51,17 @@ class SimClient:
     Not thread-safe: one caller at a time (the server handles a session's requests in order).
     """
 
-    def __init__(self, endpoint: str | None = None, router: str | None = None,
-                 server_id: str = DEFAULT_SERVER_ID, session: str | None = None, timeout: float = 60.0,
-                 encoding: str = "raw", zsession: zenoh.Session | None = None,
-                 connect_timeout: float = 10.0) -> None:
+    def __init__(
+        self,
+        endpoint: str | None = None,
+        router: str | None = None,
+        server_id: str = DEFAULT_SERVER_ID,
+        session: str | None = None,
+        timeout: float = 60.0,
+        encoding: str = "raw",
+        zsession: zenoh.Session | None = None,
+        connect_timeout: float = 10.0,
+    ) -> None:
         if encoding not in IMAGE_ENCODINGS:
             raise ValueError(f"encoding must be one of {IMAGE_ENCODINGS}, got {encoding!r}")
         self.server_id = keys.check_id("server_id", server_id)
@@ -98,17 +116,24 @@ class SimClient:
         key = keys.sim_op(self.server_id, self.session_id, op)
         timeout = self.timeout if timeout is None else timeout
         # source_info names this Zenoh session: the server's per-client quota counts by it.
-        replies = self._z.get(key, payload=encode(request), timeout=timeout,
-                              congestion_control=zenoh.CongestionControl.BLOCK,  # the reply inherits it
-                              source_info=zenoh.SourceInfo(self._z.id, next(self._sequence)))
+        replies = self._z.get(
+            key,
+            payload=encode(request),
+            timeout=timeout,
+            congestion_control=zenoh.CongestionControl.BLOCK,  # the reply inherits it
+            source_info=zenoh.SourceInfo(self._z.id, next(self._sequence)),
+        )
         try:
             reply = replies.recv()
         except zenoh.ZError:  # the query finished with no reply: nobody serves that key
             if self._server_visible():
-                raise TimeoutError(f"no reply to {op} on {key}: is server {self.server_id!r} running at "
-                                   f"{self._where}?") from None
-            raise TimeoutError(f"no reply to {op} on {key}: server {self.server_id!r} at {self._where} went away "
-                               f"(its liveliness token is gone)") from None
+                raise TimeoutError(
+                    f"no reply to {op} on {key}: is server {self.server_id!r} running at {self._where}?"
+                ) from None
+            raise TimeoutError(
+                f"no reply to {op} on {key}: server {self.server_id!r} at {self._where} went away "
+                f"(its liveliness token is gone)"
+            ) from None
         if reply.ok is not None:
             return self._decode(reply.ok.payload.to_bytes(), (reply_type, ErrorReply), op)
         payload = reply.err.payload.to_bytes()
@@ -137,13 +162,16 @@ class SimClient:
     def _wait_for_server(self, timeout: float) -> None:
         assert self._z is not None
         seen = threading.Event()
-        sub = self._z.liveliness().declare_subscriber(keys.alive_server(self.server_id),
-                                                      lambda sample: seen.set(), history=True)
+        sub = self._z.liveliness().declare_subscriber(
+            keys.alive_server(self.server_id), lambda sample: seen.set(), history=True
+        )
         try:
             if not seen.wait(timeout):
                 flag = "--router" if self._where == self._router else "--endpoint"
-                raise TimeoutError(f"no tidee server {self.server_id!r} at {self._where} within {timeout:g} s "
-                                   f"(start one with: tidee server {flag} {self._where})")
+                raise TimeoutError(
+                    f"no tidee server {self.server_id!r} at {self._where} within {timeout:g} s "
+                    f"(start one with: tidee server {flag} {self._where})"
+                )
         finally:
             sub.undeclare()
 
@@ -162,4 +190,3 @@ class SimClient:
             token.undeclare()
         if self._owns_zenoh:
             z.close()
-

@@ -51,8 +51,10 @@ _INT64 = (-(1 << 63), 1 << 63)
 
 # Every dataclass in messages.py can be a frame's top-level message.
 MESSAGE_TYPES: dict[str, type] = {
-    name: cls for name, cls in inspect.getmembers(messages, inspect.isclass)
-    if dataclasses.is_dataclass(cls) and cls.__module__ == messages.__name__}
+    name: cls
+    for name, cls in inspect.getmembers(messages, inspect.isclass)
+    if dataclasses.is_dataclass(cls) and cls.__module__ == messages.__name__
+}
 
 _WIRE_DTYPES = frozenset({"|u1", "|i1", "|b1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f4", "<f8"})
 
@@ -68,21 +70,25 @@ class ProtocolError(Exception):
 
 # --- per-field array contracts ----------------------------------------------------------
 
+
 @dataclass(frozen=True)
 class ArraySpec:
     """What an array field must be: its dtype, rank, fixed dims, and image kind."""
 
-    dtype: str                        # numpy dtype.str on the wire
-    shape: tuple[int | None, ...]     # None: any size
-    image: str | None = None          # "color" | "depth": compressible under png/jpeg
+    dtype: str  # numpy dtype.str on the wire
+    shape: tuple[int | None, ...]  # None: any size
+    image: str | None = None  # "color" | "depth": compressible under png/jpeg
 
     def describe(self) -> str:
         dims = "x".join("N" if d is None else str(d) for d in self.shape)
         return f"{np.dtype(self.dtype).name} {dims}"
 
     def matches(self, dtype: str, shape: tuple[int, ...]) -> bool:
-        return dtype == self.dtype and len(shape) == len(self.shape) and all(
-            want is None or want == got for want, got in zip(self.shape, shape))
+        return (
+            dtype == self.dtype
+            and len(shape) == len(self.shape)
+            and all(want is None or want == got for want, got in zip(self.shape, shape))
+        )
 
 
 ARRAY_FIELDS: dict[tuple[type, str], ArraySpec] = {
@@ -108,6 +114,7 @@ ARRAY_FIELDS: dict[tuple[type, str], ArraySpec] = {
 
 # --- encode -----------------------------------------------------------------------------
 
+
 class _Buffers:
     """The buffer section being assembled: 16-aligned chunks and their descriptors."""
 
@@ -120,8 +127,13 @@ class _Buffers:
         if pad:
             self.chunks.append(b"\0" * pad)
             self.size += pad
-        desc = {"dtype": dtype, "shape": list(shape), "encoding": encoding,
-                "offset": self.size, "nbytes": len(data)}
+        desc = {
+            "dtype": dtype,
+            "shape": list(shape),
+            "encoding": encoding,
+            "offset": self.size,
+            "nbytes": len(data),
+        }
         self.chunks.append(data)
         self.size += len(data)
         return desc
@@ -136,8 +148,7 @@ def encode(msg: Any, encoding: str = "raw", *, jpeg_quality: int = DEFAULT_JPEG_
         raise ValueError(f"encoding must be one of {IMAGE_ENCODINGS}, got {encoding!r}")
     buffers = _Buffers()
     fields = _encode_dataclass(msg, "", buffers, encoding, jpeg_quality)
-    header = json.dumps({"type": name, "fields": fields}, separators=(",", ":"),
-                        allow_nan=False).encode()
+    header = json.dumps({"type": name, "fields": fields}, separators=(",", ":"), allow_nan=False).encode()
     header += b" " * (-(_PREFIX.size + len(header)) % ALIGN)
     return b"".join([_PREFIX.pack(MAGIC, PROTOCOL_VERSION, len(header)), header, *buffers.chunks])
 
@@ -147,8 +158,9 @@ def _encode_dataclass(obj: Any, path: str, buffers: _Buffers, encoding: str, qua
     for f in dataclasses.fields(obj):
         value, fpath = getattr(obj, f.name), _join(path, f.name)
         if isinstance(value, np.ndarray):
-            out[f.name] = _encode_array(value, fpath, ARRAY_FIELDS.get((type(obj), f.name)),
-                                        buffers, encoding, quality)
+            out[f.name] = _encode_array(
+                value, fpath, ARRAY_FIELDS.get((type(obj), f.name)), buffers, encoding, quality
+            )
         elif dataclasses.is_dataclass(value):
             out[f.name] = _encode_dataclass(value, fpath, buffers, encoding, quality)
         else:
@@ -174,13 +186,15 @@ def _plain(value: Any, path: str) -> Any:
                 raise TypeError(f"field '{path}' has a non-string key {k!r}; JSON objects need string keys")
         return {k: _plain(v, _join(path, k)) for k, v in value.items()}
     if dataclasses.is_dataclass(value):
-        return {f.name: _plain(getattr(value, f.name), _join(path, f.name))
-                for f in dataclasses.fields(value)}
+        return {
+            f.name: _plain(getattr(value, f.name), _join(path, f.name)) for f in dataclasses.fields(value)
+        }
     raise TypeError(f"field '{path}' holds a {type(value).__name__}, which has no wire form")
 
 
-def _encode_array(arr: np.ndarray, path: str, spec: ArraySpec | None, buffers: _Buffers,
-                  encoding: str, quality: int) -> dict:
+def _encode_array(
+    arr: np.ndarray, path: str, spec: ArraySpec | None, buffers: _Buffers, encoding: str, quality: int
+) -> dict:
     arr = np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("<"))
     dtype = arr.dtype.str
     if dtype not in _WIRE_DTYPES:
@@ -205,8 +219,13 @@ def _encode_array(arr: np.ndarray, path: str, spec: ArraySpec | None, buffers: _
 
 # --- decode -----------------------------------------------------------------------------
 
-def decode(data: bytes | bytearray | memoryview, *, max_bytes: int = DEFAULT_MAX_BYTES,
-           expected: type | tuple[type, ...] | None = None) -> Any:
+
+def decode(
+    data: bytes | bytearray | memoryview,
+    *,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+    expected: type | tuple[type, ...] | None = None,
+) -> Any:
     """The message in ``data``; ``ProtocolError`` if anything about it is wrong.
 
     ``expected``: the message type(s) acceptable here, checked before the fields are.
@@ -216,23 +235,31 @@ def decode(data: bytes | bytearray | memoryview, *, max_bytes: int = DEFAULT_MAX
     if len(view) > max_bytes:
         raise ProtocolError(ErrorCode.oversized, f"frame is {len(view)} bytes, the limit is {max_bytes}")
     if len(view) < _PREFIX.size:
-        raise ProtocolError(ErrorCode.malformed, f"frame is {len(view)} bytes, shorter than the "
-                                                 f"{_PREFIX.size}-byte prefix")
+        raise ProtocolError(
+            ErrorCode.malformed, f"frame is {len(view)} bytes, shorter than the {_PREFIX.size}-byte prefix"
+        )
     magic, version, header_len = _PREFIX.unpack_from(view)
     if magic != MAGIC:
         raise ProtocolError(ErrorCode.malformed, f"bad magic {bytes(magic)!r}, expected {MAGIC!r}")
     if version != PROTOCOL_VERSION:
-        raise ProtocolError(ErrorCode.bad_version,
-                            f"frame has protocol version {version}, this side speaks {PROTOCOL_VERSION}")
+        raise ProtocolError(
+            ErrorCode.bad_version,
+            f"frame has protocol version {version}, this side speaks {PROTOCOL_VERSION}",
+        )
     body_start = _PREFIX.size + header_len
     if body_start > len(view):
-        raise ProtocolError(ErrorCode.malformed, f"frame truncated: the header claims {header_len} bytes, "
-                                                 f"only {len(view) - _PREFIX.size} follow the prefix")
-    header = _parse_header(view[_PREFIX.size:body_start])
+        raise ProtocolError(
+            ErrorCode.malformed,
+            f"frame truncated: the header claims {header_len} bytes, "
+            f"only {len(view) - _PREFIX.size} follow the prefix",
+        )
+    header = _parse_header(view[_PREFIX.size : body_start])
     cls = MESSAGE_TYPES.get(header["type"]) if isinstance(header["type"], str) else None
     if cls is None:
-        raise ProtocolError(ErrorCode.malformed, f"unknown message type {header['type']!r}; "
-                                                 f"known: {', '.join(sorted(MESSAGE_TYPES))}")
+        raise ProtocolError(
+            ErrorCode.malformed,
+            f"unknown message type {header['type']!r}; known: {', '.join(sorted(MESSAGE_TYPES))}",
+        )
     if expected is not None and not issubclass(cls, expected):
         names = " or ".join(t.__name__ for t in (expected if isinstance(expected, tuple) else (expected,)))
         raise ProtocolError(ErrorCode.malformed, f"expected {names}, got {cls.__name__}")
@@ -240,9 +267,12 @@ def decode(data: bytes | bytearray | memoryview, *, max_bytes: int = DEFAULT_MAX
     if not isinstance(fields, dict):
         raise ProtocolError(ErrorCode.malformed, f"header 'fields' must be an object, got {_show(fields)}")
     if "protocol_version" in fields and fields["protocol_version"] != PROTOCOL_VERSION:
-        raise ProtocolError(ErrorCode.bad_version, f"field 'protocol_version' is "
-                                                   f"{_show(fields['protocol_version'])}, this side speaks "
-                                                   f"{PROTOCOL_VERSION}")
+        raise ProtocolError(
+            ErrorCode.bad_version,
+            f"field 'protocol_version' is "
+            f"{_show(fields['protocol_version'])}, this side speaks "
+            f"{PROTOCOL_VERSION}",
+        )
     return _Decoder(view[body_start:], max_bytes).dataclass(fields, cls, "")
 
 
@@ -256,8 +286,9 @@ def _parse_header(raw: memoryview) -> dict:
         raise ProtocolError(ErrorCode.malformed, f"header is not valid UTF-8 JSON: {e}") from None
     if not isinstance(header, dict) or set(header) != {"type", "fields"}:
         keys = sorted(header) if isinstance(header, dict) else type(header).__name__
-        raise ProtocolError(ErrorCode.malformed, f"header must be an object with keys 'type' and 'fields', "
-                                                 f"got {keys}")
+        raise ProtocolError(
+            ErrorCode.malformed, f"header must be an object with keys 'type' and 'fields', got {keys}"
+        )
     return header
 
 
@@ -327,9 +358,10 @@ class _Decoder:
         hints = _hints(cls)
         unknown = sorted(set(obj) - set(hints))
         if unknown:
-            raise ProtocolError(ErrorCode.invalid_field,
-                                f"unknown field '{_join(path, unknown[0])}' in {cls.__name__} "
-                                f"(fields: {', '.join(hints)})")
+            raise ProtocolError(
+                ErrorCode.invalid_field,
+                f"unknown field '{_join(path, unknown[0])}' in {cls.__name__} (fields: {', '.join(hints)})",
+            )
         kwargs = {}
         for f in dataclasses.fields(cls):
             fpath = _join(path, f.name)
@@ -348,12 +380,16 @@ class _Decoder:
         want = {"dtype", "shape", "encoding", "offset", "nbytes"}
         if not isinstance(desc, dict) or set(desc) != want:
             raise _invalid(path, f"an array descriptor with keys {sorted(want)}", desc)
-        dtype, shape, enc, offset, nbytes = (desc[k] for k in
-                                             ("dtype", "shape", "encoding", "offset", "nbytes"))
+        dtype, shape, enc, offset, nbytes = (
+            desc[k] for k in ("dtype", "shape", "encoding", "offset", "nbytes")
+        )
         if dtype not in _WIRE_DTYPES:
             raise _invalid(f"{path}.dtype", f"one of {sorted(_WIRE_DTYPES)}", dtype)
-        if not (isinstance(shape, list) and len(shape) <= 8
-                and all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)):
+        if not (
+            isinstance(shape, list)
+            and len(shape) <= 8
+            and all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
+        ):
             raise _invalid(f"{path}.shape", "a list of at most 8 non-negative integers", shape)
         for key, v in (("offset", offset), ("nbytes", nbytes)):
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
@@ -363,19 +399,28 @@ class _Decoder:
             raise _invalid(path, spec.describe(), f"{np.dtype(dtype).name} {shape_t}")
         size = math.prod(shape_t) * np.dtype(dtype).itemsize
         if size > self.max_bytes:
-            raise ProtocolError(ErrorCode.oversized, f"field '{path}' declares {shape_t} "
-                                                     f"{np.dtype(dtype).name}: {size} bytes, the limit is "
-                                                     f"{self.max_bytes}")
+            raise ProtocolError(
+                ErrorCode.oversized,
+                f"field '{path}' declares {shape_t} "
+                f"{np.dtype(dtype).name}: {size} bytes, the limit is "
+                f"{self.max_bytes}",
+            )
         if offset + nbytes > len(self.body):
-            raise ProtocolError(ErrorCode.malformed, f"frame truncated: field '{path}' needs buffer bytes "
-                                                     f"[{offset}, {offset + nbytes}), the frame has "
-                                                     f"{len(self.body)}")
-        buf = self.body[offset:offset + nbytes]
+            raise ProtocolError(
+                ErrorCode.malformed,
+                f"frame truncated: field '{path}' needs buffer bytes "
+                f"[{offset}, {offset + nbytes}), the frame has "
+                f"{len(self.body)}",
+            )
+        buf = self.body[offset : offset + nbytes]
         if enc == "raw":
             if nbytes != size:
-                raise ProtocolError(ErrorCode.invalid_field, f"field '{path}' declares {shape_t} "
-                                                             f"{np.dtype(dtype).name} = {size} bytes "
-                                                             f"but nbytes is {nbytes}")
+                raise ProtocolError(
+                    ErrorCode.invalid_field,
+                    f"field '{path}' declares {shape_t} "
+                    f"{np.dtype(dtype).name} = {size} bytes "
+                    f"but nbytes is {nbytes}",
+                )
             return np.frombuffer(buf, dtype=dtype).reshape(shape_t)
         image = spec.image if spec is not None else None
         allowed = {"color": ("png", "jpeg"), "depth": ("png-depth-mm",)}.get(image or "", ())
@@ -390,19 +435,23 @@ def _decode_image(buf: memoryview, shape: tuple[int, ...], image: str | None, pa
     if dims is None:
         raise ProtocolError(ErrorCode.invalid_field, f"field '{path}' is not a PNG or JPEG image")
     if dims != shape[:2]:
-        raise ProtocolError(ErrorCode.invalid_field, f"field '{path}': the compressed image is "
-                                                     f"{dims[0]}x{dims[1]}, declared {shape[:2]}")
+        raise ProtocolError(
+            ErrorCode.invalid_field,
+            f"field '{path}': the compressed image is {dims[0]}x{dims[1]}, declared {shape[:2]}",
+        )
     raw = np.frombuffer(buf, np.uint8)
     if image == "color":
         bgr = cv2.imdecode(raw, cv2.IMREAD_COLOR)
         if bgr is None or bgr.shape != shape:
-            raise ProtocolError(ErrorCode.invalid_field,
-                                f"field '{path}' does not decode to a {shape} colour image")
+            raise ProtocolError(
+                ErrorCode.invalid_field, f"field '{path}' does not decode to a {shape} colour image"
+            )
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
     mm = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if mm is None or mm.dtype != np.uint16 or mm.shape != shape:
-        raise ProtocolError(ErrorCode.invalid_field,
-                            f"field '{path}' does not decode to a {shape} 16-bit PNG")
+        raise ProtocolError(
+            ErrorCode.invalid_field, f"field '{path}' does not decode to a {shape} 16-bit PNG"
+        )
     return mm.astype(np.float32) * np.float32(0.001)
 
 
@@ -415,15 +464,16 @@ def _image_dims(buf: memoryview) -> tuple[int, int] | None:
     if b[:2] == b"\xff\xd8":
         i = 2
         while i + 9 <= len(b) and b[i] == 0xFF:
-            marker, seg_len = b[i + 1], struct.unpack(">H", b[i + 2:i + 4])[0]
+            marker, seg_len = b[i + 1], struct.unpack(">H", b[i + 2 : i + 4])[0]
             if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame
-                height, width = struct.unpack(">HH", b[i + 5:i + 9])
+                height, width = struct.unpack(">HH", b[i + 5 : i + 9])
                 return height, width
             i += 2 + seg_len
     return None
 
 
 # --- helpers ----------------------------------------------------------------------------
+
 
 @functools.cache
 def _hints(cls: type) -> dict[str, Any]:

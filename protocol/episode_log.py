@@ -50,10 +50,10 @@ from tidee.protocol import codec
 from tidee.protocol.codec import ProtocolError
 
 MAGIC = b"TIDEELOG2\n"
-MAGIC_V1 = b"TIDEELOG1\n"                 # no sync marker, events and summary unchecked
+MAGIC_V1 = b"TIDEELOG1\n"  # no sync marker, events and summary unchecked
 SYNC = b"\x1eREC"
-_RECORD = struct.Struct("<4sII")          # sync, length, crc32(body)
-_RECORD_V1 = struct.Struct("<II")         # length, crc32(body)
+_RECORD = struct.Struct("<4sII")  # sync, length, crc32(body)
+_RECORD_V1 = struct.Struct("<II")  # length, crc32(body)
 SUMMARY_CRC = "crc32"
 TLOG_NAME, EVENTS_NAME, SUMMARY_NAME = "telemetry.tlog", "events.jsonl", "summary.json"
 _EVENT_LINE = re.compile(rb"([0-9a-f]{8})\t")
@@ -69,7 +69,7 @@ def write_atomic(path: str | os.PathLike, data: bytes) -> None:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)                   # mkstemp makes 0600; logs and reports are meant to be read
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600; logs and reports are meant to be read
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -133,14 +133,14 @@ class LogWriter:
 
     def event(self, **fields: Any) -> None:
         """Append one line ``crc32hex TAB json`` to ``events.jsonl``."""
-        text = json.dumps(fields, default=_json_default).encode("ascii")   # ensure_ascii: always ASCII
+        text = json.dumps(fields, default=_json_default).encode("ascii")  # ensure_ascii: always ASCII
         self._events.write(b"%08x\t%s\n" % (zlib.crc32(text), text))
         self._events.flush()
 
     def finish(self, summary: dict[str, Any]) -> None:
         """Write ``summary.json`` (with its ``crc32`` entry; one already in ``summary`` is
         replaced) atomically and close the streams."""
-        plain = _strict(json.loads(json.dumps(summary, default=_json_default)))   # as a reader will see it
+        plain = _strict(json.loads(json.dumps(summary, default=_json_default)))  # as a reader will see it
         plain.pop(SUMMARY_CRC, None)
         write_json_atomic(self.dir / SUMMARY_NAME, {**plain, SUMMARY_CRC: _summary_crc(plain)})
         self.close()
@@ -173,8 +173,9 @@ class Damage:
 
     def describe(self) -> str:
         plural = "" if self.stretches == 1 else "es"
-        return (f"skipped {self.stretches} damaged stretch{plural} ({self.nbytes} bytes), "
-                f"the first: {self.first}")
+        return (
+            f"skipped {self.stretches} damaged stretch{plural} ({self.nbytes} bytes), the first: {self.first}"
+        )
 
 
 class LogReader:
@@ -206,15 +207,17 @@ class LogReader:
         if data.startswith(MAGIC):
             return 2, len(MAGIC), ""
         # A flipped "2" reads "1": an old log's first record cannot start with the sync marker.
-        if data.startswith(MAGIC_V1) and data[len(MAGIC_V1):len(MAGIC_V1) + len(SYNC)] != SYNC:
+        if data.startswith(MAGIC_V1) and data[len(MAGIC_V1) : len(MAGIC_V1) + len(SYNC)] != SYNC:
             return 1, len(MAGIC_V1), ""
-        if MAGIC.startswith(data):              # torn while the file was being created: empty
+        if MAGIC.startswith(data):  # torn while the file was being created: empty
             return 2, len(data), f"truncated file header: {len(data)} of {len(MAGIC)} bytes"
         for version in (2, 1):
             if self._resync(0, version) is not None:
-                return version, 0, ""           # the damaged magic is the first stretch skipped
-        raise ValueError(f"{self.dir / TLOG_NAME} is not an episode log: it does not start with "
-                         f"{MAGIC!r} and holds no intact record")
+                return version, 0, ""  # the damaged magic is the first stretch skipped
+        raise ValueError(
+            f"{self.dir / TLOG_NAME} is not an episode log: it does not start with "
+            f"{MAGIC!r} and holds no intact record"
+        )
 
     def _record_at(self, pos: int, version: int) -> tuple[bytes, int] | str:
         """The body of the record at ``pos`` and the offset after it, or why there is none."""
@@ -231,7 +234,7 @@ class LogReader:
         start = pos + fmt.size
         if start + length > len(data):
             return f"truncated record at byte {pos}: {len(data) - start} of {length} bytes"
-        body = data[start:start + length]
+        body = data[start : start + length]
         if zlib.crc32(body) != crc:
             return f"CRC mismatch in the record at byte {pos}"
         return body, start + length
@@ -281,11 +284,11 @@ class LogReader:
                 continue
             body, pos = found
             n = body[0] if body else 0
-            kind = body[1:1 + n]
+            kind = body[1 : 1 + n]
             if not n or len(kind) < n or not kind.isascii():
                 damage.add(f"malformed kind in the record ending at byte {pos}", len(body))
                 continue
-            yield kind.decode("ascii"), body[1 + n:]
+            yield kind.decode("ascii"), body[1 + n :]
 
     def messages(self) -> Iterator[tuple[str, Any]]:
         """``(kind, message)`` of every intact record in the order written; damaged ones are
@@ -293,7 +296,7 @@ class LogReader:
         for kind, frame in self.records():
             try:
                 msg = codec.decode(frame)
-            except ProtocolError as e:     # intact bytes a codec of this version cannot read
+            except ProtocolError as e:  # intact bytes a codec of this version cannot read
                 self.damage[TLOG_NAME].add(f"undecodable {kind!r} record: {e}", len(frame))
                 continue
             yield kind, msg
@@ -308,11 +311,11 @@ class LogReader:
         if not path.is_file():
             return out
         parse = _checked_event if self.version >= 2 else _unchecked_event
-        bad_from: int | None = None        # first line of the current run of damaged lines
+        bad_from: int | None = None  # first line of the current run of damaged lines
         bad_bytes = 0
         lines = path.read_bytes().split(b"\n")
         if lines and not lines[-1]:
-            lines.pop()                    # the newline ending the last line
+            lines.pop()  # the newline ending the last line
         for number, line in enumerate(lines, 1):
             skipped, event = _salvage(line, parse)
             if skipped:
@@ -337,7 +340,7 @@ class LogReader:
         raw = path.read_bytes()
         try:
             entries = json.loads(raw.decode("utf-8"))
-        except ValueError:                 # UnicodeDecodeError and JSONDecodeError are ValueErrors
+        except ValueError:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
             damage.add("not valid JSON; treated as absent", len(raw))
             return None
         if not isinstance(entries, dict):
@@ -345,7 +348,7 @@ class LogReader:
             return None
         crc = entries.pop(SUMMARY_CRC, None)
         if crc is None and self.version < 2:
-            return entries                 # an old log: summaries were unchecked
+            return entries  # an old log: summaries were unchecked
         if crc != _summary_crc(entries):
             damage.add("checksum missing or wrong; treated as absent", len(raw))
             return None
@@ -371,7 +374,7 @@ def _checked_event(line: bytes) -> dict[str, Any] | None:
     m = _EVENT_LINE.match(line)
     if m is None:
         return None
-    text = line[m.end():]
+    text = line[m.end() :]
     if zlib.crc32(text) != int(m.group(1), 16):
         return None
     return _unchecked_event(text)
@@ -385,8 +388,9 @@ def _unchecked_event(text: bytes) -> dict[str, Any] | None:
     return event if isinstance(event, dict) else None
 
 
-def _salvage(line: bytes, parse: Callable[[bytes], dict[str, Any] | None]
-             ) -> tuple[int, dict[str, Any] | None]:
+def _salvage(
+    line: bytes, parse: Callable[[bytes], dict[str, Any] | None]
+) -> tuple[int, dict[str, Any] | None]:
     """(bytes skipped, event) for one line: the whole line if it is intact, else the intact
     record that starts after damage within it (a lost newline merges two lines; garbage may
     precede a record), else nothing."""
@@ -395,7 +399,7 @@ def _salvage(line: bytes, parse: Callable[[bytes], dict[str, Any] | None]
         return 0, event
     if parse is _checked_event:
         for m in _EVENT_LINE.finditer(line, 1):
-            event = parse(line[m.start():])
+            event = parse(line[m.start() :])
             if event is not None:
                 return m.start(), event
     return len(line) + 1, None

@@ -34,31 +34,43 @@ POSE_HIGH = -POSE_LOW
 class TidyEnv(gym.Env[dict[str, np.ndarray], dict[str, Any]]):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 
-    def __init__(self, spec: EpisodeSpec | None = None, transport: str | SimTransport = "inproc",
-                 transport_kwargs: dict[str, Any] | None = None, ground_truth: bool = False,
-                 render_mode: str | None = None) -> None:
+    def __init__(
+        self,
+        spec: EpisodeSpec | None = None,
+        transport: str | SimTransport = "inproc",
+        transport_kwargs: dict[str, Any] | None = None,
+        ground_truth: bool = False,
+        render_mode: str | None = None,
+    ) -> None:
         if render_mode not in (None, *self.metadata["render_modes"]):
-            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, "
-                             f"got {render_mode!r}")
+            raise ValueError(
+                f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}"
+            )
         self.episode_spec = spec or EpisodeSpec()
         self.ground_truth = ground_truth
         self.render_mode = render_mode
-        self.transport: SimTransport = (make_transport(transport, **(transport_kwargs or {}))
-                                        if isinstance(transport, str) else transport)
+        self.transport: SimTransport = (
+            make_transport(transport, **(transport_kwargs or {})) if isinstance(transport, str) else transport
+        )
         r = self.episode_spec.resolution
-        self.action_space = spaces.Dict({
-            "action": spaces.Discrete(len(ACTIONS)),
-            "point": spaces.Box(0.0, 1.0, (2,), np.float32),
-        })
-        self.observation_space = spaces.Dict({
-            "rgb": spaces.Box(0, 255, (r, r, 3), np.uint8),
-            "depth": spaces.Box(0.0, MAX_DEPTH_M, (r, r), np.float32),
-            "pose": spaces.Box(POSE_LOW, POSE_HIGH, (4,), np.float32),
-        })
+        self.action_space = spaces.Dict(
+            {
+                "action": spaces.Discrete(len(ACTIONS)),
+                "point": spaces.Box(0.0, 1.0, (2,), np.float32),
+            }
+        )
+        self.observation_space = spaces.Dict(
+            {
+                "rgb": spaces.Box(0, 255, (r, r, 3), np.uint8),
+                "depth": spaces.Box(0.0, MAX_DEPTH_M, (r, r), np.float32),
+                "pose": spaces.Box(POSE_LOW, POSE_HIGH, (4,), np.float32),
+            }
+        )
         self._last: Observation | None = None
 
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
-              ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """``options``: EpisodeSpec fields to change for this episode (not ``resolution``)."""
         super().reset(seed=seed)
         changes = dict(options or {})
@@ -89,8 +101,11 @@ class TidyEnv(gym.Env[dict[str, np.ndarray], dict[str, Any]]):
 
     @staticmethod
     def _info(obs: Observation) -> dict[str, Any]:
-        info = {f.name: getattr(obs, f.name) for f in dataclasses.fields(obs)
-                if f.name not in ("rgb", "depth", "agent_pose", "ground_truth")}
+        info = {
+            f.name: getattr(obs, f.name)
+            for f in dataclasses.fields(obs)
+            if f.name not in ("rgb", "depth", "agent_pose", "ground_truth")
+        }
         if obs.ground_truth is not None:
             info["ground_truth"] = obs.ground_truth
         return info

@@ -32,7 +32,7 @@ ROOT = "tidee"
 SessionOp = Literal["reset", "step", "state", "close"]
 SESSION_OPS: tuple[str, ...] = get_args(SessionOp)
 MAX_ID_LENGTH = 128
-_ID_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,%d}" % MAX_ID_LENGTH)
+_ID_PATTERN = re.compile(rf"[A-Za-z0-9_-]{{1,{MAX_ID_LENGTH}}}")
 
 
 def is_valid_id(value: object) -> bool:
@@ -53,13 +53,13 @@ def _id_or_any(what: str, value: str) -> str:
 def _split(key: object, pattern: str) -> list[str]:
     """Split ``key`` on ``/`` and match it against ``pattern`` (``<x>`` chunks are free)."""
     parts, expected = str(key).split("/"), pattern.split("/")
-    if len(parts) != len(expected) or any(
-            e != p for e, p in zip(expected, parts) if not e.startswith("<")):
+    if len(parts) != len(expected) or any(e != p for e, p in zip(expected, parts) if not e.startswith("<")):
         raise ValueError(f"expected a key like {pattern}, got {str(key)!r}")
     return parts
 
 
 # --- simulation -------------------------------------------------------------------------
+
 
 class SimOpKey(NamedTuple):
     server_id: str
@@ -106,6 +106,7 @@ def parse_observations(key: object) -> tuple[str, str]:
 
 # --- liveliness -------------------------------------------------------------------------
 
+
 def alive_server(server_id: str) -> str:
     return f"{ROOT}/alive/server/{check_id('server_id', server_id)}"
 
@@ -146,6 +147,7 @@ def parse_alive(key: object) -> tuple[str, str, str | None]:
 
 
 # --- agent <-> viewer -------------------------------------------------------------------
+
 
 def agent_telemetry(session: str, kind: str) -> str:
     return f"{ROOT}/agent/{check_id('session', session)}/telemetry/{check_id('kind', kind)}"

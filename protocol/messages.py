@@ -42,38 +42,39 @@ class ActionName(str, Enum):
 
 
 # Actions that act on whatever is at a pixel: they need x and y in [0, 1].
-PIXEL_ACTIONS = frozenset({ActionName.PickupObject, ActionName.PutObject,
-                           ActionName.OpenObject, ActionName.CloseObject})
+PIXEL_ACTIONS = frozenset(
+    {ActionName.PickupObject, ActionName.PutObject, ActionName.OpenObject, ActionName.CloseObject}
+)
 
 
 class ActionError(str, Enum):
     """Why an action failed. Every failed action carries exactly one of these."""
 
-    blocked = "blocked"                    # a move would collide with furniture or a wall
-    look_limit = "look_limit"              # pitch would leave [-30, 60] degrees
-    too_far = "too_far"                    # the thing at the pixel is beyond 1.5 m
-    nothing_there = "nothing_there"        # the ray hit nothing (or only wall/ceiling)
+    blocked = "blocked"  # a move would collide with furniture or a wall
+    look_limit = "look_limit"  # pitch would leave [-30, 60] degrees
+    too_far = "too_far"  # the thing at the pixel is beyond 1.5 m
+    nothing_there = "nothing_there"  # the ray hit nothing (or only wall/ceiling)
     not_pickupable = "not_pickupable"
     not_receptacle = "not_receptacle"
     not_openable = "not_openable"
-    no_free_space = "no_free_space"        # no stable pose for the held object there
+    no_free_space = "no_free_space"  # no stable pose for the held object there
     receptacle_closed = "receptacle_closed"
     already_open = "already_open"
     already_closed = "already_closed"
     hands_full = "hands_full"
     hands_empty = "hands_empty"
-    episode_over = "episode_over"          # Done was called or the step cap reached
+    episode_over = "episode_over"  # Done was called or the step cap reached
 
 
 class ErrorCode(str, Enum):
     """Why a *request* was rejected (as opposed to an action that failed in the world)."""
 
-    malformed = "malformed"                # bytes that do not decode
+    malformed = "malformed"  # bytes that do not decode
     bad_version = "bad_version"
-    invalid_field = "invalid_field"        # a field of the wrong type or out of range
+    invalid_field = "invalid_field"  # a field of the wrong type or out of range
     oversized = "oversized"
     unknown_session = "unknown_session"
-    server_busy = "server_busy"            # too many sessions
+    server_busy = "server_busy"  # too many sessions
     internal = "internal"
 
 
@@ -105,13 +106,13 @@ class EpisodeSpec:
 
     room_type: str = "LivingRoom"
     seed: int = 0
-    mess_index: int | None = None   # None: the tidy room; else messy configuration #i
-    resolution: int = 256           # square images
-    camera_height: float = 0.9015   # metres, the paper's
+    mess_index: int | None = None  # None: the tidy room; else messy configuration #i
+    resolution: int = 256  # square images
+    camera_height: float = 0.9015  # metres, the paper's
     max_steps: int = 1000
-    pose_noise: bool = False        # LoCoBot-like: 0.005 m per move, 0.5 deg per turn
+    pose_noise: bool = False  # LoCoBot-like: 0.005 m per move, 0.5 deg per turn
     depth_noise: bool = False
-    start_seed: int | None = None   # spawn pose; None: near the room centre, from seed
+    start_seed: int | None = None  # spawn pose; None: near the room centre, from seed
 
     def __post_init__(self) -> None:
         if self.room_type not in ROOM_TYPES:
@@ -134,25 +135,25 @@ class EpisodeSpec:
 class GroundTruth:
     """Privileged state: only sent when a client asks for it (oracle modes, evaluation)."""
 
-    instance_seg: np.ndarray            # int32 HxW: index into ``objects``, -1 for none
-    objects: list[dict[str, Any]]       # scene-export entries (see server/scene.py)
+    instance_seg: np.ndarray  # int32 HxW: index into ``objects``, -1 for none
+    objects: list[dict[str, Any]]  # scene-export entries (see server/scene.py)
 
 
 @dataclass
 class Observation:
     session: str
     step: int
-    rgb: np.ndarray                     # uint8 HxWx3
-    depth: np.ndarray                   # float32 HxW, metres along the optical axis
-    camera_pose: np.ndarray             # float64 4x4, optical frame -> start frame
+    rgb: np.ndarray  # uint8 HxWx3
+    depth: np.ndarray  # float32 HxW, metres along the optical axis
+    camera_pose: np.ndarray  # float64 4x4, optical frame -> start frame
     agent_pose: tuple[float, float, float, float]  # x, y, yaw_deg, pitch_deg (start frame)
-    intrinsics: np.ndarray              # float64 3x3
-    held: str | None = None             # object type held, if any
+    intrinsics: np.ndarray  # float64 3x3
+    held: str | None = None  # object type held, if any
     held_id: str | None = None
     last_action: str | None = None
     success: bool = True
-    error: str | None = None            # an ActionError value when success is False
-    message: str = ""                   # human-readable detail for the error
+    error: str | None = None  # an ActionError value when success is False
+    message: str = ""  # human-readable detail for the error
     done: bool = False
     steps_left: int = 0
     ground_truth: GroundTruth | None = None
@@ -168,7 +169,7 @@ class ResetRequest:
     session: str
     spec: EpisodeSpec = field(default_factory=EpisodeSpec)
     ground_truth: bool = False
-    encoding: str = "raw"               # raw | jpeg | png  (images on the wire)
+    encoding: str = "raw"  # raw | jpeg | png  (images on the wire)
     protocol_version: int = PROTOCOL_VERSION
 
     def __post_init__(self) -> None:
@@ -210,7 +211,7 @@ class CloseRequest:
 @dataclass
 class CloseReply:
     session: str
-    closed: bool                        # False: there was no such session (already freed)
+    closed: bool  # False: there was no such session (already freed)
 
 
 @dataclass
@@ -229,8 +230,18 @@ class ErrorReply:
 # latest of each kind (a ring buffer of one), so a slow viewer drops frames, never lags.
 
 TELEMETRY_KINDS = ("status", "frame", "maps", "memory", "search", "ack", "summary")
-PHASES = ("idle", "mapping", "searching", "approaching", "picking", "inferring",
-          "placing", "searching_receptacle", "dropping", "done")
+PHASES = (
+    "idle",
+    "mapping",
+    "searching",
+    "approaching",
+    "picking",
+    "inferring",
+    "placing",
+    "searching_receptacle",
+    "dropping",
+    "done",
+)
 COMMAND_KINDS = ("pause", "resume", "step", "new_episode", "preference")
 
 
@@ -246,21 +257,21 @@ class AgentStatus:
 
     session: str
     step: int
-    phase: str                               # one of PHASES
-    episode: dict[str, Any]                  # room_type, seed, mess_index, variant, perception, ...
+    phase: str  # one of PHASES
+    episode: dict[str, Any]  # room_type, seed, mess_index, variant, perception, ...
     pose: tuple[float, float, float, float]  # x, y, yaw_deg, pitch_deg (believed)
     paused: bool = False
-    target_object: str | None = None         # the OOP object being handled (label)
-    target_id: int | None = None             # its object-memory id
+    target_object: str | None = None  # the OOP object being handled (label)
+    target_id: int | None = None  # its object-memory id
     target_receptacle: str | None = None
     predictions: list[ReceptaclePrediction] = field(default_factory=list)  # top-5 receptacles
     held: str | None = None
-    objects_fixed: int = 0                   # puts of OOP objects that succeeded
+    objects_fixed: int = 0  # puts of OOP objects that succeeded
     oop_found: int = 0
     done: bool = False
-    message: str = ""                        # the last event, for people
-    trajectory: np.ndarray | None = None     # float32 Nx2: believed positions so far (subsampled)
-    path: np.ndarray | None = None           # float32 Mx2: planned path to the current goal
+    message: str = ""  # the last event, for people
+    trajectory: np.ndarray | None = None  # float32 Nx2: believed positions so far (subsampled)
+    path: np.ndarray | None = None  # float32 Mx2: planned path to the current goal
     goal: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
@@ -272,9 +283,9 @@ class AgentStatus:
 class Detection2D:
     label: str
     score: float
-    box: tuple[float, float, float, float]   # x0, y0, x1, y1 in pixels
+    box: tuple[float, float, float, float]  # x0, y0, x1, y1 in pixels
     oop_prob: float | None = None
-    track_id: int | None = None              # object-memory id it merged into
+    track_id: int | None = None  # object-memory id it merged into
 
 
 @dataclass
@@ -283,12 +294,12 @@ class AgentFrame:
 
     session: str
     step: int
-    rgb: np.ndarray                          # uint8 HxWx3
-    depth: np.ndarray                        # float32 HxW, metres
-    camera_pose: np.ndarray                  # float64 4x4, optical -> start frame
-    intrinsics: np.ndarray                   # float64 3x3
+    rgb: np.ndarray  # uint8 HxWx3
+    depth: np.ndarray  # float32 HxW, metres
+    camera_pose: np.ndarray  # float64 4x4, optical -> start frame
+    intrinsics: np.ndarray  # float64 3x3
     detections: list[Detection2D] = field(default_factory=list)
-    perception: str = "oracle"               # which perception produced the detections
+    perception: str = "oracle"  # which perception produced the detections
 
 
 @dataclass
@@ -297,13 +308,13 @@ class MapSnapshot:
 
     session: str
     step: int
-    origin: tuple[float, float]              # start-frame (x, y) of grid cell (0, 0)'s corner
-    cell: float                              # metres per 2D cell
-    occupancy: np.ndarray                    # uint8 XxY: 0 unknown, 1 free, 2 obstacle
-    explored: np.ndarray                     # bool XxY
-    voxel_size: float                        # metres per voxel edge (x, y); points are centres
-    points: np.ndarray                       # float32 Nx3: occupied voxel centres
-    point_labels: np.ndarray                 # int16 N: index into ``classes``, -1 unlabelled
+    origin: tuple[float, float]  # start-frame (x, y) of grid cell (0, 0)'s corner
+    cell: float  # metres per 2D cell
+    occupancy: np.ndarray  # uint8 XxY: 0 unknown, 1 free, 2 obstacle
+    explored: np.ndarray  # bool XxY
+    voxel_size: float  # metres per voxel edge (x, y); points are centres
+    points: np.ndarray  # float32 Nx3: occupied voxel centres
+    point_labels: np.ndarray  # int16 N: index into ``classes``, -1 unlabelled
     classes: list[str] = field(default_factory=list)
 
 
@@ -338,8 +349,8 @@ class SearchHeatmap:
     target: str
     origin: tuple[float, float]
     cell: float
-    heatmap: np.ndarray                      # float32 XxY in [0, 1]
-    points: np.ndarray                       # float32 Kx2: ranked search points (x, y)
+    heatmap: np.ndarray  # float32 XxY in [0, 1]
+    points: np.ndarray  # float32 Kx2: ranked search points (x, y)
     source: str = "search_network"
 
 
@@ -353,28 +364,28 @@ class EpisodeSummary:
     """
 
     session: str
-    episode: dict[str, Any]                  # room_type, seed, mess_index, variant, perception, ...
+    episode: dict[str, Any]  # room_type, seed, mess_index, variant, perception, ...
     steps: int
     wall_s: float
     end_reason: str
-    put_away: int                            # puts of out-of-place objects that succeeded
-    moved: int | None = None                 # objects the mess-up moved
-    found: int | None = None                 # of those, how many the agent found (picked or flagged)
-    plausible: int | None = None             # moved objects whose final receptacle the judge accepts
-    false_picks: int | None = None           # objects picked that the mess-up had not moved
-    replay: str = ""                         # the command that replays the episode's log
+    put_away: int  # puts of out-of-place objects that succeeded
+    moved: int | None = None  # objects the mess-up moved
+    found: int | None = None  # of those, how many the agent found (picked or flagged)
+    plausible: int | None = None  # moved objects whose final receptacle the judge accepts
+    false_picks: int | None = None  # objects picked that the mess-up had not moved
+    replay: str = ""  # the command that replays the episode's log
 
 
 @dataclass
 class AgentCommand:
     """A viewer -> agent command (key ``tidee/agent/{session}/cmd``)."""
 
-    kind: str                                # one of COMMAND_KINDS
+    kind: str  # one of COMMAND_KINDS
     command_id: str = ""
-    room_type: str | None = None             # new_episode
+    room_type: str | None = None  # new_episode
     seed: int | None = None
     mess_index: int | None = None
-    text: str | None = None                  # preference: "I want my alarm clock on the desk"
+    text: str | None = None  # preference: "I want my alarm clock on the desk"
 
     def __post_init__(self) -> None:
         if self.kind not in COMMAND_KINDS:

@@ -44,10 +44,12 @@ ZenohTransport = SimClient
 class InProcessTransport:
     """Calls an episode directly: no serialisation, no sockets (tests, batch evaluation)."""
 
-    def __init__(self, episode: EpisodeLike | None = None, renderer: str = "auto",
-                 session: str = "local") -> None:
+    def __init__(
+        self, episode: EpisodeLike | None = None, renderer: str = "auto", session: str = "local"
+    ) -> None:
         if episode is None:
             from tidee.server.episode import Episode  # pybullet: only when needed
+
             episode = Episode(renderer=renderer)
         self.episode: EpisodeLike | None = episode
         self.session_id = session

@@ -81,8 +81,9 @@ def open_session(listen: bool, endpoint: str | None = None, router: str | None =
         raise open_error(e, listen, endpoint, router) from None
 
 
-def open_error(error: Exception, listen: bool, endpoint: str | None = None,
-               router: str | None = None) -> ZenohOpenError:
+def open_error(
+    error: Exception, listen: bool, endpoint: str | None = None, router: str | None = None
+) -> ZenohOpenError:
     """One line for a failed ``zenoh.open``: which endpoint (and which flag or variable gave it) and why."""
     router = resolve_router(router)
     if router:
@@ -100,7 +101,7 @@ def zenoh_error_text(error: Exception) -> str:
     m = re.search(r'msg: "(.*?)"', text)
     if m:
         text = m.group(1)
-    text = re.sub(r"\s*at /\S+\.rs:\d+\.?", "", text)     # "... at /root/.cargo/.../tcp.rs:61."
+    text = re.sub(r"\s*at /\S+\.rs:\d+\.?", "", text)  # "... at /root/.cargo/.../tcp.rs:61."
     return " ".join(text.split()).rstrip(" .!")
 
 

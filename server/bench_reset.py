@@ -24,7 +24,7 @@ from tidee.server.episode import Episode, SceneLibrary
 from tidee.server.scene_cache import SceneCache
 from tidee.server.splits import mess_config, num_configs
 
-RESET_RESOLUTION = 64      # a reset's cost is the scene, not the first frame: keep the render small
+RESET_RESOLUTION = 64  # a reset's cost is the scene, not the first frame: keep the render small
 
 
 def split_configs(split: str, limit: int | None = None) -> list[tuple[str, int, int]]:
@@ -41,7 +41,9 @@ def reset_times(configs: Iterable[tuple[str, int, int]], cache: SceneCache | Non
     try:
         for room_type, seed, mess in configs:
             t0 = time.perf_counter()
-            ep.reset(EpisodeSpec(room_type=room_type, seed=seed, mess_index=mess, resolution=RESET_RESOLUTION))
+            ep.reset(
+                EpisodeSpec(room_type=room_type, seed=seed, mess_index=mess, resolution=RESET_RESOLUTION)
+            )
             times.append(time.perf_counter() - t0)
     finally:
         ep.close()
@@ -72,13 +74,22 @@ def fill_cache(split: str, workers: int = 1, directory: str | None = None, limit
     else:
         with ProcessPoolExecutor(max_workers=workers) as pool:
             list(pool.map(_fill_chunk, chunks))
-    return {"split": split, "configurations": len(configs), "already_cached": before,
-            "generated": len(configs) - before, "wall_s": round(time.perf_counter() - t0, 1),
-            "directory": str(cache.dir)}
+    return {
+        "split": split,
+        "configurations": len(configs),
+        "already_cached": before,
+        "generated": len(configs) - before,
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "directory": str(cache.dir),
+    }
 
 
 def _seconds(xs: list[float]) -> dict[str, float]:
-    return {"n": len(xs), **{f"{k}_s": v for k, v in spread(xs, 4).items()}, "mean_s": round(float(np.mean(xs)), 4)}
+    return {
+        "n": len(xs),
+        **{f"{k}_s": v for k, v in spread(xs, 4).items()},
+        "mean_s": round(float(np.mean(xs)), 4),
+    }
 
 
 def run_reset_bench(out_path: str, split: str = "test", limit: int | None = None) -> dict:
@@ -89,13 +100,21 @@ def run_reset_bench(out_path: str, split: str = "test", limit: int | None = None
         cached = reset_times(configs, SceneCache(d))
     slowest = int(np.argmax(cold))
     result = {
-        "split": split, "configurations": len(configs), "renderer": "tiny", "resolution": RESET_RESOLUTION,
-        "cold": _seconds(cold), "cached": _seconds(cached),
+        "split": split,
+        "configurations": len(configs),
+        "renderer": "tiny",
+        "resolution": RESET_RESOLUTION,
+        "cold": _seconds(cold),
+        "cached": _seconds(cached),
         "speedup_median": round(float(np.median(cold) / np.median(cached)), 1),
         "slowest_cold": {"config": list(configs[slowest]), "s": round(cold[slowest], 2)},
         "machine": f"{platform.machine()} {os.cpu_count()} cores",
         "load_avg_1m_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
-        "command": f"tidee bench reset --split {split}" + (f" --limit {limit}" if limit else "") + f" --out {out_path}",
+        "command": f"tidee bench reset --split {split}"
+        + (f" --limit {limit}" if limit else "")
+        + f" --out {out_path}",
     }
-    write_report(out_path, result, "Reset benchmark (`tidee bench reset`): cold (generate + physics) vs cached")
+    write_report(
+        out_path, result, "Reset benchmark (`tidee bench reset`): cold (generate + physics) vs cached"
+    )
     return result

@@ -22,8 +22,8 @@ import tempfile
 import threading
 import time
 import uuid
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 import numpy as np
 
@@ -38,23 +38,43 @@ SESSIONS = (1, 2)
 WARMUP_STEPS = 10
 
 
-def run_scale_server_bench(out_path: str = "bench/scale_server.json", steps: int = 200,
-                           resolution: int = 256, processes: tuple[int, ...] = (1, 2), renderer: str = "tiny",
-                           room_type: str = "LivingRoom", seed: int = 200, mess_index: int = 0) -> dict:
-    spec = EpisodeSpec(room_type=room_type, seed=seed, mess_index=mess_index, resolution=resolution,
-                       max_steps=steps + WARMUP_STEPS + 10)
+def run_scale_server_bench(
+    out_path: str = "bench/scale_server.json",
+    steps: int = 200,
+    resolution: int = 256,
+    processes: tuple[int, ...] = (1, 2),
+    renderer: str = "tiny",
+    room_type: str = "LivingRoom",
+    seed: int = 200,
+    mess_index: int = 0,
+) -> dict:
+    spec = EpisodeSpec(
+        room_type=room_type,
+        seed=seed,
+        mess_index=mess_index,
+        resolution=resolution,
+        max_steps=steps + WARMUP_STEPS + 10,
+    )
     load_before = os.getloadavg()
     runs = []
     for count in processes:
         with _server(count, renderer, max(SESSIONS)) as (endpoint, server_id):
             phases = {n: _phase(endpoint, server_id, spec, steps, n) for n in SESSIONS}
         one, many = phases[SESSIONS[0]], phases[SESSIONS[-1]]
-        runs.append({"processes": count, "phases": list(phases.values()),
-                     "ratio": round(many["steps_per_s"] / one["steps_per_s"], 3)})
+        runs.append(
+            {
+                "processes": count,
+                "phases": list(phases.values()),
+                "ratio": round(many["steps_per_s"] / one["steps_per_s"], 3),
+            }
+        )
     load_after = os.getloadavg()
     result = {
-        "room": f"{room_type}/{seed} mess {mess_index}", "resolution": resolution, "renderer": renderer,
-        "steps_per_session": steps, "runs": runs,
+        "room": f"{room_type}/{seed} mess {mess_index}",
+        "resolution": resolution,
+        "renderer": renderer,
+        "steps_per_session": steps,
+        "runs": runs,
         "load_avg_before": [round(x, 2) for x in load_before],
         "load_avg_after": [round(x, 2) for x in load_after],
         "machine": f"{platform.machine()} {os.cpu_count()} cores, {available_cores()} available",
@@ -68,8 +88,22 @@ def _server(processes: int, renderer: str, max_sessions: int) -> Iterator[tuple[
     """A ``tidee server`` subprocess; its log is shown only if it fails."""
     endpoint, server_id = _free_loopback_endpoint(), f"scale{uuid.uuid4().hex[:6]}"
     with tempfile.TemporaryFile() as log:
-        command = [sys.executable, "-m", "tidee.cli", "server", "--endpoint", endpoint, "--server-id", server_id,
-                   "--renderer", renderer, "--processes", str(processes), "--max-sessions", str(max_sessions)]
+        command = [
+            sys.executable,
+            "-m",
+            "tidee.cli",
+            "server",
+            "--endpoint",
+            endpoint,
+            "--server-id",
+            server_id,
+            "--renderer",
+            renderer,
+            "--processes",
+            str(processes),
+            "--max-sessions",
+            str(max_sessions),
+        ]
         proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
         try:
             yield endpoint, server_id
@@ -83,8 +117,10 @@ def _server(processes: int, renderer: str, max_sessions: int) -> Iterator[tuple[
 
 def _phase(endpoint: str, server_id: str, spec: EpisodeSpec, steps: int, sessions: int) -> dict:
     """``sessions`` clients walking at once; totals and per-step latencies."""
-    clients = [SimClient(endpoint=endpoint, server_id=server_id, timeout=120.0, connect_timeout=60.0)
-               for _ in range(sessions)]
+    clients = [
+        SimClient(endpoint=endpoint, server_id=server_id, timeout=120.0, connect_timeout=60.0)
+        for _ in range(sessions)
+    ]
     go = threading.Barrier(sessions + 1)
     latencies: list[list[float]] = [[] for _ in clients]
     ends = [0.0] * sessions
@@ -92,7 +128,7 @@ def _phase(endpoint: str, server_id: str, spec: EpisodeSpec, steps: int, session
 
     def walk(k: int, client: SimClient) -> None:
         try:
-            client.reset(spec)   # starts the session's simulator process, loads the scene
+            client.reset(spec)  # starts the session's simulator process, loads the scene
             for i in range(WARMUP_STEPS):
                 client.step(Action(ACTIONS[i % len(ACTIONS)]))
             client.reset(spec)
@@ -103,7 +139,7 @@ def _phase(endpoint: str, server_id: str, spec: EpisodeSpec, steps: int, session
                 latencies[k].append((time.perf_counter() - t) * 1000)
             ends[k] = time.perf_counter()
         except threading.BrokenBarrierError:
-            pass   # another client failed: its error is the one reported
+            pass  # another client failed: its error is the one reported
         except BaseException as e:
             errors.append(e)
             go.abort()
@@ -126,28 +162,39 @@ def _phase(endpoint: str, server_id: str, spec: EpisodeSpec, steps: int, session
         raise RuntimeError(f"a client failed in the {sessions}-session phase: {errors[0]!r}") from errors[0]
     wall = max(ends) - start
     ms = np.concatenate(latencies)
-    return {"sessions": sessions, "total_steps": int(ms.size), "wall_s": round(wall, 3),
-            "steps_per_s": round(ms.size / wall, 2),
-            "per_session_steps_per_s": [round(len(x) / (e - start), 2) for x, e in zip(latencies, ends)],
-            "step_ms_median": round(float(np.median(ms)), 3),
-            "step_ms_p90": round(float(np.percentile(ms, 90)), 3), "step_ms_max": round(float(ms.max()), 3)}
+    return {
+        "sessions": sessions,
+        "total_steps": int(ms.size),
+        "wall_s": round(wall, 3),
+        "steps_per_s": round(ms.size / wall, 2),
+        "per_session_steps_per_s": [round(len(x) / (e - start), 2) for x, e in zip(latencies, ends)],
+        "step_ms_median": round(float(np.median(ms)), 3),
+        "step_ms_p90": round(float(np.percentile(ms, 90)), 3),
+        "step_ms_max": round(float(ms.max()), 3),
+    }
 
 
 def _write(out_path: str, result: dict) -> None:
     os.makedirs(os.path.dirname(os.path.abspath(out_path)) or ".", exist_ok=True)
     write_json_atomic(out_path, result)
-    lines = ["# Server scaling benchmark (`tidee bench scale-server`)", "",
-             f"{result['room']}, {result['resolution']}² {result['renderer']} renderer, "
-             f"{result['steps_per_session']} timed steps per session; {result['machine']}; "
-             f"load average (1/5/15 min) {_triple(result['load_avg_before'])} before, "
-             f"{_triple(result['load_avg_after'])} after.", "",
-             "| server processes | sessions | total steps/s | per session steps/s "
-             "| step ms median | p90 | max |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Server scaling benchmark (`tidee bench scale-server`)",
+        "",
+        f"{result['room']}, {result['resolution']}² {result['renderer']} renderer, "
+        f"{result['steps_per_session']} timed steps per session; {result['machine']}; "
+        f"load average (1/5/15 min) {_triple(result['load_avg_before'])} before, "
+        f"{_triple(result['load_avg_after'])} after.",
+        "",
+        "| server processes | sessions | total steps/s | per session steps/s | step ms median | p90 | max |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for run in result["runs"]:
         for ph in run["phases"]:
             per_session = " / ".join(str(x) for x in ph["per_session_steps_per_s"])
-            lines.append(f"| {run['processes']} | {ph['sessions']} | {ph['steps_per_s']} | {per_session} "
-                         f"| {ph['step_ms_median']} | {ph['step_ms_p90']} | {ph['step_ms_max']} |")
+            lines.append(
+                f"| {run['processes']} | {ph['sessions']} | {ph['steps_per_s']} | {per_session} "
+                f"| {ph['step_ms_median']} | {ph['step_ms_p90']} | {ph['step_ms_max']} |"
+            )
     lines += ["", "| server processes | total steps/s, 2 sessions / 1 session |", "|---|---|"]
     lines += [f"| {run['processes']} | {run['ratio']} |" for run in result["runs"]]
     write_atomic(os.path.splitext(out_path)[0] + ".md", ("\n".join(lines) + "\n").encode())

@@ -12,17 +12,36 @@ from tidee.protocol.messages import Action, ActionName, EpisodeSpec
 from tidee.server.episode import Episode
 
 # A walk that exercises moves, turns and looks (each step renders one frame).
-ACTIONS = [ActionName.MoveAhead, ActionName.RotateLeft, ActionName.MoveAhead, ActionName.LookDown,
-           ActionName.MoveAhead, ActionName.RotateRight, ActionName.LookUp, ActionName.MoveBack,
-           ActionName.MoveLeft, ActionName.MoveRight]
+ACTIONS = [
+    ActionName.MoveAhead,
+    ActionName.RotateLeft,
+    ActionName.MoveAhead,
+    ActionName.LookDown,
+    ActionName.MoveAhead,
+    ActionName.RotateRight,
+    ActionName.LookUp,
+    ActionName.MoveBack,
+    ActionName.MoveLeft,
+    ActionName.MoveRight,
+]
 
 
-def run_sim_bench(resolution: int, steps: int, out_path: str, renderer: str = "auto",
-                  room_type: str = "LivingRoom", seed: int = 200) -> dict:
+def run_sim_bench(
+    resolution: int,
+    steps: int,
+    out_path: str,
+    renderer: str = "auto",
+    room_type: str = "LivingRoom",
+    seed: int = 200,
+) -> dict:
     ep = Episode(renderer=renderer)
     try:
         t0 = time.perf_counter()
-        ep.reset(EpisodeSpec(room_type=room_type, seed=seed, mess_index=0, resolution=resolution, max_steps=steps + 10))
+        ep.reset(
+            EpisodeSpec(
+                room_type=room_type, seed=seed, mess_index=0, resolution=resolution, max_steps=steps + 10
+            )
+        )
         reset_s = time.perf_counter() - t0
         render_ms: list[float] = []
         original_render = ep.world.render
@@ -49,8 +68,12 @@ def run_sim_bench(resolution: int, steps: int, out_path: str, renderer: str = "a
     finally:
         ep.close()
     result = {
-        "resolution": resolution, "steps": steps, "renderer": renderer_used, "room": f"{room_type}/{seed}",
-        "bodies": n_bodies, "reset_s": round(reset_s, 3),
+        "resolution": resolution,
+        "steps": steps,
+        "renderer": renderer_used,
+        "room": f"{room_type}/{seed}",
+        "bodies": n_bodies,
+        "reset_s": round(reset_s, 3),
         "step_ms_median": round(float(np.median(step_ms)), 3),
         "step_ms_p90": round(float(np.percentile(step_ms, 90)), 3),
         "render_ms_median": round(float(np.median(render_ms)), 3),
@@ -65,8 +88,11 @@ def run_sim_bench(resolution: int, steps: int, out_path: str, renderer: str = "a
 def spread(xs: list[float], digits: int = 2) -> dict[str, float]:
     """Median, p90 and max of a benchmark's samples."""
     a = np.asarray(xs, float)
-    return {"median": round(float(np.median(a)), digits), "p90": round(float(np.percentile(a, 90)), digits),
-            "max": round(float(a.max()), digits)}
+    return {
+        "median": round(float(np.median(a)), digits),
+        "p90": round(float(np.percentile(a, 90)), digits),
+        "max": round(float(a.max()), digits),
+    }
 
 
 def write_report(out_path: str, result: dict, title: str) -> None:
@@ -76,6 +102,8 @@ def write_report(out_path: str, result: dict, title: str) -> None:
     os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
     write_json_atomic(out_path, result)
     lines = [f"# {title}", "", "| metric | value |", "|---|---|"]
-    lines += [f"| {k} | {', '.join(f'{kk} {vv}' for kk, vv in v.items()) if isinstance(v, dict) else v} |"
-              for k, v in result.items()]
+    lines += [
+        f"| {k} | {', '.join(f'{kk} {vv}' for kk, vv in v.items()) if isinstance(v, dict) else v} |"
+        for k, v in result.items()
+    ]
     write_atomic(os.path.splitext(out_path)[0] + ".md", ("\n".join(lines) + "\n").encode())

@@ -35,7 +35,7 @@ from tidee.server.splits import ROOM_TYPES, TRAIN_POOL
 from tidee.server.workers import available_cores
 
 WARMUP_FRACTION = 0.1
-SAMPLES = 50                  # memory readings over the run (plus warm-up and end)
+SAMPLES = 50  # memory readings over the run (plus warm-up and end)
 GROWTH_TARGET_PCT = 5.0
 STEP_ACTIONS = (ActionName.RotateLeft, ActionName.MoveAhead)
 
@@ -47,14 +47,34 @@ def soak_rooms(count: int) -> list[tuple[str, int]]:
     return [(ROOM_TYPES[i % len(ROOM_TYPES)], TRAIN_POOL.start + i // len(ROOM_TYPES)) for i in range(count)]
 
 
-def run_soak_bench(sessions: int = 1000, rooms: int = 200, steps: int = 2, resolution: int = 64,
-                   processes: int = 1, out_path: Path = Path("bench/soak.json")) -> dict:
+def run_soak_bench(
+    sessions: int = 1000,
+    rooms: int = 200,
+    steps: int = 2,
+    resolution: int = 64,
+    processes: int = 1,
+    out_path: Path = Path("bench/soak.json"),
+) -> dict:
     room_list = soak_rooms(rooms)
     warmup = max(1, int(sessions * WARMUP_FRACTION))
     every = max(1, sessions // SAMPLES)
     endpoint, server_id = f"tcp/127.0.0.1:{free_port()}", f"soak{uuid.uuid4().hex[:6]}"
-    command = [sys.executable, "-m", "tidee.cli", "server", "--endpoint", endpoint, "--server-id", server_id,
-               "--processes", str(processes), "--max-sessions", "4", "--renderer", "tiny"]
+    command = [
+        sys.executable,
+        "-m",
+        "tidee.cli",
+        "server",
+        "--endpoint",
+        endpoint,
+        "--server-id",
+        server_id,
+        "--processes",
+        str(processes),
+        "--max-sessions",
+        "4",
+        "--renderer",
+        "tiny",
+    ]
     load_before = os.getloadavg()
     samples: list[dict] = []
     with tempfile.TemporaryFile() as log:
@@ -65,15 +85,26 @@ def run_soak_bench(sessions: int = 1000, rooms: int = 200, steps: int = 2, resol
             for i in range(sessions):
                 room_type, seed = room_list[i % len(room_list)]
                 spec = EpisodeSpec(room_type=room_type, seed=seed, resolution=resolution, max_steps=steps + 1)
-                with SimClient(endpoint=endpoint, server_id=server_id, session=f"soak-{i}", zsession=z,
-                               timeout=300.0, connect_timeout=60.0) as client:
+                with SimClient(
+                    endpoint=endpoint,
+                    server_id=server_id,
+                    session=f"soak-{i}",
+                    zsession=z,
+                    timeout=300.0,
+                    connect_timeout=60.0,
+                ) as client:
                     client.reset(spec)
                     for k in range(steps):
                         client.step(Action(STEP_ACTIONS[k % len(STEP_ACTIONS)]))
                 done = i + 1
                 if done % every == 0 or done in (warmup, sessions):
-                    samples.append({"sessions": done, "elapsed_s": round(time.monotonic() - start, 1),
-                                    **_tree_rss_mb(server.pid)})
+                    samples.append(
+                        {
+                            "sessions": done,
+                            "elapsed_s": round(time.monotonic() - start, 1),
+                            **_tree_rss_mb(server.pid),
+                        }
+                    )
         except BaseException:
             log.seek(0)
             sys.stderr.write(log.read()[-4000:].decode(errors="replace"))
@@ -86,13 +117,21 @@ def run_soak_bench(sessions: int = 1000, rooms: int = 200, steps: int = 2, resol
     growth = 100.0 * (end - warm) / warm
     result = {
         "command": f"tidee bench soak --sessions {sessions} --rooms {rooms} --steps {steps} "
-                   f"--resolution {resolution} --processes {processes}",
-        "sessions": sessions, "rooms": rooms, "steps_per_session": steps, "resolution": resolution,
-        "processes": processes, "warmup_sessions": warmup,
-        "rss_warmup_mb": warm, "rss_end_mb": end, "growth_after_warmup_pct": round(growth, 2),
+        f"--resolution {resolution} --processes {processes}",
+        "sessions": sessions,
+        "rooms": rooms,
+        "steps_per_session": steps,
+        "resolution": resolution,
+        "processes": processes,
+        "warmup_sessions": warmup,
+        "rss_warmup_mb": warm,
+        "rss_end_mb": end,
+        "growth_after_warmup_pct": round(growth, 2),
         "per_session_after_warmup_kb": round(1024 * (end - warm) / max(1, sessions - warmup), 1),
-        "target_pct": GROWTH_TARGET_PCT, "within_target": growth <= GROWTH_TARGET_PCT,
-        "wall_s": samples[-1]["elapsed_s"], "samples": samples,
+        "target_pct": GROWTH_TARGET_PCT,
+        "within_target": growth <= GROWTH_TARGET_PCT,
+        "wall_s": samples[-1]["elapsed_s"],
+        "samples": samples,
         "load_avg_before": [round(x, 2) for x in load_before],
         "load_avg_after": [round(x, 2) for x in os.getloadavg()],
         "machine": f"{platform.machine()} {os.cpu_count()} cores, {available_cores()} available",
@@ -105,8 +144,11 @@ def _tree_rss_mb(pid: int) -> dict:
     """VmRSS of ``pid`` and of all its descendants, in MB."""
     parent = _rss_kb(pid)
     children = sum(_rss_kb(p) for p in _descendants(pid))
-    return {"server_mb": round(parent / 1024, 1), "children_mb": round(children / 1024, 1),
-            "total_mb": round((parent + children) / 1024, 1)}
+    return {
+        "server_mb": round(parent / 1024, 1),
+        "children_mb": round(children / 1024, 1),
+        "total_mb": round((parent + children) / 1024, 1),
+    }
 
 
 def _descendants(pid: int) -> list[int]:
@@ -141,19 +183,28 @@ def _write(out_path: Path, result: dict) -> None:
     out_path.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(str(out_path), result)
     r = result
-    lines = ["# Server soak benchmark (`tidee bench soak`)", "",
-             f"`{r['command']}`: {r['sessions']} sessions opened, stepped {r['steps_per_session']} times and "
-             f"closed one after another over {r['rooms']} distinct tidy rooms, {r['resolution']}² frames, "
-             f"{r['processes']} simulator process(es); {r['machine']}; {r['wall_s']} s; load average "
-             f"(1/5/15 min) {_triple(r['load_avg_before'])} before, {_triple(r['load_avg_after'])} after.", "",
-             "| | server + simulator processes, RSS MB |", "|---|---|",
-             f"| after warm-up ({r['warmup_sessions']} sessions) | {r['rss_warmup_mb']} |",
-             f"| at the end ({r['sessions']} sessions) | {r['rss_end_mb']} |",
-             f"| growth after warm-up | {r['growth_after_warmup_pct']} % (target ≤ {r['target_pct']:g} %; "
-             f"{r['per_session_after_warmup_kb']} kB per session) |", "",
-             "| sessions | elapsed s | server MB | simulator processes MB | total MB |", "|---|---|---|---|---|"]
-    lines += [f"| {s['sessions']} | {s['elapsed_s']} | {s['server_mb']} | {s['children_mb']} | {s['total_mb']} |"
-              for s in r["samples"]]
+    lines = [
+        "# Server soak benchmark (`tidee bench soak`)",
+        "",
+        f"`{r['command']}`: {r['sessions']} sessions opened, stepped {r['steps_per_session']} times and "
+        f"closed one after another over {r['rooms']} distinct tidy rooms, {r['resolution']}² frames, "
+        f"{r['processes']} simulator process(es); {r['machine']}; {r['wall_s']} s; load average "
+        f"(1/5/15 min) {_triple(r['load_avg_before'])} before, {_triple(r['load_avg_after'])} after.",
+        "",
+        "| | server + simulator processes, RSS MB |",
+        "|---|---|",
+        f"| after warm-up ({r['warmup_sessions']} sessions) | {r['rss_warmup_mb']} |",
+        f"| at the end ({r['sessions']} sessions) | {r['rss_end_mb']} |",
+        f"| growth after warm-up | {r['growth_after_warmup_pct']} % (target ≤ {r['target_pct']:g} %; "
+        f"{r['per_session_after_warmup_kb']} kB per session) |",
+        "",
+        "| sessions | elapsed s | server MB | simulator processes MB | total MB |",
+        "|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| {s['sessions']} | {s['elapsed_s']} | {s['server_mb']} | {s['children_mb']} | {s['total_mb']} |"
+        for s in r["samples"]
+    ]
     write_atomic(os.path.splitext(str(out_path))[0] + ".md", ("\n".join(lines) + "\n").encode())
 
 

@@ -26,16 +26,41 @@ from tidee.server.bench_sim import ACTIONS, write_report
 WARMUP_STEPS = 10
 
 
-def run_transport_bench(resolution: int, steps: int, out_path: str, renderer: str = "auto",
-                        room_type: str = "LivingRoom", seed: int = 200) -> dict:
-    spec = EpisodeSpec(room_type=room_type, seed=seed, mess_index=0, resolution=resolution,
-                       max_steps=steps + WARMUP_STEPS + 10)
+def run_transport_bench(
+    resolution: int,
+    steps: int,
+    out_path: str,
+    renderer: str = "auto",
+    room_type: str = "LivingRoom",
+    seed: int = 200,
+) -> dict:
+    spec = EpisodeSpec(
+        room_type=room_type,
+        seed=seed,
+        mess_index=0,
+        resolution=resolution,
+        max_steps=steps + WARMUP_STEPS + 10,
+    )
     with InProcessTransport(renderer=renderer) as inproc:
         renderer_used = getattr(inproc.episode, "renderer", renderer)
         inproc_ms = _step_latencies(inproc, spec, steps)
     endpoint, server_id = _free_loopback_endpoint(), f"bench{uuid.uuid4().hex[:6]}"
-    server = subprocess.Popen([sys.executable, "-m", "tidee.cli", "server", "--endpoint", endpoint,
-                               "--server-id", server_id, "--renderer", renderer_used, "--max-sessions", "1"])
+    server = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "tidee.cli",
+            "server",
+            "--endpoint",
+            endpoint,
+            "--server-id",
+            server_id,
+            "--renderer",
+            renderer_used,
+            "--max-sessions",
+            "1",
+        ]
+    )
     try:
         with SimClient(endpoint=endpoint, server_id=server_id, connect_timeout=60.0) as client:
             zenoh_ms = _step_latencies(client, spec, steps)
@@ -45,7 +70,10 @@ def run_transport_bench(resolution: int, steps: int, out_path: str, renderer: st
     inproc_median, zenoh_median = float(np.median(inproc_ms)), float(np.median(zenoh_ms))
     frame_kib = resolution * resolution * (3 + 4) / 1024
     result = {
-        "resolution": resolution, "steps": steps, "renderer": renderer_used, "room": f"{room_type}/{seed}",
+        "resolution": resolution,
+        "steps": steps,
+        "renderer": renderer_used,
+        "room": f"{room_type}/{seed}",
         "inproc_step_ms_median": round(inproc_median, 3),
         "zenoh_step_ms_median": round(zenoh_median, 3),
         "ratio": round(zenoh_median / inproc_median, 3),
@@ -56,8 +84,9 @@ def run_transport_bench(resolution: int, steps: int, out_path: str, renderer: st
         "encoding": "raw",
         "machine": f"{platform.machine()} {os.cpu_count()} cores",
     }
-    write_report(out_path, result,
-                 "Transport benchmark (`tidee bench transport`): in-process vs Zenoh loopback")
+    write_report(
+        out_path, result, "Transport benchmark (`tidee bench transport`): in-process vs Zenoh loopback"
+    )
     return result
 
 

@@ -17,7 +17,7 @@ from collections.abc import Iterator
 def _flush_c_stdio() -> None:
     try:
         ctypes.CDLL(None).fflush(None)
-    except (OSError, AttributeError):   # no C library handle on this platform
+    except (OSError, AttributeError):  # no C library handle on this platform
         pass
 
 
@@ -28,7 +28,7 @@ def quiet_stdio() -> Iterator[None]:
     sys.stderr.flush()
     try:
         saved = [(fd, os.dup(fd)) for fd in (1, 2)]
-    except OSError:          # no usable stdio: nothing to silence
+    except OSError:  # no usable stdio: nothing to silence
         yield
         return
     try:
@@ -37,7 +37,7 @@ def quiet_stdio() -> Iterator[None]:
                 os.dup2(null.fileno(), fd)
         yield
     finally:
-        _flush_c_stdio()     # C's stdout is block-buffered on a pipe: flush while it still goes to null
+        _flush_c_stdio()  # C's stdout is block-buffered on a pipe: flush while it still goes to null
         for fd, copy in saved:
             os.dup2(copy, fd)
             os.close(copy)

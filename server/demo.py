@@ -36,7 +36,10 @@ def run_demo(out_dir: str, room_type: str = "LivingRoom", seed: int = 200, mess:
                 frames.append(obs.rgb.copy())
                 depth = np.clip(obs.depth / 5.0 * 255, 0, 255).astype(np.uint8)
                 cv2.imwrite(os.path.join(out_dir, f"view{k}_rgb.png"), obs.rgb[:, :, ::-1])
-                cv2.imwrite(os.path.join(out_dir, f"view{k}_depth.png"), cv2.applyColorMap(depth, cv2.COLORMAP_VIRIDIS))
+                cv2.imwrite(
+                    os.path.join(out_dir, f"view{k}_depth.png"),
+                    cv2.applyColorMap(depth, cv2.COLORMAP_VIRIDIS),
+                )
                 obs = client.step(Action(ActionName.RotateRight))
             sheet = np.concatenate([np.concatenate(frames[:2], 1), np.concatenate(frames[2:], 1)], 0)
             cv2.imwrite(os.path.join(out_dir, "views.png"), sheet[:, :, ::-1])
@@ -46,6 +49,7 @@ def run_demo(out_dir: str, room_type: str = "LivingRoom", seed: int = 200, mess:
             for oid, was, now in moved:
                 print(f"  {oid}: {was} -> {now}")
         from tidee.server.render import render_room
+
         for p in render_room(room_type, seed, mess, out_dir, resolution=480):
             print(p)
         print(f"demo: wrote {out_dir}/views.png (what the agent saw) and the renders above")

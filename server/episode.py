@@ -16,8 +16,7 @@ from typing import Literal
 
 import numpy as np
 
-from tidee.protocol.messages import (Action, ActionError, ActionName, EpisodeSpec, GroundTruth,
-                                     Observation)
+from tidee.protocol.messages import Action, ActionError, ActionName, EpisodeSpec, GroundTruth, Observation
 from tidee.server.messup import mess_up
 from tidee.server.rooms import AGENT_RADIUS, NAV_CELL, generate_scene, main_component, nav_grid, rooms_version
 from tidee.server.scene import Scene
@@ -28,13 +27,17 @@ from tidee.server.world import FOV_DEG, World
 MOVE_M = 0.25
 TURN_DEG = 90.0
 LOOK_DEG = 30.0
-PITCH_LIMITS = (-30.0, 60.0)        # AI2THOR's horizon limits, positive looking down
+PITCH_LIMITS = (-30.0, 60.0)  # AI2THOR's horizon limits, positive looking down
 INTERACT_M = 1.5
 POSE_NOISE_M = 0.005
 POSE_NOISE_DEG = 0.5
 DEPTH_NOISE_REL = 0.02
-MOVES = {ActionName.MoveAhead: (1, 0), ActionName.MoveBack: (-1, 0),
-         ActionName.MoveLeft: (0, 1), ActionName.MoveRight: (0, -1)}
+MOVES = {
+    ActionName.MoveAhead: (1, 0),
+    ActionName.MoveBack: (-1, 0),
+    ActionName.MoveLeft: (0, 1),
+    ActionName.MoveRight: (0, -1),
+}
 
 
 class SceneLibrary:
@@ -110,8 +113,8 @@ class Body:
 
     x: float
     y: float
-    yaw: float            # radians
-    pitch: float          # degrees, positive down
+    yaw: float  # radians
+    pitch: float  # degrees, positive down
     odo_x: float
     odo_y: float
     odo_yaw: float
@@ -159,8 +162,11 @@ class Episode:
         self.spec, self.session = spec, session
         self.scene = self.library.scene(self.world, spec.room_type, spec.seed, spec.mess_index)
         self.steps, self.done = 0, False
-        self.rng = np.random.default_rng(np.random.SeedSequence(
-            [spec.seed, 0 if spec.mess_index is None else spec.mess_index + 1, spec.start_seed or 0, 5150]))
+        self.rng = np.random.default_rng(
+            np.random.SeedSequence(
+                [spec.seed, 0 if spec.mess_index is None else spec.mess_index + 1, spec.start_seed or 0, 5150]
+            )
+        )
         self._update_free()
         x, y = self._spawn_point(spec.start_seed)
         yaw = float(self.rng.integers(4)) * math.pi / 2
@@ -169,8 +175,15 @@ class Episode:
         self._last = (None, True, None, "")
         return self.observe(ground_truth)
 
-    def load(self, scene: Scene, spec: EpisodeSpec, agent_xy: tuple[float, float], yaw_deg: float,
-             session: str = "local", ground_truth: bool = False) -> Observation:
+    def load(
+        self,
+        scene: Scene,
+        spec: EpisodeSpec,
+        agent_xy: tuple[float, float],
+        yaw_deg: float,
+        session: str = "local",
+        ground_truth: bool = False,
+    ) -> Observation:
         """Start an episode in a given scene with the agent at a given pose (tests, tools)."""
         self.spec, self.session, self.scene = spec, session, scene
         self.world.build(scene)
@@ -213,8 +226,12 @@ class Episode:
             raise RuntimeError("step() before reset()")
         name = ActionName(action.name)
         if self.done:
-            self._last = (name.value, False, ActionError.episode_over,
-                          "the episode is over (Done was called or the step cap reached)")
+            self._last = (
+                name.value,
+                False,
+                ActionError.episode_over,
+                "the episode is over (Done was called or the step cap reached)",
+            )
             return self._last[1:]
         self.steps += 1
         ok, err, msg = self._execute(action)
@@ -334,7 +351,7 @@ class Episode:
         oid, point = hit  # type: ignore[misc]
         target = self.world.bodies[oid].obj
         if target.pickupable and not target.receptacle and target.parent not in (None, "agent"):
-            target = self.world.bodies[target.parent].obj   # aiming at a thing on a table: the table
+            target = self.world.bodies[target.parent].obj  # aiming at a thing on a table: the table
         if not target.receptacle:
             return False, ActionError.not_receptacle, f"{target.type} is not a receptacle"
         if target.openable and not target.is_open:
@@ -352,12 +369,15 @@ class Episode:
         obj = self.world.bodies[oid].obj
         parent = self.world.bodies.get(obj.parent or "")
         if not obj.openable and obj.pickupable and parent is not None and parent.obj.openable:
-            obj, oid = parent.obj, parent.obj.id      # aiming at a thing inside: its container
+            obj, oid = parent.obj, parent.obj.id  # aiming at a thing inside: its container
         if not obj.openable:
             return False, ActionError.not_openable, f"{obj.type} cannot be opened or closed"
         if obj.is_open == open_:
-            return False, (ActionError.already_open if open_ else ActionError.already_closed), \
-                f"{obj.type} is already {'open' if open_ else 'closed'}"
+            return (
+                False,
+                (ActionError.already_open if open_ else ActionError.already_closed),
+                f"{obj.type} is already {'open' if open_ else 'closed'}",
+            )
         self.world.set_open(oid, open_)
         if open_ and not obj.pickupable and self._door_hits_agent(oid):
             self.world.set_open(oid, False)
@@ -394,11 +414,14 @@ class Episode:
         f = (r / 2) / math.tan(math.radians(FOV_DEG / 2))
         return np.array([[f, 0, (r - 1) / 2], [0, f, (r - 1) / 2], [0, 0, 1.0]])
 
-    def _observe(self, last: str | None, ok: bool, err: ActionError | None, msg: str,
-                 ground_truth: bool) -> Observation:
+    def _observe(
+        self, last: str | None, ok: bool, err: ActionError | None, msg: str, ground_truth: bool
+    ) -> Observation:
         b = self.body
         right, down, fwd = camera_axes(b.yaw, b.pitch)
-        rgb, depth, seg = self.world.render(self._eye(), fwd, -down, self.spec.resolution, segmentation=ground_truth)
+        rgb, depth, seg = self.world.render(
+            self._eye(), fwd, -down, self.spec.resolution, segmentation=ground_truth
+        )
         if self.spec.depth_noise:
             depth = (depth * (1.0 + self.rng.normal(0, DEPTH_NOISE_REL, depth.shape))).astype(np.float32)
         s2w = self._start_from_world()
@@ -408,11 +431,23 @@ class Episode:
         gt = self._ground_truth(seg) if ground_truth else None
         held_type = self.world.bodies[b.held].obj.type if b.held else None
         return Observation(
-            session=self.session, step=self.steps, rgb=rgb, depth=depth, camera_pose=cam,
+            session=self.session,
+            step=self.steps,
+            rgb=rgb,
+            depth=depth,
+            camera_pose=cam,
             agent_pose=(float(ox), float(oy), float((yaw_deg + 180) % 360 - 180), float(b.pitch)),
-            intrinsics=self.intrinsics(), held=held_type, held_id=b.held, last_action=last, success=ok,
-            error=err.value if err else None, message=msg, done=self.done,
-            steps_left=max(self.spec.max_steps - self.steps, 0), ground_truth=gt)
+            intrinsics=self.intrinsics(),
+            held=held_type,
+            held_id=b.held,
+            last_action=last,
+            success=ok,
+            error=err.value if err else None,
+            message=msg,
+            done=self.done,
+            steps_left=max(self.spec.max_steps - self.steps, 0),
+            ground_truth=gt,
+        )
 
     def _ground_truth(self, seg: np.ndarray | None) -> GroundTruth:
         objects = self.object_states()
@@ -431,8 +466,23 @@ class Episode:
         moved = {m.id for m in self.scene.mess}
         out = []
         for o in self.world.export().objects:
-            d = {k: getattr(o, k) for k in ("id", "type", "variant", "pickupable", "receptacle", "openable",
-                                            "is_open", "parent", "parent_type", "position", "orientation", "size")}
+            d = {
+                k: getattr(o, k)
+                for k in (
+                    "id",
+                    "type",
+                    "variant",
+                    "pickupable",
+                    "receptacle",
+                    "openable",
+                    "is_open",
+                    "parent",
+                    "parent_type",
+                    "position",
+                    "orientation",
+                    "size",
+                )
+            }
             d["moved"] = o.id in moved
             out.append(d)
         return out
@@ -442,10 +492,15 @@ class Episode:
         assert self.scene is not None
         self.world.refresh_parents()
         scene = self.world.export().to_dict()
-        scene["agent"] = {"x": self.body.x, "y": self.body.y, "yaw_deg": math.degrees(self.body.yaw),
-                          "pitch_deg": self.body.pitch, "held": self.body.held, "steps": self.steps,
-                          "done": self.done}
+        scene["agent"] = {
+            "x": self.body.x,
+            "y": self.body.y,
+            "yaw_deg": math.degrees(self.body.yaw),
+            "pitch_deg": self.body.pitch,
+            "held": self.body.held,
+            "steps": self.steps,
+            "done": self.done,
+        }
         x0, y0, yaw0 = self.start
         scene["start"] = {"x": x0, "y": y0, "yaw_deg": math.degrees(yaw0)}  # the start frame in the world
         return scene
-

@@ -62,8 +62,9 @@ def mesh_dir() -> str:
         import cv2
 
         _write_once(atlas, cv2.imencode(".png", atlas_image()[:, :, ::-1])[1].tobytes())
-    _write_once(os.path.join(folder, MATERIAL_FILE),
-                f"newmtl {MATERIAL}\nKd 1 1 1\nmap_Kd {ATLAS_FILE}\n".encode())
+    _write_once(
+        os.path.join(folder, MATERIAL_FILE), f"newmtl {MATERIAL}\nKd 1 1 1\nmap_Kd {ATLAS_FILE}\n".encode()
+    )
     return folder
 
 
@@ -232,8 +233,9 @@ def part_geometry(part: Part, size: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     raise ValueError(f"unknown part shape {part.shape!r}")
 
 
-def add_part(mesh: Mesh, part: Part, size: np.ndarray, rgb: tuple[int, int, int],
-             offset: np.ndarray | None = None) -> None:
+def add_part(
+    mesh: Mesh, part: Part, size: np.ndarray, rgb: tuple[int, int, int], offset: np.ndarray | None = None
+) -> None:
     v, n, t = part_geometry(part, size)
     if offset is not None:
         v = v - offset

@@ -32,12 +32,17 @@ HAND_REACH = 0.35
 
 
 def mess_rng(room_type: str, seed: int, mess_index: int) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence([ROOM_TYPE_INDEX[room_type], int(seed), int(mess_index), 90210]))
+    return np.random.default_rng(
+        np.random.SeedSequence([ROOM_TYPE_INDEX[room_type], int(seed), int(mess_index), 90210])
+    )
 
 
 def walkable_cells(world: World, scene: Scene) -> np.ndarray:
-    free = nav_grid([world.aabb(o.id) for o in scene.objects if not o.pickupable and o.type != "Floor"],
-                    scene.width, scene.depth)
+    free = nav_grid(
+        [world.aabb(o.id) for o in scene.objects if not o.pickupable and o.type != "Floor"],
+        scene.width,
+        scene.depth,
+    )
     return np.argwhere(main_component(free))
 
 
@@ -80,8 +85,9 @@ def _reachable(world: World, obj_id: str) -> bool:
     return container is None or world.bodies[container].obj.is_open
 
 
-def _move_one(world: World, scene: Scene, obj_id: str, rng: np.random.Generator, cells: np.ndarray,
-              present: list[str]) -> MessRecord | None:
+def _move_one(
+    world: World, scene: Scene, obj_id: str, rng: np.random.Generator, cells: np.ndarray, present: list[str]
+) -> MessRecord | None:
     obj = world.bodies[obj_id].obj
     orig_pos, orig_orn = world.pose(obj_id)
     orig_parent, orig_ptype = obj.parent, obj.parent_type
@@ -100,24 +106,39 @@ def _move_one(world: World, scene: Scene, obj_id: str, rng: np.random.Generator,
             continue
         if throw:
             speed = min(THROW_FORCE_N * THROW_DT / max(world.bodies[obj_id].mass, 1e-3), MAX_THROW_SPEED)
-            pb.resetBaseVelocity(world.bodies[obj_id].uid, [fx * speed, fy * speed, 0.0], [0, 0, 0],
-                                 physicsClientId=world.client)
+            pb.resetBaseVelocity(
+                world.bodies[obj_id].uid,
+                [fx * speed, fy * speed, 0.0],
+                [0, 0, 0],
+                physicsClientId=world.client,
+            )
         world.settle(max_seconds=4.0, min_seconds=0.5)
         world.refresh_parents()
-        disturbed = [o for o, (_, _, parent, _) in snap.items()
-                     if o != obj_id and world.bodies[o].obj.parent != parent]
+        disturbed = [
+            o for o, (_, _, parent, _) in snap.items() if o != obj_id and world.bodies[o].obj.parent != parent
+        ]
         new_parent, new_ptype = obj.parent, obj.parent_type
         lo, _ = world.aabb(obj_id)
         escaped = lo[2] < -0.2 or not (0 < lo[0] < scene.width and 0 < lo[1] < scene.depth)
-        plausible = new_ptype is not None and is_plausible(obj.type, obj.variant, scene.room_type, new_ptype, present)
+        plausible = new_ptype is not None and is_plausible(
+            obj.type, obj.variant, scene.room_type, new_ptype, present
+        )
         if disturbed or escaped or plausible or new_parent == orig_parent:
             _restore(world, snap)
             continue
         pos, orn = world.pose(obj_id)
         return MessRecord(
-            id=obj_id, type=obj.type, how="throw" if throw else "drop",
-            original_parent=orig_parent, original_parent_type=orig_ptype,
-            original_position=list(orig_pos), original_orientation=list(orig_orn),
-            messy_parent=new_parent, messy_parent_type=new_ptype,
-            messy_position=list(pos), messy_orientation=list(orn), tries=attempt)
+            id=obj_id,
+            type=obj.type,
+            how="throw" if throw else "drop",
+            original_parent=orig_parent,
+            original_parent_type=orig_ptype,
+            original_position=list(orig_pos),
+            original_orientation=list(orig_orn),
+            messy_parent=new_parent,
+            messy_parent_type=new_ptype,
+            messy_position=list(pos),
+            messy_orientation=list(orn),
+            tries=attempt,
+        )
     return None

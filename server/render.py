@@ -45,8 +45,11 @@ def top_down(world: World, scene: Scene, res: int, annotate: bool = True) -> np.
 
 def corner_views(world: World, scene: Scene, res: int) -> list[np.ndarray]:
     """From the walkable spot nearest each corner, at head height, towards the centre."""
-    free = nav_grid([world.aabb(o.id) for o in scene.objects if not o.pickupable and o.type != "Floor"],
-                    scene.width, scene.depth)
+    free = nav_grid(
+        [world.aabb(o.id) for o in scene.objects if not o.pickupable and o.type != "Floor"],
+        scene.width,
+        scene.depth,
+    )
     pts = (np.argwhere(free) + 0.5) * NAV_CELL
     views = []
     m = 0.35
@@ -58,8 +61,9 @@ def corner_views(world: World, scene: Scene, res: int) -> list[np.ndarray]:
     return views
 
 
-def render_room(room_type: str, seed: int, mess: int | None, out_dir: str, resolution: int = 480,
-                renderer: str = "auto") -> list[str]:
+def render_room(
+    room_type: str, seed: int, mess: int | None, out_dir: str, resolution: int = 480, renderer: str = "auto"
+) -> list[str]:
     os.makedirs(out_dir, exist_ok=True)
     world = World(renderer=renderer)
     try:
@@ -71,8 +75,13 @@ def render_room(room_type: str, seed: int, mess: int | None, out_dir: str, resol
             cv2.imwrite(paths[-1], img[:, :, ::-1])
         paths.append(os.path.join(out_dir, f"{tag}_topdown.png"))
         cv2.imwrite(paths[-1], top_down(world, scene, resolution)[:, :, ::-1])
-        grid = np.concatenate([np.concatenate(corner_views(world, scene, resolution // 2)[:2], axis=1),
-                               np.concatenate(corner_views(world, scene, resolution // 2)[2:], axis=1)], axis=0)
+        grid = np.concatenate(
+            [
+                np.concatenate(corner_views(world, scene, resolution // 2)[:2], axis=1),
+                np.concatenate(corner_views(world, scene, resolution // 2)[2:], axis=1),
+            ],
+            axis=0,
+        )
         paths.append(os.path.join(out_dir, f"{tag}_grid.png"))
         cv2.imwrite(paths[-1], grid[:, :, ::-1])
         return paths

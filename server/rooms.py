@@ -30,7 +30,7 @@ WALL_HEIGHT = 2.6
 WALL_THICKNESS = 0.1
 AGENT_RADIUS = 0.2
 NAV_CELL = 0.05
-REACH = 1.0           # a receptacle must have walkable floor within this distance
+REACH = 1.0  # a receptacle must have walkable floor within this distance
 ROOM_TYPE_INDEX = {"Kitchen": 0, "LivingRoom": 1, "Bedroom": 2, "Bathroom": 3}
 ROOMS_VERSIONS = (1, 2)
 SEATS = ("Chair", "Stool")
@@ -38,7 +38,9 @@ TABLES_FOR_SEATS = ("DiningTable", "Desk", "CounterTop")
 
 
 def room_rng(room_type: str, seed: int, stream: int = 0) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence([ROOM_TYPE_INDEX[room_type], int(seed), stream, 7411]))
+    return np.random.default_rng(
+        np.random.SeedSequence([ROOM_TYPE_INDEX[room_type], int(seed), stream, 7411])
+    )
 
 
 def yaw_quat(yaw: float) -> list[float]:
@@ -54,11 +56,13 @@ class Footprint:
     x1: float
     y1: float
 
-    def overlaps(self, o: "Footprint", gap: float = 0.0) -> bool:
-        return not (self.x1 + gap <= o.x0 or o.x1 + gap <= self.x0 or self.y1 + gap <= o.y0 or o.y1 + gap <= self.y0)
+    def overlaps(self, o: Footprint, gap: float = 0.0) -> bool:
+        return not (
+            self.x1 + gap <= o.x0 or o.x1 + gap <= self.x0 or self.y1 + gap <= o.y0 or o.y1 + gap <= self.y0
+        )
 
     @staticmethod
-    def of(cx: float, cy: float, sx: float, sy: float, yaw: float) -> "Footprint":
+    def of(cx: float, cy: float, sx: float, sy: float, yaw: float) -> Footprint:
         if abs(math.sin(yaw)) > 0.5:
             sx, sy = sy, sx
         return Footprint(cx - sx / 2, cy - sy / 2, cx + sx / 2, cy + sy / 2)
@@ -82,7 +86,9 @@ def _sample_palette(cat: Category, variant: str | None, rng: np.random.Generator
     return dict(palettes[int(rng.integers(len(palettes)))])
 
 
-def _sample_variant(cat: Category, rng: np.random.Generator, weights: dict[str, float] | None = None) -> str | None:
+def _sample_variant(
+    cat: Category, rng: np.random.Generator, weights: dict[str, float] | None = None
+) -> str | None:
     """A variant of the category: by the room template's weights when it gives some."""
     if not cat.variants:
         return None
@@ -93,13 +99,31 @@ def _sample_variant(cat: Category, rng: np.random.Generator, weights: dict[str, 
     return names[int(rng.choice(len(names), p=w / w.sum()))]
 
 
-def _new_object(oid: str, cat: Category, variant: str | None, size: list[float], palette: dict[str, str],
-                position: list[float], yaw: float, parent: str | None = FLOOR_ID) -> SceneObject:
+def _new_object(
+    oid: str,
+    cat: Category,
+    variant: str | None,
+    size: list[float],
+    palette: dict[str, str],
+    position: list[float],
+    yaw: float,
+    parent: str | None = FLOOR_ID,
+) -> SceneObject:
     return SceneObject(
-        id=oid, type=cat.name, variant=variant, pickupable=cat.pickupable, receptacle=cat.receptacle,
-        openable=cat.openable, is_open=False, parent=parent,
+        id=oid,
+        type=cat.name,
+        variant=variant,
+        pickupable=cat.pickupable,
+        receptacle=cat.receptacle,
+        openable=cat.openable,
+        is_open=False,
+        parent=parent,
         parent_type=None if parent is None else (parent.split("_")[0] if parent != FLOOR_ID else "Floor"),
-        position=[round(v, 5) for v in position], orientation=yaw_quat(yaw), size=size, palette=palette)
+        position=[round(v, 5) for v in position],
+        orientation=yaw_quat(yaw),
+        size=size,
+        palette=palette,
+    )
 
 
 class _Ids:
@@ -115,15 +139,30 @@ class _Ids:
 def _shell(width: float, depth: float, ids: _Ids) -> list[SceneObject]:
     floor_cat, wall_cat = CATEGORIES["Floor"], CATEGORIES["Wall"]
     t, h = WALL_THICKNESS, WALL_HEIGHT
-    floor = _new_object(FLOOR_ID, floor_cat, None, [width + 2 * t, depth + 2 * t, 0.05],
-                        _first_palette(floor_cat), [width / 2, depth / 2, -0.05], 0.0, parent=None)
+    floor = _new_object(
+        FLOOR_ID,
+        floor_cat,
+        None,
+        [width + 2 * t, depth + 2 * t, 0.05],
+        _first_palette(floor_cat),
+        [width / 2, depth / 2, -0.05],
+        0.0,
+        parent=None,
+    )
     walls = []
     wall_palette = _first_palette(wall_cat)
-    specs = [((width / 2, -t / 2), width + 2 * t, 0.0), ((width + t / 2, depth / 2), depth + 2 * t, math.pi / 2),
-             ((width / 2, depth + t / 2), width + 2 * t, math.pi), ((-t / 2, depth / 2), depth + 2 * t, -math.pi / 2)]
+    specs = [
+        ((width / 2, -t / 2), width + 2 * t, 0.0),
+        ((width + t / 2, depth / 2), depth + 2 * t, math.pi / 2),
+        ((width / 2, depth + t / 2), width + 2 * t, math.pi),
+        ((-t / 2, depth / 2), depth + 2 * t, -math.pi / 2),
+    ]
     for (cx, cy), length, yaw in specs:
-        walls.append(_new_object(ids("Wall"), wall_cat, None, [length, t, h], wall_palette, [cx, cy, 0.0], yaw,
-                                 parent=None))
+        walls.append(
+            _new_object(
+                ids("Wall"), wall_cat, None, [length, t, h], wall_palette, [cx, cy, 0.0], yaw, parent=None
+            )
+        )
     return [floor, *walls]
 
 
@@ -150,8 +189,18 @@ class _Layout:
             return False
         return not any(fp.overlaps(o, gap) for k, o in self.floor_prints.items() if k != ignore)
 
-    def add(self, cat: Category, variant: str | None, size: list[float], palette: dict[str, str],
-            cx: float, cy: float, z: float, yaw: float, parent: str | None = FLOOR_ID) -> SceneObject:
+    def add(
+        self,
+        cat: Category,
+        variant: str | None,
+        size: list[float],
+        palette: dict[str, str],
+        cx: float,
+        cy: float,
+        z: float,
+        yaw: float,
+        parent: str | None = FLOOR_ID,
+    ) -> SceneObject:
         obj = _new_object(self.ids(cat.name), cat, variant, size, palette, [cx, cy, z], yaw, parent)
         self.objects.append(obj)
         if cat.placement not in ("wall_mounted",) and parent == FLOOR_ID:
@@ -159,8 +208,15 @@ class _Layout:
         return obj
 
     # -- placement strategies -------------------------------------------------------
-    def place_wall(self, cat: Category, variant: str | None, size: list[float], palette: dict[str, str],
-                   corner: bool = False, tries: int = 40) -> SceneObject | None:
+    def place_wall(
+        self,
+        cat: Category,
+        variant: str | None,
+        size: list[float],
+        palette: dict[str, str],
+        corner: bool = False,
+        tries: int = 40,
+    ) -> SceneObject | None:
         sx, sy = size[0], size[1]
         for _ in range(tries):
             wall = int(self.rng.integers(4))
@@ -173,14 +229,19 @@ class _Layout:
             else:
                 t = float(self.rng.uniform(sx / 2 + 0.01, length - sx / 2 - 0.01))
             off = sy / 2 + 0.01
-            cx, cy = {0: (t, off), 1: (self.width - off, t), 2: (self.width - t, self.depth - off),
-                      3: (off, self.depth - t)}[wall]
+            cx, cy = {
+                0: (t, off),
+                1: (self.width - off, t),
+                2: (self.width - t, self.depth - off),
+                3: (off, self.depth - t),
+            }[wall]
             if self.free(Footprint.of(cx, cy, sx, sy, yaw), gap=0.08):
                 return self.add(cat, variant, size, palette, cx, cy, 0.0, yaw)
         return None
 
-    def place_open(self, cat: Category, variant: str | None, size: list[float], palette: dict[str, str],
-                   tries: int = 60) -> SceneObject | None:
+    def place_open(
+        self, cat: Category, variant: str | None, size: list[float], palette: dict[str, str], tries: int = 60
+    ) -> SceneObject | None:
         margin = 0.75
         for _ in range(tries):
             yaw = float(self.rng.integers(4)) * math.pi / 2
@@ -194,11 +255,19 @@ class _Layout:
                 return self.add(cat, variant, size, palette, cx, cy, 0.0, yaw)
         return None
 
-    def place_in_front(self, host: SceneObject, cat: Category, variant: str | None, size: list[float],
-                       palette: dict[str, str], distance: float, facing_host: bool) -> SceneObject | None:
+    def place_in_front(
+        self,
+        host: SceneObject,
+        cat: Category,
+        variant: str | None,
+        size: list[float],
+        palette: dict[str, str],
+        distance: float,
+        facing_host: bool,
+    ) -> SceneObject | None:
         """In front of ``host`` (a coffee table before a sofa, a chair at a desk)."""
         hyaw = _yaw(host)
-        fx, fy = -math.sin(hyaw), math.cos(hyaw)   # host's front direction (+y local)
+        fx, fy = -math.sin(hyaw), math.cos(hyaw)  # host's front direction (+y local)
         d = host.size[1] / 2 + distance + size[1] / 2
         hx, hy = _center_xy(host)
         for lateral in (0.0, -0.25, 0.25, -0.5, 0.5):
@@ -209,14 +278,20 @@ class _Layout:
                 return self.add(cat, variant, size, palette, cx, cy, 0.0, yaw)
         return None
 
-    def place_at_table(self, table: SceneObject, cat: Category, variant: str | None, size: list[float],
-                       palette: dict[str, str]) -> SceneObject | None:
+    def place_at_table(
+        self,
+        table: SceneObject,
+        cat: Category,
+        variant: str | None,
+        size: list[float],
+        palette: dict[str, str],
+    ) -> SceneObject | None:
         """A seat along one of the table's sides, facing it."""
         tyaw = _yaw(table)
         tx, ty = _center_xy(table)
         sides = []
         for k in range(4):
-            ang = tyaw + k * math.pi / 2       # k=0: front (+y local)
+            ang = tyaw + k * math.pi / 2  # k=0: front (+y local)
             half = table.size[1] / 2 if k % 2 == 0 else table.size[0] / 2
             along = table.size[0] if k % 2 == 0 else table.size[1]
             sides.append((ang, half, along))
@@ -225,17 +300,24 @@ class _Layout:
             ang, half, along = sides[int(k)]
             nx, ny = -math.sin(ang), math.cos(ang)
             for lateral in self.rng.uniform(-along / 3, along / 3, size=3):
-                d = half + size[1] / 2 - 0.12      # seats tuck slightly under the top
+                d = half + size[1] / 2 - 0.12  # seats tuck slightly under the top
                 cx, cy = tx + nx * d + ny * lateral, ty + ny * d - nx * lateral
-                yaw = ang + math.pi                # the seat's front faces the table
+                yaw = ang + math.pi  # the seat's front faces the table
                 fp = Footprint.of(cx, cy, size[0], size[1], yaw)
                 if self.free(fp, gap=0.04, ignore=table.id) and not fp.overlaps(
-                        self.floor_prints[table.id], gap=-0.13):
+                    self.floor_prints[table.id], gap=-0.13
+                ):
                     return self.add(cat, variant, size, palette, cx, cy, 0.0, yaw)
         return None
 
-    def place_on(self, host: SceneObject, cat: Category, variant: str | None, size: list[float],
-                 palette: dict[str, str]) -> SceneObject | None:
+    def place_on(
+        self,
+        host: SceneObject,
+        cat: Category,
+        variant: str | None,
+        size: list[float],
+        palette: dict[str, str],
+    ) -> SceneObject | None:
         """On the host's top surface, back towards the host's back (a TV on its stand)."""
         _, _, surfaces, _ = resolve_category(host)
         tops = [s for s in surfaces if not s.inside]
@@ -248,10 +330,14 @@ class _Layout:
         taken = self.on_top.setdefault(host.id, [])
         hyaw = _yaw(host)
         for _ in range(20):
-            lx = top.center[0] * host.size[0] + float(self.rng.uniform(-(span_x - size[0]) / 2, (span_x - size[0]) / 2))
+            lx = top.center[0] * host.size[0] + float(
+                self.rng.uniform(-(span_x - size[0]) / 2, (span_x - size[0]) / 2)
+            )
             ly = (top.center[1] - top.extent[1] / 2) * host.size[1] + size[1] / 2 + 0.01
-            if any(abs(lx - t_lx) < (size[0] + t.size[0]) / 2 + 0.03
-                   for t, t_lx in ((t, _local_x(host, t)) for t in taken)):
+            if any(
+                abs(lx - t_lx) < (size[0] + t.size[0]) / 2 + 0.03
+                for t, t_lx in ((t, _local_x(host, t)) for t in taken)
+            ):
                 continue
             hx, hy = _center_xy(host)
             c, s = math.cos(hyaw), math.sin(hyaw)
@@ -263,8 +349,15 @@ class _Layout:
             return obj
         return None
 
-    def place_mounted(self, cat: Category, variant: str | None, size: list[float], palette: dict[str, str],
-                      near: SceneObject | None = None, tries: int = 30) -> SceneObject | None:
+    def place_mounted(
+        self,
+        cat: Category,
+        variant: str | None,
+        size: list[float],
+        palette: dict[str, str],
+        near: SceneObject | None = None,
+        tries: int = 30,
+    ) -> SceneObject | None:
         """On a wall at the category's mount height; beside ``near`` when given (a mirror
         above the sink, a paper hanger by the toilet)."""
         for k in range(tries):
@@ -285,8 +378,12 @@ class _Layout:
             if any(abs(t - t2) < (size[0] + w2) / 2 + 0.15 for t2, w2 in self.mounted[wall]):
                 continue
             off = size[1] / 2 + 0.002
-            cx, cy = {0: (t, off), 1: (self.width - off, t), 2: (self.width - t, self.depth - off),
-                      3: (off, self.depth - t)}[wall]
+            cx, cy = {
+                0: (t, off),
+                1: (self.width - off, t),
+                2: (self.width - t, self.depth - off),
+                3: (off, self.depth - t),
+            }[wall]
             z = cat.mount_height
             # Low mounted things (a paper hanger) need the wall in front of them free.
             fp = Footprint.of(cx + nx * 0.05, cy + ny * 0.05, size[0], size[1] + 0.1, yaw)
@@ -320,20 +417,25 @@ def _local_x(host: SceneObject, obj: SceneObject) -> float:
     return math.cos(hyaw) * dx + math.sin(hyaw) * dy
 
 
-def nav_grid(aabbs: list[tuple[np.ndarray, np.ndarray]], width: float, depth: float,
-             radius: float = AGENT_RADIUS, cell: float = NAV_CELL) -> np.ndarray:
+def nav_grid(
+    aabbs: list[tuple[np.ndarray, np.ndarray]],
+    width: float,
+    depth: float,
+    radius: float = AGENT_RADIUS,
+    cell: float = NAV_CELL,
+) -> np.ndarray:
     """Boolean grid [ix, iy] of cells where the agent's centre may stand."""
     nx, ny = int(math.ceil(width / cell)), int(math.ceil(depth / cell))
     occ = np.zeros((nx, ny), bool)
     for lo, hi in aabbs:
-        if lo[2] > 1.7 or hi[2] < 0.05:   # above the agent's head or flat on the floor
+        if lo[2] > 1.7 or hi[2] < 0.05:  # above the agent's head or flat on the floor
             continue
         i0, j0 = int(math.floor(lo[0] / cell)), int(math.floor(lo[1] / cell))
         i1, j1 = int(math.ceil(hi[0] / cell)), int(math.ceil(hi[1] / cell))
-        occ[max(i0, 0):max(min(i1, nx), 0), max(j0, 0):max(min(j1, ny), 0)] = True
+        occ[max(i0, 0) : max(min(i1, nx), 0), max(j0, 0) : max(min(j1, ny), 0)] = True
     r = int(math.ceil(radius / cell))
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-    disk = (xx ** 2 + yy ** 2) <= r * r
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    disk = (xx**2 + yy**2) <= r * r
     blocked = ndimage.binary_dilation(occ, structure=disk)
     blocked[:r, :] = blocked[-r:, :] = True
     blocked[:, :r] = blocked[:, -r:] = True
@@ -355,12 +457,17 @@ def check_layout(layout: _Layout) -> str | None:
         if obj.type in ("Floor",) or obj.parent not in (FLOOR_ID, None):
             continue
         fp = Footprint.of(obj.position[0], obj.position[1], obj.size[0], obj.size[1], _yaw(obj))
-        aabbs.append((np.array([fp.x0, fp.y0, obj.position[2]]), np.array([fp.x1, fp.y1, obj.position[2] + obj.size[2]])))
+        aabbs.append(
+            (
+                np.array([fp.x0, fp.y0, obj.position[2]]),
+                np.array([fp.x1, fp.y1, obj.position[2] + obj.size[2]]),
+            )
+        )
     free = nav_grid(aabbs, layout.width, layout.depth)
     main = main_component(free)
     if free.sum() == 0 or main.sum() < 0.9 * free.sum():
         return "walkable floor is split into disconnected areas"
-    if main.sum() * NAV_CELL ** 2 < 0.25 * layout.width * layout.depth:
+    if main.sum() * NAV_CELL**2 < 0.25 * layout.width * layout.depth:
         return "too little walkable floor"
     reach = int(round(REACH / NAV_CELL))
     for obj in layout.objects:
@@ -401,7 +508,9 @@ def layout_furniture(room_type: str, seed: int, max_attempts: int = 60) -> _Layo
             if reason is None:
                 return layout
             last_reason = reason
-    raise LayoutError(f"no valid {room_type} layout for seed {seed} after {max_attempts} attempts: {last_reason}")
+    raise LayoutError(
+        f"no valid {room_type} layout for seed {seed} after {max_attempts} attempts: {last_reason}"
+    )
 
 
 def _placement_order(entry: dict) -> int:
@@ -439,11 +548,15 @@ def _place_one(layout: _Layout, cat: Category, entry: dict) -> SceneObject | Non
                 return obj
         return layout.place_wall(cat, variant, size, palette)
     if cat.name == "CoffeeTable" and layout.of_type("Sofa"):
-        obj = layout.place_in_front(layout.of_type("Sofa")[0], cat, variant, size, palette, 0.4, facing_host=False)
+        obj = layout.place_in_front(
+            layout.of_type("Sofa")[0], cat, variant, size, palette, 0.4, facing_host=False
+        )
         if obj is not None:
             return obj
     if cat.name == "Ottoman" and layout.of_type("ArmChair"):
-        obj = layout.place_in_front(layout.of_type("ArmChair")[0], cat, variant, size, palette, 0.3, facing_host=False)
+        obj = layout.place_in_front(
+            layout.of_type("ArmChair")[0], cat, variant, size, palette, 0.3, facing_host=False
+        )
         if obj is not None:
             return obj
     placement = cat.placement
@@ -452,13 +565,22 @@ def _place_one(layout: _Layout, cat: Category, entry: dict) -> SceneObject | Non
         host = hosts[int(rng.integers(len(hosts)))] if hosts else None
         return layout.place_mounted(cat, variant, size, palette, near=host)
     if placement == "open":
-        return layout.place_open(cat, variant, size, palette) or layout.place_wall(cat, variant, size, palette)
+        return layout.place_open(cat, variant, size, palette) or layout.place_wall(
+            cat, variant, size, palette
+        )
     return layout.place_wall(cat, variant, size, palette, corner=(placement == "corner"))
 
 
 # ---------------------------------------------------------------------- small objects
-def _spot_on(world: World, host: SceneObject, size: list[float], rng: np.random.Generator,
-             taken: list[tuple[float, float, float]], inside_ok: bool, tries: int = 12) -> tuple[float, float, float] | None:
+def _spot_on(
+    world: World,
+    host: SceneObject,
+    size: list[float],
+    rng: np.random.Generator,
+    taken: list[tuple[float, float, float]],
+    inside_ok: bool,
+    tries: int = 12,
+) -> tuple[float, float, float] | None:
     """A free (x, y, z) on one of the host's surfaces with headroom for the object."""
     surfaces = world.surfaces_world(host.id, include_inside=inside_ok)
     if not surfaces:
@@ -486,8 +608,9 @@ def _spot_on(world: World, host: SceneObject, size: list[float], rng: np.random.
     return None
 
 
-def _floor_spot(free: np.ndarray, size: list[float], rng: np.random.Generator,
-                taken: list[tuple[float, float, float]]) -> tuple[float, float, float] | None:
+def _floor_spot(
+    free: np.ndarray, size: list[float], rng: np.random.Generator, taken: list[tuple[float, float, float]]
+) -> tuple[float, float, float] | None:
     # Keep floor objects off the walkway: cells next to blocked ones.
     edge = free & ~ndimage.binary_erosion(free, iterations=3)
     cells = np.argwhere(edge)
@@ -564,25 +687,46 @@ def populate(world: World, scene: Scene, rng: np.random.Generator, version: int 
         else:
             hosts = receptacles[rtype]
             # version 1: one instance at random, 12 spots; version 2: every instance, 30 spots each
-            order = [int(rng.integers(len(hosts)))] if version == 1 else [int(k) for k in rng.permutation(len(hosts))]
+            order = (
+                [int(rng.integers(len(hosts)))]
+                if version == 1
+                else [int(k) for k in rng.permutation(len(hosts))]
+            )
             for k in order:
                 host_id = hosts[k].id
-                spot = _spot_on(world, hosts[k], size, rng, taken.setdefault(host_id, []), inside_ok=True,
-                                tries=12 if version == 1 else 30)
+                spot = _spot_on(
+                    world,
+                    hosts[k],
+                    size,
+                    rng,
+                    taken.setdefault(host_id, []),
+                    inside_ok=True,
+                    tries=12 if version == 1 else 30,
+                )
                 if spot is not None:
                     break
         if spot is None:
             continue
         x, y, z = spot
         taken[host_id].append((x, y, 0.5 * math.hypot(size[0], size[1])))
-        obj = _new_object(ids(cat.name), cat, variant, size, palette, [x, y, z + 0.003],
-                          float(rng.uniform(-math.pi, math.pi)), parent=host_id)
+        obj = _new_object(
+            ids(cat.name),
+            cat,
+            variant,
+            size,
+            palette,
+            [x, y, z + 0.003],
+            float(rng.uniform(-math.pi, math.pi)),
+            parent=host_id,
+        )
         obj.parent_type = "Floor" if host_id == FLOOR_ID else rtype
         placed.append(obj)
     return placed
 
 
-def generate_scene(room_type: str, seed: int, world: World | None = None, version: int | None = None) -> Scene:
+def generate_scene(
+    room_type: str, seed: int, world: World | None = None, version: int | None = None
+) -> Scene:
     """The tidy room for (room_type, seed), settled by physics. Deterministic.
 
     ``version``: the generator's version (:func:`rooms_version`; None: $TIDEE_ROOMS, else 1)."""
@@ -590,8 +734,14 @@ def generate_scene(room_type: str, seed: int, world: World | None = None, versio
     if room_type not in ROOM_TEMPLATES:
         raise ValueError(f"room_type must be one of {sorted(ROOM_TEMPLATES)}, got {room_type!r}")
     layout = layout_furniture(room_type, seed)
-    scene = Scene(room_type=room_type, seed=int(seed), width=layout.width, depth=layout.depth,
-                  wall_height=WALL_HEIGHT, objects=list(layout.objects))
+    scene = Scene(
+        room_type=room_type,
+        seed=int(seed),
+        width=layout.width,
+        depth=layout.depth,
+        wall_height=WALL_HEIGHT,
+        objects=list(layout.objects),
+    )
     own = world is None
     world = world or World(renderer="tiny")
     try:

@@ -19,6 +19,8 @@ SCENE_FORMAT_VERSION = 1
 def quat_yaw(q: list[float] | tuple[float, ...]) -> float:
     """Yaw (rotation about z, radians) of a quaternion (x, y, z, w)."""
     return math.atan2(2 * (q[3] * q[2] + q[0] * q[1]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
+
+
 FLOOR_ID = "Floor"
 
 
@@ -31,15 +33,15 @@ class SceneObject:
     receptacle: bool
     openable: bool
     is_open: bool
-    parent: str | None            # id of the supporting/containing object, or "Floor"
+    parent: str | None  # id of the supporting/containing object, or "Floor"
     parent_type: str | None
-    position: list[float]         # bottom-centre of the bounding box, world frame
-    orientation: list[float]      # quaternion x, y, z, w
-    size: list[float]             # bounding-box size (sx, sy, sz) in the object frame
+    position: list[float]  # bottom-centre of the bounding box, world frame
+    orientation: list[float]  # quaternion x, y, z, w
+    size: list[float]  # bounding-box size (sx, sy, sz) in the object frame
     palette: dict[str, str] = field(default_factory=dict)
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "SceneObject":
+    def from_dict(d: dict[str, Any]) -> SceneObject:
         known = {f for f in SceneObject.__dataclass_fields__}
         missing = known - set(d) - {"palette"}
         if missing:
@@ -53,7 +55,7 @@ class MessRecord:
 
     id: str
     type: str
-    how: str                      # "drop" | "throw"
+    how: str  # "drop" | "throw"
     original_parent: str | None
     original_parent_type: str | None
     original_position: list[float]
@@ -69,8 +71,8 @@ class MessRecord:
 class Scene:
     room_type: str
     seed: int
-    width: float                  # room extent along x (metres)
-    depth: float                  # room extent along y
+    width: float  # room extent along x (metres)
+    depth: float  # room extent along y
     wall_height: float
     objects: list[SceneObject]
     mess_index: int | None = None
@@ -84,13 +86,17 @@ class Scene:
         return asdict(self)
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "Scene":
+    def from_dict(d: dict[str, Any]) -> Scene:
         if d.get("format_version") != SCENE_FORMAT_VERSION:
-            raise ValueError(f"scene format_version must be {SCENE_FORMAT_VERSION}, "
-                             f"got {d.get('format_version')!r}")
+            raise ValueError(
+                f"scene format_version must be {SCENE_FORMAT_VERSION}, got {d.get('format_version')!r}"
+            )
         return Scene(
-            room_type=d["room_type"], seed=int(d["seed"]), width=float(d["width"]),
-            depth=float(d["depth"]), wall_height=float(d["wall_height"]),
+            room_type=d["room_type"],
+            seed=int(d["seed"]),
+            width=float(d["width"]),
+            depth=float(d["depth"]),
+            wall_height=float(d["wall_height"]),
             objects=[SceneObject.from_dict(o) for o in d["objects"]],
             mess_index=d.get("mess_index"),
             mess=[MessRecord(**m) for m in d.get("mess", [])],
@@ -107,6 +113,6 @@ class Scene:
         os.replace(tmp, path)
 
     @staticmethod
-    def load(path: str) -> "Scene":
+    def load(path: str) -> Scene:
         with open(path) as f:
             return Scene.from_dict(json.load(f))

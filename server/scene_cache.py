@@ -42,20 +42,22 @@ def default_cache_dir() -> Path:
     return Path(base) / "tidee" / "scenes"
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def generator_fingerprint(version: int) -> str:
     """A digest of everything that decides what a generated (and messed-up) scene is."""
     h = hashlib.sha256(f"rooms v{version}".encode())
     catalog = _SERVER_DIR / "catalog"
     files = [_SERVER_DIR / name for name in _SCENE_SOURCES]
-    files += sorted(p for p in catalog.rglob("*") if p.suffix in (".py", ".json") and "__pycache__" not in p.parts)
+    files += sorted(
+        p for p in catalog.rglob("*") if p.suffix in (".py", ".json") and "__pycache__" not in p.parts
+    )
     for p in files:
         h.update(str(p.relative_to(_SERVER_DIR)).encode())
         h.update(p.read_bytes())
     for dist in ("pybullet", "numpy"):
         try:
             h.update(f"{dist}={metadata.version(dist)}".encode())
-        except metadata.PackageNotFoundError:   # pragma: no cover - both are dependencies
+        except metadata.PackageNotFoundError:  # pragma: no cover - both are dependencies
             h.update(f"{dist}=?".encode())
     return h.hexdigest()[:16]
 
@@ -86,7 +88,11 @@ class SceneCache:
             with gzip.open(path, "rt") as f:
                 entry = json.load(f)
             scene = entry["scene"]
-            ok = entry.get("sha256") == _digest(scene) and entry.get("key") == [room_type, int(seed), mess_index]
+            ok = entry.get("sha256") == _digest(scene) and entry.get("key") == [
+                room_type,
+                int(seed),
+                mess_index,
+            ]
         except (FileNotFoundError, NotADirectoryError):
             self.misses += 1
             return None
@@ -105,8 +111,12 @@ class SceneCache:
     def store(self, room_type: str, seed: int, mess_index: int | None, scene: dict[str, Any]) -> None:
         """Write atomically; a cache that cannot be written (read-only disk) only costs speed."""
         path = self.path(room_type, seed, mess_index)
-        entry = {"key": [room_type, int(seed), mess_index], "fingerprint": self.fingerprint,
-                 "sha256": _digest(scene), "scene": scene}
+        entry = {
+            "key": [room_type, int(seed), mess_index],
+            "fingerprint": self.fingerprint,
+            "sha256": _digest(scene),
+            "scene": scene,
+        }
         tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -50,15 +50,25 @@ import queue
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import zenoh
 
 from tidee.protocol import keys
 from tidee.protocol.codec import ProtocolError, decode, encode
-from tidee.protocol.messages import (CloseReply, CloseRequest, ErrorCode, ErrorReply, Observation,
-                                     ResetRequest, StateReply, StateRequest, StepRequest)
+from tidee.protocol.messages import (
+    CloseReply,
+    CloseRequest,
+    ErrorCode,
+    ErrorReply,
+    Observation,
+    ResetRequest,
+    StateReply,
+    StateRequest,
+    StepRequest,
+)
 from tidee.protocol.transport import EpisodeLike
 from tidee.protocol.zenoh_config import make_config
 from tidee.server.splits import check_mess_index
@@ -66,26 +76,30 @@ from tidee.server.workers import EpisodeProcesses, available_cores
 
 log = logging.getLogger("tidee.server")
 
-REQUEST_TYPES: dict[str, type] = {"reset": ResetRequest, "step": StepRequest, "state": StateRequest,
-                                  "close": CloseRequest}
+REQUEST_TYPES: dict[str, type] = {
+    "reset": ResetRequest,
+    "step": StepRequest,
+    "state": StateRequest,
+    "close": CloseRequest,
+}
 RENDERERS = ("auto", "egl", "tiny")
-INBOX_CAPACITY = 1024                  # queries or liveliness events waiting for a dispatcher
-DEPARTED_MEMORY = 4096                 # how many vanished or reclaimed session ids are remembered
-REAPER_PERIOD_S = 5.0                  # the idle reaper looks this often (at timeout/4 for short timeouts)
+INBOX_CAPACITY = 1024  # queries or liveliness events waiting for a dispatcher
+DEPARTED_MEMORY = 4096  # how many vanished or reclaimed session ids are remembered
+REAPER_PERIOD_S = 5.0  # the idle reaper looks this often (at timeout/4 for short timeouts)
 
 
 @dataclass
 class ServerConfig:
-    endpoint: str | None = None        # listen here (default: TIDEE_ZENOH_ENDPOINT, else loopback:7447)
-    router: str | None = None          # or: client mode through this Zenoh router (TIDEE_ZENOH_ROUTER)
+    endpoint: str | None = None  # listen here (default: TIDEE_ZENOH_ENDPOINT, else loopback:7447)
+    router: str | None = None  # or: client mode through this Zenoh router (TIDEE_ZENOH_ROUTER)
     max_sessions: int = 16
-    renderer: str = "tiny"             # auto | egl | tiny; tiny: the frames the shipped detector was trained on
+    renderer: str = "tiny"  # auto | egl | tiny; tiny: the frames the shipped detector was trained on
     server_id: str = "sim0"
-    processes: int = 0                 # child processes running episodes; 0: one per available core
-    workers: int = 1                   # threads running episodes when a factory is given (module docstring)
-    max_request_bytes: int = 1 << 20   # requests carry no arrays
-    max_sessions_per_client: int = 4   # sessions one client (``client_of``) may hold at once
-    idle_timeout_s: float = 300.0      # free a session after this long without a request; 0: never
+    processes: int = 0  # child processes running episodes; 0: one per available core
+    workers: int = 1  # threads running episodes when a factory is given (module docstring)
+    max_request_bytes: int = 1 << 20  # requests carry no arrays
+    max_sessions_per_client: int = 4  # sessions one client (``client_of``) may hold at once
+    idle_timeout_s: float = 300.0  # free a session after this long without a request; 0: never
 
     def __post_init__(self) -> None:
         keys.check_id("server_id", self.server_id)
@@ -115,8 +129,8 @@ def client_of(query: zenoh.Query, session: str) -> str:
 
 @dataclass
 class _Job:
-    session: str | None                # None when the key did not parse
-    op: str                            # reset | step | state | close | gone (client token deleted) | idle
+    session: str | None  # None when the key did not parse
+    op: str  # reset | step | state | close | gone (client token deleted) | idle
     query: zenoh.Query | None = None
     payload: bytes = b""
     refusal: ProtocolError | None = None  # decided on receipt (a bad key, an oversized payload)
@@ -125,19 +139,19 @@ class _Job:
 
 @dataclass
 class _Pin:
-    worker: int                        # the worker (and so the child process) that serves the session
-    pending: int = 0                   # its jobs queued or running
+    worker: int  # the worker (and so the child process) that serves the session
+    pending: int = 0  # its jobs queued or running
 
 
 @dataclass
 class _Session:
     worker: int
-    client: str                        # client_of() its first reset
-    episode: EpisodeLike | None        # None while the episode is being built
-    token: Any = None                  # liveliness: tidee/alive/session/{server}/{session}
+    client: str  # client_of() its first reset
+    episode: EpisodeLike | None  # None while the episode is being built
+    token: Any = None  # liveliness: tidee/alive/session/{server}/{session}
     publisher: zenoh.Publisher | None = None
     last_request: float = dataclasses.field(default_factory=time.monotonic)  # receipt or answer
-    reclaiming: bool = False           # an idle job is queued for it
+    reclaiming: bool = False  # an idle job is queued for it
 
 
 class SimServer:
@@ -149,12 +163,16 @@ class SimServer:
     in this process (``config.workers`` threads). The server stops the processes it uses.
     """
 
-    def __init__(self, config: ServerConfig,
-                 episode_factory: Callable[[], EpisodeLike] | EpisodeProcesses | None = None) -> None:
+    def __init__(
+        self,
+        config: ServerConfig,
+        episode_factory: Callable[[], EpisodeLike] | EpisodeProcesses | None = None,
+    ) -> None:
         self.config = config
         if episode_factory is None:
-            episode_factory = EpisodeProcesses(config.process_count(), config.renderer,
-                                               name=f"tidee-sim-{config.server_id}")
+            episode_factory = EpisodeProcesses(
+                config.process_count(), config.renderer, name=f"tidee-sim-{config.server_id}"
+            )
         self.processes: EpisodeProcesses | None = None
         if isinstance(episode_factory, EpisodeProcesses):
             self.processes = episode_factory
@@ -165,7 +183,7 @@ class SimServer:
             self._open = lambda worker: factory()
             workers = config.workers
         self._sessions: dict[str, _Session] = {}
-        self._lock = threading.Lock()              # guards _sessions, _departed, _reclaimed, _pins, _load
+        self._lock = threading.Lock()  # guards _sessions, _departed, _reclaimed, _pins, _load
         # Sessions whose client's token went away: a request the client sent just before it
         # vanished must not create a session nobody will ever free.
         self._departed: OrderedDict[str, None] = OrderedDict()
@@ -175,17 +193,22 @@ class SimServer:
         self._reaper: threading.Thread | None = None
         # Which worker serves a session: set by its first job, kept while it lives or has jobs queued.
         self._pins: dict[str, _Pin] = {}
-        self._load = [0] * workers                 # pinned sessions per worker
-        self._queues: list[queue.SimpleQueue[_Job | None]] = [
-            queue.SimpleQueue() for _ in range(workers)]
-        self._workers = [threading.Thread(target=self._work, args=(i,), name=f"tidee-sim-worker-{i}",
-                                          daemon=True) for i in range(workers)]
+        self._load = [0] * workers  # pinned sessions per worker
+        self._queues: list[queue.SimpleQueue[_Job | None]] = [queue.SimpleQueue() for _ in range(workers)]
+        self._workers = [
+            threading.Thread(target=self._work, args=(i,), name=f"tidee-sim-worker-{i}", daemon=True)
+            for i in range(workers)
+        ]
         self._z: zenoh.Session | None = None
-        self._inbound: list[Any] = []              # queryable + liveliness subscriber
+        self._inbound: list[Any] = []  # queryable + liveliness subscriber
         self._dispatchers: list[threading.Thread] = []
         self._server_token: Any = None
         self._handlers: dict[str, Callable[[Any], Any]] = {
-            "reset": self._reset, "step": self._step, "state": self._state, "close": self._close}
+            "reset": self._reset,
+            "step": self._step,
+            "state": self._state,
+            "close": self._close,
+        }
 
     # --- lifecycle ----------------------------------------------------------------------
     def start(self) -> SimServer:
@@ -193,17 +216,26 @@ class SimServer:
         self._z = zenoh.open(make_config(listen=True, endpoint=cfg.endpoint, router=cfg.router))
         for worker in self._workers:
             worker.start()
-        queries = self._z.declare_queryable(keys.sim_op_wildcard(cfg.server_id),
-                                            zenoh.handlers.FifoChannel(INBOX_CAPACITY))
-        clients = self._z.liveliness().declare_subscriber(keys.alive_clients_wildcard(cfg.server_id),
-                                                          zenoh.handlers.FifoChannel(INBOX_CAPACITY),
-                                                          history=True)
+        queries = self._z.declare_queryable(
+            keys.sim_op_wildcard(cfg.server_id), zenoh.handlers.FifoChannel(INBOX_CAPACITY)
+        )
+        clients = self._z.liveliness().declare_subscriber(
+            keys.alive_clients_wildcard(cfg.server_id),
+            zenoh.handlers.FifoChannel(INBOX_CAPACITY),
+            history=True,
+        )
         self._inbound = [queries, clients]
         self._dispatchers = [
-            threading.Thread(target=self._dispatch, args=(queries, self._on_query), daemon=True,
-                             name="tidee-sim-queries"),
-            threading.Thread(target=self._dispatch, args=(clients, self._on_client_liveliness), daemon=True,
-                             name="tidee-sim-clients")]
+            threading.Thread(
+                target=self._dispatch, args=(queries, self._on_query), daemon=True, name="tidee-sim-queries"
+            ),
+            threading.Thread(
+                target=self._dispatch,
+                args=(clients, self._on_client_liveliness),
+                daemon=True,
+                name="tidee-sim-clients",
+            ),
+        ]
         for dispatcher in self._dispatchers:
             dispatcher.start()
         self._stopping.clear()
@@ -213,8 +245,13 @@ class SimServer:
         # Declared last: a client that sees this token can already reach the queryable.
         self._server_token = self._z.liveliness().declare_token(keys.alive_server(cfg.server_id))
         where = "a simulator process each" if self.processes is not None else "episodes in this process"
-        log.info("tidee server %r ready: max %d sessions, %d worker(s), %s", cfg.server_id, cfg.max_sessions,
-                 len(self._workers), where)
+        log.info(
+            "tidee server %r ready: max %d sessions, %d worker(s), %s",
+            cfg.server_id,
+            cfg.max_sessions,
+            len(self._workers),
+            where,
+        )
         return self
 
     def stop(self) -> None:
@@ -266,8 +303,11 @@ class SimServer:
         size, limit = (len(query.payload) if query.payload is not None else 0), self.config.max_request_bytes
         refusal, payload = None, b""
         if size > limit:
-            refusal = ProtocolError(ErrorCode.oversized, f"request is {size} bytes, the limit is {limit} "
-                                                         f"(max_request_bytes); requests carry no arrays")
+            refusal = ProtocolError(
+                ErrorCode.oversized,
+                f"request is {size} bytes, the limit is {limit} "
+                f"(max_request_bytes); requests carry no arrays",
+            )
         elif query.payload is not None:
             payload = query.payload.to_bytes()
         try:
@@ -365,8 +405,10 @@ class SimServer:
             raise job.refusal
         request = decode(job.payload, max_bytes=self.config.max_request_bytes, expected=REQUEST_TYPES[job.op])
         if request.session != job.session:
-            raise ProtocolError(ErrorCode.invalid_field, f"field 'session' is {request.session!r} but "
-                                                         f"the key names session {job.session!r}")
+            raise ProtocolError(
+                ErrorCode.invalid_field,
+                f"field 'session' is {request.session!r} but the key names session {job.session!r}",
+            )
         return request
 
     def _send(self, job: _Job, reply: Any, encoding: str) -> None:
@@ -430,19 +472,22 @@ class SimServer:
             entry = self._sessions.get(session)
             if entry is None and create_for is not None:
                 if session in self._departed:
-                    raise ProtocolError(ErrorCode.unknown_session,
-                                        f"the client of session {session!r} has disconnected")
+                    raise ProtocolError(
+                        ErrorCode.unknown_session, f"the client of session {session!r} has disconnected"
+                    )
                 if len(self._sessions) >= cfg.max_sessions:
                     raise ProtocolError(
                         ErrorCode.server_busy,
                         f"server {cfg.server_id!r} holds {len(self._sessions)} sessions, its "
-                        f"maximum (max_sessions); close one or start another server")
+                        f"maximum (max_sessions); close one or start another server",
+                    )
                 held = sum(1 for other in self._sessions.values() if other.client == create_for)
                 if held >= cfg.max_sessions_per_client:
                     raise ProtocolError(
                         ErrorCode.server_busy,
                         f"{create_for} holds {held} sessions on server {cfg.server_id!r}, its quota "
-                        f"(max_sessions_per_client={cfg.max_sessions_per_client}); close one of them first")
+                        f"(max_sessions_per_client={cfg.max_sessions_per_client}); close one of them first",
+                    )
                 self._reclaimed.pop(session, None)  # a reset starts afresh, as after a close
                 worker = self._pins[session].worker
                 entry = self._sessions[session] = _Session(worker, create_for, episode=None)  # reserve a slot
@@ -450,9 +495,10 @@ class SimServer:
         if reclaimed is not None:
             raise ProtocolError(ErrorCode.unknown_session, reclaimed)
         if entry is None:
-            raise ProtocolError(ErrorCode.unknown_session,
-                                f"no session {session!r} on server {cfg.server_id!r}: "
-                                f"send reset first (or it was closed)")
+            raise ProtocolError(
+                ErrorCode.unknown_session,
+                f"no session {session!r} on server {cfg.server_id!r}: send reset first (or it was closed)",
+            )
         if entry.episode is None:
             try:
                 entry.episode = self._open(entry.worker)
@@ -463,8 +509,9 @@ class SimServer:
             assert self._z is not None
             server_id = self.config.server_id
             entry.token = self._z.liveliness().declare_token(keys.alive_session(server_id, session))
-            entry.publisher = self._z.declare_publisher(keys.observations(server_id, session),
-                                                        congestion_control=zenoh.CongestionControl.DROP)
+            entry.publisher = self._z.declare_publisher(
+                keys.observations(server_id, session), congestion_control=zenoh.CongestionControl.DROP
+            )
             log.info("session %s: opened (%d held)", session, len(self.sessions))
         return entry.episode
 
@@ -474,9 +521,14 @@ class SimServer:
         while not self._stopping.wait(min(timeout / 4, REAPER_PERIOD_S)):
             now = time.monotonic()
             with self._lock:
-                idle = [session for session, entry in self._sessions.items()
-                        if entry.episode is not None and not entry.reclaiming
-                        and now - entry.last_request >= timeout and self._pins[session].pending == 0]
+                idle = [
+                    session
+                    for session, entry in self._sessions.items()
+                    if entry.episode is not None
+                    and not entry.reclaiming
+                    and now - entry.last_request >= timeout
+                    and self._pins[session].pending == 0
+                ]
                 for session in idle:
                     self._sessions[session].reclaiming = True
             for session in idle:  # on the session's worker: only that thread touches its episode
@@ -493,9 +545,11 @@ class SimServer:
             idle_s = time.monotonic() - entry.last_request
             if idle_s < timeout:
                 return
-            self._reclaimed[session] = (f"session {session!r} was reclaimed after {timeout:g} s idle "
-                                        f"(idle_timeout_s on server {self.config.server_id!r}); "
-                                        f"send reset to start a new episode")
+            self._reclaimed[session] = (
+                f"session {session!r} was reclaimed after {timeout:g} s idle "
+                f"(idle_timeout_s on server {self.config.server_id!r}); "
+                f"send reset to start a new episode"
+            )
             while len(self._reclaimed) > DEPARTED_MEMORY:
                 self._reclaimed.popitem(last=False)
         if self._free(session):
@@ -518,8 +572,9 @@ class SimServer:
         return True
 
 
-def serve(config: ServerConfig,
-          episode_factory: Callable[[], EpisodeLike] | EpisodeProcesses | None = None) -> None:
+def serve(
+    config: ServerConfig, episode_factory: Callable[[], EpisodeLike] | EpisodeProcesses | None = None
+) -> None:
     """Run a server until SIGINT or SIGTERM, then shut it down cleanly."""
     from tidee.launch import wait_for_signal
 

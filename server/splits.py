@@ -53,8 +53,10 @@ def check_mess_index(seed: int, mess_index: int | None) -> None:
     if mess_index is None or limit is None:
         return
     if not 0 <= mess_index < limit:
-        raise ValueError(f"mess_index {mess_index} is out of range: {split_of(seed)} room seed {seed} has messy "
-                         f"configurations 0-{limit - 1}")
+        raise ValueError(
+            f"mess_index {mess_index} is out of range: {split_of(seed)} room seed {seed} has messy "
+            f"configurations 0-{limit - 1}"
+        )
 
 
 def rooms(split: str) -> list[tuple[str, int]]:

@@ -35,13 +35,14 @@ import os
 import pickle
 import signal
 import traceback
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from tidee.protocol.messages import Action, EpisodeSpec, Observation
 
 log = logging.getLogger("tidee.server")
 
-EpisodeMaker = Callable[[], Any]      # picklable (a module-level class or function, or a partial of one)
+EpisodeMaker = Callable[[], Any]  # picklable (a module-level class or function, or a partial of one)
 _CONTEXT = multiprocessing.get_context("spawn")
 _STOP_GRACE_S = 5.0
 _OPS = ("reset", "step", "state")
@@ -67,8 +68,9 @@ class _RemoteTraceback(Exception):
 
 
 # --- the child ------------------------------------------------------------------------------
-def _child_main(conn: multiprocessing.connection.Connection, renderer: str,
-                make_episode: EpisodeMaker | None) -> None:
+def _child_main(
+    conn: multiprocessing.connection.Connection, renderer: str, make_episode: EpisodeMaker | None
+) -> None:
     """Serve requests from ``conn`` until told to stop (``None``) or the parent goes away."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # PyBullet keeps about 0.3 MB of every client it ever connected, so a real Episode (which
@@ -78,6 +80,7 @@ def _child_main(conn: multiprocessing.connection.Connection, renderer: str,
     spares: list[Any] = []
     if make_episode is None:
         from tidee.server.episode import Episode, SceneLibrary
+
         library = SceneLibrary()
 
         def make_episode() -> Any:
@@ -87,7 +90,7 @@ def _child_main(conn: multiprocessing.connection.Connection, renderer: str,
     while True:
         try:
             request = conn.recv()
-        except (EOFError, OSError):   # the parent is gone
+        except (EOFError, OSError):  # the parent is gone
             break
         if request is None:
             break
@@ -115,8 +118,13 @@ def _child_main(conn: multiprocessing.connection.Connection, renderer: str,
         except (BrokenPipeError, EOFError):
             break
         except Exception as e:  # the value would not pickle: say so instead of leaving the parent waiting
-            conn.send((False, RemoteEpisodeError(f"cannot send the {op} result to the server: "
-                                                 f"{type(e).__name__}: {e}"), traceback.format_exc()))
+            conn.send(
+                (
+                    False,
+                    RemoteEpisodeError(f"cannot send the {op} result to the server: {type(e).__name__}: {e}"),
+                    traceback.format_exc(),
+                )
+            )
     for episode in [*episodes.values(), *spares]:
         try:
             episode.close()
@@ -144,16 +152,17 @@ class EpisodeProcess:
     with ``renderer`` and the child's shared ``SceneLibrary``.
     """
 
-    def __init__(self, renderer: str = "tiny", make_episode: EpisodeMaker | None = None,
-                 name: str = "tidee-sim") -> None:
+    def __init__(
+        self, renderer: str = "tiny", make_episode: EpisodeMaker | None = None, name: str = "tidee-sim"
+    ) -> None:
         self.renderer = renderer
         self.make_episode = make_episode
         self.name = name
-        self.generation = 0                       # bumped at every start: episodes of a dead child are stale
-        self._process: Any = None                 # multiprocessing.Process
+        self.generation = 0  # bumped at every start: episodes of a dead child are stale
+        self._process: Any = None  # multiprocessing.Process
         self._conn: multiprocessing.connection.Connection | None = None
         self._ids = itertools.count()
-        self._deaths: dict[int, str] = {}         # generation -> how that child ended
+        self._deaths: dict[int, str] = {}  # generation -> how that child ended
 
     @property
     def pid(self) -> int | None:
@@ -179,7 +188,7 @@ class EpisodeProcess:
         try:
             self._conn.send((op, episode_id, args, kwargs))
             ok, value, *child_traceback = self._conn.recv()
-        except (EOFError, OSError):   # BrokenPipeError, ConnectionResetError: the child is gone
+        except (EOFError, OSError):  # BrokenPipeError, ConnectionResetError: the child is gone
             self._reap()
             raise self._died_error(generation) from None
         if ok:
@@ -198,8 +207,12 @@ class EpisodeProcess:
         if process is not None:
             process.join(_STOP_GRACE_S)
             if process.is_alive():
-                log.warning("%s (pid %d) did not exit in %.0f s; terminating it", self.name, process.pid,
-                            _STOP_GRACE_S)
+                log.warning(
+                    "%s (pid %d) did not exit in %.0f s; terminating it",
+                    self.name,
+                    process.pid,
+                    _STOP_GRACE_S,
+                )
                 process.terminate()
                 process.join(2.0)
             if process.is_alive():
@@ -210,10 +223,14 @@ class EpisodeProcess:
     def _start(self) -> None:
         self._reap()
         parent_end, child_end = _CONTEXT.Pipe()
-        process = _CONTEXT.Process(target=_child_main, args=(child_end, self.renderer, self.make_episode),
-                                   name=self.name, daemon=True)
+        process = _CONTEXT.Process(
+            target=_child_main,
+            args=(child_end, self.renderer, self.make_episode),
+            name=self.name,
+            daemon=True,
+        )
         process.start()
-        child_end.close()   # else the parent's copy keeps the pipe open and a dead child is never noticed
+        child_end.close()  # else the parent's copy keeps the pipe open and a dead child is never noticed
         self._process, self._conn = process, parent_end
         self.generation += 1
         log.info("%s: started simulator process pid %d", self.name, process.pid)
@@ -227,21 +244,24 @@ class EpisodeProcess:
         if process is None:
             return
         process.join(1.0)
-        if process.is_alive():   # its pipe broke but it runs on: it can serve nobody now
+        if process.is_alive():  # its pipe broke but it runs on: it can serve nobody now
             process.kill()
             process.join()
         code = process.exitcode
         how = f"killed by {_signal_name(-code)}" if code < 0 else f"exit code {code}"
-        self._deaths[self.generation] = (f"{self.name} (pid {process.pid}) "
-                                         + ("was stopped" if stopping else f"died: {how}"))
+        self._deaths[self.generation] = f"{self.name} (pid {process.pid}) " + (
+            "was stopped" if stopping else f"died: {how}"
+        )
         if not stopping:
             log.error("simulator process %s", self._deaths[self.generation])
         process.close()
 
     def _died_error(self, generation: int) -> EpisodeProcessDied:
         how = self._deaths.get(generation, f"{self.name} is not running")
-        return EpisodeProcessDied(f"the simulator process that held this episode is gone ({how}); the "
-                                  f"episode is lost: send reset to start it again in a new process")
+        return EpisodeProcessDied(
+            f"the simulator process that held this episode is gone ({how}); the "
+            f"episode is lost: send reset to start it again in a new process"
+        )
 
 
 class RemoteEpisode:
@@ -256,7 +276,7 @@ class RemoteEpisode:
 
     def reset(self, spec: EpisodeSpec, session: str = "local", ground_truth: bool = False) -> Observation:
         if self.generation != self.process.generation or not self.process.alive:
-            self._reopen()   # its child died: start over in a fresh one, as a reset starts over anyway
+            self._reopen()  # its child died: start over in a fresh one, as a reset starts over anyway
         return self._call("reset", spec, session=session, ground_truth=ground_truth)
 
     def step(self, action: Action, ground_truth: bool = False) -> Observation:
@@ -277,8 +297,12 @@ class RemoteEpisode:
 
     def _reopen(self) -> None:
         fresh = self.process.open()
-        self.episode_id, self.generation, self.renderer, self.pid = (fresh.episode_id, fresh.generation,
-                                                                     fresh.renderer, fresh.pid)
+        self.episode_id, self.generation, self.renderer, self.pid = (
+            fresh.episode_id,
+            fresh.generation,
+            fresh.renderer,
+            fresh.pid,
+        )
 
 
 class EpisodeProcesses:
@@ -289,12 +313,18 @@ class EpisodeProcesses:
     fake episode class here to run the process machinery without physics).
     """
 
-    def __init__(self, processes: int, renderer: str = "tiny", make_episode: EpisodeMaker | None = None,
-                 name: str = "tidee-sim") -> None:
+    def __init__(
+        self,
+        processes: int,
+        renderer: str = "tiny",
+        make_episode: EpisodeMaker | None = None,
+        name: str = "tidee-sim",
+    ) -> None:
         if processes < 1:
             raise ValueError(f"processes must be >= 1, got {processes}")
-        self.processes = [EpisodeProcess(renderer, make_episode, name=f"{name}-{i}")
-                          for i in range(processes)]
+        self.processes = [
+            EpisodeProcess(renderer, make_episode, name=f"{name}-{i}") for i in range(processes)
+        ]
 
     def __len__(self) -> int:
         return len(self.processes)

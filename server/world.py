@@ -32,10 +32,16 @@ log = logging.getLogger(__name__)
 PHYSICS_HZ = 240
 NEAR, FAR = 0.05, 20.0
 FOV_DEG = 90.0
-DEFAULT_ROLES = {"metal": "#b8bcc2", "dark": "#2a2a2e", "light": "#ecebe6", "white": "#f4f4f2",
-                 "black": "#141416", "glass": "#9fc6d8"}
+DEFAULT_ROLES = {
+    "metal": "#b8bcc2",
+    "dark": "#2a2a2e",
+    "light": "#ecebe6",
+    "white": "#f4f4f2",
+    "black": "#141416",
+    "glass": "#9fc6d8",
+}
 DOOR_OPEN_RAD = math.radians(95)
-PLACE_CANDIDATES = 160    # spots tried per PutObject, nearest the aimed point first (6 cm lattice)
+PLACE_CANDIDATES = 160  # spots tried per PutObject, nearest the aimed point first (6 cm lattice)
 
 
 def resolve_category(obj: SceneObject) -> tuple[Category, tuple[Part, ...], tuple[Surface, ...], float]:
@@ -59,7 +65,7 @@ def part_color(part: Part, palette: dict[str, str]) -> tuple[int, int, int]:
 @dataclass
 class Door:
     joint: int
-    kind: str          # hinge side or "slide"
+    kind: str  # hinge side or "slide"
     open_value: float  # joint value when open
 
 
@@ -114,9 +120,12 @@ class EGLContext:
     def make_current(self) -> None:
         egl = _libegl()
         if egl.eglGetCurrentContext() != self.context and not egl.eglMakeCurrent(
-                self.display, self.surface, self.surface, self.context):
-            raise RuntimeError("cannot make this World's EGL context current: an EGL World must be "
-                               "used from the thread that created it")
+            self.display, self.surface, self.surface, self.context
+        ):
+            raise RuntimeError(
+                "cannot make this World's EGL context current: an EGL World must be "
+                "used from the thread that created it"
+            )
 
 
 class World:
@@ -139,7 +148,8 @@ class World:
                 pb.disconnect(self.client)
                 raise RendererUnavailable(
                     "EGL renderer requested but PyBullet's eglRenderer plugin did not load; "
-                    "install Debian's libegl1 libegl-mesa0 libgl1-mesa-dri or use --renderer tiny")
+                    "install Debian's libegl1 libegl-mesa0 libgl1-mesa-dri or use --renderer tiny"
+                )
             else:
                 log.info("EGL renderer unavailable; using TinyRenderer")
         self.bodies: dict[str, BodyInfo] = {}
@@ -199,8 +209,12 @@ class World:
         pb.setPhysicsEngineParameter(enableFileCaching=0, physicsClientId=c)
         pb.setPhysicsEngineParameter(enableFileCaching=1, physicsClientId=c)
         pb.setGravity(0, 0, -9.81, physicsClientId=c)
-        pb.setPhysicsEngineParameter(fixedTimeStep=1.0 / PHYSICS_HZ, numSolverIterations=30,
-                                     deterministicOverlappingPairs=1, physicsClientId=c)
+        pb.setPhysicsEngineParameter(
+            fixedTimeStep=1.0 / PHYSICS_HZ,
+            numSolverIterations=30,
+            deterministicOverlappingPairs=1,
+            physicsClientId=c,
+        )
         self.bodies.clear()
         self.uid_to_id.clear()
         self.scene = scene
@@ -226,10 +240,21 @@ class World:
         base_vis = self._visual(base_mesh)
         base_col = self._collision([p for p in rigid if p.collide], size)
 
-        link_args: dict[str, list] = {k: [] for k in (
-            "linkMasses", "linkCollisionShapeIndices", "linkVisualShapeIndices", "linkPositions",
-            "linkOrientations", "linkInertialFramePositions", "linkInertialFrameOrientations",
-            "linkParentIndices", "linkJointTypes", "linkJointAxis")}
+        link_args: dict[str, list] = {
+            k: []
+            for k in (
+                "linkMasses",
+                "linkCollisionShapeIndices",
+                "linkVisualShapeIndices",
+                "linkPositions",
+                "linkOrientations",
+                "linkInertialFramePositions",
+                "linkInertialFrameOrientations",
+                "linkParentIndices",
+                "linkJointTypes",
+                "linkJointAxis",
+            )
+        }
         door_infos: list[Door] = []
         for i, p in enumerate(doors):
             center = np.array(p.center) * size
@@ -239,7 +264,8 @@ class World:
             add_part(mesh, p, size, part_color(p, palette), offset=pivot)
             link_args["linkMasses"].append(0.0)
             link_args["linkCollisionShapeIndices"].append(
-                self._collision([p], size, offset=pivot) if p.collide else -1)
+                self._collision([p], size, offset=pivot) if p.collide else -1
+            )
             link_args["linkVisualShapeIndices"].append(self._visual(mesh))
             link_args["linkPositions"].append(pivot.tolist())
             link_args["linkOrientations"].append([0, 0, 0, 1])
@@ -251,28 +277,62 @@ class World:
             door_infos.append(Door(joint=i, kind=str(p.door), open_value=open_value))
 
         uid = pb.createMultiBody(
-            baseMass=mass if dynamic else 0.0, baseCollisionShapeIndex=base_col,
-            baseVisualShapeIndex=base_vis, basePosition=obj.position, baseOrientation=obj.orientation,
-            physicsClientId=c, **link_args)
+            baseMass=mass if dynamic else 0.0,
+            baseCollisionShapeIndex=base_col,
+            baseVisualShapeIndex=base_vis,
+            basePosition=obj.position,
+            baseOrientation=obj.orientation,
+            physicsClientId=c,
+            **link_args,
+        )
         if uid < 0:
             raise RuntimeError(f"PyBullet could not create body for {obj.id}")
         if dynamic:
-            pb.changeDynamics(uid, -1, lateralFriction=0.8, rollingFriction=0.002, spinningFriction=0.002,
-                              linearDamping=0.05, angularDamping=0.2, physicsClientId=c)
+            pb.changeDynamics(
+                uid,
+                -1,
+                lateralFriction=0.8,
+                rollingFriction=0.002,
+                spinningFriction=0.002,
+                linearDamping=0.05,
+                angularDamping=0.2,
+                physicsClientId=c,
+            )
         return BodyInfo(obj=obj, uid=uid, surfaces=surfaces, doors=door_infos, mass=mass)
 
     @staticmethod
-    def _door_joint(p: Part, center: np.ndarray, ext: np.ndarray, size: np.ndarray
-                    ) -> tuple[np.ndarray, list[float], int, float]:
+    def _door_joint(
+        p: Part, center: np.ndarray, ext: np.ndarray, size: np.ndarray
+    ) -> tuple[np.ndarray, list[float], int, float]:
         front_y = center[1] + ext[1] / 2
         if p.door == "left":
-            return np.array([center[0] - ext[0] / 2, front_y, center[2]]), [0, 0, 1], pb.JOINT_REVOLUTE, DOOR_OPEN_RAD
+            return (
+                np.array([center[0] - ext[0] / 2, front_y, center[2]]),
+                [0, 0, 1],
+                pb.JOINT_REVOLUTE,
+                DOOR_OPEN_RAD,
+            )
         if p.door == "right":
-            return np.array([center[0] + ext[0] / 2, front_y, center[2]]), [0, 0, 1], pb.JOINT_REVOLUTE, -DOOR_OPEN_RAD
+            return (
+                np.array([center[0] + ext[0] / 2, front_y, center[2]]),
+                [0, 0, 1],
+                pb.JOINT_REVOLUTE,
+                -DOOR_OPEN_RAD,
+            )
         if p.door == "top":
-            return np.array([center[0], front_y, center[2] + ext[2] / 2]), [1, 0, 0], pb.JOINT_REVOLUTE, DOOR_OPEN_RAD
+            return (
+                np.array([center[0], front_y, center[2] + ext[2] / 2]),
+                [1, 0, 0],
+                pb.JOINT_REVOLUTE,
+                DOOR_OPEN_RAD,
+            )
         if p.door == "bottom":
-            return np.array([center[0], front_y, center[2] - ext[2] / 2]), [1, 0, 0], pb.JOINT_REVOLUTE, -DOOR_OPEN_RAD
+            return (
+                np.array([center[0], front_y, center[2] - ext[2] / 2]),
+                [1, 0, 0],
+                pb.JOINT_REVOLUTE,
+                -DOOR_OPEN_RAD,
+            )
         if p.door == "slide":
             return center.copy(), [0, 1, 0], pb.JOINT_PRISMATIC, float(0.6 * size[1])
         raise ValueError(f"unknown door kind {p.door!r}")
@@ -281,8 +341,9 @@ class World:
         """A visual shape for the mesh; its OBJ file brings the palette texture along."""
         if mesh.empty:
             return -1
-        return pb.createVisualShape(pb.GEOM_MESH, fileName=mesh.obj_file(), meshScale=[1, 1, 1],
-                                    physicsClientId=self.client)
+        return pb.createVisualShape(
+            pb.GEOM_MESH, fileName=mesh.obj_file(), meshScale=[1, 1, 1], physicsClientId=self.client
+        )
 
     def _collision(self, parts: list[Part], size: np.ndarray, offset: np.ndarray | None = None) -> int:
         if not parts:
@@ -317,8 +378,14 @@ class World:
                 radii.append(r)
                 lengths.append(ext[2])
                 frames.append(center.tolist())
-        return pb.createCollisionShapeArray(types, radii=radii, halfExtents=half, lengths=lengths,
-                                            collisionFramePositions=frames, physicsClientId=c)
+        return pb.createCollisionShapeArray(
+            types,
+            radii=radii,
+            halfExtents=half,
+            lengths=lengths,
+            collisionFramePositions=frames,
+            physicsClientId=c,
+        )
 
     # ------------------------------------------------------------------ state
     def pose(self, obj_id: str) -> tuple[list[float], list[float]]:
@@ -333,7 +400,9 @@ class World:
     def set_open(self, obj_id: str, is_open: bool) -> None:
         info = self.bodies[obj_id]
         for d in info.doors:
-            pb.resetJointState(info.uid, d.joint, d.open_value if is_open else 0.0, physicsClientId=self.client)
+            pb.resetJointState(
+                info.uid, d.joint, d.open_value if is_open else 0.0, physicsClientId=self.client
+            )
         info.obj.is_open = is_open
 
     def set_static(self, obj_id: str, static: bool) -> None:
@@ -348,7 +417,9 @@ class World:
         for _ in range(steps):
             pb.stepSimulation(physicsClientId=self.client)
 
-    def settle(self, max_seconds: float = 3.0, min_seconds: float = 0.5, ids: list[str] | None = None) -> float:
+    def settle(
+        self, max_seconds: float = 3.0, min_seconds: float = 0.5, ids: list[str] | None = None
+    ) -> float:
         """Simulate until every dynamic body is at rest (or the time runs out)."""
         watch = [self.bodies[i].uid for i in (ids if ids is not None else self.dynamic_ids())]
         steps, chunk = 0, PHYSICS_HZ // 10
@@ -357,7 +428,9 @@ class World:
             steps += chunk
             if steps < min_seconds * PHYSICS_HZ:
                 continue
-            if all(np.linalg.norm(pb.getBaseVelocity(u, physicsClientId=self.client)[0]) < 0.01 for u in watch):
+            if all(
+                np.linalg.norm(pb.getBaseVelocity(u, physicsClientId=self.client)[0]) < 0.01 for u in watch
+            ):
                 break
         return steps / PHYSICS_HZ
 
@@ -371,7 +444,9 @@ class World:
         return lo, hi
 
     # ------------------------------------------------------------------ support
-    def surfaces_world(self, obj_id: str, include_inside: bool = True) -> list[tuple[np.ndarray, np.ndarray, float, float, bool]]:
+    def surfaces_world(
+        self, obj_id: str, include_inside: bool = True
+    ) -> list[tuple[np.ndarray, np.ndarray, float, float, bool]]:
         """Each surface as (centre xy, half extents, height z, yaw, inside) in world terms."""
         info = self.bodies[obj_id]
         pos, orn = self.pose(obj_id)
@@ -405,12 +480,18 @@ class World:
         if support_uid is None:
             lo, hi = self.aabb(obj_id)
             center = (lo + hi) / 2
-            hits = pb.rayTest([center[0], center[1], lo[2] + 0.01], [center[0], center[1], -1.0],
-                              physicsClientId=self.client)
+            hits = pb.rayTest(
+                [center[0], center[1], lo[2] + 0.01],
+                [center[0], center[1], -1.0],
+                physicsClientId=self.client,
+            )
             support_uid = hits[0][0] if hits and hits[0][0] not in (-1, info.uid) else None
             if support_uid is None:
-                hits = pb.rayTestBatch([[center[0], center[1], lo[2] - 0.005]], [[center[0], center[1], -1.0]],
-                                       physicsClientId=self.client)
+                hits = pb.rayTestBatch(
+                    [[center[0], center[1], lo[2] - 0.005]],
+                    [[center[0], center[1], -1.0]],
+                    physicsClientId=self.client,
+                )
                 support_uid = hits[0][0] if hits[0][0] >= 0 else None
         sid = self.uid_to_id.get(support_uid) if support_uid is not None else None
         if sid is None:
@@ -462,18 +543,36 @@ class World:
         return self.scene
 
     # ------------------------------------------------------------------ sensing
-    def render(self, eye: np.ndarray, forward: np.ndarray, up: np.ndarray, resolution: int,
-               segmentation: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def render(
+        self,
+        eye: np.ndarray,
+        forward: np.ndarray,
+        up: np.ndarray,
+        resolution: int,
+        segmentation: bool = False,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """RGB (uint8), metric z-depth (float32) and, if asked, the body-uid mask."""
         self._use_gl()
-        view = pb.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), up.tolist(), physicsClientId=self.client)
+        view = pb.computeViewMatrix(
+            eye.tolist(), (eye + forward).tolist(), up.tolist(), physicsClientId=self.client
+        )
         proj = pb.computeProjectionMatrixFOV(FOV_DEG, 1.0, NEAR, FAR, physicsClientId=self.client)
         flags = 0 if segmentation else pb.ER_NO_SEGMENTATION_MASK
         renderer = pb.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl" else pb.ER_TINY_RENDERER
         _, _, rgba, zbuf, seg = pb.getCameraImage(
-            resolution, resolution, view, proj, renderer=renderer, flags=flags, shadow=0,
-            lightDirection=[0.4, -0.3, 1.0], lightAmbientCoeff=0.55, lightDiffuseCoeff=0.5,
-            lightSpecularCoeff=0.05, physicsClientId=self.client)
+            resolution,
+            resolution,
+            view,
+            proj,
+            renderer=renderer,
+            flags=flags,
+            shadow=0,
+            lightDirection=[0.4, -0.3, 1.0],
+            lightAmbientCoeff=0.55,
+            lightDiffuseCoeff=0.5,
+            lightSpecularCoeff=0.05,
+            physicsClientId=self.client,
+        )
         rgba = np.asarray(rgba, dtype=np.uint8).reshape(resolution, resolution, 4)
         zbuf = np.asarray(zbuf, dtype=np.float32).reshape(resolution, resolution)
         depth = (FAR * NEAR / (FAR - (FAR - NEAR) * zbuf)).astype(np.float32)
@@ -494,7 +593,7 @@ class World:
     def ray(self, start: np.ndarray, end: np.ndarray) -> tuple[str | None, int, np.ndarray, np.ndarray]:
         """First hit along a segment: (object id or None, link, point, normal)."""
         hit = pb.rayTest(start.tolist(), end.tolist(), physicsClientId=self.client)[0]
-        uid, link, frac, pos, normal = hit[0], hit[1], hit[2], hit[3], hit[4]
+        uid, link, pos, normal = hit[0], hit[1], hit[3], hit[4]
         if uid < 0:
             return None, -1, np.asarray(end, float), np.zeros(3)
         return self.uid_to_id.get(uid), link, np.array(pos), np.array(normal)
@@ -503,8 +602,12 @@ class World:
         """Ids of bodies within ``margin`` of the object (penetration when margin is 0)."""
         info = self.bodies[obj_id]
         lo, hi = self.aabb(obj_id)
-        near = pb.getOverlappingObjects((lo - margin - 0.01).tolist(), (hi + margin + 0.01).tolist(),
-                                        physicsClientId=self.client) or []
+        near = (
+            pb.getOverlappingObjects(
+                (lo - margin - 0.01).tolist(), (hi + margin + 0.01).tolist(), physicsClientId=self.client
+            )
+            or []
+        )
         hits = []
         for uid, _link in near:
             oid = self.uid_to_id.get(uid)
@@ -515,7 +618,9 @@ class World:
         return hits
 
     # ------------------------------------------------------------------ placing
-    def place(self, obj_id: str, receptacle_id: str, near: np.ndarray, yaw: float, max_settles: int = 3) -> bool:
+    def place(
+        self, obj_id: str, receptacle_id: str, near: np.ndarray, yaw: float, max_settles: int = 3
+    ) -> bool:
         """Put a held (frozen, hidden) object stably on a surface of the receptacle.
 
         Candidate spots on the receptacle's surfaces (inside ones only when it is open)

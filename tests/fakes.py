@@ -10,7 +10,7 @@ import zlib
 
 import numpy as np
 
-from tidee.protocol.messages import (Action, ActionError, ActionName, EpisodeSpec, GroundTruth, Observation)
+from tidee.protocol.messages import Action, ActionError, ActionName, EpisodeSpec, GroundTruth, Observation
 
 
 class FakeEpisode:
@@ -44,8 +44,9 @@ class FakeEpisode:
         if name.value == self.fail_on:
             raise RuntimeError(f"fake failure on {name.value}")
         if self.done:
-            return self._observe(name.value, False, ActionError.episode_over, "the episode is over",
-                                 ground_truth)
+            return self._observe(
+                name.value, False, ActionError.episode_over, "the episode is over", ground_truth
+            )
         self.steps += 1
         self.history = zlib.crc32(f"{self.history}:{name.value}:{action.x}:{action.y}".encode())
         ok, err = True, None
@@ -62,26 +63,41 @@ class FakeEpisode:
     def state(self) -> dict:
         if self.spec is None:
             raise RuntimeError("state() before reset()")
-        return {"room_type": self.spec.room_type, "seed": self.spec.seed, "steps": self.steps,
-                "objects": [{"id": "Mug_0", "type": "Mug", "position": [1.0, 2.0, 0.8]}]}
+        return {
+            "room_type": self.spec.room_type,
+            "seed": self.spec.seed,
+            "steps": self.steps,
+            "objects": [{"id": "Mug_0", "type": "Mug", "position": [1.0, 2.0, 0.8]}],
+        }
 
     def close(self) -> None:
         self.closed = True
 
-    def _observe(self, last: str | None, ok: bool, err: ActionError | None, msg: str,
-                 ground_truth: bool) -> Observation:
+    def _observe(
+        self, last: str | None, ok: bool, err: ActionError | None, msg: str, ground_truth: bool
+    ) -> Observation:
         assert self.spec is not None
         r = self.spec.resolution
         rng = np.random.default_rng(self.history)
         gt = None
         if ground_truth:
-            gt = GroundTruth(instance_seg=rng.integers(-1, 3, (r, r), dtype=np.int32),
-                             objects=[{"id": "Mug_0", "type": "Mug", "moved": False}])
+            gt = GroundTruth(
+                instance_seg=rng.integers(-1, 3, (r, r), dtype=np.int32),
+                objects=[{"id": "Mug_0", "type": "Mug", "moved": False}],
+            )
         return Observation(
-            session=self.session, step=self.steps,
+            session=self.session,
+            step=self.steps,
             rgb=rng.integers(0, 256, (r, r, 3), dtype=np.uint8),
             depth=rng.uniform(0.1, 5.0, (r, r)).astype(np.float32),
-            camera_pose=np.eye(4), agent_pose=(self.pose[0], self.pose[1], self.pose[2], self.pose[3]),
+            camera_pose=np.eye(4),
+            agent_pose=(self.pose[0], self.pose[1], self.pose[2], self.pose[3]),
             intrinsics=np.array([[r / 2, 0, (r - 1) / 2], [0, r / 2, (r - 1) / 2], [0, 0, 1.0]]),
-            last_action=last, success=ok, error=err.value if err else None, message=msg, done=self.done,
-            steps_left=max(self.spec.max_steps - self.steps, 0), ground_truth=gt)
+            last_action=last,
+            success=ok,
+            error=err.value if err else None,
+            message=msg,
+            done=self.done,
+            steps_left=max(self.spec.max_steps - self.steps, 0),
+            ground_truth=gt,
+        )

@@ -8,20 +8,36 @@ import numpy as np
 
 from tidee.protocol.messages import EpisodeSpec
 from tidee.server.catalog import CATEGORIES
-from tidee.server.rooms import WALL_HEIGHT, _shell, _Ids, yaw_quat
+from tidee.server.rooms import WALL_HEIGHT, _Ids, _shell, yaw_quat
 from tidee.server.scene import FLOOR_ID, Scene, SceneObject
 
 
-def make_object(oid: str, type_name: str, xy: tuple[float, float], z: float = 0.0, yaw_deg: float = 0.0,
-                parent: str | None = FLOOR_ID, size: list[float] | None = None) -> SceneObject:
+def make_object(
+    oid: str,
+    type_name: str,
+    xy: tuple[float, float],
+    z: float = 0.0,
+    yaw_deg: float = 0.0,
+    parent: str | None = FLOOR_ID,
+    size: list[float] | None = None,
+) -> SceneObject:
     cat = CATEGORIES[type_name]
     size = size or [round((a + b) / 2, 3) for a, b in zip(cat.size_min, cat.size_max)]
     return SceneObject(
-        id=oid, type=type_name, variant=cat.variants[0].name if cat.variants else None,
-        pickupable=cat.pickupable, receptacle=cat.receptacle, openable=cat.openable, is_open=False,
-        parent=parent, parent_type=None if parent is None else ("Floor" if parent == FLOOR_ID else parent.split("_")[0]),
-        position=[xy[0], xy[1], z], orientation=yaw_quat(math.radians(yaw_deg)), size=size,
-        palette=dict(cat.palettes[0]))
+        id=oid,
+        type=type_name,
+        variant=cat.variants[0].name if cat.variants else None,
+        pickupable=cat.pickupable,
+        receptacle=cat.receptacle,
+        openable=cat.openable,
+        is_open=False,
+        parent=parent,
+        parent_type=None if parent is None else ("Floor" if parent == FLOOR_ID else parent.split("_")[0]),
+        position=[xy[0], xy[1], z],
+        orientation=yaw_quat(math.radians(yaw_deg)),
+        size=size,
+        palette=dict(cat.palettes[0]),
+    )
 
 
 def table_room() -> Scene:
@@ -34,10 +50,14 @@ def table_room() -> Scene:
     objects = _shell(width, depth, _Ids())
     table = make_object("DiningTable_0", "DiningTable", (2.0, 2.0), size=[1.2, 0.8, 0.75])
     fridge_size = [0.8, 0.75, 1.8]
-    fridge = make_object("Fridge_0", "Fridge", (3.0, depth - fridge_size[1] / 2 - 0.01), yaw_deg=180, size=fridge_size)
+    fridge = make_object(
+        "Fridge_0", "Fridge", (3.0, depth - fridge_size[1] / 2 - 0.01), yaw_deg=180, size=fridge_size
+    )
     mug = make_object("Mug_0", "Mug", (2.0, 2.0), z=table_top(table), parent="DiningTable_0")
     objects += [table, fridge, mug]
-    return Scene(room_type="Kitchen", seed=0, width=width, depth=depth, wall_height=WALL_HEIGHT, objects=objects)
+    return Scene(
+        room_type="Kitchen", seed=0, width=width, depth=depth, wall_height=WALL_HEIGHT, objects=objects
+    )
 
 
 def table_top(table: SceneObject) -> float:

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tidee.protocol.messages import Action, ActionName as A
-from tidee.server.episode import Episode
 from tests.fixtures import project, spec, table_room, table_top
+from tidee.protocol.messages import Action
+from tidee.protocol.messages import ActionName as A
+from tidee.server.episode import Episode
 
 
 @pytest.fixture()
@@ -58,8 +59,17 @@ def test_moves_turns_and_looks(ep):
 
 def test_acting_without_a_render_leaves_the_state_a_step_leaves(ep):
     # data generation walks with Episode.act and renders only the frames it keeps (Episode.observe)
-    walk = [A.MoveAhead, A.RotateLeft, A.LookDown, A.MoveAhead, A.MoveAhead, A.LookUp, A.LookUp, A.LookUp,
-            A.MoveRight]
+    walk = [
+        A.MoveAhead,
+        A.RotateLeft,
+        A.LookDown,
+        A.MoveAhead,
+        A.MoveAhead,
+        A.LookUp,
+        A.LookUp,
+        A.LookUp,
+        A.MoveRight,
+    ]
     ep.load(table_room(), spec(64), (1.0, 1.0), yaw_deg=0)
     stepped = [ep.step(Action(a)) for a in walk]
     other = Episode(renderer="tiny")
@@ -67,9 +77,10 @@ def test_acting_without_a_render_leaves_the_state_a_step_leaves(ep):
         other.load(table_room(), spec(64), (1.0, 1.0), yaw_deg=0)
         outcomes = [other.act(Action(a)) for a in walk]
         seen = other.observe()
-        assert [(o.success, o.error, o.message) for o in stepped] == \
-            [(ok, err.value if err else None, msg) for ok, err, msg in outcomes]
-        assert not outcomes[-2][0]                     # the third LookUp is refused at the limit
+        assert [(o.success, o.error, o.message) for o in stepped] == [
+            (ok, err.value if err else None, msg) for ok, err, msg in outcomes
+        ]
+        assert not outcomes[-2][0]  # the third LookUp is refused at the limit
         assert other.pitch == stepped[-1].agent_pose[3] == pytest.approx(-30.0)
         np.testing.assert_array_equal(seen.rgb, stepped[-1].rgb)
         np.testing.assert_array_equal(seen.depth, stepped[-1].depth)
@@ -208,7 +219,7 @@ def test_a_pixel_acts_on_what_the_render_shows_there(renderer):
         e.reset(EpisodeSpec(room_type="Kitchen", seed=103, mess_index=0), ground_truth=True)
         knife = e.world.bodies["Knife_0"]
         pos = np.array(e.world.pose("Knife_0")[0])
-        assert pos[2] < 0.05                                     # the mess-up left it on the floor
+        assert pos[2] < 0.05  # the mess-up left it on the floor
         hits = total = 0
         for ang in np.linspace(0, 2 * np.pi, 8, endpoint=False):
             b = e.body

@@ -38,7 +38,9 @@ def test_oracle_perception_sees_the_table_mug_and_fridge() -> None:
     ep = Episode(renderer="tiny")
     try:
         obs = ep.load(table_room(), spec(128), agent_xy=(2.0, 0.6), yaw_deg=90.0, ground_truth=True)
-        obs = ep.step(__import__("tidee.protocol.messages", fromlist=["Action"]).Action("LookDown"), ground_truth=True)
+        obs = ep.step(
+            __import__("tidee.protocol.messages", fromlist=["Action"]).Action("LookDown"), ground_truth=True
+        )
     finally:
         ep.close()
     dets = make_perception("oracle").detect(obs)
@@ -86,8 +88,8 @@ def test_relation_stats_oop_flags_a_mug_on_the_floor_not_on_the_counter() -> Non
     oop = RelationStatsOOP()
     mem = _memory_with(
         ("CounterTop", (1.0, 0.0, 0.45), (0.5, -0.3, 0.0), (1.5, 0.3, 0.9)),
-        ("Mug", (1.0, 0.1, 0.95), (0.95, 0.05, 0.9), (1.05, 0.15, 1.0)),      # on the counter
-        ("Mug", (-1.5, 1.0, 0.05), (-1.55, 0.95, 0.0), (-1.45, 1.05, 0.1)),   # on the floor
+        ("Mug", (1.0, 0.1, 0.95), (0.95, 0.05, 0.9), (1.05, 0.15, 1.0)),  # on the counter
+        ("Mug", (-1.5, 1.0, 0.05), (-1.55, 0.95, 0.0), (-1.45, 1.05, 0.1)),  # on the floor
     )
     objs = list(mem)
     on_counter, on_floor = objs[1], objs[2]
@@ -122,16 +124,22 @@ def test_rate_limiter_keeps_to_its_rate() -> None:
     now = [0.0]
     lim = RateLimiter({"maps": 4.0}, clock=lambda: now[0])
     sent = 0
-    for _ in range(100):           # 10 s at 10 Hz offered
+    for _ in range(100):  # 10 s at 10 Hz offered
         sent += lim.due("maps")
         now[0] += 0.1
     assert 38 <= sent <= 41
 
 
 def _status(step: int) -> AgentStatus:
-    return AgentStatus(session="s", step=step, phase="mapping", episode={"room_type": "Kitchen"},
-                       pose=(0.1 * step, 0.0, 0.0, 30.0), predictions=[ReceptaclePrediction("Desk", 0.5)],
-                       trajectory=np.zeros((step + 1, 2), np.float32))
+    return AgentStatus(
+        session="s",
+        step=step,
+        phase="mapping",
+        episode={"room_type": "Kitchen"},
+        pose=(0.1 * step, 0.0, 0.0, 30.0),
+        predictions=[ReceptaclePrediction("Desk", 0.5)],
+        trajectory=np.zeros((step + 1, 2), np.float32),
+    )
 
 
 def test_episode_log_round_trip_and_truncated_tail(tmp_path) -> None:
@@ -142,7 +150,7 @@ def test_episode_log_round_trip_and_truncated_tail(tmp_path) -> None:
     r = LogReader(tmp_path / "ep")
     msgs = list(r.messages())
     assert [m.step for _, m in msgs] == [0, 1, 2, 3, 4] and not r.truncated
-    assert r.summary() is None                 # never finished: no summary
+    assert r.summary() is None  # never finished: no summary
     assert len(r.events()) == 5
     # A crash mid-write leaves a torn last record: the reader keeps the complete ones.
     path = tmp_path / "ep" / "telemetry.tlog"
@@ -156,7 +164,7 @@ def test_a_rerun_into_the_same_log_directory_never_shows_the_earlier_runs_summar
     with LogWriter(tmp_path / "ep") as w:
         w.finish({"steps": 5})
     assert LogReader(tmp_path / "ep").summary() == {"steps": 5}
-    with LogWriter(tmp_path / "ep") as w:       # the rerun crashes before finishing
+    with LogWriter(tmp_path / "ep") as w:  # the rerun crashes before finishing
         w.message("status", _status(0))
     assert LogReader(tmp_path / "ep").summary() is None
 
@@ -167,8 +175,20 @@ def test_tidee_run_forwards_agent_options(monkeypatch) -> None:
 
     seen = {}
     monkeypatch.setattr(tidee.launch, "run_all", lambda cfg: seen.setdefault("cfg", cfg) and 0)
-    args = cli.build_parser().parse_args(["run", "--variant", "RandomReceptacle", "--pose-noise", "--seed", "201",
-                                          "--linger", "0", "--detection-threshold", "0.2"])
+    args = cli.build_parser().parse_args(
+        [
+            "run",
+            "--variant",
+            "RandomReceptacle",
+            "--pose-noise",
+            "--seed",
+            "201",
+            "--linger",
+            "0",
+            "--detection-threshold",
+            "0.2",
+        ]
+    )
     cli._cmd_run(args)
     fwd = seen["cfg"].agent_args
     assert fwd[fwd.index("--variant") + 1] == "RandomReceptacle" and "--pose-noise" in fwd
@@ -176,8 +196,12 @@ def test_tidee_run_forwards_agent_options(monkeypatch) -> None:
     assert fwd[fwd.index("--detection-threshold") + 1] == "0.2"
     agent_args = cli.build_parser().parse_args(["agent"] + fwd)
     assert cli._agent_config(agent_args).detection_threshold == 0.2
-    assert cli.build_parser().parse_args(["eval", "tidy", "--out", "x", "--detection-threshold", "0.25"]
-                                         ).detection_threshold == 0.25
+    assert (
+        cli.build_parser()
+        .parse_args(["eval", "tidy", "--out", "x", "--detection-threshold", "0.25"])
+        .detection_threshold
+        == 0.25
+    )
 
 
 def test_the_agent_side_asks_for_the_renderer_its_detector_was_trained_on() -> None:
@@ -189,7 +213,7 @@ def test_the_agent_side_asks_for_the_renderer_its_detector_was_trained_on() -> N
     parser = cli.build_parser()
     assert parser.parse_args(["run"]).renderer == TRAINED_RENDERER
     assert parser.parse_args(["eval", "tidy", "--out", "x"]).renderer == TRAINED_RENDERER
-    assert parser.parse_args(["server"]).renderer == TRAINED_RENDERER   # a server started alone matches it too
+    assert parser.parse_args(["server"]).renderer == TRAINED_RENDERER  # a server started alone matches it too
     from tidee.server.service import ServerConfig
 
     assert ServerConfig().renderer == TRAINED_RENDERER

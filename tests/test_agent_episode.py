@@ -49,19 +49,26 @@ def test_tidy_episode_over_zenoh_with_telemetry_and_log(real_server: SimServer, 
     sub = viewer_z.declare_subscriber(keys.agent_telemetry_wildcard(session), on_sample)
     cmd_pub = viewer_z.declare_publisher(keys.agent_cmd(session))
     try:
-        client = SimClient(endpoint, server_id=server_id, session=session, zsession=agent_z, timeout=60,
-                           connect_timeout=30)
+        client = SimClient(
+            endpoint, server_id=server_id, session=session, zsession=agent_z, timeout=60, connect_timeout=30
+        )
         publisher = TelemetryPublisher(agent_z, session)
-        cfg = AgentConfig(variant="CommonMemory", perception="oracle",
-                          policy=PolicyConfig(mapping_step_budget=120))
+        cfg = AgentConfig(
+            variant="CommonMemory", perception="oracle", policy=PolicyConfig(mapping_step_budget=120)
+        )
         runner = EpisodeRunner(cfg, client, session=session, publisher=publisher, log_dir=tmp_path)
         # A viewer's preference arrives mid-episode and is acknowledged.
         sent = {"done": False}
 
         def on_step(step: int) -> None:
             if step == 5 and not sent["done"]:
-                cmd_pub.put(codec.encode(AgentCommand(kind="preference", command_id="p1",
-                                                      text="I want my towel on the towel holder")))
+                cmd_pub.put(
+                    codec.encode(
+                        AgentCommand(
+                            kind="preference", command_id="p1", text="I want my towel on the towel holder"
+                        )
+                    )
+                )
                 sent["done"] = True
 
         runner.on_step = on_step
@@ -85,8 +92,15 @@ def test_tidy_episode_over_zenoh_with_telemetry_and_log(real_server: SimServer, 
     assert any(o["found"] for o in moved), moved
     assert result.objects_fixed >= 1
     for o in rec["objects"]:
-        assert set(o) >= {"type", "variant", "moved", "found", "picked", "original_parent_type",
-                          "final_parent_type"}
+        assert set(o) >= {
+            "type",
+            "variant",
+            "moved",
+            "found",
+            "picked",
+            "original_parent_type",
+            "final_parent_type",
+        }
     # Telemetry reached a subscriber: every step's status, and maps, memory, frames.
     assert wait_until(lambda: "ack" in received, timeout=5.0), sorted(received)
     assert {"status", "maps", "memory", "frame"} <= set(received)
@@ -112,6 +126,8 @@ def test_tidy_episode_over_zenoh_with_telemetry_and_log(real_server: SimServer, 
     assert wait_until(lambda: "summary" in received, timeout=5.0)
     assert received["summary"][-1].found == s.found and "summary" in kinds
     line = format_summary(s)
-    assert f"moved {s.moved}, found {s.found}, put away {s.put_away}, plausible {s.plausible}/{s.moved}" in line
+    assert (
+        f"moved {s.moved}, found {s.found}, put away {s.put_away}, plausible {s.plausible}/{s.moved}" in line
+    )
     assert line.endswith(f"Replay: {s.replay}")
     assert any(e["kind"] == "preference" for e in log.events())

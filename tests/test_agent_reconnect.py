@@ -26,8 +26,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _start(*args: str, **kw: object) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "tidee.cli", *args], cwd=REPO, text=True,
-                            start_new_session=True, **kw)  # type: ignore[call-overload]
+    return subprocess.Popen(
+        [sys.executable, "-m", "tidee.cli", *args], cwd=REPO, text=True, start_new_session=True, **kw
+    )  # type: ignore[call-overload]
 
 
 def _kill(proc: subprocess.Popen) -> None:
@@ -69,14 +70,30 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server_args = ("server", "--endpoint", endpoint, "--processes", "1")
     server = _start(*server_args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    agent = _start("agent", "--endpoint", endpoint, "--perception", "oracle", "--variant", "CommonMemory",
-                   "--oop", "relation_stats", "--max-steps", "150", "--reconnect-timeout", "40",
-                   "--log-dir", str(tmp_path / "runs"), stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    agent = _start(
+        "agent",
+        "--endpoint",
+        endpoint,
+        "--perception",
+        "oracle",
+        "--variant",
+        "CommonMemory",
+        "--oop",
+        "relation_stats",
+        "--max-steps",
+        "150",
+        "--reconnect-timeout",
+        "40",
+        "--log-dir",
+        str(tmp_path / "runs"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
     second = None
     try:
         out = _Lines(agent)
         out.wait_for("agent: session", deadline)
-        time.sleep(3)                          # a few steps into the episode
+        time.sleep(3)  # a few steps into the episode
         assert agent.poll() is None, out.text
         _kill(server)
         second = _start(*server_args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -89,7 +106,7 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
         assert agent.wait(timeout=max(1.0, deadline - time.monotonic())) == 0, out.text
         assert "Traceback" not in out.text, out.text
         summaries = list((tmp_path / "runs").rglob("summary.json"))
-        assert len(summaries) == 1, summaries   # the re-run's log is the finished one
+        assert len(summaries) == 1, summaries  # the re-run's log is the finished one
     finally:
         _kill(agent)
         _kill(server)
@@ -118,8 +135,11 @@ class _FailingRunner:
 
 
 def _cfg(reconnect_timeout: float) -> AgentProcessConfig:
-    return AgentProcessConfig(agent=AgentConfig(), spec=EpisodeSpec(room_type="LivingRoom", seed=200, mess_index=0),
-                              reconnect_timeout=reconnect_timeout)
+    return AgentProcessConfig(
+        agent=AgentConfig(),
+        spec=EpisodeSpec(room_type="LivingRoom", seed=200, mess_index=0),
+        reconnect_timeout=reconnect_timeout,
+    )
 
 
 def test_agent_gives_up_when_the_server_stays_away(capsys: pytest.CaptureFixture[str]) -> None:
@@ -127,8 +147,9 @@ def test_agent_gives_up_when_the_server_stays_away(capsys: pytest.CaptureFixture
     with pytest.raises(TimeoutError, match=r"^server 'sim0' did not come back within 0.2 s$"):
         _run_until_done(runner, client, cfg.spec, cfg, {"last": 7})  # type: ignore[arg-type]
     assert runner.runs == 1 and client.waits == [0.2]
-    assert capsys.readouterr().out == ("agent: server 'sim0' went away at step 0; "
-                                       "waiting up to 0.2 s for it to come back\n")
+    assert capsys.readouterr().out == (
+        "agent: server 'sim0' went away at step 0; waiting up to 0.2 s for it to come back\n"
+    )
 
 
 def test_a_refused_episode_or_no_reconnect_fails_at_once() -> None:

@@ -10,20 +10,32 @@ import pybullet as p
 import pytest
 
 import tidee.server.catalog as catalog
-from tidee.server.catalog import (CATEGORIES, PRIORS, ROOM_TEMPLATES, ROOM_TYPES, is_plausible, look,
-                                  receptacle_types, receptacle_weights, sample_size, validate_catalog,
-                                  variant_weights)
+from tidee.server.catalog import (
+    CATEGORIES,
+    PRIORS,
+    ROOM_TEMPLATES,
+    ROOM_TYPES,
+    is_plausible,
+    look,
+    receptacle_types,
+    receptacle_weights,
+    sample_size,
+    validate_catalog,
+    variant_weights,
+)
 from tidee.server.catalog.schema import Part
 
 AI2THOR_PICKUPABLE = (
     "AlarmClock Apple Book Bowl Bread ButterKnife Candle CellPhone Cloth CreditCard Cup DishSponge Egg "
     "Fork Kettle KeyChain Knife Ladle Laptop Lettuce Mug Newspaper Pan Pen Pencil PepperShaker Pillow "
     "Plate Pot Potato RemoteControl SaltShaker SoapBar SoapBottle Spatula Spoon SprayBottle Statue "
-    "TeddyBear TissueBox ToiletPaper Tomato Towel Vase Watch WineBottle").split()
+    "TeddyBear TissueBox ToiletPaper Tomato Towel Vase Watch WineBottle"
+).split()
 RECEPTACLES = (
     "ArmChair Bathtub Bed Cabinet CoffeeTable CounterTop Desk DiningTable Drawer Dresser Fridge GarbageCan "
     "Microwave Ottoman Shelf SideTable Sink Sofa Stool Toilet TowelHolder TVStand Floor Chair "
-    "ToiletPaperHanger").split()
+    "ToiletPaperHanger"
+).split()
 
 
 # ------------------------------------------------------------------ counts & flags
@@ -45,8 +57,22 @@ def test_required_categories_and_flags() -> None:
         assert CATEGORIES[name].receptacle, name
     for name in ("Fridge", "Cabinet", "Drawer", "Microwave", "Box"):
         assert CATEGORIES[name].openable, name
-    for name in ("Television", "FloorLamp", "DeskLamp", "Painting", "Window", "HousePlant", "Mirror",
-                 "LightSwitch", "Wall", "CoffeeMachine", "Toaster", "StoveBurner", "Faucet", "ShowerHead"):
+    for name in (
+        "Television",
+        "FloorLamp",
+        "DeskLamp",
+        "Painting",
+        "Window",
+        "HousePlant",
+        "Mirror",
+        "LightSwitch",
+        "Wall",
+        "CoffeeMachine",
+        "Toaster",
+        "StoveBurner",
+        "Faucet",
+        "ShowerHead",
+    ):
         assert name in CATEGORIES and not CATEGORIES[name].pickupable, name
     assert CATEGORIES["Box"].pickupable and CATEGORIES["Box"].receptacle
     for name, c in CATEGORIES.items():
@@ -66,6 +92,7 @@ def test_sizes_are_realistic() -> None:
     def mid(name: str) -> tuple[float, ...]:
         c = CATEGORIES[name]
         return tuple((a + b) / 2 for a, b in zip(c.size_min, c.size_max))
+
     assert 0.08 <= mid("Mug")[2] <= 0.12
     assert 1.6 <= mid("Fridge")[2] <= 2.0
     assert 0.72 <= mid("DiningTable")[2] <= 0.78
@@ -89,7 +116,7 @@ def test_variants_differ_in_look() -> None:
     for c in CATEGORIES.values():
         looks = [look(c.name, v.name) for v in c.variants]
         for i, a in enumerate(looks):
-            for b in looks[i + 1:]:
+            for b in looks[i + 1 :]:
                 assert (a.size_min, a.parts, a.palettes) != (b.size_min, b.parts, b.palettes), c.name
 
 
@@ -107,14 +134,20 @@ def test_broken_prior_receptacle_raises() -> None:
         validate_catalog(priors=priors)
 
 
-@pytest.mark.parametrize("mutate, message", [
-    (lambda pr: pr["Mug"]["*"]["Kitchen"].update({"Spaceship": 1.0}), "unknown receptacle 'Spaceship'"),
-    (lambda pr: pr["Mug"]["*"]["Kitchen"].update({"Apple": 1.0}), "'Apple' is not a receptacle"),
-    (lambda pr: pr.update({"Fridge": {"*": {"Kitchen": {"Floor": 1.0}}}}), "Fridge is not pickupable"),
-    (lambda pr: pr["Vase"].update({"enormous": {"Kitchen": {"Floor": 1.0}}}), "unknown variant 'enormous'"),
-    (lambda pr: pr["Mug"]["*"]["Kitchen"].update({"Shelf": -1}), "must be a positive number"),
-    (lambda pr: pr.pop("Mug"), "Mug: pickupable but has no placement prior"),
-])
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda pr: pr["Mug"]["*"]["Kitchen"].update({"Spaceship": 1.0}), "unknown receptacle 'Spaceship'"),
+        (lambda pr: pr["Mug"]["*"]["Kitchen"].update({"Apple": 1.0}), "'Apple' is not a receptacle"),
+        (lambda pr: pr.update({"Fridge": {"*": {"Kitchen": {"Floor": 1.0}}}}), "Fridge is not pickupable"),
+        (
+            lambda pr: pr["Vase"].update({"enormous": {"Kitchen": {"Floor": 1.0}}}),
+            "unknown variant 'enormous'",
+        ),
+        (lambda pr: pr["Mug"]["*"]["Kitchen"].update({"Shelf": -1}), "must be a positive number"),
+        (lambda pr: pr.pop("Mug"), "Mug: pickupable but has no placement prior"),
+    ],
+)
 def test_broken_priors_raise(mutate, message: str) -> None:  # type: ignore[no-untyped-def]
     priors = catalog.load_priors()
     mutate(priors)
@@ -129,7 +162,7 @@ def test_broken_rooms_raise() -> None:
     with pytest.raises(ValueError, match="'on' names 'TVStand'"):
         validate_catalog(rooms=rooms)
     rooms = catalog.load_room_templates()
-    del rooms["Bathroom"]["small"]["Towel"]     # variant_weights still mentions it
+    del rooms["Bathroom"]["small"]["Towel"]  # variant_weights still mentions it
     with pytest.raises(ValueError, match="variant_weights for 'Towel'"):
         validate_catalog(rooms=rooms)
 
@@ -197,6 +230,7 @@ def test_present_fallback_is_uniform_when_nothing_fits() -> None:
 def test_variants_change_priors() -> None:
     def top(cat: str, var: str, room: str) -> str:
         return next(iter(receptacle_weights(cat, var, room)))
+
     assert top("Vase", "large", "LivingRoom") == "Floor"
     assert top("Vase", "small", "LivingRoom") != "Floor"
     assert top("Pillow", "bed", "Bedroom") == "Bed"
@@ -206,7 +240,8 @@ def test_variants_change_priors() -> None:
     assert top("Statue", "figurine", "LivingRoom") == "Shelf"
     assert "Sink" in receptacle_weights("Towel", "hand", "Bathroom")
     assert receptacle_weights("Towel", "bath", "Bathroom").get("Bathtub", 0) > receptacle_weights(
-        "Towel", "hand", "Bathroom").get("Bathtub", 0)
+        "Towel", "hand", "Bathroom"
+    ).get("Bathtub", 0)
     assert receptacle_weights("Book", "cookbook", "Kitchen")["CounterTop"] > 0.3
 
 
@@ -239,11 +274,12 @@ def test_unknown_inputs() -> None:
 
 def test_room_templates() -> None:
     assert set(ROOM_TEMPLATES) == set(ROOM_TYPES)
-    must = {"Kitchen": {"CounterTop", "Fridge", "Sink", "StoveBurner", "Cabinet", "Microwave", "GarbageCan"},
-            "LivingRoom": {"Sofa", "CoffeeTable", "TVStand", "Television"},
-            "Bedroom": {"Bed", "SideTable", "Dresser"},
-            "Bathroom": {"Toilet", "Sink", "Bathtub", "TowelHolder", "ToiletPaperHanger",
-                         "GarbageCan", "Mirror"}}
+    must = {
+        "Kitchen": {"CounterTop", "Fridge", "Sink", "StoveBurner", "Cabinet", "Microwave", "GarbageCan"},
+        "LivingRoom": {"Sofa", "CoffeeTable", "TVStand", "Television"},
+        "Bedroom": {"Bed", "SideTable", "Dresser"},
+        "Bathroom": {"Toilet", "Sink", "Bathtub", "TowelHolder", "ToiletPaperHanger", "GarbageCan", "Mirror"},
+    }
     for room, tpl in ROOM_TEMPLATES.items():
         required = {f["type"] for f in tpl["furniture"] if f["required"]}
         assert must[room] <= required, room
@@ -275,8 +311,9 @@ def test_furniture_footprint_fits_room() -> None:
 # ------------------------------------------------------------------ PyBullet builds
 
 
-def _lathe_mesh(profile: tuple[tuple[float, float], ...], radius: float, height: float,
-                segments: int = 16) -> tuple[list[list[float]], list[int]]:
+def _lathe_mesh(
+    profile: tuple[tuple[float, float], ...], radius: float, height: float, segments: int = 16
+) -> tuple[list[list[float]], list[int]]:
     verts: list[list[float]] = []
     for r, z in profile:
         for k in range(segments):
@@ -291,14 +328,15 @@ def _lathe_mesh(profile: tuple[tuple[float, float], ...], radius: float, height:
     return verts, idx
 
 
-def build_body(client: int, name: str, variant: str | None, size: tuple[float, float, float],
-               palette: dict[str, str]) -> int:
+def build_body(
+    client: int, name: str, variant: str | None, size: tuple[float, float, float], palette: dict[str, str]
+) -> int:
     """A minimal recipe builder: one visual (+ collision) shape per part, all fixed to a base."""
     sx, sy, sz = size
     vis, col, pos = [], [], []
     for part in look(name, variant).parts:
         hexcol = part.color if part.color.startswith("#") else palette[part.color]
-        rgba = [int(hexcol[i:i + 2], 16) / 255 for i in (1, 3, 5)] + [1.0]
+        rgba = [int(hexcol[i : i + 2], 16) / 255 for i in (1, 3, 5)] + [1.0]
         e = part.extent
         if part.shape == "box":
             half = [e[0] * sx / 2, e[1] * sy / 2, e[2] * sz / 2]
@@ -306,8 +344,9 @@ def build_body(client: int, name: str, variant: str | None, size: tuple[float, f
             cs = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=client)
         elif part.shape == "cylinder":
             r, h = e[0] * sx / 2, e[2] * sz
-            v = p.createVisualShape(p.GEOM_CYLINDER, radius=r, length=h, rgbaColor=rgba,
-                physicsClientId=client)
+            v = p.createVisualShape(
+                p.GEOM_CYLINDER, radius=r, length=h, rgbaColor=rgba, physicsClientId=client
+            )
             cs = p.createCollisionShape(p.GEOM_CYLINDER, radius=r, height=h, physicsClientId=client)
         elif part.shape == "sphere":
             r = e[0] * sx / 2
@@ -315,8 +354,9 @@ def build_body(client: int, name: str, variant: str | None, size: tuple[float, f
             cs = p.createCollisionShape(p.GEOM_SPHERE, radius=r, physicsClientId=client)
         else:
             verts, idx = _lathe_mesh(part.profile, e[0] * sx / 2, e[2] * sz)
-            v = p.createVisualShape(p.GEOM_MESH, vertices=verts, indices=idx, rgbaColor=rgba,
-                                    physicsClientId=client)
+            v = p.createVisualShape(
+                p.GEOM_MESH, vertices=verts, indices=idx, rgbaColor=rgba, physicsClientId=client
+            )
             cs = p.createCollisionShape(p.GEOM_MESH, vertices=verts, physicsClientId=client)
         assert v >= 0 and cs >= 0, (name, variant, part)
         vis.append(v)
@@ -324,12 +364,20 @@ def build_body(client: int, name: str, variant: str | None, size: tuple[float, f
         pos.append([part.center[0] * sx, part.center[1] * sy, part.center[2] * sz])
     n = len(vis)
     body = p.createMultiBody(
-        baseMass=0, basePosition=[0, 0, 0],
-        linkMasses=[0.0] * n, linkCollisionShapeIndices=col, linkVisualShapeIndices=vis,
-        linkPositions=pos, linkOrientations=[[0, 0, 0, 1]] * n,
-        linkInertialFramePositions=[[0, 0, 0]] * n, linkInertialFrameOrientations=[[0, 0, 0, 1]] * n,
-        linkParentIndices=[0] * n, linkJointTypes=[p.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n,
-        physicsClientId=client)
+        baseMass=0,
+        basePosition=[0, 0, 0],
+        linkMasses=[0.0] * n,
+        linkCollisionShapeIndices=col,
+        linkVisualShapeIndices=vis,
+        linkPositions=pos,
+        linkOrientations=[[0, 0, 0, 1]] * n,
+        linkInertialFramePositions=[[0, 0, 0]] * n,
+        linkInertialFrameOrientations=[[0, 0, 0, 1]] * n,
+        linkParentIndices=[0] * n,
+        linkJointTypes=[p.JOINT_FIXED] * n,
+        linkJointAxis=[[0, 0, 1]] * n,
+        physicsClientId=client,
+    )
     assert body >= 0, name
     return body
 

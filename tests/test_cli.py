@@ -19,27 +19,45 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _tidee(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "tidee.cli", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "tidee.cli", *args], cwd=REPO, capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_messy_configuration_ranges_follow_the_splits() -> None:
     assert messes_per_room(200) == 5 and messes_per_room(100) == 10 and messes_per_room(3) == 100
     assert messes_per_room(10_500) == 100 and messes_per_room(5_000) is None
     check_mess_index(200, 4)
-    check_mess_index(5_000, 10**6)          # outside every split: any index
-    check_mess_index(200, None)             # the tidy room
-    with pytest.raises(ValueError, match=r"mess_index 5 is out of range: test room seed 200 has messy "
-                                         r"configurations 0-4"):
+    check_mess_index(5_000, 10**6)  # outside every split: any index
+    check_mess_index(200, None)  # the tidy room
+    with pytest.raises(
+        ValueError,
+        match=r"mess_index 5 is out of range: test room seed 200 has messy "
+        r"configurations 0-4",
+    ):
         check_mess_index(200, 5)
 
 
-@pytest.mark.parametrize("args", [
-    ["run", "--no-viewer", "--mess-index", "999999"],
-    ["agent", "--seed", "101", "--mess-index", "10"],
-    ["run", "--no-viewer", "--mess-index", "3", "--episodes", "3"],
-    ["scene", "export", "--room-type", "Kitchen", "--seed", "200", "--mess-index", "5", "--out", "x.json"],
-])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["run", "--no-viewer", "--mess-index", "999999"],
+        ["agent", "--seed", "101", "--mess-index", "10"],
+        ["run", "--no-viewer", "--mess-index", "3", "--episodes", "3"],
+        [
+            "scene",
+            "export",
+            "--room-type",
+            "Kitchen",
+            "--seed",
+            "200",
+            "--mess-index",
+            "5",
+            "--out",
+            "x.json",
+        ],
+    ],
+)
 def test_an_out_of_range_mess_index_is_refused_in_one_line_before_anything_starts(args: list[str]) -> None:
     t0 = time.monotonic()
     r = _tidee(*args)
@@ -48,14 +66,19 @@ def test_an_out_of_range_mess_index_is_refused_in_one_line_before_anything_start
     assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
     assert "--mess-index" in lines[0] or "mess_index" in lines[0]
     assert "configurations 0-" in lines[0] and r.stdout == ""
-    assert time.monotonic() - t0 < 30           # refused up front, not after starting a server
+    assert time.monotonic() - t0 < 30  # refused up front, not after starting a server
 
 
 def test_one_flag_name_for_the_messy_configuration() -> None:
     parser = cli.build_parser()
-    for argv in (["run"], ["demo"], ["agent"], ["scene", "render", "--room-type", "Kitchen", "--seed", "1",
-                                                 "--out", "o"],
-                 ["scene", "export", "--room-type", "Kitchen", "--seed", "1", "--out", "o"], ["scene", "tour"]):
+    for argv in (
+        ["run"],
+        ["demo"],
+        ["agent"],
+        ["scene", "render", "--room-type", "Kitchen", "--seed", "1", "--out", "o"],
+        ["scene", "export", "--room-type", "Kitchen", "--seed", "1", "--out", "o"],
+        ["scene", "tour"],
+    ):
         ns = parser.parse_args(argv)
         assert hasattr(ns, "mess_index") and not hasattr(ns, "mess"), argv
 
@@ -70,9 +93,11 @@ def test_demo_is_run_on_the_demo_room_and_make_demo_calls_it() -> None:
 
 
 def test_the_simulator_starts_without_printing_anything() -> None:
-    code = ("from tidee.server.world import World\n"
-            "w = World(renderer='auto'); w.close()\n"
-            "w = World(renderer='tiny'); w.close()\n")
+    code = (
+        "from tidee.server.world import World\n"
+        "w = World(renderer='auto'); w.close()\n"
+        "w = World(renderer='tiny'); w.close()\n"
+    )
     r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout == "" and r.stderr == "", (r.stdout, r.stderr)
 
@@ -88,10 +113,27 @@ def _no_process_in_group(pgid: int) -> bool:
 def test_ctrl_c_stops_server_agent_and_viewer_cleanly(tmp_path) -> None:
     """Ctrl-C in a terminal: SIGINT to the whole foreground group; every process ends, no traceback."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "tidee.cli", "run", "--max-steps", "300", "--port", str(free_port()),
-         "--log-dir", str(tmp_path), "--linger", "0"],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        [
+            sys.executable,
+            "-m",
+            "tidee.cli",
+            "run",
+            "--max-steps",
+            "300",
+            "--port",
+            str(free_port()),
+            "--log-dir",
+            str(tmp_path),
+            "--linger",
+            "0",
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     out: list[str] = []
     try:
         assert proc.stdout is not None
@@ -101,7 +143,7 @@ def test_ctrl_c_stops_server_agent_and_viewer_cleanly(tmp_path) -> None:
             if not line:
                 break
             out.append(line)
-            if line.startswith("agent: session"):      # the episode is under way
+            if line.startswith("agent: session"):  # the episode is under way
                 break
         assert any(ln.startswith("agent: session") for ln in out), "".join(out)
         time.sleep(2.0)

@@ -30,7 +30,7 @@ CASES: list[tuple[list[str], str]] = [
     (["server", "--no-such-flag"], "unrecognized arguments: --no-such-flag"),
     (["server", "--renderer", "vulkan"], "argument --renderer: invalid choice"),
     (["agent", "--room-type", "Garage"], "argument --room-type: invalid choice"),
-    (["eval", "tidy"], "--out"),                                   # a required flag left out
+    (["eval", "tidy"], "--out"),  # a required flag left out
     # numbers out of range
     (["server", "--max-sessions", "0"], "argument --max-sessions: expected an integer >= 1"),
     (["server", "--processes", "-1"], "argument --processes: expected an integer >= 0"),
@@ -46,7 +46,10 @@ CASES: list[tuple[list[str], str]] = [
     (["run", "--linger", "-1"], "argument --linger"),
     (["scene", "render", *ROOM, "--out", "{tmp}/r", "--resolution", "0"], "argument --resolution"),
     (["scene", "render", *ROOM, "--out", "{tmp}/r", "--resolution", "5000"], "argument --resolution"),
-    (["scene", "export", "--room-type", "Kitchen", "--seed", "-3", "--out", "{tmp}/x.json"], "argument --seed"),
+    (
+        ["scene", "export", "--room-type", "Kitchen", "--seed", "-3", "--out", "{tmp}/x.json"],
+        "argument --seed",
+    ),
     (["eval", "tidy", "--out", "{tmp}/o", "--workers", "0"], "argument --workers"),
     (["eval", "tidy", "--out", "{tmp}/o", "--episodes", "-5"], "argument --episodes"),
     (["bench", "sim", "--steps", "-1"], "argument --steps"),
@@ -67,20 +70,34 @@ CASES: list[tuple[list[str], str]] = [
     (["viewer", "--host", "256.1.1.1"], "argument --host: '256.1.1.1' is not an IPv4 address"),
     (["viewer", "--host", "no such host"], "argument --host"),
     (["run", "--host", "256.1.1.1"], "argument --host"),
-    (["viewer", "--host", "192.0.2.1", "--port", "0"], "cannot listen on 192.0.2.1"),   # not this machine's
+    (["viewer", "--host", "192.0.2.1", "--port", "0"], "cannot listen on 192.0.2.1"),  # not this machine's
     # Zenoh endpoints
-    (["server", "--endpoint", "notanendpoint"], "argument --endpoint: 'notanendpoint' is not a Zenoh endpoint"),
+    (
+        ["server", "--endpoint", "notanendpoint"],
+        "argument --endpoint: 'notanendpoint' is not a Zenoh endpoint",
+    ),
     (["server", "--endpoint", "tcp/127.0.0.1:99999"], "port 99999 is not in 1-65535"),
-    (["agent", "--endpoint", "tcp/127.0.0.1"], "argument --endpoint: 'tcp/127.0.0.1': the address must be HOST:PORT"),
+    (
+        ["agent", "--endpoint", "tcp/127.0.0.1"],
+        "argument --endpoint: 'tcp/127.0.0.1': the address must be HOST:PORT",
+    ),
     (["viewer", "--endpoint", "smoke/127.0.0.1:7447"], "unknown protocol 'smoke'"),
     (["agent", "--router", "tcp/256.1.1.1:7447"], "argument --router"),
-    (["server", "--router", "tcp/127.0.0.1:{free}"], "--router tcp/127.0.0.1:{free}: Zenoh could not connect"),
+    (
+        ["server", "--router", "tcp/127.0.0.1:{free}"],
+        "--router tcp/127.0.0.1:{free}: Zenoh could not connect",
+    ),
     (["viewer", "--router", "tcp/127.0.0.1:{free}", "--port", "0"], "--router tcp/127.0.0.1:{free}"),
     (["agent", "--router", "tcp/127.0.0.1:{free}"], "--router tcp/127.0.0.1:{free}: Zenoh could not connect"),
-    (["agent", "--endpoint", "tcp/127.0.0.1:{free}", "--connect-timeout", "1"],
-     "no tidee server 'sim0' at tcp/127.0.0.1:{free} within 1 s (start one with: tidee server --endpoint"),
+    (
+        ["agent", "--endpoint", "tcp/127.0.0.1:{free}", "--connect-timeout", "1"],
+        "no tidee server 'sim0' at tcp/127.0.0.1:{free} within 1 s (start one with: tidee server --endpoint",
+    ),
     # paths
-    (["eval", "tidy", "--out", "/dev/null/x"], "argument --out: cannot create '/dev/null/x': /dev/null is a file"),
+    (
+        ["eval", "tidy", "--out", "/dev/null/x"],
+        "argument --out: cannot create '/dev/null/x': /dev/null is a file",
+    ),
     (["scene", "export", *ROOM, "--out", "{tmp}/a_file/x.json"], "argument --out"),
     (["agent", "--log-dir", "/dev/null/runs"], "argument --log-dir"),
     (["viewer", "--replay", "{tmp}/no_such_log"], "--replay"),
@@ -89,7 +106,7 @@ CASES: list[tuple[list[str], str]] = [
 ]
 
 
-CONCURRENT = 3          # invocations at a time: most of each is Python start-up
+CONCURRENT = 3  # invocations at a time: most of each is Python start-up
 
 
 @pytest.fixture(scope="module")
@@ -106,18 +123,27 @@ def places(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, str]]
 def results(places: dict[str, str]) -> dict[int, subprocess.CompletedProcess]:
     """Every case run once, a few at a time (the table would take minutes one after another)."""
     with ThreadPoolExecutor(CONCURRENT) as pool:
-        futures = {i: pool.submit(_tidee, [a.format(**places) for a in argv]) for i, (argv, _) in enumerate(CASES)}
+        futures = {
+            i: pool.submit(_tidee, [a.format(**places) for a in argv]) for i, (argv, _) in enumerate(CASES)
+        }
         return {i: f.result() for i, f in futures.items()}
 
 
 def _tidee(argv: list[str], timeout: float = 30) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "tidee.cli", *argv], cwd=REPO, capture_output=True, text=True,
-                          timeout=timeout, stdin=subprocess.DEVNULL)
+    return subprocess.run(
+        [sys.executable, "-m", "tidee.cli", *argv],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        stdin=subprocess.DEVNULL,
+    )
 
 
 @pytest.mark.parametrize("case", range(len(CASES)), ids=[" ".join(a) for a, _ in CASES])
-def test_a_bad_invocation_is_refused_in_one_line(case: int, places: dict[str, str],
-                                                 results: dict[int, subprocess.CompletedProcess]) -> None:
+def test_a_bad_invocation_is_refused_in_one_line(
+    case: int, places: dict[str, str], results: dict[int, subprocess.CompletedProcess]
+) -> None:
     expected = CASES[case][1]
     r = results[case]
     output = r.stdout + r.stderr
@@ -134,10 +160,14 @@ def test_the_table_covers_at_least_thirty_cases() -> None:
 
 def test_tidee_run_stops_when_the_server_dies_at_start_up(monkeypatch: pytest.MonkeyPatch, capsys) -> None:
     """A child that exits while the agent runs ends ``tidee run`` at once, non-zero, naming the child."""
+
     def fake(*args: str) -> list[str]:
-        exit_code = 3 if args[0] == "server" else None      # the server dies; the agent would wait for it
-        code = (f"import sys; sys.exit({exit_code})" if exit_code else
-                "import signal, time; signal.signal(signal.SIGINT, signal.SIG_DFL); time.sleep(30)")
+        exit_code = 3 if args[0] == "server" else None  # the server dies; the agent would wait for it
+        code = (
+            f"import sys; sys.exit({exit_code})"
+            if exit_code
+            else "import signal, time; signal.signal(signal.SIGINT, signal.SIG_DFL); time.sleep(30)"
+        )
         return [sys.executable, "-c", code]
 
     monkeypatch.setattr(launch, "_tidee", fake)
@@ -152,13 +182,13 @@ def test_a_negative_start_seed_is_an_invalid_field_naming_it() -> None:
 
     with pytest.raises(ValueError, match="start_seed must be >= 0"):
         EpisodeSpec(start_seed=-1)
-    prefix = struct.Struct("<4sHI")         # magic, version, header length (protocol/README.md)
+    prefix = struct.Struct("<4sHI")  # magic, version, header length (protocol/README.md)
     frame = encode(ResetRequest("s1", EpisodeSpec(start_seed=1)))
     magic, version, header_len = prefix.unpack_from(frame)
-    header = json.loads(frame[prefix.size:prefix.size + header_len])
+    header = json.loads(frame[prefix.size : prefix.size + header_len])
     header["fields"]["spec"]["start_seed"] = -1
     raw = json.dumps(header).encode()
-    bad = prefix.pack(magic, version, len(raw)) + raw + frame[prefix.size + header_len:]
+    bad = prefix.pack(magic, version, len(raw)) + raw + frame[prefix.size + header_len :]
     with pytest.raises(ProtocolError) as info:
         decode(bad)
     assert info.value.code == ErrorCode.invalid_field and "start_seed must be >= 0" in info.value.message

@@ -5,18 +5,40 @@ from __future__ import annotations
 import dataclasses
 import json
 import struct
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
 
-from tidee.protocol.codec import (ALIGN, DEFAULT_MAX_BYTES, MAGIC, MESSAGE_TYPES, ProtocolError, decode,
-                                  encode)
-from tidee.protocol.messages import (AgentCommand, AgentFrame, AgentStatus, CommandAck, Detection2D, EpisodeSummary,
-                                     MapSnapshot, ObjectMemoryMsg, ReceptaclePrediction, SearchHeatmap,
-                                     TrackedObjectMsg, PROTOCOL_VERSION, Action, ActionName, CloseReply, CloseRequest,
-                                     EpisodeSpec, ErrorCode, ErrorReply, GroundTruth, Observation,
-                                     ResetRequest, StateReply, StateRequest, StepRequest)
+from tidee.protocol.codec import ALIGN, DEFAULT_MAX_BYTES, MAGIC, MESSAGE_TYPES, ProtocolError, decode, encode
+from tidee.protocol.messages import (
+    PROTOCOL_VERSION,
+    Action,
+    ActionName,
+    AgentCommand,
+    AgentFrame,
+    AgentStatus,
+    CloseReply,
+    CloseRequest,
+    CommandAck,
+    Detection2D,
+    EpisodeSpec,
+    EpisodeSummary,
+    ErrorCode,
+    ErrorReply,
+    GroundTruth,
+    MapSnapshot,
+    ObjectMemoryMsg,
+    Observation,
+    ReceptaclePrediction,
+    ResetRequest,
+    SearchHeatmap,
+    StateReply,
+    StateRequest,
+    StepRequest,
+    TrackedObjectMsg,
+)
 
 PREFIX = struct.Struct("<4sHI")
 
@@ -26,20 +48,40 @@ def observation(resolution: int = 32, ground_truth: bool = False, smooth: bool =
     r = resolution
     if smooth:  # something JPEG can compress faithfully
         ramp = np.linspace(0, 255, r, dtype=np.float32)
-        rgb = np.stack([np.add.outer(ramp, ramp) / 2, np.tile(ramp, (r, 1)), np.tile(ramp[:, None], (1, r))],
-                       axis=-1)
+        rgb = np.stack(
+            [np.add.outer(ramp, ramp) / 2, np.tile(ramp, (r, 1)), np.tile(ramp[:, None], (1, r))], axis=-1
+        )
         rgb = rgb.astype(np.uint8)
     else:
         rgb = rng.integers(0, 256, (r, r, 3), dtype=np.uint8)
-    gt = GroundTruth(instance_seg=rng.integers(-1, 5, (r, r), dtype=np.int32),
-                     objects=[{"id": "Mug_0", "type": "Mug", "position": [1.0, 2.0, 0.8], "moved": True,
-                               "parent": None}]) if ground_truth else None
+    gt = (
+        GroundTruth(
+            instance_seg=rng.integers(-1, 5, (r, r), dtype=np.int32),
+            objects=[
+                {"id": "Mug_0", "type": "Mug", "position": [1.0, 2.0, 0.8], "moved": True, "parent": None}
+            ],
+        )
+        if ground_truth
+        else None
+    )
     return Observation(
-        session="s1", step=3, rgb=rgb, depth=rng.uniform(0.05, 20.0, (r, r)).astype(np.float32),
-        camera_pose=rng.normal(size=(4, 4)), agent_pose=(0.25, -0.5, 90.0, 30.0),
-        intrinsics=np.array([[16.0, 0, 15.5], [0, 16.0, 15.5], [0, 0, 1]]), held="Mug", held_id="Mug_0",
-        last_action="PickupObject", success=False, error="too_far", message="1.7 m away", done=False,
-        steps_left=997, ground_truth=gt)
+        session="s1",
+        step=3,
+        rgb=rgb,
+        depth=rng.uniform(0.05, 20.0, (r, r)).astype(np.float32),
+        camera_pose=rng.normal(size=(4, 4)),
+        agent_pose=(0.25, -0.5, 90.0, 30.0),
+        intrinsics=np.array([[16.0, 0, 15.5], [0, 16.0, 15.5], [0, 0, 1]]),
+        held="Mug",
+        held_id="Mug_0",
+        last_action="PickupObject",
+        success=False,
+        error="too_far",
+        message="1.7 m away",
+        done=False,
+        steps_left=997,
+        ground_truth=gt,
+    )
 
 
 EXAMPLES: list[Any] = [
@@ -58,25 +100,67 @@ EXAMPLES: list[Any] = [
     CloseReply("s1", closed=True),
     ErrorReply(ErrorCode.server_busy, "full", session=None),
     ReceptaclePrediction("Desk", 0.4),
-    AgentStatus(session="s1", step=7, phase="placing", episode={"room_type": "Bedroom", "seed": 201},
-                pose=(0.5, -0.25, 90.0, 30.0), target_object="AlarmClock", target_id=3, target_receptacle="Desk",
-                predictions=[ReceptaclePrediction("Desk", 0.6), ReceptaclePrediction("SideTable", 0.3)],
-                held="AlarmClock", objects_fixed=1, oop_found=2, trajectory=np.zeros((3, 2), np.float32),
-                path=np.ones((4, 2), np.float32), goal=(1.0, 2.0)),
+    AgentStatus(
+        session="s1",
+        step=7,
+        phase="placing",
+        episode={"room_type": "Bedroom", "seed": 201},
+        pose=(0.5, -0.25, 90.0, 30.0),
+        target_object="AlarmClock",
+        target_id=3,
+        target_receptacle="Desk",
+        predictions=[ReceptaclePrediction("Desk", 0.6), ReceptaclePrediction("SideTable", 0.3)],
+        held="AlarmClock",
+        objects_fixed=1,
+        oop_found=2,
+        trajectory=np.zeros((3, 2), np.float32),
+        path=np.ones((4, 2), np.float32),
+        goal=(1.0, 2.0),
+    ),
     Detection2D("Mug", 0.9, (1.0, 2.0, 10.0, 12.0), oop_prob=0.8, track_id=4),
-    AgentFrame("s1", 7, np.zeros((8, 8, 3), np.uint8), np.ones((8, 8), np.float32), np.eye(4),
-               np.eye(3), [Detection2D("Mug", 0.9, (1.0, 2.0, 5.0, 6.0))]),
-    MapSnapshot("s1", 7, (-6.4, -6.4), 0.05, np.zeros((6, 5), np.uint8), np.zeros((6, 5), bool), 0.1,
-                np.zeros((3, 3), np.float32), np.array([-1, 0, 5], np.int16), ["Mug", "Desk"]),
+    AgentFrame(
+        "s1",
+        7,
+        np.zeros((8, 8, 3), np.uint8),
+        np.ones((8, 8), np.float32),
+        np.eye(4),
+        np.eye(3),
+        [Detection2D("Mug", 0.9, (1.0, 2.0, 5.0, 6.0))],
+    ),
+    MapSnapshot(
+        "s1",
+        7,
+        (-6.4, -6.4),
+        0.05,
+        np.zeros((6, 5), np.uint8),
+        np.zeros((6, 5), bool),
+        0.1,
+        np.zeros((3, 3), np.float32),
+        np.array([-1, 0, 5], np.int16),
+        ["Mug", "Desk"],
+    ),
     TrackedObjectMsg(2, "Mug", 1.0, (1.0, 0.0, 0.9), (0.9, -0.1, 0.85), (1.1, 0.1, 0.95), 0.7, True),
-    ObjectMemoryMsg("s1", 7, [TrackedObjectMsg(2, "Mug", 1.0, (1.0, 0.0, 0.9), (0.9, -0.1, 0.85),
-                                               (1.1, 0.1, 0.95))]),
-    SearchHeatmap("s1", 7, "Desk", (-6.4, -6.4), 0.1, np.zeros((4, 4), np.float32),
-                  np.zeros((2, 2), np.float32)),
+    ObjectMemoryMsg(
+        "s1", 7, [TrackedObjectMsg(2, "Mug", 1.0, (1.0, 0.0, 0.9), (0.9, -0.1, 0.85), (1.1, 0.1, 0.95))]
+    ),
+    SearchHeatmap(
+        "s1", 7, "Desk", (-6.4, -6.4), 0.1, np.zeros((4, 4), np.float32), np.zeros((2, 2), np.float32)
+    ),
     AgentCommand(kind="preference", command_id="c1", text="I want my alarm clock on the desk"),
     CommandAck("s1", "c1", "preference", True, "noted"),
-    EpisodeSummary("s1", {"room_type": "Kitchen", "seed": 200, "mess_index": 0}, 120, 33.5, "done", 4,
-                   moved=5, found=5, plausible=4, false_picks=0, replay="tidee viewer --replay runs/Kitchen_200_mess0"),
+    EpisodeSummary(
+        "s1",
+        {"room_type": "Kitchen", "seed": 200, "mess_index": 0},
+        120,
+        33.5,
+        "done",
+        4,
+        moved=5,
+        found=5,
+        plausible=4,
+        false_picks=0,
+        replay="tidee viewer --replay runs/Kitchen_200_mess0",
+    ),
 ]
 
 
@@ -106,7 +190,7 @@ def test_raw_arrays_are_zero_copy_and_aligned() -> None:
     header_len = PREFIX.unpack_from(frame)[2]
     body_start = PREFIX.size + header_len
     assert body_start % ALIGN == 0
-    fields = json.loads(frame[PREFIX.size:body_start])["fields"]
+    fields = json.loads(frame[PREFIX.size : body_start])["fields"]
     for name in ("rgb", "depth", "camera_pose", "intrinsics"):
         assert fields[name]["offset"] % ALIGN == 0 and fields[name]["encoding"] == "raw"
     obs = decode(frame)
@@ -159,15 +243,22 @@ def test_numpy_scalars_and_tuples_in_plain_fields_become_json() -> None:
 
 # --- rejection paths --------------------------------------------------------------------
 
-def reframe(frame: bytes, mutate: Callable[[dict], Any] | None = None, *, body: bytes | None = None,
-            magic: bytes = MAGIC, version: int = PROTOCOL_VERSION) -> bytes:
+
+def reframe(
+    frame: bytes,
+    mutate: Callable[[dict], Any] | None = None,
+    *,
+    body: bytes | None = None,
+    magic: bytes = MAGIC,
+    version: int = PROTOCOL_VERSION,
+) -> bytes:
     """``frame`` with its header passed through ``mutate`` (which edits it in place)."""
     header_len = PREFIX.unpack_from(frame)[2]
-    header = json.loads(frame[PREFIX.size:PREFIX.size + header_len])
+    header = json.loads(frame[PREFIX.size : PREFIX.size + header_len])
     if mutate is not None:
         mutate(header)
     raw = json.dumps(header).encode()
-    body = frame[PREFIX.size + header_len:] if body is None else body
+    body = frame[PREFIX.size + header_len :] if body is None else body
     return PREFIX.pack(magic, version, len(raw)) + raw + body
 
 
@@ -191,6 +282,7 @@ def set_in(path: str, value: Any) -> Callable[[dict], None]:
         for p in parents:
             node = node[p]
         node[leaf] = value
+
     return mutate
 
 
@@ -201,6 +293,7 @@ def delete(path: str) -> Callable[[dict], None]:
         for p in parents:
             node = node[p]
         del node[leaf]
+
     return mutate
 
 
@@ -214,8 +307,9 @@ def test_garbage_and_empty() -> None:
 
 
 def test_wrong_protocol_version() -> None:
-    rejects(reframe(STEP, version=PROTOCOL_VERSION + 1), ErrorCode.bad_version,
-            f"version {PROTOCOL_VERSION + 1}")
+    rejects(
+        reframe(STEP, version=PROTOCOL_VERSION + 1), ErrorCode.bad_version, f"version {PROTOCOL_VERSION + 1}"
+    )
     rejects(reframe(STEP, set_in("protocol_version", 99)), ErrorCode.bad_version, "'protocol_version'", "99")
 
 
@@ -228,83 +322,105 @@ def test_header_not_json() -> None:
     rejects(PREFIX.pack(MAGIC, PROTOCOL_VERSION, 5) + b"{nope", ErrorCode.malformed, "not valid UTF-8 JSON")
     raw = b'{"type":"StepRequest","fields":{"session":NaN}}'
     rejects(PREFIX.pack(MAGIC, PROTOCOL_VERSION, len(raw)) + raw, ErrorCode.malformed, "NaN")
-    raw = b'[1, 2]'
+    raw = b"[1, 2]"
     rejects(PREFIX.pack(MAGIC, PROTOCOL_VERSION, len(raw)) + raw, ErrorCode.malformed, "'type' and 'fields'")
 
 
 def test_unknown_and_unexpected_message_types() -> None:
-    rejects(reframe(STEP, lambda h: h.update(type="Teleport")), ErrorCode.malformed,
-            "unknown message type 'Teleport'")
+    rejects(
+        reframe(STEP, lambda h: h.update(type="Teleport")),
+        ErrorCode.malformed,
+        "unknown message type 'Teleport'",
+    )
     rejects(RESET, ErrorCode.malformed, "expected StepRequest, got ResetRequest", expected=StepRequest)
 
 
-@pytest.mark.parametrize("mutate, fragments", [
-    (set_in("action.x", "abc"), ["field 'action.x' must be a number", "'abc'"]),
-    (set_in("action.name", "Fly"), ["field 'action.name' must be one of", "'Fly'"]),
-    (set_in("action.x", 1.5), ["invalid field 'action'", "x in [0, 1]", "1.5"]),
-    (set_in("action.x", None), ["invalid field 'action'", "needs x"]),
-    (set_in("session", 5), ["field 'session' must be a string", "5"]),
-    (set_in("ground_truth", 1), ["field 'ground_truth' must be a boolean"]),
-    (set_in("encoding", "gif"), ["invalid StepRequest", "encoding must be one of", "'gif'"]),
-    (set_in("action", "MoveAhead"), ["field 'action' must be an object"]),
-    (set_in("extra", 1), ["unknown field 'extra'"]),
-    (set_in("action.z", 1), ["unknown field 'action.z'"]),
-    (delete("action"), ["field 'action' is required"]),
-    (delete("action.name"), ["field 'action.name' is required"]),
-])
+@pytest.mark.parametrize(
+    "mutate, fragments",
+    [
+        (set_in("action.x", "abc"), ["field 'action.x' must be a number", "'abc'"]),
+        (set_in("action.name", "Fly"), ["field 'action.name' must be one of", "'Fly'"]),
+        (set_in("action.x", 1.5), ["invalid field 'action'", "x in [0, 1]", "1.5"]),
+        (set_in("action.x", None), ["invalid field 'action'", "needs x"]),
+        (set_in("session", 5), ["field 'session' must be a string", "5"]),
+        (set_in("ground_truth", 1), ["field 'ground_truth' must be a boolean"]),
+        (set_in("encoding", "gif"), ["invalid StepRequest", "encoding must be one of", "'gif'"]),
+        (set_in("action", "MoveAhead"), ["field 'action' must be an object"]),
+        (set_in("extra", 1), ["unknown field 'extra'"]),
+        (set_in("action.z", 1), ["unknown field 'action.z'"]),
+        (delete("action"), ["field 'action' is required"]),
+        (delete("action.name"), ["field 'action.name' is required"]),
+    ],
+)
 def test_invalid_step_fields(mutate: Callable[[dict], None], fragments: list[str]) -> None:
     rejects(reframe(STEP, mutate), ErrorCode.invalid_field, *fragments)
 
 
-@pytest.mark.parametrize("mutate, fragments", [
-    (set_in("spec.resolution", 5), ["invalid field 'spec'", "resolution must be in [16, 1024]"]),
-    (set_in("spec.room_type", "Garage"), ["invalid field 'spec'", "room_type", "'Garage'"]),
-    (set_in("spec.seed", True), ["field 'spec.seed' must be a 64-bit integer", "True"]),
-    (set_in("spec.seed", 2.5), ["field 'spec.seed' must be a 64-bit integer"]),
-    (set_in("spec.seed", 2**70), ["field 'spec.seed' must be a 64-bit integer"]),
-    (set_in("spec.seed", -1), ["invalid field 'spec'", "seed must be >= 0"]),
-    (set_in("spec.camera_height", "high"), ["field 'spec.camera_height' must be a number"]),
-    (set_in("spec.mess_index", [1]), ["field 'spec.mess_index' must be a 64-bit integer"]),
-])
+@pytest.mark.parametrize(
+    "mutate, fragments",
+    [
+        (set_in("spec.resolution", 5), ["invalid field 'spec'", "resolution must be in [16, 1024]"]),
+        (set_in("spec.room_type", "Garage"), ["invalid field 'spec'", "room_type", "'Garage'"]),
+        (set_in("spec.seed", True), ["field 'spec.seed' must be a 64-bit integer", "True"]),
+        (set_in("spec.seed", 2.5), ["field 'spec.seed' must be a 64-bit integer"]),
+        (set_in("spec.seed", 2**70), ["field 'spec.seed' must be a 64-bit integer"]),
+        (set_in("spec.seed", -1), ["invalid field 'spec'", "seed must be >= 0"]),
+        (set_in("spec.camera_height", "high"), ["field 'spec.camera_height' must be a number"]),
+        (set_in("spec.mess_index", [1]), ["field 'spec.mess_index' must be a 64-bit integer"]),
+    ],
+)
 def test_invalid_reset_fields(mutate: Callable[[dict], None], fragments: list[str]) -> None:
     rejects(reframe(RESET, mutate), ErrorCode.invalid_field, *fragments)
 
 
-@pytest.mark.parametrize("mutate, code, fragments", [
-    (set_in("rgb.shape", [2, 2, 3]), ErrorCode.invalid_field, ["field 'rgb' declares", "nbytes is"]),
-    (set_in("rgb.dtype", "<f4"), ErrorCode.invalid_field, ["field 'rgb' must be uint8 NxNx3", "float32"]),
-    (set_in("rgb.dtype", "|O"), ErrorCode.invalid_field, ["field 'rgb.dtype' must be one of"]),
-    (set_in("rgb.shape", [32, 32]), ErrorCode.invalid_field, ["field 'rgb' must be uint8 NxNx3"]),
-    (set_in("rgb.shape", [32, -32, 3]), ErrorCode.invalid_field, ["field 'rgb.shape'"]),
-    (set_in("rgb.offset", "0"), ErrorCode.invalid_field, ["field 'rgb.offset' must be a non-negative"]),
-    (set_in("rgb.encoding", "gif"), ErrorCode.invalid_field, ["field 'rgb.encoding' must be one of"]),
-    (set_in("camera_pose.encoding", "png"), ErrorCode.invalid_field, ["field 'camera_pose.encoding'"]),
-    (set_in("camera_pose.shape", [3, 3]), ErrorCode.invalid_field, ["'camera_pose' must be float64 4x4"]),
-    (set_in("depth", [[1.0]]), ErrorCode.invalid_field, ["field 'depth' must be an array descriptor"]),
-    (set_in("rgb.offset", 10**9), ErrorCode.malformed, ["truncated", "field 'rgb'"]),
-    (set_in("rgb.shape", [100000, 100000, 3]), ErrorCode.oversized, ["field 'rgb' declares", "limit"]),
-    (set_in("agent_pose", [1, 2, 3]), ErrorCode.invalid_field, ["field 'agent_pose' must be a list of 4"]),
-    (set_in("agent_pose", [1, 2, 3, "x"]), ErrorCode.invalid_field, ["'agent_pose[3]' must be a number"]),
-])
-def test_invalid_observation_arrays(mutate: Callable[[dict], None], code: ErrorCode,
-                                    fragments: list[str]) -> None:
+@pytest.mark.parametrize(
+    "mutate, code, fragments",
+    [
+        (set_in("rgb.shape", [2, 2, 3]), ErrorCode.invalid_field, ["field 'rgb' declares", "nbytes is"]),
+        (set_in("rgb.dtype", "<f4"), ErrorCode.invalid_field, ["field 'rgb' must be uint8 NxNx3", "float32"]),
+        (set_in("rgb.dtype", "|O"), ErrorCode.invalid_field, ["field 'rgb.dtype' must be one of"]),
+        (set_in("rgb.shape", [32, 32]), ErrorCode.invalid_field, ["field 'rgb' must be uint8 NxNx3"]),
+        (set_in("rgb.shape", [32, -32, 3]), ErrorCode.invalid_field, ["field 'rgb.shape'"]),
+        (set_in("rgb.offset", "0"), ErrorCode.invalid_field, ["field 'rgb.offset' must be a non-negative"]),
+        (set_in("rgb.encoding", "gif"), ErrorCode.invalid_field, ["field 'rgb.encoding' must be one of"]),
+        (set_in("camera_pose.encoding", "png"), ErrorCode.invalid_field, ["field 'camera_pose.encoding'"]),
+        (set_in("camera_pose.shape", [3, 3]), ErrorCode.invalid_field, ["'camera_pose' must be float64 4x4"]),
+        (set_in("depth", [[1.0]]), ErrorCode.invalid_field, ["field 'depth' must be an array descriptor"]),
+        (set_in("rgb.offset", 10**9), ErrorCode.malformed, ["truncated", "field 'rgb'"]),
+        (set_in("rgb.shape", [100000, 100000, 3]), ErrorCode.oversized, ["field 'rgb' declares", "limit"]),
+        (
+            set_in("agent_pose", [1, 2, 3]),
+            ErrorCode.invalid_field,
+            ["field 'agent_pose' must be a list of 4"],
+        ),
+        (set_in("agent_pose", [1, 2, 3, "x"]), ErrorCode.invalid_field, ["'agent_pose[3]' must be a number"]),
+    ],
+)
+def test_invalid_observation_arrays(
+    mutate: Callable[[dict], None], code: ErrorCode, fragments: list[str]
+) -> None:
     rejects(reframe(OBS, mutate), code, *fragments)
 
 
 def test_compressed_image_must_match_its_declared_shape() -> None:
     frame = encode(observation(32), "png")
-    rejects(reframe(frame, set_in("rgb.shape", [16, 16, 3])), ErrorCode.invalid_field,
-            "field 'rgb'", "compressed image is 32x32")
+    rejects(
+        reframe(frame, set_in("rgb.shape", [16, 16, 3])),
+        ErrorCode.invalid_field,
+        "field 'rgb'",
+        "compressed image is 32x32",
+    )
     rejects(reframe(frame, set_in("depth.shape", [32, 16])), ErrorCode.invalid_field, "field 'depth'")
     jpeg = encode(observation(32), "jpeg")
-    rejects(reframe(jpeg, set_in("rgb.shape", [48, 32, 3])), ErrorCode.invalid_field,
-            "compressed image is 32x32")
+    rejects(
+        reframe(jpeg, set_in("rgb.shape", [48, 32, 3])), ErrorCode.invalid_field, "compressed image is 32x32"
+    )
 
 
 def test_corrupt_compressed_image() -> None:
     frame = encode(observation(32), "png")
     header_len = PREFIX.unpack_from(frame)[2]
-    body = bytearray(frame[PREFIX.size + header_len:])
+    body = bytearray(frame[PREFIX.size + header_len :])
     body[:64] = b"\0" * 64  # rgb's PNG signature and header, gone
     rejects(reframe(frame, body=bytes(body)), ErrorCode.invalid_field, "field 'rgb'")
 

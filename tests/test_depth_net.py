@@ -16,7 +16,14 @@ from tidee.agent.learning import write_manifest  # noqa: E402
 from tidee.agent.perception import depth_net  # noqa: E402
 from tidee.agent.perception.dataset import pack  # noqa: E402
 from tidee.agent.perception.depth_net import (  # noqa: E402
-    DepthEstimator, DepthNet, evaluate_depth, save_examples, to_tensors, train_depth, train_step)
+    DepthEstimator,
+    DepthNet,
+    evaluate_depth,
+    save_examples,
+    to_tensors,
+    train_depth,
+    train_step,
+)
 
 
 @pytest.fixture(autouse=True)
@@ -35,21 +42,37 @@ def synthetic_frames(n: int = 8, size: int = 64, seed: int = 0) -> dict[str, np.
     for i in range(n):
         far = rng.uniform(2.0, 5.0)
         depth = np.broadcast_to(0.5 + (far - 0.5) * rows, (size, size)).copy()
-        depth[: size // 8] = 0.0 if i % 2 else 20.0         # nothing / beyond the far plane: not scored
+        depth[: size // 8] = 0.0 if i % 2 else 20.0  # nothing / beyond the far plane: not scored
         shade = np.clip(255 * (1 - depth / 6.0), 0, 255)
         rgb = np.stack([shade, shade * 0.8, shade * 0.5], -1) + rng.normal(0, 8, (size, size, 3))
-        frames.append({"rgb": np.clip(rgb, 0, 255).astype(np.uint8), "depth": depth,
-                       "inst": np.full((size, size), -1, np.int16), "objects": [],
-                       "room_type": ("Kitchen", "Bedroom")[i % 2], "seed": 0, "mess_index": None})
+        frames.append(
+            {
+                "rgb": np.clip(rgb, 0, 255).astype(np.uint8),
+                "depth": depth,
+                "inst": np.full((size, size), -1, np.int16),
+                "objects": [],
+                "room_type": ("Kitchen", "Bedroom")[i % 2],
+                "seed": 0,
+                "mess_index": None,
+            }
+        )
     return pack(frames)
 
 
 def write_shards(root, frames: dict[str, np.ndarray]) -> None:
     root.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(root / "shard_p0_0000.npz", **frames)
-    (root / "manifest.json").write_text(json.dumps({
-        "command": "synthetic", "classes": list(CLASSES), "shards": ["shard_p0_0000.npz"],
-        "frames": len(frames["rgb"]), "rooms": ["Kitchen:0", "Bedroom:0"]}))
+    (root / "manifest.json").write_text(
+        json.dumps(
+            {
+                "command": "synthetic",
+                "classes": list(CLASSES),
+                "shards": ["shard_p0_0000.npz"],
+                "frames": len(frames["rgb"]),
+                "rooms": ["Kitchen:0", "Bedroom:0"],
+            }
+        )
+    )
 
 
 class LookupEstimator:
@@ -83,7 +106,7 @@ def test_output_shape_range_and_fused_copy():
         net(torch.rand(1, 3, 60, 64))
 
     rgb = np.random.default_rng(0).integers(0, 256, (120, 160, 3), dtype=np.uint8)
-    est = DepthEstimator(net).predict(rgb)          # resized to 256^2 and back
+    est = DepthEstimator(net).predict(rgb)  # resized to 256^2 and back
     assert est.shape == (120, 160) and est.dtype == np.float32 and (est > 0).all()
 
 
@@ -99,14 +122,15 @@ def test_a_few_steps_reduce_the_loss():
 
     losses = run()
     assert np.mean(losses[-3:]) < np.mean(losses[:3])
-    assert run() == losses                          # same seed, same numbers
+    assert run() == losses  # same seed, same numbers
 
 
 def test_training_is_reproducible_and_resumable(tmp_path, monkeypatch):
     data = tmp_path / "data"
     write_shards(data, synthetic_frames(n=8))
-    kw = dict(steps=4, batch_size=2, lr=2e-3, seed=3, progress=False, eval_set=None, checkpoint_every=1,
-              log_every=1)
+    kw = dict(
+        steps=4, batch_size=2, lr=2e-3, seed=3, progress=False, eval_set=None, checkpoint_every=1, log_every=1
+    )
 
     straight = train_depth(data, tmp_path / "a.pt", work_dir=tmp_path / "run_a", **kw)
     manifest = json.loads((tmp_path / "a.json").read_text())
@@ -187,4 +211,4 @@ def test_shipped_weights_on_test_rooms():
     frames = held_out_frames("test", rooms_per_type=1, messes=0, frames_per_walk=1, progress=False)
     metrics = evaluate_depth(DepthEstimator.load(), frames)
     assert metrics["frames"] == 4
-    assert metrics["abs_rel"] < 0.28, metrics      # shipped weights: 0.21; a constant 1 m scores 0.36
+    assert metrics["abs_rel"] < 0.28, metrics  # shipped weights: 0.21; a constant 1 m scores 0.36

@@ -21,13 +21,15 @@ NON_PICK = sorted(set(CLASS_INDEX) - PICKUPABLE)
 PAPER_TEX = Path("/work/shared/paper/tidee-eccv2022.tex")
 
 
-def make_frames(objects: list[tuple[int, str, tuple[float, float, float, float], int]], n_frames: int,
-                size: int = 64) -> dict[str, np.ndarray]:
+def make_frames(
+    objects: list[tuple[int, str, tuple[float, float, float, float], int]], n_frames: int, size: int = 64
+) -> dict[str, np.ndarray]:
     """A packed frames dict from (frame, class name, box, oop) rows; rgb filled per frame."""
     rgb = np.zeros((n_frames, size, size, 3), np.uint8)
-    rgb[:] = np.arange(n_frames, dtype=np.uint8)[:, None, None, None] * 20   # frames tell apart
+    rgb[:] = np.arange(n_frames, dtype=np.uint8)[:, None, None, None] * 20  # frames tell apart
     return {
-        "rgb": rgb, "depth": np.ones((n_frames, size, size), np.float16),
+        "rgb": rgb,
+        "depth": np.ones((n_frames, size, size), np.float16),
         "obj_frame": np.array([o[0] for o in objects], np.int32),
         "obj_cls": np.array([CLASS_INDEX[o[1]] for o in objects], np.int16),
         "obj_box": np.array([o[2] for o in objects], np.float32).reshape(-1, 4),
@@ -41,8 +43,11 @@ def perfect(frames: dict, oop_prob: str = "gt") -> list[list[Detection]]:
     out: list[list[Detection]] = [[] for _ in range(len(frames["rgb"]))]
     for f, c, b, o in zip(frames["obj_frame"], frames["obj_cls"], frames["obj_box"], frames["obj_oop"]):
         p = {"gt": float(o), "inverted": 1.0 - float(o), "half": 0.5}[oop_prob]
-        out[int(f)].append(Detection(label=de.CLASSES[int(c)], score=1.0, box=tuple(int(x) for x in b),
-                                     oop_prob=p, source="fake"))
+        out[int(f)].append(
+            Detection(
+                label=de.CLASSES[int(c)], score=1.0, box=tuple(int(x) for x in b), oop_prob=p, source="fake"
+            )
+        )
     return out
 
 
@@ -55,11 +60,14 @@ class GTDetector:
 
     name = "gt-fake"
 
-    def __init__(self, frames: dict, jitter: float = 0.0, fp_rate: float = 0.0, oop_noise: float = 0.0,
-                 seed: int = 0) -> None:
+    def __init__(
+        self, frames: dict, jitter: float = 0.0, fp_rate: float = 0.0, oop_noise: float = 0.0, seed: int = 0
+    ) -> None:
         self.frames, self.jitter, self.fp_rate, self.oop_noise = frames, jitter, fp_rate, oop_noise
-        self.index = {hashlib.sha1(np.ascontiguousarray(im).tobytes()).hexdigest(): i
-                      for i, im in enumerate(frames["rgb"])}
+        self.index = {
+            hashlib.sha1(np.ascontiguousarray(im).tobytes()).hexdigest(): i
+            for i, im in enumerate(frames["rgb"])
+        }
         self.rng = np.random.default_rng(seed)
 
     def detect_batch(self, rgbs: np.ndarray, depths: np.ndarray) -> list[list[Detection]]:
@@ -73,15 +81,26 @@ class GTDetector:
                 box = np.clip(np.round(box), 0, [w, h, w, h]).astype(int)
                 oop = float(self.frames["obj_oop"][r])
                 p = float(np.clip(oop + self.rng.normal(0, self.oop_noise), 0.01, 0.99))
-                dets.append(Detection(label=de.CLASSES[int(self.frames["obj_cls"][r])],
-                                      score=float(self.rng.uniform(0.3, 1.0)), box=tuple(box.tolist()),
-                                      oop_prob=p, source="fake"))
+                dets.append(
+                    Detection(
+                        label=de.CLASSES[int(self.frames["obj_cls"][r])],
+                        score=float(self.rng.uniform(0.3, 1.0)),
+                        box=tuple(box.tolist()),
+                        oop_prob=p,
+                        source="fake",
+                    )
+                )
                 if self.rng.random() < self.fp_rate:
                     x0, y0 = self.rng.integers(0, w - 8), self.rng.integers(0, h - 8)
-                    dets.append(Detection(label=de.CLASSES[int(self.rng.integers(len(de.CLASSES)))],
-                                          score=float(self.rng.uniform(0.0, 0.6)),
-                                          box=(int(x0), int(y0), int(x0) + 8, int(y0) + 8),
-                                          oop_prob=float(self.rng.random()), source="fake"))
+                    dets.append(
+                        Detection(
+                            label=de.CLASSES[int(self.rng.integers(len(de.CLASSES)))],
+                            score=float(self.rng.uniform(0.0, 0.6)),
+                            box=(int(x0), int(y0), int(x0) + 8, int(y0) + 8),
+                            oop_prob=float(self.rng.random()),
+                            source="fake",
+                        )
+                    )
             out.append(dets)
         return out
 
@@ -124,7 +143,7 @@ def test_matching_greedy_by_score_each_gt_once():
     gt = np.array([[0, 0, 10, 10], [20, 0, 30, 10]])
     det = np.array([[0, 0, 10, 10], [1, 0, 11, 10], [20, 0, 30, 10]])
     m = de.match_detections(det, [0.5, 0.9, 0.7], gt, 0.5)
-    assert m.tolist() == [-1, 0, 1]                      # the higher-scored det takes GT 0
+    assert m.tolist() == [-1, 0, 1]  # the higher-scored det takes GT 0
     assert de.match_detections(det, [0.5, 0.9, 0.7], gt, 0.95).tolist() == [0, -1, 1]
 
 
@@ -135,21 +154,25 @@ def test_iou_threshold_behaviour():
     assert de.box_iou(np.array([[4, 0, 14, 10]]), np.array([[0, 0, 10, 10]]))[0, 0] == pytest.approx(60 / 140)
     r = de.evaluate_boxes(dets, frames, iou_thresholds=(0.4, 0.5))
     assert r["map50"] == 0.0
-    assert r["map"] == pytest.approx(0.5)               # AP 1 at 0.4, 0 at 0.5
+    assert r["map"] == pytest.approx(0.5)  # AP 1 at 0.4, 0 at 0.5
     oop = de.evaluate_oop({"v": [[0.0]]}, dets, frames)["rows"]["v"]["iou"]
     assert oop["0.25"]["map"] == 1.0 and oop["0.5"]["map"] == 0.0
 
 
 def test_boxes_per_class_and_size():
-    objs = [(0, PICK[0], (0, 0, 10, 10), 0), (0, PICK[1], (20, 20, 60, 60), 0), (1, PICK[0], (0, 0, 10, 10), 0)]
+    objs = [
+        (0, PICK[0], (0, 0, 10, 10), 0),
+        (0, PICK[1], (20, 20, 60, 60), 0),
+        (1, PICK[0], (0, 0, 10, 10), 0),
+    ]
     frames = make_frames(objs, 2)
     dets = perfect(frames)
-    dets[1] = [Detection(PICK[1], 0.9, (0, 0, 10, 10))]   # wrong class in frame 1: a miss and an FP
+    dets[1] = [Detection(PICK[1], 0.9, (0, 0, 10, 10))]  # wrong class in frame 1: a miss and an FP
     r = de.evaluate_boxes(dets, frames)
     per = {c["class"]: c for c in r["per_class"]}
     assert per[PICK[0]]["n_gt"] == 2 and per[PICK[0]]["ap50"] == pytest.approx(51 / 101)
-    assert per[PICK[1]]["ap50"] == pytest.approx(1.0)   # its TP is ranked above the FP
-    assert r["per_class"][0]["class"] == PICK[0]         # sorted by GT count
+    assert per[PICK[1]]["ap50"] == pytest.approx(1.0)  # its TP is ranked above the FP
+    assert r["per_class"][0]["class"] == PICK[0]  # sorted by GT count
     assert r["by_size"]["small"]["n_gt"] == 2 and r["by_size"]["medium"]["n_gt"] == 1
     assert r["by_size"]["medium"]["map50"] == 1.0
     assert math.isnan(r["by_size"]["large"]["map50"])
@@ -169,17 +192,21 @@ def oop_frames() -> dict:
         for k in range(5):
             x, y = 12 * k, int(rng.integers(0, 40))
             objs.append((f, PICK[(f + k) % len(PICK)], (x, y, x + 10, y + 12), int((f + k) % 3 == 0)))
-        objs.append((f, NON_PICK[f % len(NON_PICK)], (0, 50, 64, 64), 0))   # not pickupable: left out
+        objs.append((f, NON_PICK[f % len(NON_PICK)], (0, 50, 64, 64), 0))  # not pickupable: left out
     return make_frames(objs, 6)
 
 
 def test_oop_oracle_labels_perfect_inverted_low():
     frames = oop_frames()
     dets = perfect(frames)
-    rows = {name: [[float(p) for p in ps] for ps in probs] for name, probs in (
-        ("gt", [[d.oop_prob for d in ds] for ds in perfect(frames, "gt")]),
-        ("inverted", [[d.oop_prob for d in ds] for ds in perfect(frames, "inverted")]),
-        ("half", [[d.oop_prob for d in ds] for ds in perfect(frames, "half")]))}
+    rows = {
+        name: [[float(p) for p in ps] for ps in probs]
+        for name, probs in (
+            ("gt", [[d.oop_prob for d in ds] for ds in perfect(frames, "gt")]),
+            ("inverted", [[d.oop_prob for d in ds] for ds in perfect(frames, "inverted")]),
+            ("half", [[d.oop_prob for d in ds] for ds in perfect(frames, "half")]),
+        )
+    }
     r = de.evaluate_oop(rows, dets, frames)
     n_pick = sum(1 for c in frames["obj_cls"] if de.CLASSES[int(c)] in PICKUPABLE)
     assert r["n_gt_in_place"] + r["n_gt_out_of_place"] == n_pick == r["n_detections"]
@@ -191,16 +218,21 @@ def test_oop_oracle_labels_perfect_inverted_low():
         assert inv["ap_in_place"] == pytest.approx(r["n_gt_in_place"] / n_pick)
         assert inv["ap_out_of_place"] == pytest.approx(r["n_gt_out_of_place"] / n_pick)
         assert inv["ap_out_of_place"] < 0.5
-        assert inv["map"] <= r["rows"]["half"]["iou"][thr]["map"] < 1.0   # no better than a coin
+        assert inv["map"] <= r["rows"]["half"]["iou"][thr]["map"] < 1.0  # no better than a coin
 
 
 def test_oracle_label_ceiling_is_perfect_on_perfect_boxes_and_drops_with_missed_ones():
     frames = oop_frames()
-    dets = perfect(frames, "half")                      # the detections' own P(oop) is ignored
+    dets = perfect(frames, "half")  # the detections' own P(oop) is ignored
     r = de.evaluate_oop({de.CEILING_ROW: de.oracle_label_row(frames, dets)}, dets, frames)
     assert r["rows"][de.CEILING_ROW]["iou"]["0.5"]["map"] == 1.0
-    shifted = [[Detection(d.label, d.score, (d.box[0] + 40, d.box[1], d.box[2] + 40, d.box[3]), oop_prob=0.5)
-                for d in ds] for ds in dets]            # every box misplaced: nothing matches
+    shifted = [
+        [
+            Detection(d.label, d.score, (d.box[0] + 40, d.box[1], d.box[2] + 40, d.box[3]), oop_prob=0.5)
+            for d in ds
+        ]
+        for ds in dets
+    ]  # every box misplaced: nothing matches
     probs = de.oracle_label_row(frames, shifted)
     assert all(p == 0.5 for ps in probs for p in ps)
     assert de.evaluate_oop({"c": probs}, shifted, frames)["rows"]["c"]["iou"]["0.5"]["map"] < 0.5
@@ -208,7 +240,7 @@ def test_oracle_label_ceiling_is_perfect_on_perfect_boxes_and_drops_with_missed_
 
 def test_oop_class_label_ignored():
     frames = make_frames([(0, PICK[0], (0, 0, 10, 10), 1)], 1)
-    dets = [[Detection(PICK[1], 0.8, (0, 0, 10, 10), oop_prob=0.9)]]   # wrong class, right box
+    dets = [[Detection(PICK[1], 0.8, (0, 0, 10, 10), oop_prob=0.9)]]  # wrong class, right box
     r = de.evaluate_oop({"v": [[0.9]]}, dets, frames)
     assert r["rows"]["v"]["iou"]["0.5"]["ap_out_of_place"] == 1.0
     with pytest.raises(ValueError, match="one P"):
@@ -218,12 +250,13 @@ def test_oop_class_label_ignored():
 def test_oop_table_lists_unbuilt_rows():
     frames = oop_frames()
     dets = perfect(frames)
-    r = de.evaluate_oop({de.VISUAL_ROW: [[d.oop_prob for d in ds] for ds in dets],
-                         "BERT-OOP (language)": None}, dets, frames)
+    r = de.evaluate_oop(
+        {de.VISUAL_ROW: [[d.oop_prob for d in ds] for ds in dets], "BERT-OOP (language)": None}, dets, frames
+    )
     table = de.oop_table_markdown(r)
     for name in de.OOP_ROWS:
         assert name in table
-    assert table.count(de.NOT_BUILT) == 3              # language (given as None), fused, oracle (absent)
+    assert table.count(de.NOT_BUILT) == 3  # language (given as None), fused, oracle (absent)
     assert "| dDETR-OOP (visual) | 100.00 | 100.00 | 100.00 | 100.00 | 100.00 | 100.00 |" in table
     assert "paper (AI2THOR)" in table and "90.70" in table
 
@@ -231,8 +264,12 @@ def test_oop_table_lists_unbuilt_rows():
 @pytest.mark.skipif(not PAPER_TEX.exists(), reason="the paper source is not in this checkout")
 def test_paper_figures_match_the_tex():
     tex = PAPER_TEX.read_text()
-    names = {"vilangOOP": "dDETR+BERT-OOP (fused)", "visualOOP": de.VISUAL_ROW, "langOOP": "BERT-OOP (language)",
-             "oraclelangOOP": "Oracle-language"}
+    names = {
+        "vilangOOP": "dDETR+BERT-OOP (fused)",
+        "visualOOP": de.VISUAL_ROW,
+        "langOOP": "BERT-OOP (language)",
+        "oraclelangOOP": "Oracle-language",
+    }
     for macro, row in names.items():
         line = re.search(r"^\$\\" + macro + r"\$ &(.*)\\\\", tex, re.MULTILINE)
         assert line is not None, macro
@@ -255,21 +292,41 @@ def test_run_evals_write_reports(tmp_path, monkeypatch):
     assert (tmp_path / "detector_examples.png").stat().st_size > 1000
 
     calls = []
-    r = de.run_oop_eval(det, tmp_path, views_per_config=4, rooms_per_type=1, messes=1, progress=False,
-                        extra_rows={"Oracle-language": lambda fr, ds: (calls.append(1),
-                                                                        [[0.5] * len(d) for d in ds])[1]})
+    r = de.run_oop_eval(
+        det,
+        tmp_path,
+        views_per_config=4,
+        rooms_per_type=1,
+        messes=1,
+        progress=False,
+        extra_rows={"Oracle-language": lambda fr, ds: (calls.append(1), [[0.5] * len(d) for d in ds])[1]},
+    )
     assert calls and r["rows"]["Oracle-language"]["built"] and not r["rows"]["BERT-OOP (language)"]["built"]
     md = (tmp_path / "oop.md").read_text()
     assert md.count(de.NOT_BUILT) == 2 and "paper (AI2THOR)" in md
-    assert r["data"]["configurations_expected"] == 4 and r["data"]["views_max"] == 3   # honest counts
+    assert r["data"]["configurations_expected"] == 4 and r["data"]["views_max"] == 3  # honest counts
 
 
 def test_register_parses_and_rejects_train():
     parser = argparse.ArgumentParser(prog="tidee")
     ev = parser.add_subparsers(dest="command").add_parser("eval").add_subparsers(dest="eval_cmd")
     de.register(ev)
-    a = parser.parse_args(["eval", "detector", "--split", "test", "--out", "x", "--rooms-per-type", "2",
-                           "--frames-per-walk", "3", "--weights", "w.pt"])
+    a = parser.parse_args(
+        [
+            "eval",
+            "detector",
+            "--split",
+            "test",
+            "--out",
+            "x",
+            "--rooms-per-type",
+            "2",
+            "--frames-per-walk",
+            "3",
+            "--weights",
+            "w.pt",
+        ]
+    )
     assert (a.split, a.rooms_per_type, a.frames_per_walk, a.weights) == ("test", 2, 3, "w.pt")
     a = parser.parse_args(["eval", "oop", "--split", "val", "--out", "x", "--views", "4"])
     assert (a.split, a.views, a.func) == ("val", 4, de._cmd_eval_oop)
@@ -280,11 +337,15 @@ def test_register_parses_and_rejects_train():
 def test_cli_handlers_run_and_return_zero(tmp_path, monkeypatch, capsys):
     frames = oop_frames()
     monkeypatch.setattr(de, "held_out_frames", lambda *a, **k: frames)
-    monkeypatch.setattr(de, "_load_detector",
-                        lambda weights, reclassifier="default": GTDetector(frames, jitter=0.5, seed=5))
+    monkeypatch.setattr(
+        de, "_load_detector", lambda weights, reclassifier="default": GTDetector(frames, jitter=0.5, seed=5)
+    )
     parser = argparse.ArgumentParser(prog="tidee")
     de.register(parser.add_subparsers(dest="eval_cmd"))
-    for argv in (["detector", "--out", str(tmp_path / "d")], ["oop", "--out", str(tmp_path / "o"), "--views", "3", "--visual-only"]):
+    for argv in (
+        ["detector", "--out", str(tmp_path / "d")],
+        ["oop", "--out", str(tmp_path / "o"), "--views", "3", "--visual-only"],
+    ):
         args = parser.parse_args(argv)
         assert args.func(args) == 0
     assert "mAP@0.5" in capsys.readouterr().out
@@ -294,7 +355,9 @@ def test_cli_handlers_run_and_return_zero(tmp_path, monkeypatch, capsys):
         args = parser.parse_args(["reclassifier", "--out", str(tmp_path / "f")])
         args.func(args)
     with pytest.raises(SystemExit, match="validation rooms"):
-        args = parser.parse_args(["reclassifier", "--split", "test", "--record", "--out", str(tmp_path / "f")])
+        args = parser.parse_args(
+            ["reclassifier", "--split", "test", "--record", "--out", str(tmp_path / "f")]
+        )
         args.func(args)
     with pytest.raises(SystemExit, match="comma-separated numbers"):
         args = parser.parse_args(["reclassifier", "--alphas", "1,x", "--out", str(tmp_path / "f")])

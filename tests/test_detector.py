@@ -36,7 +36,9 @@ def test_instance_masks_match_the_rendered_geometry() -> None:
 
     ep = Episode(renderer="tiny")
     try:
-        obs = ep.reset(EpisodeSpec(room_type="Kitchen", seed=3, mess_index=1, resolution=128), ground_truth=True)
+        obs = ep.reset(
+            EpisodeSpec(room_type="Kitchen", seed=3, mess_index=1, resolution=128), ground_truth=True
+        )
         for _ in range(2):
             from tidee.protocol.messages import Action
 
@@ -58,7 +60,7 @@ def test_instance_masks_match_the_rendered_geometry() -> None:
             pts = pts_cam @ cam[:3, :3].T + cam[:3, 3]
             o = by_id[r["id"]]
             if o["type"] in ("Window", "Painting"):
-                continue                    # flush with a wall: the box is thinner than the render
+                continue  # flush with a wall: the box is thinner than the render
             centre, size = np.array(o["position"]), np.array(o["size"])
             # rotated objects: the box's circumscribed sphere, plus a render tolerance
             inside = np.linalg.norm(pts - centre, axis=1) <= 0.5 * np.linalg.norm(size) + 0.05
@@ -85,9 +87,12 @@ def test_targets_decode_back_to_their_boxes() -> None:
         size[0, :, i] = t["reg"][k, :2]
         off[0, :, i] = t["reg"][k, 2:]
         oopl[0, 0, i] = 9.0 if t["oop"][k] else -9.0
-    out = {"heat": torch.from_numpy(heat), "size": torch.from_numpy(size.reshape(1, 2, out_hw, out_hw)),
-           "off": torch.from_numpy(off.reshape(1, 2, out_hw, out_hw)),
-           "oop": torch.from_numpy(oopl.reshape(1, 1, out_hw, out_hw))}
+    out = {
+        "heat": torch.from_numpy(heat),
+        "size": torch.from_numpy(size.reshape(1, 2, out_hw, out_hw)),
+        "off": torch.from_numpy(off.reshape(1, 2, out_hw, out_hw)),
+        "oop": torch.from_numpy(oopl.reshape(1, 1, out_hw, out_hw)),
+    }
     dets = sorted(decode(out, threshold=0.5)[0], key=lambda d: d.box[0])
     assert [d.cls for d in dets] == [3, 17, 3]
     assert [round(d.oop_prob) for d in dets] == [0, 1, 0]
@@ -95,39 +100,50 @@ def test_targets_decode_back_to_their_boxes() -> None:
     # a second guess: class 40 also scores at the first box's centre cell
     i0 = int(t["ind"][0])
     out["heat"][0, 40].view(-1)[i0] = 1.0
-    assert len(decode(out, threshold=0.5)[0]) == 3                    # one class per peak
+    assert len(decode(out, threshold=0.5)[0]) == 3  # one class per peak
     multi = decode(out, threshold=0.5, classes_per_peak=2)[0]
     assert len(multi) == 4 and [d.cls for d in multi].count(40) == 1
     second = next(d for d in multi if d.cls == 40)
     first = next(d for d in multi if d.cell == second.cell and d.cls != 40)
     assert first.cls == 3 and first.box == second.box and second.score < first.score
-    assert multi[-1] is second                                          # ranked by score with the rest
+    assert multi[-1] is second  # ranked by score with the rest
 
 
 def test_peak_modes_keep_a_neighbours_peak_or_a_second_class() -> None:
     c, hw = len(CLASSES), 16
     heat = torch.full((1, c, hw, hw), -9.0)
-    heat[0, 5, 8, 8] = 4.0            # a large object's centre ...
-    heat[0, 5, 8, 9] = 2.0            # ... whose Gaussian spills onto the next cell,
-    heat[0, 30, 8, 9] = 1.0           # where a small object of class 30 is centred
-    heat[0, 12, 8, 8] = 0.5           # and a weaker second class on the large object's cell
+    heat[0, 5, 8, 8] = 4.0  # a large object's centre ...
+    heat[0, 5, 8, 9] = 2.0  # ... whose Gaussian spills onto the next cell,
+    heat[0, 30, 8, 9] = 1.0  # where a small object of class 30 is centred
+    heat[0, 12, 8, 8] = 0.5  # and a weaker second class on the large object's cell
     zeros = torch.zeros(1, 2, hw, hw)
     out = {"heat": heat, "size": zeros, "off": zeros, "oop": torch.zeros(1, 1, hw, hw)}
-    by_mode = {m: sorted((d.cls, d.cell) for d in decode(out, threshold=0.5, peaks=m)[0])
-               for m in ("class-max", "per-class", "per-class-single")}
-    assert by_mode["class-max"] == [(5, (8, 8))]                       # the neighbour's peak is suppressed
+    by_mode = {
+        m: sorted((d.cls, d.cell) for d in decode(out, threshold=0.5, peaks=m)[0])
+        for m in ("class-max", "per-class", "per-class-single")
+    }
+    assert by_mode["class-max"] == [(5, (8, 8))]  # the neighbour's peak is suppressed
     assert by_mode["per-class"] == [(5, (8, 8)), (12, (8, 8)), (30, (8, 9))]
-    assert by_mode["per-class-single"] == [(5, (8, 8))]                # class 30 is not its cell's best
+    assert by_mode["per-class-single"] == [(5, (8, 8))]  # class 30 is not its cell's best
     heat[0, 30, 8, 9] = 3.0
-    assert sorted((d.cls, d.cell) for d in decode(out, threshold=0.5, peaks="per-class-single")[0]) == \
-        [(5, (8, 8)), (30, (8, 9))]
+    assert sorted((d.cls, d.cell) for d in decode(out, threshold=0.5, peaks="per-class-single")[0]) == [
+        (5, (8, 8)),
+        (30, (8, 9)),
+    ]
     with pytest.raises(ValueError, match="peaks='nms'"):
         decode(out, peaks="nms")
 
+
 @pytest.fixture(scope="module")
 def tiny_train_frames() -> dict[str, np.ndarray]:
-    cfg = GenConfig(rooms_per_type=1, messes_per_room=1, walks_per_config=1, frames_per_walk=3, resolution=128,
-                    room_types=("LivingRoom",))
+    cfg = GenConfig(
+        rooms_per_type=1,
+        messes_per_room=1,
+        walks_per_config=1,
+        frames_per_walk=3,
+        resolution=128,
+        room_types=("LivingRoom",),
+    )
     return pack(list(iter_frames(cfg, progress=False)))
 
 
@@ -136,8 +152,16 @@ def _write_shard_dir(root, frames: dict[str, np.ndarray], rooms: list[str]) -> N
 
     root.mkdir()
     np.savez_compressed(root / "shard_0000.npz", **frames)
-    (root / "manifest.json").write_text(json.dumps({"command": f"synthetic {root.name}", "classes": list(CLASSES),
-                                                    "shards": ["shard_0000.npz"], "rooms": rooms}))
+    (root / "manifest.json").write_text(
+        json.dumps(
+            {
+                "command": f"synthetic {root.name}",
+                "classes": list(CLASSES),
+                "shards": ["shard_0000.npz"],
+                "rooms": rooms,
+            }
+        )
+    )
 
 
 def test_several_data_directories_load_as_one_and_refuse_a_shared_room(tiny_train_frames, tmp_path) -> None:
@@ -152,7 +176,9 @@ def test_several_data_directories_load_as_one_and_refuse_a_shared_room(tiny_trai
     data, manifests = load_datasets(f"{tmp_path / 'a'},{tmp_path / 'b'}")
     assert len(data["rgb"]) == 2 * n and [m["command"] for m in manifests] == ["synthetic a", "synthetic b"]
     assert np.array_equal(data["obj_frame"], np.concatenate([f["obj_frame"], f["obj_frame"] + n]))
-    assert np.array_equal(data["rgb"][n:], f["rgb"]) and np.array_equal(data["obj_box"][len(f["obj_box"]):], f["obj_box"])
+    assert np.array_equal(data["rgb"][n:], f["rgb"]) and np.array_equal(
+        data["obj_box"][len(f["obj_box"]) :], f["obj_box"]
+    )
     _write_shard_dir(tmp_path / "c", f, ["LivingRoom:0"])
     with pytest.raises(ValueError, match="LivingRoom:0 is in both"):
         load_datasets([str(tmp_path / "a"), str(tmp_path / "c")])
@@ -167,8 +193,16 @@ def test_a_few_training_steps_reduce_the_loss(tiny_train_frames, tmp_path, preci
 
     if precision == "bf16" and not bf16_supported("cpu"):
         pytest.skip("this CPU has no native bf16")
-    cfg = TrainConfig(work_dir=str(tmp_path / "run"), steps=16, batch_size=4, lr=2e-3, warmup=2, log_every=4,
-                      ckpt_every=8, precision=precision)
+    cfg = TrainConfig(
+        work_dir=str(tmp_path / "run"),
+        steps=16,
+        batch_size=4,
+        lr=2e-3,
+        warmup=2,
+        log_every=4,
+        ckpt_every=8,
+        precision=precision,
+    )
     model_cfg = DetectorConfig(input_size=128)
     r = train_detector(cfg, model_cfg, resume=False, progress=False, data=tiny_train_frames, ship=False)
     assert r["precision"] == precision
@@ -217,7 +251,7 @@ def test_a_grown_model_starts_as_the_weights_it_grew_from(tmp_path) -> None:
 
     torch.manual_seed(0)
     small = CenterDetector(DetectorConfig(input_size=128))
-    with torch.no_grad():                 # BN statistics and scales off their defaults, like trained weights
+    with torch.no_grad():  # BN statistics and scales off their defaults, like trained weights
         for mod in small.modules():
             if isinstance(mod, torch.nn.BatchNorm2d):
                 mod.weight.uniform_(0.5, 1.5)
@@ -238,7 +272,7 @@ def test_a_grown_model_starts_as_the_weights_it_grew_from(tmp_path) -> None:
             a, b = small(x), grown(x)
         for k in a:
             torch.testing.assert_close(b[k], a[k], msg=f"{k} differs in {mode} mode")
-    with torch.no_grad():          # and the grown blocks are real parameters that training moves
+    with torch.no_grad():  # and the grown blocks are real parameters that training moves
         grown.head_conv[1].weight.add_(0.1)
         assert not torch.allclose(grown(x)["heat"], small(x)["heat"])
     narrow = CenterDetector(DetectorConfig(input_size=128, neck=32))
@@ -294,7 +328,7 @@ def test_shipped_detector_manifest_is_complete(shipped) -> None:
     m = shipped.manifest
     assert m["command"].startswith("tidee train detector")
     assert "never val/test" in m["data"]["split"] and m["data"]["frames"] > 1000
-    assert m["bytes"] < 30 * 2 ** 20
+    assert m["bytes"] < 30 * 2**20
     assert {"box_map50", "box_map50_95"} <= set(m["metrics"]), sorted(m["metrics"])
 
 
@@ -317,8 +351,12 @@ def test_agent_runs_an_episode_with_learned_perception(tmp_path) -> None:
     from tidee.protocol.messages import EpisodeSpec
     from tidee.protocol.transport import InProcessTransport
 
-    cfg = AgentConfig(variant="CommonMemory", perception="learned", oop="visual",
-                      policy=PolicyConfig(mapping_step_budget=40))
+    cfg = AgentConfig(
+        variant="CommonMemory",
+        perception="learned",
+        oop="visual",
+        policy=PolicyConfig(mapping_step_budget=40),
+    )
     spec = EpisodeSpec(room_type="Kitchen", seed=201, mess_index=0, resolution=128, max_steps=90)
     with InProcessTransport(renderer="tiny") as transport:
         runner = EpisodeRunner(cfg, transport, session="learned", log_dir=tmp_path)

@@ -64,16 +64,19 @@ def anchors(path: Path) -> set[str]:
 
 
 def relative_links(path: Path) -> list[str]:
-    return [t for t in LINK.findall(prose(path.read_text()))
-            if not re.match(r"[a-z][a-z0-9+.-]*:", t)]          # http:, https:, mailto:
+    return [
+        t for t in LINK.findall(prose(path.read_text())) if not re.match(r"[a-z][a-z0-9+.-]*:", t)
+    ]  # http:, https:, mailto:
 
 
 # --- the README ---------------------------------------------------------------------------------
 
+
 def test_readme_is_short() -> None:
     n = len(README.read_text().splitlines())
-    assert n <= MAX_README_LINES, (f"README.md has {n} lines; keep it to {MAX_README_LINES} "
-                                   "(the rest goes in docs/)")
+    assert n <= MAX_README_LINES, (
+        f"README.md has {n} lines; keep it to {MAX_README_LINES} (the rest goes in docs/)"
+    )
 
 
 def test_readme_opens_with_the_two_commands() -> None:
@@ -94,15 +97,21 @@ def test_readme_in_process_snippet_runs_as_written() -> None:
     import subprocess
     import sys
 
-    runnable = [code for lang, code in fenced_blocks(README.read_text())
-                if lang == "python" and 'transport="inproc"' in code]
+    runnable = [
+        code
+        for lang, code in fenced_blocks(README.read_text())
+        if lang == "python" and 'transport="inproc"' in code
+    ]
     assert runnable, "README.md has no in-process Python snippet"
     for code in runnable:
-        r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        r = subprocess.run(
+            [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120
+        )
         assert r.returncode == 0, f"README snippet failed:\n{code}\n{r.stderr[-2000:]}"
 
 
 # --- no project history in user docs and code ---------------------------------------------------
+
 
 def test_user_docs_carry_no_project_history() -> None:
     bad = []
@@ -125,6 +134,7 @@ def test_source_carries_no_project_history() -> None:
 
 
 # --- links and reports --------------------------------------------------------------------------
+
 
 def test_relative_links_resolve() -> None:
     broken = []
@@ -166,6 +176,7 @@ def test_every_cited_report_exists() -> None:
 
 
 # --- commands -----------------------------------------------------------------------------------
+
 
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
     for action in parser._actions:
@@ -210,7 +221,7 @@ def test_readme_commands_parse() -> None:
     for argv in commands:
         try:
             parser.parse_args(argv)
-        except SystemExit as e:                       # argparse reports the problem on stderr
+        except SystemExit as e:  # argparse reports the problem on stderr
             pytest.fail(f"README command does not parse: tidee {shlex.join(argv)} (exit {e.code})")
         assert not command_problems(argv), command_problems(argv)
 

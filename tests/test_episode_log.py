@@ -20,22 +20,38 @@ import numpy as np
 import pytest
 
 from tidee.protocol import codec
-from tidee.protocol.episode_log import (EVENTS_NAME, MAGIC, MAGIC_V1, SUMMARY_NAME, TLOG_NAME, LogReader,
-                                        LogWriter)
+from tidee.protocol.episode_log import (
+    EVENTS_NAME,
+    MAGIC,
+    MAGIC_V1,
+    SUMMARY_NAME,
+    TLOG_NAME,
+    LogReader,
+    LogWriter,
+)
 from tidee.protocol.messages import AgentStatus, CommandAck, ReceptaclePrediction
 
 SEED = 20240611
-CASES_PER_OPERATION = 70          # x 5 operations x 3 files = 1050 cases
+CASES_PER_OPERATION = 70  # x 5 operations x 3 files = 1050 cases
 
 
 def _status(step: int) -> AgentStatus:
-    return AgentStatus(session="s", step=step, phase="mapping", episode={"room_type": "Kitchen"},
-                       pose=(0.1 * step, 0.0, 0.0, 30.0), predictions=[ReceptaclePrediction("Desk", 0.5)],
-                       trajectory=np.zeros((step % 4 + 1, 2), np.float32))
+    return AgentStatus(
+        session="s",
+        step=step,
+        phase="mapping",
+        episode={"room_type": "Kitchen"},
+        pose=(0.1 * step, 0.0, 0.0, 30.0),
+        predictions=[ReceptaclePrediction("Desk", 0.5)],
+        trajectory=np.zeros((step % 4 + 1, 2), np.float32),
+    )
 
 
-SUMMARY = {"steps": 12, "session": "s",
-           "record": {"objects": [{"name": "Mug", "found": True}], "score": 0.25}}
+SUMMARY = {
+    "steps": 12,
+    "session": "s",
+    "record": {"objects": [{"name": "Mug", "found": True}], "score": 0.25},
+}
 
 
 def _write_log(directory: Path) -> tuple[list[tuple[str, bytes]], list[dict]]:
@@ -83,13 +99,14 @@ def _line_spans(data: bytes) -> list[tuple[int, int]]:
 
 # --- the formats ---------------------------------------------------------------------------------
 
+
 def test_every_record_of_every_file_carries_a_checksum(pristine) -> None:
     directory, records, events = pristine
     data = (directory / TLOG_NAME).read_bytes()
     assert data.startswith(MAGIC)
     for (start, end), (kind, frame) in zip(_tlog_spans(records), records):
         sync, length, crc = struct.unpack_from("<4sII", data, start)
-        body = data[start + 12:end]
+        body = data[start + 12 : end]
         assert sync == b"\x1eREC" and length == len(body) and crc == zlib.crc32(body)
         assert body == bytes([len(kind)]) + kind.encode() + frame
     lines = (directory / EVENTS_NAME).read_bytes().splitlines()
@@ -107,7 +124,7 @@ def test_every_record_of_every_file_carries_a_checksum(pristine) -> None:
 
 
 def test_finish_replaces_a_checksum_already_in_the_summary(tmp_path) -> None:
-    with LogWriter(tmp_path) as w:                       # a summary read back from another log, say
+    with LogWriter(tmp_path) as w:  # a summary read back from another log, say
         w.finish({"steps": 3, "loss": float("nan"), "mean": np.float32(0.5), "crc32": "00000000"})
     r = LogReader(tmp_path)
     assert r.summary() == {"steps": 3, "loss": None, "mean": 0.5} and not r.truncated
@@ -137,7 +154,7 @@ def test_old_logs_without_sync_markers_or_checksums_are_read_and_resynced(tmp_pa
     r = LogReader(tmp_path)
     assert r.version == 1 and list(r.records()) == records
     assert r.events() == [{"step": 0}, {"step": 1}] and r.summary() == {"steps": 6} and not r.truncated
-    blob[spans[2] + 20] ^= 0x40                          # damage the third record
+    blob[spans[2] + 20] ^= 0x40  # damage the third record
     (tmp_path / TLOG_NAME).write_bytes(bytes(blob))
     r = LogReader(tmp_path)
     assert list(r.records()) == records[:2] + records[3:] and r.skipped[TLOG_NAME] == 1
@@ -160,21 +177,23 @@ OPERATIONS = ("flip", "flip3", "truncate", "insert", "insert_at_boundary")
 @dataclass
 class Figures:
     cases: int = 0
-    damaged: int = 0          # cases whose damage left bytes of no intact record (expected to be counted)
-    detected: int = 0         # ... and the reader counted them
-    after_damage: int = 0     # cases with intact records after the damage
-    resynced: int = 0         # ... all of which were read back
-    false_accepts: int = 0    # a record returned that is not one written, or out of order
-    lost_intact: int = 0      # an intact record not returned
-    miscounted: int = 0       # damage counted where there was none
+    damaged: int = 0  # cases whose damage left bytes of no intact record (expected to be counted)
+    detected: int = 0  # ... and the reader counted them
+    after_damage: int = 0  # cases with intact records after the damage
+    resynced: int = 0  # ... all of which were read back
+    false_accepts: int = 0  # a record returned that is not one written, or out of order
+    lost_intact: int = 0  # an intact record not returned
+    miscounted: int = 0  # damage counted where there was none
     by_file: dict = field(default_factory=dict)
 
 
-def _damage(data: bytes, op: str, spans: list[tuple[int, int]], rng: random.Random,
-            header: int) -> tuple[bytes, set[int], int, bool]:
+def _damage(
+    data: bytes, op: str, spans: list[tuple[int, int]], rng: random.Random, header: int
+) -> tuple[bytes, set[int], int, bool]:
     """(damaged bytes, indices of records damaged, first damaged offset, whether the damaged
     file holds bytes of no intact record). ``header``: bytes before the first record."""
-    def hit(lo: int, hi: int) -> set[int]:           # records overlapping [lo, hi)
+
+    def hit(lo: int, hi: int) -> set[int]:  # records overlapping [lo, hi)
         return {i for i, (s, e) in enumerate(spans) if s < hi and lo < e}
 
     if op in ("flip", "flip3"):
@@ -187,7 +206,7 @@ def _damage(data: bytes, op: str, spans: list[tuple[int, int]], rng: random.Rand
     if op == "truncate":
         p = rng.randrange(len(data))
         lost = hit(p, len(data))
-        torn = {i for i in lost if spans[i][0] < p}   # records of which a prefix is left
+        torn = {i for i in lost if spans[i][0] < p}  # records of which a prefix is left
         return data[:p], lost, p, bool(torn) or p < header
     garbage = rng.randbytes(rng.randrange(1, 65))
     if op == "insert":
@@ -218,12 +237,15 @@ def _check(returned: list, written: list, damaged: set[int], figures: Figures, w
 
 def test_fuzz_damaged_logs_are_read_without_error_resynced_and_counted(pristine, tmp_path) -> None:
     source, records, events = pristine
-    assert len(set(records)) == len(records)             # distinct, so each returned one is identifiable
+    assert len(set(records)) == len(records)  # distinct, so each returned one is identifiable
     rng = random.Random(SEED)
     figures = Figures()
     files = {name: (source / name).read_bytes() for name in (TLOG_NAME, EVENTS_NAME, SUMMARY_NAME)}
-    spans = {TLOG_NAME: _tlog_spans(records), EVENTS_NAME: _line_spans(files[EVENTS_NAME]),
-             SUMMARY_NAME: [(0, len(files[SUMMARY_NAME]))]}
+    spans = {
+        TLOG_NAME: _tlog_spans(records),
+        EVENTS_NAME: _line_spans(files[EVENTS_NAME]),
+        SUMMARY_NAME: [(0, len(files[SUMMARY_NAME]))],
+    }
     assert spans[TLOG_NAME][-1][1] == len(files[TLOG_NAME])
     headers = {TLOG_NAME: len(MAGIC), EVENTS_NAME: 0, SUMMARY_NAME: 0}
     directory = tmp_path / "ep"
@@ -231,8 +253,9 @@ def test_fuzz_damaged_logs_are_read_without_error_resynced_and_counted(pristine,
     for name, data in files.items():
         for op in OPERATIONS:
             for case in range(CASES_PER_OPERATION):
-                damaged_data, damaged, first, expect_count = _damage(data, op, spans[name], rng,
-                                                                     headers[name])
+                damaged_data, damaged, first, expect_count = _damage(
+                    data, op, spans[name], rng, headers[name]
+                )
                 if name == EVENTS_NAME and op == "truncate":
                     # a line cut only of its newline is intact: its checksum covers the JSON text
                     damaged -= {i for i, (s, e) in enumerate(spans[name]) if len(damaged_data) == e - 1}
@@ -241,7 +264,7 @@ def test_fuzz_damaged_logs_are_read_without_error_resynced_and_counted(pristine,
                 where = f"{name} {op} case {case}"
                 r = LogReader(directory)
                 got_records = list(r.records())
-                list(r.messages())                                   # decoding never raises either
+                list(r.messages())  # decoding never raises either
                 got_events = r.events()
                 got_summary = r.summary()
                 if name == TLOG_NAME:
@@ -260,7 +283,7 @@ def test_fuzz_damaged_logs_are_read_without_error_resynced_and_counted(pristine,
                     assert got_summary in (None, SUMMARY), where
                     if got_summary != SUMMARY and got_summary is not None:
                         figures.false_accepts += 1
-                    expect_count = got_summary is None     # a damaged summary is absent, and counted
+                    expect_count = got_summary is None  # a damaged summary is absent, and counted
                     after, returned = [], set()
                 else:
                     assert got_summary == SUMMARY, where

@@ -38,8 +38,12 @@ def test_check_env_over_zenoh() -> None:
     config = ServerConfig(endpoint=endpoint, server_id=f"g{uuid.uuid4().hex[:8]}")
     server = SimServer(config, FakeEpisode).start()
     try:
-        env = gym.make("tidee/Tidy-v0", spec=SPEC, transport="zenoh",
-                       transport_kwargs={"endpoint": endpoint, "server_id": server.config.server_id})
+        env = gym.make(
+            "tidee/Tidy-v0",
+            spec=SPEC,
+            transport="zenoh",
+            transport_kwargs={"endpoint": endpoint, "server_id": server.config.server_id},
+        )
         check_env(env.unwrapped)
         env.close()
         assert server.sessions == ()
@@ -83,14 +87,18 @@ def test_seed_selects_the_room_and_options_change_the_spec() -> None:
 
 def test_to_action() -> None:
     pick = ACTIONS.index(ActionName.PickupObject)
-    assert to_action({"action": pick, "point": np.array([0.25, 1.0], np.float32)}) == \
-        Action(ActionName.PickupObject, 0.25, 1.0)
+    assert to_action({"action": pick, "point": np.array([0.25, 1.0], np.float32)}) == Action(
+        ActionName.PickupObject, 0.25, 1.0
+    )
     assert to_action({"action": 0, "point": np.array([0.5, 0.5])}) == Action(ACTIONS[0])
 
 
 def test_real_episode_in_process() -> None:
     pytest.importorskip("pybullet")
-    env = gym.make("tidee/Tidy-v0", spec=EpisodeSpec(room_type="Bedroom", seed=2, resolution=32),
-                   transport_kwargs={"renderer": "tiny"})
+    env = gym.make(
+        "tidee/Tidy-v0",
+        spec=EpisodeSpec(room_type="Bedroom", seed=2, resolution=32),
+        transport_kwargs={"renderer": "tiny"},
+    )
     check_env(env.unwrapped, skip_render_check=True)
     env.close()

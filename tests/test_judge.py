@@ -10,29 +10,71 @@ from typing import Any
 import pytest
 from scipy.stats import binomtest
 
-from tidee.agent.evaluation import (AI2THOR_PLACEMENT, MESSY_PLACEMENT, judge_score, pairwise_table,
-                                    plausible, prefer, reference_records, variant_metrics, with_references,
-                                    write_report)
+from tidee.agent.evaluation import (
+    AI2THOR_PLACEMENT,
+    MESSY_PLACEMENT,
+    judge_score,
+    pairwise_table,
+    plausible,
+    prefer,
+    reference_records,
+    variant_metrics,
+    with_references,
+    write_report,
+)
 from tidee.server.catalog import PRIORS
 
 KITCHEN = ["CounterTop", "Fridge", "Sink", "Cabinet", "DiningTable"]
 
 
-def obj(oid: str, final: str | None, *, moved: bool = True, found: bool | None = None,
-        picked: bool | None = None, original: str = "CounterTop", messy: str = "Floor",
-        variant: str | None = None) -> dict[str, Any]:
+def obj(
+    oid: str,
+    final: str | None,
+    *,
+    moved: bool = True,
+    found: bool | None = None,
+    picked: bool | None = None,
+    original: str = "CounterTop",
+    messy: str = "Floor",
+    variant: str | None = None,
+) -> dict[str, Any]:
     """One object entry; found/picked default to moved."""
-    return {"id": oid, "type": oid.split("_")[0], "variant": variant, "moved": moved,
-            "found": moved if found is None else found, "picked": moved if picked is None else picked,
-            "original_parent_type": original, "messy_parent_type": messy if moved else original,
-            "final_parent_type": final}
+    return {
+        "id": oid,
+        "type": oid.split("_")[0],
+        "variant": variant,
+        "moved": moved,
+        "found": moved if found is None else found,
+        "picked": moved if picked is None else picked,
+        "original_parent_type": original,
+        "messy_parent_type": messy if moved else original,
+        "final_parent_type": final,
+    }
 
 
-def record(variant: str, seed: int, objects: list[dict[str, Any]], *, steps: int = 100, wall_s: float = 2.0,
-           perception: str = "oracle", mess_index: int = 0) -> dict[str, Any]:
-    return {"variant": variant, "perception": perception, "split": "test", "room_type": "Kitchen",
-            "seed": seed, "mess_index": mess_index, "steps": steps, "wall_s": wall_s,
-            "end_reason": "no_oop_found", "present_receptacles": list(KITCHEN), "objects": objects}
+def record(
+    variant: str,
+    seed: int,
+    objects: list[dict[str, Any]],
+    *,
+    steps: int = 100,
+    wall_s: float = 2.0,
+    perception: str = "oracle",
+    mess_index: int = 0,
+) -> dict[str, Any]:
+    return {
+        "variant": variant,
+        "perception": perception,
+        "split": "test",
+        "room_type": "Kitchen",
+        "seed": seed,
+        "mess_index": mess_index,
+        "steps": steps,
+        "wall_s": wall_s,
+        "end_reason": "no_oop_found",
+        "present_receptacles": list(KITCHEN),
+        "objects": objects,
+    }
 
 
 # ------------------------------------------------------------------------- judge
@@ -73,7 +115,8 @@ def test_judge_score_uses_variant_priors():
     cook = PRIORS["Book"]["cookbook"]["Kitchen"]
     assert judge_score("Book", "cookbook", "Kitchen", "Shelf", None) == 1.0
     assert judge_score("Book", "cookbook", "Kitchen", "CounterTop", None) == pytest.approx(
-        cook["CounterTop"] / cook["Shelf"])
+        cook["CounterTop"] / cook["Shelf"]
+    )
 
 
 def test_prefer():
@@ -86,11 +129,18 @@ def test_prefer():
 
 
 def test_reference_records():
-    rec = record("A", 1, [obj("Mug_1", "Sink", original="Cabinet", messy="Floor"),
-                          obj("Apple_1", "Floor", moved=False, picked=True, original="Fridge")], steps=50)
+    rec = record(
+        "A",
+        1,
+        [
+            obj("Mug_1", "Sink", original="Cabinet", messy="Floor"),
+            obj("Apple_1", "Floor", moved=False, picked=True, original="Fridge"),
+        ],
+        steps=50,
+    )
     before = copy.deepcopy(rec)
     refs = reference_records(rec)
-    assert rec == before                                   # not mutated
+    assert rec == before  # not mutated
     assert set(refs) == {AI2THOR_PLACEMENT, MESSY_PLACEMENT}
     ai2, messy = refs[AI2THOR_PLACEMENT], refs[MESSY_PLACEMENT]
     assert ai2["variant"] == AI2THOR_PLACEMENT and messy["variant"] == MESSY_PLACEMENT
@@ -111,12 +161,28 @@ def test_reference_records():
 
 def _metric_records() -> list[dict[str, Any]]:
     return [
-        record("A", 1, [obj("Mug_1", "CounterTop"),                              # plausible
-                        obj("Apple_1", "Floor", found=False, picked=False),      # left on the floor
-                        obj("Mug_2", "Cabinet", moved=False, picked=True)], steps=100, wall_s=4.0),
+        record(
+            "A",
+            1,
+            [
+                obj("Mug_1", "CounterTop"),  # plausible
+                obj("Apple_1", "Floor", found=False, picked=False),  # left on the floor
+                obj("Mug_2", "Cabinet", moved=False, picked=True),
+            ],
+            steps=100,
+            wall_s=4.0,
+        ),
         record("A", 2, [obj("Mug_1", "Cabinet"), obj("Apple_1", "Fridge")], steps=300, wall_s=6.0),
-        record("B", 1, [obj("Mug_1", "Floor", found=True, picked=False),
-                        obj("Apple_1", "Floor", found=False, picked=False)], steps=10, wall_s=1.0),
+        record(
+            "B",
+            1,
+            [
+                obj("Mug_1", "Floor", found=True, picked=False),
+                obj("Apple_1", "Floor", found=False, picked=False),
+            ],
+            steps=10,
+            wall_s=1.0,
+        ),
     ]
 
 
@@ -135,7 +201,7 @@ def test_variant_metrics_exact():
     assert a["steps_mean"] == 200 and a["wall_s_mean"] == 5.0
     assert b["object_success"] == 0 and b["episode_success"] == 0
     assert b["found_rate"] == pytest.approx(1 / 2)
-    assert b["false_pick_rate"] == 0.0 and b["picked"] == 0          # nothing picked: 0 by definition
+    assert b["false_pick_rate"] == 0.0 and b["picked"] == 0  # nothing picked: 0 by definition
 
 
 def test_variant_metrics_missing_keys_are_named():
@@ -148,7 +214,7 @@ def test_variant_metrics_missing_keys_are_named():
     with pytest.raises(ValueError, match=r"record 2 .*object 1 \('Apple_1'\) is missing key 'found'"):
         variant_metrics(recs)
     recs = _metric_records()
-    recs[0]["objects"][0]["type"] = "Sofa"                               # no placement prior
+    recs[0]["objects"][0]["type"] = "Sofa"  # no placement prior
     with pytest.raises(ValueError, match="cannot be judged"):
         variant_metrics(recs)
 
@@ -158,15 +224,29 @@ def test_variant_metrics_missing_keys_are_named():
 
 def _pair_records() -> list[dict[str, Any]]:
     return [
-        record("A", 1, [obj("Mug_1", "CounterTop"), obj("Apple_1", "Fridge"),
-                        obj("Mug_2", "CounterTop"),                               # picked by A only
-                        obj("Mug_3", "Floor", moved=False, picked=True)]),        # not moved
-        record("B", 1, [obj("Mug_1", "Floor"), obj("Apple_1", "Fridge"),
-                        obj("Mug_2", "Floor", found=False, picked=False),
-                        obj("Mug_3", "CounterTop", moved=False, picked=True)]),
+        record(
+            "A",
+            1,
+            [
+                obj("Mug_1", "CounterTop"),
+                obj("Apple_1", "Fridge"),
+                obj("Mug_2", "CounterTop"),  # picked by A only
+                obj("Mug_3", "Floor", moved=False, picked=True),
+            ],
+        ),  # not moved
+        record(
+            "B",
+            1,
+            [
+                obj("Mug_1", "Floor"),
+                obj("Apple_1", "Fridge"),
+                obj("Mug_2", "Floor", found=False, picked=False),
+                obj("Mug_3", "CounterTop", moved=False, picked=True),
+            ],
+        ),
         record("A", 2, [obj("Mug_1", "Cabinet"), obj("Apple_1", "CounterTop")]),
         record("B", 2, [obj("Mug_1", "CounterTop"), obj("Apple_1", "Floor")]),
-        record("A", 3, [obj("Mug_1", "CounterTop")]),                             # B did not run seed 3
+        record("A", 3, [obj("Mug_1", "CounterTop")]),  # B did not run seed 3
     ]
 
 
@@ -181,9 +261,11 @@ def test_pairwise_counts_ties_and_exclusions():
     assert ab["p_value"] == pytest.approx(binomtest(2, 3, 0.5).pvalue)
     assert ab["configurations"] == 2
     # what decided it: seed 1's Mug_1 (CounterTop over Floor) and seed 2's Apple_1 won, seed 2's Mug_1 lost
-    assert ab["decided"] == [{"type": "Apple", "a": "CounterTop", "b": "Floor", "winner": "A", "n": 1},
-                             {"type": "Mug", "a": "CounterTop", "b": "Floor", "winner": "A", "n": 1},
-                             {"type": "Mug", "a": "Cabinet", "b": "CounterTop", "winner": "B", "n": 1}]
+    assert ab["decided"] == [
+        {"type": "Apple", "a": "CounterTop", "b": "Floor", "winner": "A", "n": 1},
+        {"type": "Mug", "a": "CounterTop", "b": "Floor", "winner": "A", "n": 1},
+        {"type": "Mug", "a": "Cabinet", "b": "CounterTop", "winner": "B", "n": 1},
+    ]
 
 
 def test_pairwise_p_value_matches_scipy():
@@ -202,7 +284,7 @@ def test_pairwise_p_value_matches_scipy():
 
 def test_pairwise_reference_rows():
     recs = with_references(_pair_records())
-    assert len(recs) == 5 + 2 * 3                                    # one pair per configuration
+    assert len(recs) == 5 + 2 * 3  # one pair per configuration
     t = pairwise_table(recs, ["A", "B"])
     assert list(t) == ["A", "B", AI2THOR_PLACEMENT, MESSY_PLACEMENT]
     ref = t[AI2THOR_PLACEMENT][MESSY_PLACEMENT]
@@ -215,7 +297,7 @@ def test_pairwise_reference_rows():
     assert t["A"][MESSY_PLACEMENT]["n"] == 6
     # references are included even when not named
     assert AI2THOR_PLACEMENT in pairwise_table(recs)
-    assert with_references(recs) == recs                              # idempotent
+    assert with_references(recs) == recs  # idempotent
 
 
 def test_pairwise_errors():
@@ -236,7 +318,7 @@ def test_write_report(tmp_path):
     rep = write_report(recs, tmp_path / "out", "Tidy test", notes)
     out = tmp_path / "out"
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["metrics.png", "pairwise.png", "report.json", "report.md"]        # no temp files left
+    assert names == ["metrics.png", "pairwise.png", "report.json", "report.md"]  # no temp files left
     for png in ("metrics.png", "pairwise.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     data = json.loads((out / "report.json").read_text())
@@ -287,24 +369,34 @@ def test_merged_reports_equal_one_run_of_both_variants(tmp_path):
     from tidee.agent.evaluation.report import merge_reports
 
     recs = _pair_records()
-    write_report(with_references([r for r in recs if r["variant"] == "A"]), tmp_path / "a", "A run",
-                 ["command: tidee eval tidy --variants A"])
+    write_report(
+        with_references([r for r in recs if r["variant"] == "A"]),
+        tmp_path / "a",
+        "A run",
+        ["command: tidee eval tidy --variants A"],
+    )
     write_report(with_references([r for r in recs if r["variant"] == "B"]), tmp_path / "b", "B run", [])
     b_json = tmp_path / "b" / "report.json"
     (tmp_path / "b" / "report.json.gz").write_bytes(gzip.compress(b_json.read_bytes()))
     b_json.unlink()
     whole = write_report(with_references(recs), tmp_path / "whole", "whole")
-    merged = merge_reports([tmp_path / "a", tmp_path / "b"], tmp_path / "m", command="tidee eval tidy-merge ...")
+    merged = merge_reports(
+        [tmp_path / "a", tmp_path / "b"], tmp_path / "m", command="tidee eval tidy-merge ..."
+    )
     assert merged["metrics"] == whole["metrics"] and merged["pairwise"] == whole["pairwise"]
     assert merged["pairwise"]["A"]["B"]["pref_a"] == pytest.approx(0.625)
-    assert any(n.startswith(f"{tmp_path / 'a'} (A): command: tidee eval tidy --variants A") for n in merged["notes"])
+    assert any(
+        n.startswith(f"{tmp_path / 'a'} (A): command: tidee eval tidy --variants A") for n in merged["notes"]
+    )
     assert "command: tidee eval tidy-merge ..." in merged["notes"]
     # only the named variants; a variant from two sources is refused, naming both
     only_a = merge_reports([tmp_path / "whole"], tmp_path / "m2", variants=["A"])
     assert set(only_a["metrics"]) == {"A", AI2THOR_PLACEMENT, MESSY_PLACEMENT}
     with pytest.raises(ValueError, match=r"'A' is in both .*a and .*whole"):
         merge_reports([tmp_path / "a", tmp_path / "whole"], tmp_path / "m3")
-    picked = merge_reports([tmp_path / "a", (tmp_path / "whole", ["B"])], tmp_path / "m3")   # A from a, B from whole
+    picked = merge_reports(
+        [tmp_path / "a", (tmp_path / "whole", ["B"])], tmp_path / "m3"
+    )  # A from a, B from whole
     assert picked["pairwise"] == whole["pairwise"]
     with pytest.raises(ValueError, match=r"no records of \['C'\] in .*whole"):
         merge_reports([(tmp_path / "whole", ["C"])], tmp_path / "m3")
@@ -327,11 +419,36 @@ def test_tidy_merge_command_takes_named_variants_from_each_source(tmp_path, caps
     recs = _pair_records()
     write_report(with_references(recs), tmp_path / "run1", "run 1")
     write_report(with_references(recs), tmp_path / "run2", "run 2")
-    assert main(["eval", "tidy-merge", "--from", f"{tmp_path / 'run1'}=A,{tmp_path / 'run2'}=B",
-                 "--out", str(tmp_path / "m")]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "tidy-merge",
+                "--from",
+                f"{tmp_path / 'run1'}=A,{tmp_path / 'run2'}=B",
+                "--out",
+                str(tmp_path / "m"),
+            ]
+        )
+        == 0
+    )
     data = json.loads((tmp_path / "m" / "report.json").read_text())
     assert data["pairwise"]["A"]["B"]["pref_a"] == pytest.approx(0.625)
-    assert f"command: tidee eval tidy-merge --from {tmp_path / 'run1'}=A," in (tmp_path / "m" / "report.md").read_text()
-    assert main(["eval", "tidy-merge", "--from", f"{tmp_path / 'run1'},{tmp_path / 'run2'}",
-                 "--out", str(tmp_path / "m2")]) == 2
+    assert (
+        f"command: tidee eval tidy-merge --from {tmp_path / 'run1'}=A,"
+        in (tmp_path / "m" / "report.md").read_text()
+    )
+    assert (
+        main(
+            [
+                "eval",
+                "tidy-merge",
+                "--from",
+                f"{tmp_path / 'run1'},{tmp_path / 'run2'}",
+                "--out",
+                str(tmp_path / "m2"),
+            ]
+        )
+        == 2
+    )
     assert "'A' is in both" in capsys.readouterr().err

@@ -50,14 +50,17 @@ def test_longest_valid_id() -> None:
     assert keys.check_id("session", "x" * 128) == "x" * 128
 
 
-@pytest.mark.parametrize("key", [
-    "tidee/sim/sim0/session/s1",                 # no op
-    "tidee/sim/sim0/session/s1/fly",             # unknown op
-    "tidee/sim/sim0/sessions/s1/step",           # wrong literal
-    "tidee/sim/sim0/session/*/step",             # a wildcard is not a session
-    "other/sim/sim0/session/s1/step",
-    "tidee/sim/sim0/session/s1/step/extra",
-])
+@pytest.mark.parametrize(
+    "key",
+    [
+        "tidee/sim/sim0/session/s1",  # no op
+        "tidee/sim/sim0/session/s1/fly",  # unknown op
+        "tidee/sim/sim0/sessions/s1/step",  # wrong literal
+        "tidee/sim/sim0/session/*/step",  # a wildcard is not a session
+        "other/sim/sim0/session/s1/step",
+        "tidee/sim/sim0/session/s1/step/extra",
+    ],
+)
 def test_parse_sim_op_rejects(key: str) -> None:
     with pytest.raises(ValueError):
         keys.parse_sim_op(key)
@@ -70,8 +73,9 @@ def test_unknown_op_is_rejected_by_the_builder() -> None:
         keys.sim_op_wildcard("sim0", "jump")
 
 
-@pytest.mark.parametrize("key", ["tidee/alive/agent/sim0/s1", "tidee/alive/server",
-                                 "tidee/alive/client/sim0/*"])
+@pytest.mark.parametrize(
+    "key", ["tidee/alive/agent/sim0/s1", "tidee/alive/server", "tidee/alive/client/sim0/*"]
+)
 def test_parse_alive_rejects(key: str) -> None:
     with pytest.raises(ValueError):
         keys.parse_alive(key)

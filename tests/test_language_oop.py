@@ -19,17 +19,35 @@ torch.set_num_threads(1)
 
 # Hand-written paragraphs in the paper's form: where things belong, and where they do not.
 SAMPLES = [
-    ("The mug is next to the counter top. The mug is supported by the counter top. The mug is closest to the bowl.", 0),
+    (
+        "The mug is next to the counter top. The mug is supported by the counter top. The mug is closest to the bowl.",
+        0,
+    ),
     ("The mug is supported by the floor. The mug is closest to the pillow.", 1),
-    ("The bowl is next to the counter top. The bowl is supported by the counter top. The bowl is closest to the mug.", 0),
+    (
+        "The bowl is next to the counter top. The bowl is supported by the counter top. The bowl is closest to the mug.",
+        0,
+    ),
     ("The bowl is next to the bed. The bowl is supported by the bed. The bowl is closest to the pillow.", 1),
-    ("The pillow is next to the bed. The pillow is supported by the bed. The pillow is closest to the cell phone.", 0),
-    ("The pillow is next to the sink. The pillow is supported by the counter top. The pillow is closest to the mug.", 1),
+    (
+        "The pillow is next to the bed. The pillow is supported by the bed. The pillow is closest to the cell phone.",
+        0,
+    ),
+    (
+        "The pillow is next to the sink. The pillow is supported by the counter top. The pillow is closest to the mug.",
+        1,
+    ),
     ("The alarm clock is next to the side table. The alarm clock is supported by the side table.", 0),
     ("The alarm clock is next to the toilet. The alarm clock is supported by the floor.", 1),
-    ("The soap bar is next to the sink. The soap bar is supported by the sink. The soap bar is closest to the cloth.", 0),
+    (
+        "The soap bar is next to the sink. The soap bar is supported by the sink. The soap bar is closest to the cloth.",
+        0,
+    ),
     ("The soap bar is next to the sofa. The soap bar is supported by the sofa.", 1),
-    ("The laptop is next to the desk. The laptop is supported by the desk. The laptop is closest to the pen.", 0),
+    (
+        "The laptop is next to the desk. The laptop is supported by the desk. The laptop is closest to the pen.",
+        0,
+    ),
     ("The laptop is next to the stove burner. The laptop is supported by the counter top.", 1),
 ]
 
@@ -52,8 +70,18 @@ def trained(encoder: lo.TextEncoder) -> lo.LanguageOOPClassifier:
     y = np.array([s.label for s in samples], np.float32)
     torch.manual_seed(0)
     head = lo.LanguageOOPHead()
-    lo.fit_head(head, emb, y, steps=150, batch_size=12, lr=1e-3, weight_decay=0.01, seed=0, device="cpu",
-                progress=False)
+    lo.fit_head(
+        head,
+        emb,
+        y,
+        steps=150,
+        batch_size=12,
+        lr=1e-3,
+        weight_decay=0.01,
+        seed=0,
+        device="cpu",
+        progress=False,
+    )
     return lo.LanguageOOPClassifier(head, encoder, lo.replay_set(samples, emb, 8, np.random.default_rng(0)))
 
 
@@ -62,10 +90,10 @@ def test_embedding_shape_norm_and_determinism(encoder: lo.TextEncoder) -> None:
     texts = [SAMPLES[0][0], SAMPLES[1][0], SAMPLES[0][0]]
     a = encoder.encode(texts)
     assert a.shape == (3, lo.EMBED_DIM) and a.dtype == np.float32
-    np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-5)   # sentence-transformers' Normalize
+    np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-5)  # sentence-transformers' Normalize
     np.testing.assert_array_equal(a[0], a[2])
     fresh = lo.TextEncoder(encoder.path)
-    fresh._model, fresh._tokenizer = encoder._model, encoder._tokenizer      # same weights, empty cache
+    fresh._model, fresh._tokenizer = encoder._model, encoder._tokenizer  # same weights, empty cache
     np.testing.assert_allclose(fresh.encode(texts[:2]), a[:2], atol=1e-5)
     assert encoder.encode([]).shape == (0, lo.EMBED_DIM)
 
@@ -80,8 +108,19 @@ def test_training_steps_reduce_the_loss(encoder: lo.TextEncoder) -> None:
     y = np.array([label for _, label in SAMPLES], np.float32)
     torch.manual_seed(0)
     head = lo.LanguageOOPHead()
-    hist = lo.fit_head(head, emb, y, steps=60, batch_size=12, lr=1e-3, weight_decay=0.01, seed=0, device="cpu",
-                       log_every=10, progress=False)
+    hist = lo.fit_head(
+        head,
+        emb,
+        y,
+        steps=60,
+        batch_size=12,
+        lr=1e-3,
+        weight_decay=0.01,
+        seed=0,
+        device="cpu",
+        log_every=10,
+        progress=False,
+    )
     assert hist[-1]["bce"] < 0.7 * hist[0]["bce"]
 
 
@@ -97,14 +136,17 @@ def test_fused_head_starts_blind_to_the_visual_feature() -> None:
 
 
 # ----------------------------------------------------------------------------- instructions
-@pytest.mark.parametrize("text, expected", [
-    ("I want my alarm clock on the desk", ("AlarmClock", "Desk", "in_place")),
-    ("alarm clock on the desk is out of place", ("AlarmClock", "Desk", "out_of_place")),
-    ("put the towel on the towel holder", ("Towel", "TowelHolder", "in_place")),
-    ("The pillows belong on the bed.", ("Pillow", "Bed", "in_place")),
-    ("Don't leave the laptop on the bed", ("Laptop", "Bed", "out_of_place")),
-    ("soap bottle on the countertop is misplaced", ("SoapBottle", "CounterTop", "out_of_place")),
-])
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("I want my alarm clock on the desk", ("AlarmClock", "Desk", "in_place")),
+        ("alarm clock on the desk is out of place", ("AlarmClock", "Desk", "out_of_place")),
+        ("put the towel on the towel holder", ("Towel", "TowelHolder", "in_place")),
+        ("The pillows belong on the bed.", ("Pillow", "Bed", "in_place")),
+        ("Don't leave the laptop on the bed", ("Laptop", "Bed", "out_of_place")),
+        ("soap bottle on the countertop is misplaced", ("SoapBottle", "CounterTop", "out_of_place")),
+    ],
+)
 def test_parse_instruction(text: str, expected: tuple[str, str, str]) -> None:
     assert tuple(lo.parse_instruction(text)) == expected
 
@@ -117,15 +159,17 @@ def test_parse_instruction_says_what_is_missing() -> None:
 
 
 def test_instruction_moves_probability_the_asked_way(trained: lo.LanguageOOPClassifier) -> None:
-    para = ("The mug is next to the counter top. The mug is supported by the counter top. "
-            "The mug is closest to the bowl.")
+    para = (
+        "The mug is next to the counter top. The mug is supported by the counter top. "
+        "The mug is closest to the bowl."
+    )
     clf = trained.copy()
     before = float(clf.predict([para])[0])
     report = lo.apply_instruction(clf, "the mug on the counter top is out of place", steps=50)
     after = float(clf.predict([para])[0])
     assert report["instruction"]["polarity"] == "out_of_place"
     assert after > before + 0.2 and after > 0.5
-    assert float(trained.predict([para])[0]) == pytest.approx(before)       # the copy was tuned, not the original
+    assert float(trained.predict([para])[0]) == pytest.approx(before)  # the copy was tuned, not the original
 
     floor = "The alarm clock is next to the toilet. The alarm clock is supported by the floor."
     clf = trained.copy()
@@ -140,9 +184,11 @@ def test_an_instruction_leaves_other_objects_on_the_receptacle_alone() -> None:
     on the bed, held to the head's own probabilities, are what keep it; without them the
     cell phone follows the laptop."""
     base = lo.LanguageOOPClassifier.load()
-    phone = ["The cell phone is supported by the bed. The cell phone is next to the pillow.",
-             "The cell phone is next to the pillow. The cell phone is supported by the bed. "
-             "The cell phone is closest to the laptop."]
+    phone = [
+        "The cell phone is supported by the bed. The cell phone is next to the pillow.",
+        "The cell phone is next to the pillow. The cell phone is supported by the bed. "
+        "The cell phone is closest to the laptop.",
+    ]
     laptop = ["The laptop is supported by the bed. The laptop is next to the pillow."]
     before = base.predict(phone)
     assert before.max() < 0.1
@@ -151,7 +197,7 @@ def test_an_instruction_leaves_other_objects_on_the_receptacle_alone() -> None:
     assert kept.predict(laptop)[0] > 0.7
     assert np.abs(kept.predict(phone) - before).max() < 0.3
     again = base.copy()
-    lo.apply_instruction(again, "the laptop on the bed is out of place")   # same seed, same head
+    lo.apply_instruction(again, "the laptop on the bed is out of place")  # same seed, same head
     np.testing.assert_array_equal(again.predict(phone + laptop), kept.predict(phone + laptop))
     dragged = base.copy()
     lo.apply_instruction(dragged, "the laptop on the bed is out of place", distill=False, neighbour_share=0.0)
@@ -162,11 +208,20 @@ def test_an_instruction_leaves_other_objects_on_the_receptacle_alone() -> None:
 def _records() -> list[dict]:
     def rec(oid, typ, lo_, hi, moved=False):
         c = [(a + b) / 2 for a, b in zip(lo_, hi)]
-        return {"id": oid, "type": typ, "moved": moved, "centroid": c, "box_min": list(lo_), "box_max": list(hi)}
+        return {
+            "id": oid,
+            "type": typ,
+            "moved": moved,
+            "centroid": c,
+            "box_min": list(lo_),
+            "box_max": list(hi),
+        }
 
-    return [rec("CounterTop_0", "CounterTop", (0, 0, 0), (2, 0.6, 0.9)),
-            rec("Mug_0", "Mug", (0.5, 0.2, 0.9), (0.6, 0.3, 1.0)),
-            rec("Mug_1", "Mug", (3.0, 2.0, 0.0), (3.1, 2.1, 0.1), moved=True)]
+    return [
+        rec("CounterTop_0", "CounterTop", (0, 0, 0), (2, 0.6, 0.9)),
+        rec("Mug_0", "Mug", (0.5, 0.2, 0.9), (0.6, 0.3, 1.0)),
+        rec("Mug_1", "Mug", (3.0, 2.0, 0.0), (3.1, 2.1, 0.1), moved=True),
+    ]
 
 
 def test_config_paragraphs_from_ground_truth_boxes() -> None:
@@ -179,9 +234,11 @@ def test_config_paragraphs_from_ground_truth_boxes() -> None:
 
 def test_training_and_evaluation_refuse_the_wrong_rooms() -> None:
     with pytest.raises(ValueError, match="held-out"):
-        lo.evaluate_language_oop(None, split="train")                      # type: ignore[arg-type]
+        lo.evaluate_language_oop(None, split="train")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="held-out"):
-        lo.run_instruct_eval("unused", split="train")   # the instruct eval picks settings on val, reports on test
+        lo.run_instruct_eval(
+            "unused", split="train"
+        )  # the instruct eval picks settings on val, reports on test
     with pytest.raises(ValueError, match="val or test|train, val or test"):
         lo.room_seeds("pool", 1)
 
@@ -200,11 +257,20 @@ class _FloorStub:
 
 
 def test_oracle_language_row_matches_detections_to_ground_truth() -> None:
-    frames = {"obj_frame": np.array([0, 0, 1]), "obj_box": np.array([[10, 10, 30, 30], [50, 50, 60, 60],
-                                                                      [0, 0, 5, 5]], np.float32),
-              "obj_id": np.array(["Mug_0", "Mug_1", "Mug_0"]), "frame_room": np.array(["Kitchen:200:0"] * 2)}
-    dets = [[Detection("Mug", 0.9, (11, 10, 30, 30)), Detection("Mug", 0.8, (50, 50, 60, 61)),
-             Detection("Mug", 0.5, (100, 100, 120, 120))], []]
+    frames = {
+        "obj_frame": np.array([0, 0, 1]),
+        "obj_box": np.array([[10, 10, 30, 30], [50, 50, 60, 60], [0, 0, 5, 5]], np.float32),
+        "obj_id": np.array(["Mug_0", "Mug_1", "Mug_0"]),
+        "frame_room": np.array(["Kitchen:200:0"] * 2),
+    }
+    dets = [
+        [
+            Detection("Mug", 0.9, (11, 10, 30, 30)),
+            Detection("Mug", 0.8, (50, 50, 60, 61)),
+            Detection("Mug", 0.5, (100, 100, 120, 120)),
+        ],
+        [],
+    ]
     stub = _FloorStub()
     row = lo.oracle_language_row(stub, scenes={"Kitchen:200:0": _records()}, cache_dir=None)  # type: ignore[arg-type]
     assert row(frames, dets) == [[0.1, 0.9, 0.5], []]
@@ -215,9 +281,12 @@ def test_language_oop_scores_tracked_objects() -> None:
         lo_, hi = np.array(lo_, float), np.array(hi, float)
         return TrackedObject(id=i, label=label, score=1.0, centroid=(lo_ + hi) / 2, box_min=lo_, box_max=hi)
 
-    objects = [obj(0, "CounterTop", (0, 0, 0), (2, 0.6, 0.9)), obj(1, "Mug", (0.5, 0.2, 0.9), (0.6, 0.3, 1.0)),
-               obj(2, "Mug", (3, 2, 0), (3.1, 2.1, 0.1))]
-    oop = lo.LanguageOOP(classifier=_FloorStub())                            # type: ignore[arg-type]
+    objects = [
+        obj(0, "CounterTop", (0, 0, 0), (2, 0.6, 0.9)),
+        obj(1, "Mug", (0.5, 0.2, 0.9), (0.6, 0.3, 1.0)),
+        obj(2, "Mug", (3, 2, 0), (3.1, 2.1, 0.1)),
+    ]
+    oop = lo.LanguageOOP(classifier=_FloorStub())  # type: ignore[arg-type]
     probs = oop.score_all(objects[1:], objects, "Kitchen")
     assert probs == {1: 0.1, 2: 0.9}
     assert objects[2].meta["paragraph"].startswith("The mug")
@@ -228,7 +297,7 @@ def _floor_depth(pitch_deg: float, n: int = 64) -> np.ndarray:
     f, c = n / 2, (n - 1) / 2
     v = (np.arange(n) - c) / f
     th = math.radians(pitch_deg)
-    down = v * math.cos(th) + math.sin(th)          # downward component of the ray (z = 1)
+    down = v * math.cos(th) + math.sin(th)  # downward component of the ray (z = 1)
     d = np.where(down > 1e-3, lo.CAMERA_HEIGHT_M / np.maximum(down, 1e-3), 0.0)
     return np.repeat(np.minimum(d, 20.0)[:, None], n, 1).astype(np.float32)
 
@@ -253,18 +322,26 @@ def test_size_sentence_only_for_categories_with_variants() -> None:
     small_vase = ObjectRef("w", "Vase", (0, 0, 0.1), (-0.05, -0.05, 0.0), (0.05, 0.05, 0.2))
     mug = ObjectRef("m", "Mug", (1, 0, 0.05), (0.95, -0.05, 0.0), (1.05, 0.05, 0.1))
     assert lo.size_word(floor_vase) == "large" and lo.size_word(small_vase) == "small"
-    assert lo.size_word(ObjectRef("x", "Vase", (0, 0, 0))) is None          # no box: no size
-    assert lo.object_paragraph(floor_vase, [mug]).startswith("The vase is large. The vase is supported by the floor.")
+    assert lo.size_word(ObjectRef("x", "Vase", (0, 0, 0))) is None  # no box: no size
+    assert lo.object_paragraph(floor_vase, [mug]).startswith(
+        "The vase is large. The vase is supported by the floor."
+    )
     assert lo.object_paragraph(small_vase, [mug]).startswith("The vase is small. ")
-    assert lo.object_paragraph(mug, [floor_vase]) == relation_paragraph(mug, [floor_vase])   # no variants: no size
+    assert lo.object_paragraph(mug, [floor_vase]) == relation_paragraph(
+        mug, [floor_vase]
+    )  # no variants: no size
 
 
 def test_shipped_head_reads_the_size_of_a_vase_on_the_floor() -> None:
     """The catalog's large vase stands on the floor, a small one does not: the shipped head
     tells them apart from the size sentence alone."""
     clf = lo.LanguageOOPClassifier.load()
-    large, small = clf.predict(["The vase is large. The vase is supported by the floor.",
-                                "The vase is small. The vase is supported by the floor."])
+    large, small = clf.predict(
+        [
+            "The vase is large. The vase is supported by the floor.",
+            "The vase is small. The vase is supported by the floor.",
+        ]
+    )
     assert large < 0.5 < small
 
 
@@ -272,15 +349,23 @@ def test_fused_samples_are_matched_pickupable_detections_with_their_features() -
     from tidee.agent.reasoning.fused_oop import detection_samples, held_out_room
 
     cls = {n: i for i, n in enumerate(lo.CLASSES)}
-    frames = {"depth": np.full((1, 128, 128), 2.0, np.float16), "frame_room": np.array(["Bedroom:19:0"]),
-              "obj_frame": np.array([0, 0, 0]), "obj_cls": np.array([cls["Mug"], cls["Book"], cls["Bed"]]),
-              "obj_box": np.array([[10, 10, 30, 30], [60, 60, 90, 90], [0, 90, 128, 128]], np.float32),
-              "obj_oop": np.array([1, 0, 0], np.uint8)}
+    frames = {
+        "depth": np.full((1, 128, 128), 2.0, np.float16),
+        "frame_room": np.array(["Bedroom:19:0"]),
+        "obj_frame": np.array([0, 0, 0]),
+        "obj_cls": np.array([cls["Mug"], cls["Book"], cls["Bed"]]),
+        "obj_box": np.array([[10, 10, 30, 30], [60, 60, 90, 90], [0, 90, 128, 128]], np.float32),
+        "obj_oop": np.array([1, 0, 0], np.uint8),
+    }
     feat = np.ones(64, np.float32)
-    dets = [[Detection("Mug", 0.9, (10, 10, 30, 31), feature=feat),          # matches the moved mug
-             Detection("Book", 0.8, (61, 60, 90, 90)),                        # the book, no feature
-             Detection("Pen", 0.7, (100, 10, 120, 30), feature=feat),         # nothing there: no sample
-             Detection("Bed", 0.9, (0, 90, 128, 128))]]                       # not pickupable: context only
+    dets = [
+        [
+            Detection("Mug", 0.9, (10, 10, 30, 31), feature=feat),  # matches the moved mug
+            Detection("Book", 0.8, (61, 60, 90, 90)),  # the book, no feature
+            Detection("Pen", 0.7, (100, 10, 120, 30), feature=feat),  # nothing there: no sample
+            Detection("Bed", 0.9, (0, 90, 128, 128)),
+        ]
+    ]  # not pickupable: context only
     s = detection_samples(frames, dets)
     assert s["categories"] == ["Mug", "Book"] and s["labels"] == [1, 0]
     assert s["features"].shape == (2, 64) and s["features"][0].sum() == 64 and s["features"][1].sum() == 0
@@ -293,8 +378,13 @@ def test_only_shipped_oop_heads_draw_their_loss_curve_in_the_docs(tmp_path) -> N
 
     shipped = loss_curve_path(WEIGHTS_DIR / "language_oop_fused.pt", "language_oop_fused_loss.png")
     assert shipped == "docs/models/language_oop_fused_loss.png"
-    candidate = loss_curve_path(tmp_path / "runs" / "fused" / "language_oop_fused.pt", "language_oop_fused_loss.png")
+    candidate = loss_curve_path(
+        tmp_path / "runs" / "fused" / "language_oop_fused.pt", "language_oop_fused_loss.png"
+    )
     assert candidate == str(tmp_path / "runs" / "fused" / "language_oop_fused_loss.png")
-    assert loss_curve_path(WEIGHTS_DIR / "language_oop.pt", "language_oop_loss.png", asked="x/curve.png") == "x/curve.png"
+    assert (
+        loss_curve_path(WEIGHTS_DIR / "language_oop.pt", "language_oop_loss.png", asked="x/curve.png")
+        == "x/curve.png"
+    )
     # the training commands resolve it this way: neither default names the docs any more
     assert lo.TrainConfig().loss_png is None

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from tidee.agent.mapping import (FREE, OBSTACLE, GridSpec, MapConfig, SemanticMapper, project, unproject)
+from tidee.agent.mapping import FREE, OBSTACLE, GridSpec, MapConfig, SemanticMapper, project, unproject
 from tidee.agent.perception.base import Detection
 from tidee.protocol.messages import Observation
 
@@ -38,13 +38,14 @@ class World:
 
     room: tuple[float, float, float, float] = (-3.0, 3.5, -2.5, 3.0)
     boxes: tuple[tuple[np.ndarray, np.ndarray], ...] = (
-        (np.array([1.0, -0.4, 0.0]), np.array([1.6, 0.4, 0.7])),)
+        (np.array([1.0, -0.4, 0.0]), np.array([1.6, 0.4, 0.7])),
+    )
 
     def render(self, pose: np.ndarray, k: np.ndarray, res: int) -> tuple[np.ndarray, np.ndarray]:
         """(depth float32 res x res along the optical axis, int HxW: index of the box hit, -1 none)."""
         vv, uu = np.meshgrid(np.arange(res), np.arange(res), indexing="ij")
         rays = np.stack([(uu - k[0, 2]) / k[0, 0], (vv - k[1, 2]) / k[1, 1], np.ones_like(uu, float)], -1)
-        d = rays.reshape(-1, 3) @ pose[:3, :3].T     # world directions; t along them = optical depth
+        d = rays.reshape(-1, 3) @ pose[:3, :3].T  # world directions; t along them = optical depth
         o = pose[:3, 3]
         with np.errstate(divide="ignore", invalid="ignore"):
             best = np.full(d.shape[0], np.inf)
@@ -67,13 +68,21 @@ class World:
         return best.reshape(res, res).astype(np.float32), hit.reshape(res, res)
 
 
-def observe(world: World, x: float, y: float, yaw: float, pitch: float = 30.0, res: int = 128,
-            step: int = 0) -> tuple[Observation, np.ndarray]:
+def observe(
+    world: World, x: float, y: float, yaw: float, pitch: float = 30.0, res: int = 128, step: int = 0
+) -> tuple[Observation, np.ndarray]:
     k = intrinsics(res)
     pose = camera_pose(x, y, yaw, pitch)
     depth, hit = world.render(pose, k, res)
-    obs = Observation(session="t", step=step, rgb=np.zeros((res, res, 3), np.uint8), depth=depth,
-                      camera_pose=pose, agent_pose=(x, y, yaw, pitch), intrinsics=k)
+    obs = Observation(
+        session="t",
+        step=step,
+        rgb=np.zeros((res, res, 3), np.uint8),
+        depth=depth,
+        camera_pose=pose,
+        agent_pose=(x, y, yaw, pitch),
+        intrinsics=k,
+    )
     return obs, hit
 
 
@@ -88,7 +97,7 @@ def cells_of(grid: GridSpec, x0: float, x1: float, y0: float, y1: float) -> tupl
 def test_unproject_floor_plane_and_round_trip() -> None:
     res = 64
     k = intrinsics(res)
-    pose = camera_pose(0.3, -0.2, 40.0, 60.0)        # pitched 60 down, 90 FOV: every ray hits the floor
+    pose = camera_pose(0.3, -0.2, 40.0, 60.0)  # pitched 60 down, 90 FOV: every ray hits the floor
     depth, _ = World(room=(-50, 50, -50, 50), boxes=()).render(pose, k, res)
     pts, pix = unproject(depth, k, pose, max_depth=100.0)
     assert pts.dtype == np.float32 and pts.shape == (res * res, 3)
@@ -102,8 +111,8 @@ def test_unproject_floor_plane_and_round_trip() -> None:
 def test_unproject_wall_at_known_distance() -> None:
     res = 32
     k = intrinsics(res)
-    pose = camera_pose(0.0, 0.5, 90.0, 0.0)            # looking along +y (image right = +x) at y = 2.5
-    depth = np.full((res, res), 2.0, np.float32)      # a wall 2 m ahead, facing the camera
+    pose = camera_pose(0.0, 0.5, 90.0, 0.0)  # looking along +y (image right = +x) at y = 2.5
+    depth = np.full((res, res), 2.0, np.float32)  # a wall 2 m ahead, facing the camera
     pts, pix = unproject(depth, k, pose, stride=2)
     assert pts.shape[0] == (res // 2) ** 2
     np.testing.assert_allclose(pts[:, 1], 2.5, atol=1e-4)
@@ -116,8 +125,10 @@ def test_unproject_wall_at_known_distance() -> None:
 
 def test_unproject_drops_invalid_depths_and_honours_mask() -> None:
     k = intrinsics(4)
-    depth = np.array([[0.0, np.nan, np.inf, 0.04], [1.0, 11.0, -1.0, 2.0],
-                      [1.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]], np.float32)
+    depth = np.array(
+        [[0.0, np.nan, np.inf, 0.04], [1.0, 11.0, -1.0, 2.0], [1.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]],
+        np.float32,
+    )
     _, pix = unproject(depth, k, np.eye(4), max_depth=10.0)
     assert sorted(pix[:2].tolist()) == [4, 7] and pix.size == 10
     mask = np.zeros((4, 4), bool)
@@ -141,7 +152,7 @@ def test_gridspec_follows_mapsnapshot_convention() -> None:
     assert g.in_bounds(ij).tolist() == [True, True, True, False, False]
     np.testing.assert_allclose(g.cell_to_world(np.array([[0, 0], [3, 5]])), [[-0.75, 2.25], [0.75, 4.75]])
     assert g.world_to_cell(g.cell_to_world(np.array([[2, 3]]))).tolist() == [[2, 3]]
-    d = g.disc((0.0, 3.0), 0.5)     # centre on a corner shared by 4 cells
+    d = g.disc((0.0, 3.0), 0.5)  # centre on a corner shared by 4 cells
     assert sorted(map(tuple, d.tolist())) == [(1, 1), (1, 2), (2, 1), (2, 2)]
     with pytest.raises(ValueError, match="cell must be > 0"):
         GridSpec((0, 0), 0.0, (2, 2))
@@ -180,11 +191,15 @@ def test_box_and_walls_become_obstacles(rotated_in_place: SemanticMapper) -> Non
     assert occ[si, sj].size > 0 and np.all(occ[si, sj] == OBSTACLE)
     # each wall: all cells along it (away from corners) are obstacles, within one cell of the plane
     x0, x1, y0, y1 = World().room
-    e = 0.08   # about one cell either side of the wall plane
-    walls = ((x1 - e, x1 + e, y0 + 1, y1 - 1, 1), (x0 - e, x0 + e, y0 + 1, y1 - 1, 1),
-             (x0 + 1, x1 - 1, y1 - e, y1 + e, 0), (x0 + 1, x1 - 1, y0 - e, y0 + e, 0))
+    e = 0.08  # about one cell either side of the wall plane
+    walls = (
+        (x1 - e, x1 + e, y0 + 1, y1 - 1, 1),
+        (x0 - e, x0 + e, y0 + 1, y1 - 1, 1),
+        (x0 + 1, x1 - 1, y1 - e, y1 + e, 0),
+        (x0 + 1, x1 - 1, y0 - e, y0 + e, 0),
+    )
     for lo_x, hi_x, lo_y, hi_y, along in walls:
-        band = m.obstacle[cells_of(g, lo_x, hi_x, lo_y, hi_y)]    # axis `along` runs along the wall
+        band = m.obstacle[cells_of(g, lo_x, hi_x, lo_y, hi_y)]  # axis `along` runs along the wall
         assert band.shape[along] > 40 and np.all(band.any(axis=1 - along))
     # nothing beyond the walls, nothing in the open floor between agent and walls
     assert not m.obstacle[cells_of(g, x1 + 0.1, 6.0, -6.0, 6.0)].any()
@@ -198,17 +213,17 @@ def test_floor_is_free_and_explored(rotated_in_place: SemanticMapper) -> None:
     ring = (r > 0.4) & (r < 1.0)
     assert m.explored[ring].mean() > 0.95 and m.floor_seen[ring].mean() > 0.95
     assert (m.occupancy_grid()[ring] == FREE).mean() > 0.95
-    assert not m.explored[cells_of(g, 3.6, 6.0, -6.0, 6.0)].any()     # beyond the +x wall
-    assert m.seen_count.max() >= 2                                    # overlapping views counted
+    assert not m.explored[cells_of(g, 3.6, 6.0, -6.0, 6.0)].any()  # beyond the +x wall
+    assert m.seen_count.max() >= 2  # overlapping views counted
 
 
 def test_traversible_blocks_box_keeps_agent_area(rotated_in_place: SemanticMapper) -> None:
     m, g = rotated_in_place, rotated_in_place.grid
     trav = m.traversible(agent_radius=0.2)
-    assert not trav[cells_of(g, 0.85, 1.6, -0.55, 0.55)].any()        # the box grown by the radius
+    assert not trav[cells_of(g, 0.85, 1.6, -0.55, 0.55)].any()  # the box grown by the radius
     centres = g.cell_to_world(np.argwhere(np.ones(g.shape, bool))).reshape(g.shape + (2,))
     assert trav[np.linalg.norm(centres, axis=-1) < 0.5].all()
-    assert trav[cells_of(g, 4.0, 6.0, 4.0, 6.0)].all()                # unknown: optimistic
+    assert trav[cells_of(g, 4.0, 6.0, 4.0, 6.0)].all()  # unknown: optimistic
     assert m.traversible_at(np.array([[0.0, 0.0], [1.3, 0.0], [9.0, 0.0]])).tolist() == [True, False, False]
 
 
@@ -221,7 +236,7 @@ def test_views_from_different_poses_land_on_the_same_wall_cells() -> None:
         ij = np.argwhere(m.obstacle)
         assert ij.size
         xy = m.grid.cell_to_world(ij)
-        near = (np.abs(xy[:, 0] - 3.5) < 0.3) & (np.abs(xy[:, 1]) < 2.0)   # away from the corners
+        near = (np.abs(xy[:, 0] - 3.5) < 0.3) & (np.abs(xy[:, 1]) < 2.0)  # away from the corners
         assert near.sum() > 20
         wall_i = set(m.grid.world_to_cell(np.array([[3.499, 0], [3.5, 0]]))[:, 0].tolist())
         assert set(np.unique(ij[near, 0]).tolist()) <= wall_i
@@ -235,7 +250,7 @@ def test_obstacles_persist_until_cleared_and_stamps() -> None:
     m.update(observe(World(), 0.0, 0.0, 0.0)[0], [])
     si, sj = cells_of(m.grid, 0.99, 1.06, -0.3, 0.3)
     assert m.obstacle[si, sj].all()
-    m.update(observe(World(boxes=()), 0.0, 0.0, 0.0)[0], [])         # the box is gone: floor there
+    m.update(observe(World(boxes=()), 0.0, 0.0, 0.0)[0], [])  # the box is gone: floor there
     assert m.obstacle[si, sj].all()
     m.clear_obstacle((1.02, 0.0), 0.5)
     assert not m.obstacle[si, sj].any()
@@ -246,10 +261,18 @@ def test_obstacles_persist_until_cleared_and_stamps() -> None:
     # the agent's own disc is free even where an obstacle point falls in it (looking steeply down)
     ij = m.grid.world_to_cell(np.array([[0.11, 0.0]]))[0]
     assert np.hypot(*(m.grid.cell_to_world(ij[None])[0])) < 0.15
-    m.update(observe(World(boxes=((np.array([0.1, -0.05, 0.0]), np.array([0.14, 0.05, 0.4])),)),
-                     0.0, 0.0, 0.0, pitch=60.0)[0], [])
-    assert m.obstacle[ij[0], ij[1]]                                   # the point was there ...
-    assert m.occupancy_grid()[ij[0], ij[1]] == FREE                   # ... but the agent stands there
+    m.update(
+        observe(
+            World(boxes=((np.array([0.1, -0.05, 0.0]), np.array([0.14, 0.05, 0.4])),)),
+            0.0,
+            0.0,
+            0.0,
+            pitch=60.0,
+        )[0],
+        [],
+    )
+    assert m.obstacle[ij[0], ij[1]]  # the point was there ...
+    assert m.occupancy_grid()[ij[0], ij[1]] == FREE  # ... but the agent stands there
     assert m.traversible(0.2)[tuple(m.grid.world_to_cell(np.zeros((1, 2)))[0])]
     m.reset()
     assert not m.obstacle.any() and not m.occupancy.any() and len(m.memory) == 0
@@ -295,14 +318,16 @@ def test_passable_detections_are_mapped_but_never_obstacles() -> None:
     obs, hit = observe(world, 0.0, 0.0, 0.0, res=128)
     mask = hit == 0
     ys, xs = np.nonzero(mask)
-    det = Detection("Dumbbell", 0.9, (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1), mask=mask)
+    det = Detection(
+        "Dumbbell", 0.9, (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1), mask=mask
+    )
     front = cells_of(SemanticMapper().grid, 0.99, 1.06, -0.35, 0.35)
     blocked = SemanticMapper(MapConfig(), ["Dumbbell"])
     blocked.update(obs, [det])
     passed = SemanticMapper(MapConfig(), ["Dumbbell"], passable={"Dumbbell"})
     passed.update(obs, [det])
     assert blocked.obstacle[front].any() and not passed.obstacle[front].any()
-    assert passed.obstacle.sum() > 0                              # the walls still are obstacles
+    assert passed.obstacle.sum() > 0  # the walls still are obstacles
     assert passed.occupancy.sum() == blocked.occupancy.sum() and len(passed.memory) == 1
 
 
@@ -326,8 +351,8 @@ def test_semantic_volume_puts_mass_at_the_centroid() -> None:
     expected = (int((0.8 + 0.1) // 0.4), int((1.23 + 6.4) // 0.1), int((-0.47 + 6.4) // 0.1))
     assert np.unravel_index(np.argmax(vol[0]), vol[0].shape) == expected
     assert vol[0][expected] == pytest.approx(1.0, rel=1e-5)
-    assert vol[0].sum() > 1.5                                        # dilated, not a single voxel
-    assert not vol[1].any()                                          # no bowls, nothing occupied
+    assert vol[0].sum() > 1.5  # dilated, not a single voxel
+    assert not vol[1].any()  # no bowls, nothing occupied
     top = m.semantic_topdown("Mug")
     assert top.shape == (128, 128) and np.unravel_index(np.argmax(top), top.shape) == expected[1:]
     # with occupancy: every channel carries it, the mug channel adds its bump

@@ -37,24 +37,46 @@ def test_merges_into_the_nearest_same_label_entry() -> None:
     mem = ObjectMemory(merge_distance=1.0)
     a = add(mem, "Mug", [0.0, 0.0, 0.0])
     b = add(mem, "Mug", [1.5, 0.0, 0.0])
-    hit = add(mem, "Mug", [1.0, 0.0, 0.0])    # 1.0 from a, 0.5 from b
+    hit = add(mem, "Mug", [1.0, 0.0, 0.0])  # 1.0 from a, 0.5 from b
     assert hit is b and a.n_obs == 1 and b.n_obs == 2
 
 
 def test_score_weighted_running_averages() -> None:
     mem = ObjectMemory()
-    o = mem.add_or_merge("Book", 0.2, np.array([0.0, 0.0, 0.0]), np.array([-1.0, -1, -1]),
-                         np.array([1.0, 1, 1]), 0, oop_prob=0.2)
-    mem.add_or_merge("Book", 0.6, np.array([0.4, 0.0, 0.0]), np.array([-0.6, -1, -1]),
-                     np.array([1.4, 1, 1]), 1, oop_prob=None)
-    mem.add_or_merge("Book", 0.2, np.array([0.0, 0.8, 0.0]), np.array([-1.0, -0.2, -1]),
-                     np.array([1.0, 1.8, 1]), 2, oop_prob=0.6, feature=np.array([1.0, 2.0], np.float32))
+    o = mem.add_or_merge(
+        "Book",
+        0.2,
+        np.array([0.0, 0.0, 0.0]),
+        np.array([-1.0, -1, -1]),
+        np.array([1.0, 1, 1]),
+        0,
+        oop_prob=0.2,
+    )
+    mem.add_or_merge(
+        "Book",
+        0.6,
+        np.array([0.4, 0.0, 0.0]),
+        np.array([-0.6, -1, -1]),
+        np.array([1.4, 1, 1]),
+        1,
+        oop_prob=None,
+    )
+    mem.add_or_merge(
+        "Book",
+        0.2,
+        np.array([0.0, 0.8, 0.0]),
+        np.array([-1.0, -0.2, -1]),
+        np.array([1.0, 1.8, 1]),
+        2,
+        oop_prob=0.6,
+        feature=np.array([1.0, 2.0], np.float32),
+    )
     # weights 0.2, 0.6, 0.2 over a total of 1.0
     np.testing.assert_allclose(o.centroid, [0.24, 0.16, 0.0], atol=1e-12)
     np.testing.assert_allclose(o.box_min, [-0.76, -0.84, -1.0], atol=1e-12)
     np.testing.assert_allclose(o.box_max, [1.24, 1.16, 1.0], atol=1e-12)
     assert o.score == pytest.approx(0.6) and o.n_obs == 3
-    assert o.oop_prob == pytest.approx(0.4)          # mean of the non-None 0.2 and 0.6
+    assert o.oop_prob == pytest.approx(0.4)  # mean of the non-None 0.2 and 0.6
     np.testing.assert_array_equal(o.feature, [1.0, 2.0])
 
 

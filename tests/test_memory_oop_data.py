@@ -19,16 +19,22 @@ def _track(i: int, label: str, xyz: tuple[float, float, float]) -> TrackedObject
 def test_tracks_match_objects_of_their_class_one_to_one_in_the_world_frame() -> None:
     # start frame: origin at (2, 1), yawed 90 degrees (start x axis = world y axis)
     start = {"x": 2.0, "y": 1.0, "yaw_deg": 90.0}
-    objects = [{"id": "Mug_0", "type": "Mug", "centroid": [2.0, 2.0, 0.9]},     # start (1, 0)
-               {"id": "Mug_1", "type": "Mug", "centroid": [2.0, 2.3, 0.9]},     # start (1.3, 0)
-               {"id": "Bowl_0", "type": "Bowl", "centroid": [1.0, 1.0, 0.9]}]   # start (0, 1)
-    tracks = [_track(1, "Mug", (1.05, 0.0, 0.9)), _track(2, "Mug", (1.1, 0.0, 0.9)),
-              _track(3, "Bowl", (0.0, 1.0, 0.9)), _track(4, "Mug", (0.0, 1.0, 0.9))]
+    objects = [
+        {"id": "Mug_0", "type": "Mug", "centroid": [2.0, 2.0, 0.9]},  # start (1, 0)
+        {"id": "Mug_1", "type": "Mug", "centroid": [2.0, 2.3, 0.9]},  # start (1.3, 0)
+        {"id": "Bowl_0", "type": "Bowl", "centroid": [1.0, 1.0, 0.9]},
+    ]  # start (0, 1)
+    tracks = [
+        _track(1, "Mug", (1.05, 0.0, 0.9)),
+        _track(2, "Mug", (1.1, 0.0, 0.9)),
+        _track(3, "Bowl", (0.0, 1.0, 0.9)),
+        _track(4, "Mug", (0.0, 1.0, 0.9)),
+    ]
     m = mem.match_tracks(tracks, objects, start)
-    assert m[1]["id"] == "Mug_0"          # the nearest pair first
-    assert m[2]["id"] == "Mug_1"          # one to one: the second mug track takes the other mug
+    assert m[1]["id"] == "Mug_0"  # the nearest pair first
+    assert m[2]["id"] == "Mug_1"  # one to one: the second mug track takes the other mug
     assert m[3]["id"] == "Bowl_0"
-    assert 4 not in m                     # a mug track where only a bowl is: no match
+    assert 4 not in m  # a mug track where only a bowl is: no match
 
 
 def test_memory_samples_are_labelled_by_the_mess_up() -> None:
@@ -71,14 +77,33 @@ def test_the_fused_head_refuses_memory_samples_without_detector_features(tmp_pat
     (tmp_path / "meta.json").write_text(json.dumps({"split": "train", "perception": "oracle"}))
     (tmp_path / "samples.jsonl").write_text("")
     with pytest.raises(ValueError, match="--perception learned"):
-        add_memory_samples({"paragraphs": [], "features": np.zeros((0, 64)), "labels": [], "categories": [],
-                            "rooms": []}, tmp_path)
+        add_memory_samples(
+            {"paragraphs": [], "features": np.zeros((0, 64)), "labels": [], "categories": [], "rooms": []},
+            tmp_path,
+        )
     (tmp_path / "meta.json").write_text(json.dumps({"split": "train", "perception": "learned"}))
-    (tmp_path / "samples.jsonl").write_text(json.dumps(
-        {"paragraph": "The mug is supported by the floor.", "label": 1, "category": "Mug", "room_type": "Kitchen",
-         "config": "Kitchen:60:0", "object": "Mug_0", "snapshot": 0, "feature": [0.5] * 64}) + "\n")
-    samples = {"paragraphs": ["p"], "features": np.zeros((1, 64), np.float32), "labels": [0],
-               "categories": ["Cup"], "rooms": ["Kitchen:61:0:3"]}
+    (tmp_path / "samples.jsonl").write_text(
+        json.dumps(
+            {
+                "paragraph": "The mug is supported by the floor.",
+                "label": 1,
+                "category": "Mug",
+                "room_type": "Kitchen",
+                "config": "Kitchen:60:0",
+                "object": "Mug_0",
+                "snapshot": 0,
+                "feature": [0.5] * 64,
+            }
+        )
+        + "\n"
+    )
+    samples = {
+        "paragraphs": ["p"],
+        "features": np.zeros((1, 64), np.float32),
+        "labels": [0],
+        "categories": ["Cup"],
+        "rooms": ["Kitchen:61:0:3"],
+    }
     meta = add_memory_samples(samples, tmp_path)
     assert meta["perception"] == "learned"
     assert samples["labels"] == [0, 1] and samples["features"].shape == (2, 64)

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from tidee.agent.mapping.geometry import GridSpec
 from tidee.agent.navigation.explore import (
     FrontierExplorer,
     sample_reachable_goal,
     sample_unexplored_goal,
     unexplored_fraction,
 )
-from tidee.agent.mapping.geometry import GridSpec
 from tidee.agent.navigation.fmm import FMMPlanner, NavStatus
 from tidee.protocol.messages import ActionName as A
 
@@ -53,8 +53,9 @@ def step(pose: tuple[float, float, float], action: A, trav: np.ndarray) -> tuple
     return (nx, ny, yaw)
 
 
-def drive(planner: FMMPlanner, trav: np.ndarray, pose: tuple[float, float, float],
-          max_steps: int) -> tuple[tuple[float, float, float], int, list[tuple[float, float]]]:
+def drive(
+    planner: FMMPlanner, trav: np.ndarray, pose: tuple[float, float, float], max_steps: int
+) -> tuple[tuple[float, float, float], int, list[tuple[float, float]]]:
     visited = [pose[:2]]
     for n in range(max_steps):
         action = planner.next_action(*pose)
@@ -142,7 +143,7 @@ def test_random_clutter_always_arrives() -> None:
         for _ in range(12):
             i, j = rng.integers(50, 200, 2)
             w, h = rng.integers(5, 30, 2)
-            occ[i:i + w, j:j + h] = True
+            occ[i : i + w, j : j + h] = True
         trav = ~ndimage.binary_dilation(occ, iterations=4)
         labels, _ = ndimage.label(trav)
         cells = np.argwhere(labels == np.argmax(np.bincount(labels.ravel())[1:]) + 1)
@@ -222,19 +223,19 @@ def test_stuck_returns_a_rotation_and_flag() -> None:
     # The agent sits in a 0.2 m pocket, linked to the goal room only by a one-cell staircase
     # corridor heading towards +x, -y: every 0.25 m move is blocked, the distance is finite.
     trav = np.zeros(GRID.shape, dtype=bool)
-    trav[126:130, 126:130] = True                    # pocket around (0, 0) = cell (128, 128)
+    trav[126:130, 126:130] = True  # pocket around (0, 0) = cell (128, 128)
     for k in range(41):
         trav[129 + k, 126 - k] = True
         trav[130 + k, 126 - k] = True
-    trav[165:185, 70:90] = True                      # goal room
+    trav[165:185, 70:90] = True  # goal room
     planner = FMMPlanner(trav, GRID)
     planner.set_goal(GRID.to_world((175, 80)))
     assert math.isfinite(planner.distance((0.0, 0.0)))
     action = planner.next_action(0.0, 0.0, 0.0)
     assert planner.status is NavStatus.stuck and planner.stuck and planner.stuck_reason
-    assert action is A.RotateRight                   # downhill is at -45 degrees
+    assert action is A.RotateRight  # downhill is at -45 degrees
     assert planner.next_action(0.0, 0.0, -90.0) is A.RotateLeft
-    assert planner.next_action(0.0, 0.0, 100.0) is A.RotateRight   # the short way round
+    assert planner.next_action(0.0, 0.0, 100.0) is A.RotateRight  # the short way round
     assert planner.next_action(0.0, 0.0, 170.0) is A.RotateLeft
 
 
@@ -287,10 +288,10 @@ def test_goal_radius() -> None:
 # ----------------------------------------------------------------------------- explore
 def test_unexplored_fraction() -> None:
     reachable = np.zeros((10, 10), bool)
-    reachable[:, :5] = True                       # 50 cells
+    reachable[:, :5] = True  # 50 cells
     explored = np.zeros((10, 10), bool)
-    explored[:, :2] = True                        # 20 of them explored
-    explored[:, 8:] = True                        # explored but unreachable: ignored
+    explored[:, :2] = True  # 20 of them explored
+    explored[:, 8:] = True  # explored but unreachable: ignored
     assert unexplored_fraction(explored, reachable) == pytest.approx(30 / 50)
     assert unexplored_fraction(reachable, reachable) == 0.0
     assert unexplored_fraction(explored, np.zeros((10, 10), bool)) == 0.0
@@ -320,8 +321,9 @@ def test_sample_unexplored_goal_is_reachable_unexplored_and_seeded() -> None:
     # Nothing unexplored reachable: None.
     assert sample_unexplored_goal(reachable, reachable, g, np.random.default_rng(0), agent) is None
     # min_dist excludes everything near the agent.
-    far = sample_unexplored_goal(explored, reachable, g, np.random.default_rng(0), (2.05, 2.05),
-                                 min_dist_m=10.0)
+    far = sample_unexplored_goal(
+        explored, reachable, g, np.random.default_rng(0), (2.05, 2.05), min_dist_m=10.0
+    )
     assert far is None
 
 
@@ -342,8 +344,9 @@ def test_sample_reachable_goal() -> None:
     for seed in range(10):
         xy = sample_reachable_goal(reachable, g, np.random.default_rng(seed), agent)
         assert xy is not None and reachable[g.to_cell(xy)] and math.dist(xy, agent) >= 1.0
-    assert sample_reachable_goal(reachable, g, np.random.default_rng(5), agent) == \
-        sample_reachable_goal(reachable, g, np.random.default_rng(5), agent)
+    assert sample_reachable_goal(reachable, g, np.random.default_rng(5), agent) == sample_reachable_goal(
+        reachable, g, np.random.default_rng(5), agent
+    )
     assert sample_reachable_goal(reachable, g, np.random.default_rng(0), agent, min_dist_m=5.0) is None
 
 
@@ -357,11 +360,11 @@ def frontier_map() -> tuple[GridSpec, np.ndarray, np.ndarray, np.ndarray]:
     known = np.zeros(g.shape, bool)
     known[0:31, 0:31] = True
     obstacle = np.zeros(g.shape, bool)
-    obstacle[30, 0:31] = True                  # wall x = 3.0 (east)
-    obstacle[0:31, 30] = True                  # wall y = 3.0 (north)
-    obstacle[30, 10:15] = False                # east doorway: 5 cells, y in [1.0, 1.5)
+    obstacle[30, 0:31] = True  # wall x = 3.0 (east)
+    obstacle[0:31, 30] = True  # wall y = 3.0 (north)
+    obstacle[30, 10:15] = False  # east doorway: 5 cells, y in [1.0, 1.5)
     obstacle[0:31, 30] = True
-    obstacle[10:20, 30] = False                # north doorway: 10 cells, x in [1.0, 2.0)
+    obstacle[10:20, 30] = False  # north doorway: 10 cells, x in [1.0, 2.0)
     free = known & ~obstacle
     known[30, 10:15] = True
     known[10:20, 30] = True
@@ -392,7 +395,7 @@ def test_frontier_next_goal_uses_geodesic_distance() -> None:
     g, free, known, obstacle = frontier_map()
     explorer = FrontierExplorer(g, min_cluster_cells=5)
     trav = ~obstacle
-    agent = (2.55, 1.25)   # right next to the east doorway
+    agent = (2.55, 1.25)  # right next to the east doorway
     planner = FMMPlanner(trav, g)
     planner.set_goal(agent)
     assert explorer.next_goal(free, known, obstacle, planner, agent) == pytest.approx((3.05, 1.25))
@@ -422,18 +425,18 @@ def test_a_way_too_narrow_for_the_moves_is_left_for_a_lattice_path() -> None:
     stop there; the search over the move lattice then finds the long corridor round, and the
     agent arrives. Before, it turned on the spot as "stuck" until its budget ran out."""
     trav = np.zeros(GRID.shape, dtype=bool)
-    trav[120:137, 120:137] = True                    # the agent's room around (0, 0) = cell (128, 128)
-    for k in range(41):                              # the staircase towards +x, -y
+    trav[120:137, 120:137] = True  # the agent's room around (0, 0) = cell (128, 128)
+    for k in range(41):  # the staircase towards +x, -y
         trav[136 + k, 120 - k] = True
         trav[137 + k, 120 - k] = True
-    trav[165:186, 70:91] = True                      # the goal room
-    trav[124:133, 136:201] = True                    # the way round: +y, then +x, then -y
+    trav[165:186, 70:91] = True  # the goal room
+    trav[124:133, 136:201] = True  # the way round: +y, then +x, then -y
     trav[124:190, 192:201] = True
     trav[177:186, 70:201] = True
     planner = FMMPlanner(trav, GRID)
     planner.set_goal(GRID.to_world((175, 80)))
     straight = planner.distance((0.0, 0.0))
-    assert math.isfinite(straight) and straight < 5.0          # the staircase is the geodesic way
+    assert math.isfinite(straight) and straight < 5.0  # the staircase is the geodesic way
     pose, steps, visited = drive(planner, trav, (0.0, 0.0, 0.0), max_steps=200)
     assert planner.status is NavStatus.arrived, (pose, steps)
-    assert max(v[1] for v in visited) > 3.0                    # it went round by the corridor
+    assert max(v[1] for v in visited) > 3.0  # it went round by the corridor

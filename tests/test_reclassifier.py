@@ -9,8 +9,14 @@ import pytest
 import torch
 
 from tidee.agent.classes import CLASSES
-from tidee.agent.perception.reclassifier import (DEFAULT_RECLASSIFIER, CropClassifier, ReclassifierConfig,
-                                                 crop_inputs, frame_tensor, fuse)
+from tidee.agent.perception.reclassifier import (
+    DEFAULT_RECLASSIFIER,
+    CropClassifier,
+    ReclassifierConfig,
+    crop_inputs,
+    frame_tensor,
+    fuse,
+)
 
 torch.set_num_threads(2)
 # the shipped detector + reclassifier on the 24 test-room frames of test_detector's floor test
@@ -20,8 +26,8 @@ RECLASSIFIED_FLOOR_MAP50 = 0.65
 
 def test_a_crop_shows_its_box_and_the_side_inputs_measure_it() -> None:
     rgb = np.zeros((1, 128, 128, 3), np.uint8)
-    rgb[0, 32:64, 64:96] = (255, 0, 0)              # a red square, 32 px = a quarter of the image wide
-    rgb[0, 32:64, 64:80, 1] = 255                   # its left half yellow
+    rgb[0, 32:64, 64:96] = (255, 0, 0)  # a red square, 32 px = a quarter of the image wide
+    rgb[0, 32:64, 64:80, 1] = 255  # its left half yellow
     depth = np.full((1, 128, 128), 4.0, np.float32)
     depth[0, 32:64, 64:96] = 2.0
     cfg = ReclassifierConfig(crop=16, context=1.0)
@@ -30,11 +36,13 @@ def test_a_crop_shows_its_box_and_the_side_inputs_measure_it() -> None:
     crops, side = crop_inputs(frames, torch.tensor([0]), box, cfg)
     assert crops.shape == (1, 4, 16, 16) and side.shape == (1, 5)
     red = (1.0 - 0.5) / 0.25
-    torch.testing.assert_close(crops[0, 0], torch.full((16, 16), red))           # all red
-    assert crops[0, 1, :, :8].mean() > 1.5 and crops[0, 1, :, 8:].mean() < -1.5   # yellow on the left
-    assert crops[0, 3].abs().max() < 1e-5                                         # depth relative to the object's
+    torch.testing.assert_close(crops[0, 0], torch.full((16, 16), red))  # all red
+    assert crops[0, 1, :, :8].mean() > 1.5 and crops[0, 1, :, 8:].mean() < -1.5  # yellow on the left
+    assert crops[0, 3].abs().max() < 1e-5  # depth relative to the object's
     # a quarter of a 90-degree view at 2 m is 1 m wide: log 1 = 0
-    torch.testing.assert_close(side[0], torch.tensor([math.log(0.25), math.log(0.25), math.log(2.0), 0.0, 0.0]))
+    torch.testing.assert_close(
+        side[0], torch.tensor([math.log(0.25), math.log(0.25), math.log(2.0), 0.0, 0.0])
+    )
     flipped, _ = crop_inputs(frames, torch.tensor([0]), box, cfg, flip=torch.tensor([True]))
     torch.testing.assert_close(flipped[0, 1], crops[0, 1].flip(-1))
     # context: a grown crop sees the background around the box
@@ -44,17 +52,25 @@ def test_a_crop_shows_its_box_and_the_side_inputs_measure_it() -> None:
 
 def test_fusion_weighs_the_crop_against_the_detector_and_background_lowers_the_score() -> None:
     c = 4
-    crop = torch.tensor([[0.0, 3.0, 0.0, 0.0, 0.0],       # the crop says class 1
-                         [0.0, 0.0, 0.0, 0.0, 5.0]])      # the crop says background
-    heat = torch.tensor([[4.0, -2.0, -4.0, -4.0],          # the detector says class 0
-                         [-4.0, -4.0, 3.0, -4.0]])
+    crop = torch.tensor(
+        [
+            [0.0, 3.0, 0.0, 0.0, 0.0],  # the crop says class 1
+            [0.0, 0.0, 0.0, 0.0, 5.0],
+        ]
+    )  # the crop says background
+    heat = torch.tensor(
+        [
+            [4.0, -2.0, -4.0, -4.0],  # the detector says class 0
+            [-4.0, -4.0, 3.0, -4.0],
+        ]
+    )
     score = torch.tensor([0.8, 0.8])
     cls, s = fuse(crop, heat, score, alpha=0.0, beta=0.0)
     assert cls[0] == 1 and torch.equal(s, score)
     cls, _ = fuse(crop, heat, score, alpha=10.0, beta=0.0)
     assert cls[0] == 0
     cls, s = fuse(crop, heat, score, alpha=1.0, beta=1.0)
-    assert cls[1] == 2 and s[1] < 0.05 and 0.3 < s[0] < 0.8   # background: renamed, but hardly scored
+    assert cls[1] == 2 and s[1] < 0.05 and 0.3 < s[0] < 0.8  # background: renamed, but hardly scored
     assert crop.shape[1] == c + 1
 
 
@@ -62,19 +78,40 @@ def test_a_few_training_steps_reduce_the_loss(tmp_path) -> None:
     from tidee.agent.perception.dataset import GenConfig, iter_frames, pack
     from tidee.agent.perception.reclassifier import ReclassifierTrainConfig, train_reclassifier
 
-    cfg = GenConfig(rooms_per_type=1, messes_per_room=1, walks_per_config=1, frames_per_walk=3, resolution=128,
-                    room_types=("Kitchen",))
+    cfg = GenConfig(
+        rooms_per_type=1,
+        messes_per_room=1,
+        walks_per_config=1,
+        frames_per_walk=3,
+        resolution=128,
+        room_types=("Kitchen",),
+    )
     data = pack(list(iter_frames(cfg, progress=False)))
-    tc = ReclassifierTrainConfig(work_dir=str(tmp_path / "run"), steps=30, batch_size=48, frames_per_batch=3,
-                                 lr=3e-3, warmup=2, log_every=10, ckpt_every=15, precision="fp32")
-    r = train_reclassifier(tc, ReclassifierConfig(crop=24), resume=False, progress=False, data=data, ship=False)
+    tc = ReclassifierTrainConfig(
+        work_dir=str(tmp_path / "run"),
+        steps=30,
+        batch_size=48,
+        frames_per_batch=3,
+        lr=3e-3,
+        warmup=2,
+        log_every=10,
+        ckpt_every=15,
+        precision="fp32",
+    )
+    r = train_reclassifier(
+        tc, ReclassifierConfig(crop=24), resume=False, progress=False, data=data, ship=False
+    )
     losses = [h["total"] for h in r["history"]]
     assert len(losses) == 3 and losses[-1] < 0.8 * losses[0], losses
     assert (tmp_path / "run" / "checkpoint.pt").exists() and (tmp_path / "run" / "loss.png").exists()
-    r2 = train_reclassifier(tc, ReclassifierConfig(crop=24), resume=True, progress=False, data=data, ship=False)
+    r2 = train_reclassifier(
+        tc, ReclassifierConfig(crop=24), resume=True, progress=False, data=data, ship=False
+    )
     assert r2["steps"] == 30 and r2["history"] == r["history"]
     with pytest.raises(ValueError, match="different run"):
-        train_reclassifier(tc, ReclassifierConfig(crop=32), resume=True, progress=False, data=data, ship=False)
+        train_reclassifier(
+            tc, ReclassifierConfig(crop=32), resume=True, progress=False, data=data, ship=False
+        )
 
 
 def test_shapes_and_a_mismatched_reclassifier_is_refused() -> None:
@@ -86,7 +123,9 @@ def test_shapes_and_a_mismatched_reclassifier_is_refused() -> None:
         out = m(torch.zeros(3, 4, 40, 40), torch.zeros(3, 5))
     assert out.shape == (3, len(CLASSES) + 1)
     with pytest.raises(ValueError, match="reclassifier knows 10 classes"):
-        LearnedPerception(CenterDetector(DetectorConfig()), reclassifier=CropClassifier(ReclassifierConfig(num_classes=10)))
+        LearnedPerception(
+            CenterDetector(DetectorConfig()), reclassifier=CropClassifier(ReclassifierConfig(num_classes=10))
+        )
 
 
 # ------------------------------------------------------------------ the shipped weights
@@ -103,8 +142,8 @@ def test_shipped_reclassifier_manifest_is_complete() -> None:
     m = read_manifest(DEFAULT_RECLASSIFIER)
     assert m["command"].startswith("tidee train reclassifier")
     assert "never val/test" in m["data"]["split"] and m["data"]["objects"] > 10_000
-    assert m["bytes"] < 5 * 2 ** 20
-    fusion = m["metrics"]["fusion"]              # chosen on the validation rooms by `tidee eval reclassifier`
+    assert m["bytes"] < 5 * 2**20
+    fusion = m["metrics"]["fusion"]  # chosen on the validation rooms by `tidee eval reclassifier`
     assert fusion["command"].startswith("tidee eval reclassifier --split val")
     assert fusion["val_map50"] > fusion["val_map50_detector_alone"]
 
@@ -122,7 +161,7 @@ def test_shipped_reclassifier_renames_detections_on_test_rooms(test_room_frames)
     assert r["map50"] >= RECLASSIFIED_FLOOR_MAP50, r["map50"]
     labels_both = [d.label for f in d_both for d in f]
     labels_alone = [d.label for f in d_alone for d in f]
-    assert labels_both != labels_alone                     # it renames some
+    assert labels_both != labels_alone  # it renames some
     for frame in d_both:
         for d in frame:
             assert d.source == "learned" and 0.05 <= d.score <= 1 and d.feature.shape == (64,)
@@ -134,27 +173,34 @@ def test_detector_boxes_train_a_learned_fusion(tmp_path) -> None:
     overlap, train a reclassifier that also reads the detector's logits; it starts as the model
     it is warm-started from, and a few steps reduce the loss."""
     from tidee.agent.perception.dataset import GenConfig, iter_frames, pack
-    from tidee.agent.perception.reclassifier import (DetectorBoxBatches, ReclassifierTrainConfig,
-                                                     det_features, detector_boxes, train_reclassifier,
-                                                     warm_start)
+    from tidee.agent.perception.reclassifier import (
+        DetectorBoxBatches,
+        ReclassifierTrainConfig,
+        det_features,
+        detector_boxes,
+        train_reclassifier,
+        warm_start,
+    )
 
-    cfg = GenConfig(rooms_per_type=1, messes_per_room=1, walks_per_config=1, frames_per_walk=4,
-                    room_types=("Kitchen",))
+    cfg = GenConfig(
+        rooms_per_type=1, messes_per_room=1, walks_per_config=1, frames_per_walk=4, room_types=("Kitchen",)
+    )
     data = pack(list(iter_frames(cfg, progress=False)))
     boxes = detector_boxes(data, progress=False)
     n_cls = len(CLASSES)
     lab = boxes["det_label"]
     assert len(lab) == len(boxes["det_box"]) == len(boxes["det_heat"]) > 0
     assert boxes["det_heat"].shape[1] == n_cls and (boxes["det_score"] >= 0.05).all()
-    assert ((lab >= 0) & (lab < n_cls)).sum() > 5 and (lab == n_cls).any()        # objects and background
+    assert ((lab >= 0) & (lab < n_cls)).sum() > 5 and (lab == n_cls).any()  # objects and background
     assert set(np.unique(lab)) <= set(range(n_cls + 1)) | {-100}
     # a labelled detection overlaps a ground-truth box of its class by IoU >= 0.5
     from tidee.agent.evaluation.detection import box_iou
+
     i = int(np.flatnonzero((lab >= 0) & (lab < n_cls))[0])
     f = boxes["det_frame"][i]
     gt = data["obj_box"][data["obj_frame"] == f]
     gcls = data["obj_cls"][data["obj_frame"] == f]
-    ious = box_iou(boxes["det_box"][i:i + 1].astype(np.float64), gt.astype(np.float64))[0]
+    ious = box_iou(boxes["det_box"][i : i + 1].astype(np.float64), gt.astype(np.float64))[0]
     assert ious.max() >= 0.5 and gcls[ious.argmax()] == lab[i]
 
     # warm start: the grown network computes what the plain one did
@@ -169,14 +215,25 @@ def test_detector_boxes_train_a_learned_fusion(tmp_path) -> None:
         with pytest.raises(ValueError, match="reads the detector's outputs"):
             grown(crops, side)
 
-    tc = ReclassifierTrainConfig(work_dir=str(tmp_path / "run"), steps=30, batch_size=48, frames_per_batch=3,
-                                 lr=3e-3, warmup=2, log_every=10, ckpt_every=15, precision="fp32",
-                                 boxes="detector", init=str(tmp_path / "plain.pt"))
+    tc = ReclassifierTrainConfig(
+        work_dir=str(tmp_path / "run"),
+        steps=30,
+        batch_size=48,
+        frames_per_batch=3,
+        lr=3e-3,
+        warmup=2,
+        log_every=10,
+        ckpt_every=15,
+        precision="fp32",
+        boxes="detector",
+        init=str(tmp_path / "plain.pt"),
+    )
     batches = DetectorBoxBatches(data, boxes, ReclassifierConfig(crop=24, det_inputs=True), tc)
     crops, side, labels, det = batches()
     assert crops.shape == (48, 4, 24, 24) and det.shape == (48, n_cls + 1) and labels.shape == (48,)
-    r = train_reclassifier(tc, ReclassifierConfig(crop=24), resume=False, progress=False, data=data,
-                           ship=False)
+    r = train_reclassifier(
+        tc, ReclassifierConfig(crop=24), resume=False, progress=False, data=data, ship=False
+    )
     losses = [h["total"] for h in r["history"]]
     assert len(losses) == 3 and losses[-1] < 0.8 * losses[0], losses
     assert (tmp_path / "run" / "detector_boxes.npz").exists()

@@ -10,8 +10,7 @@ import pytest
 
 from tidee.agent.config import AGENT_VARIANTS, AgentConfig
 from tidee.agent.reasoning.oop import OOP_DETECTORS, RelationStatsOOP, make_oop, register_oop_detector
-from tidee.agent.reasoning.placement import (PLACEMENT_MODELS, CommonMemory, make_placement,
-                                             register_placement)
+from tidee.agent.reasoning.placement import PLACEMENT_MODELS, CommonMemory, make_placement, register_placement
 
 
 @pytest.fixture(autouse=True)
@@ -54,11 +53,11 @@ def test_the_paper_variants_and_detectors_are_registered_in_order() -> None:
 def test_a_registered_placement_model_is_a_selectable_variant() -> None:
     with pytest.raises(ValueError, match="unknown variant 'FirstInMemory'"):
         AgentConfig(variant="FirstInMemory", perception="oracle")
-    assert register_placement("FirstInMemory")(FirstInMemory) is FirstInMemory   # the decorator returns it
+    assert register_placement("FirstInMemory")(FirstInMemory) is FirstInMemory  # the decorator returns it
     cfg = AgentConfig(variant="FirstInMemory", perception="oracle")
     placement, searcher = make_placement(cfg.variant)
     assert isinstance(placement, FirstInMemory) and searcher is None
-    assert "FirstInMemory" not in AGENT_VARIANTS          # the paper's variants stay the paper's
+    assert "FirstInMemory" not in AGENT_VARIANTS  # the paper's variants stay the paper's
 
 
 def test_a_registered_oop_detector_is_selectable() -> None:
@@ -72,8 +71,9 @@ def test_the_runner_builds_registered_parts() -> None:
 
     register_placement("FirstInMemory")(FirstInMemory)
     register_oop_detector("nothing")(NothingOutOfPlace)
-    runner = EpisodeRunner(AgentConfig(variant="FirstInMemory", perception="oracle", oop="nothing"),
-                           transport=None)  # type: ignore[arg-type]
+    runner = EpisodeRunner(
+        AgentConfig(variant="FirstInMemory", perception="oracle", oop="nothing"), transport=None
+    )  # type: ignore[arg-type]
     assert isinstance(runner.placement, FirstInMemory) and runner.searcher is None
     assert isinstance(runner.oop, NothingOutOfPlace)
 
@@ -86,8 +86,11 @@ def test_unknown_names_list_the_registered_ones() -> None:
         make_placement("Tidy")
     with pytest.raises(ValueError, match="reference row"):
         AgentConfig(variant="MessyPlacement")
-    with pytest.raises(ValueError, match=r"unknown OOP detector 'bert'; registered: relation_stats, visual, "
-                                         r"language, fused \(register_oop_detector"):
+    with pytest.raises(
+        ValueError,
+        match=r"unknown OOP detector 'bert'; registered: relation_stats, visual, "
+        r"language, fused \(register_oop_detector",
+    ):
         AgentConfig(perception="oracle", oop="bert")
     with pytest.raises(ValueError, match="unknown OOP detector 'bert'"):
         make_oop("bert")
@@ -103,15 +106,17 @@ def test_a_name_is_registered_once() -> None:
     register_placement("FirstInMemory")(FirstInMemory)
     with pytest.raises(ValueError, match="already registered"):
         register_placement("FirstInMemory")(FirstInMemory)
-    assert PLACEMENT_MODELS["TIDEE"].factory is not FirstInMemory   # a refused registration changes nothing
+    assert PLACEMENT_MODELS["TIDEE"].factory is not FirstInMemory  # a refused registration changes nothing
 
 
 def test_import_tidee_registers_the_gym_env_without_torch_or_pybullet() -> None:
-    code = ("import sys, gymnasium, tidee\n"
-            "spec = gymnasium.spec('tidee/Tidy-v0')\n"
-            "assert spec.entry_point == 'tidee.protocol.gym_env:TidyEnv', spec.entry_point\n"
-            "heavy = [m for m in ('torch', 'pybullet', 'zenoh') if m in sys.modules]\n"
-            "assert not heavy, heavy\n"
-            "print('ok')\n")
+    code = (
+        "import sys, gymnasium, tidee\n"
+        "spec = gymnasium.spec('tidee/Tidy-v0')\n"
+        "assert spec.entry_point == 'tidee.protocol.gym_env:TidyEnv', spec.entry_point\n"
+        "heavy = [m for m in ('torch', 'pybullet', 'zenoh') if m in sys.modules]\n"
+        "assert not heavy, heavy\n"
+        "print('ok')\n"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr

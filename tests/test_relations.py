@@ -25,17 +25,20 @@ def rec(oid: str, label: str, centroid, box_min=None, box_max=None) -> ObjectRef
 
 
 # ----------------------------------------------------------------------------- words
-@pytest.mark.parametrize("label, expected", [
-    ("SideTable", "side table"),
-    ("TVStand", "tv stand"),
-    ("CD", "cd"),
-    ("AlarmClock", "alarm clock"),
-    ("Floor", "floor"),
-    ("Mug", "mug"),
-    ("CounterTop", "counter top"),
-    ("RemoteControl", "remote control"),
-    ("Side_Table", "side table"),
-])
+@pytest.mark.parametrize(
+    "label, expected",
+    [
+        ("SideTable", "side table"),
+        ("TVStand", "tv stand"),
+        ("CD", "cd"),
+        ("AlarmClock", "alarm clock"),
+        ("Floor", "floor"),
+        ("Mug", "mug"),
+        ("CounterTop", "counter top"),
+        ("RemoteControl", "remote control"),
+        ("Side_Table", "side table"),
+    ],
+)
 def test_words(label: str, expected: str) -> None:
     assert words(label) == expected
 
@@ -48,8 +51,8 @@ def test_words_rejects_empty() -> None:
 # ----------------------------------------------------------------------------- supported_by
 def test_mug_above_table_centroid_is_supported_by_table() -> None:
     table = rec("t", "DiningTable", (1.0, 0.0, 0.375))
-    shelf = rec("s", "Shelf", (3.0, 3.0, 0.5))          # below the mug too, but far
-    cabinet = rec("c", "Cabinet", (1.0, 0.2, 1.6))      # above: never a support
+    shelf = rec("s", "Shelf", (3.0, 3.0, 0.5))  # below the mug too, but far
+    cabinet = rec("c", "Cabinet", (1.0, 0.2, 1.6))  # above: never a support
     chair = ObjectRef("ch", "Chair", (1.0, -0.3, 0.45))  # not a receptacle
     mug = ObjectRef("m", "Mug", (1.1, 0.1, 0.8))
     assert supported_by(mug, [shelf, cabinet, chair, table, mug]) is table
@@ -118,13 +121,16 @@ def test_low_shelf_and_walled_container() -> None:
     box = rec("bx", "Box", (3.0, 0.0, 0.15), (2.8, -0.15, 0.0), (3.2, 0.15, 0.3))
     bell = ObjectRef("db", "Dumbbell", (3.0, 0.0, 0.05), (2.9, -0.04, 0.01), (3.1, 0.04, 0.09))
     assert supported_by(bell, [box]) is box
-    assert supported_by(ObjectRef("db2", "Dumbbell", (0.1, 0.0, 0.05), (0.0, -0.04, 0.01), (0.2, 0.04, 0.09)),
-                        [table]) == FLOOR
+    assert (
+        supported_by(
+            ObjectRef("db2", "Dumbbell", (0.1, 0.0, 0.05), (0.0, -0.04, 0.01), (0.2, 0.04, 0.09)), [table]
+        )
+        == FLOOR
+    )
 
 
 def test_supported_by_excludes_the_target_itself() -> None:
-    plate = ObjectRef("p", "Plate", (0.0, 0.0, 0.8), (-0.1, -0.1, 0.79), (0.1, 0.1, 0.81),
-                      receptacle=True)
+    plate = ObjectRef("p", "Plate", (0.0, 0.0, 0.8), (-0.1, -0.1, 0.79), (0.1, 0.1, 0.81), receptacle=True)
     assert supported_by(plate, [plate]) == FLOOR
 
 
@@ -159,13 +165,18 @@ def test_relation_paragraph_exact() -> None:
     pillow, others = small_bedroom()
     assert relation_paragraph(pillow, others) == (
         "The pillow is next to the side table. The pillow is supported by the side table. "
-        "The pillow is closest to the mug.")
+        "The pillow is closest to the mug."
+    )
     assert centroid_relations(pillow, others) == [
-        ("next_to", "SideTable"), ("supported_by", "SideTable"), ("closest_to", "Mug")]
+        ("next_to", "SideTable"),
+        ("supported_by", "SideTable"),
+        ("closest_to", "Mug"),
+    ]
     # A larger threshold adds the bed after the side table (ordered by distance).
     assert relation_paragraph(pillow, others, d=3.0) == (
         "The pillow is next to the side table. The pillow is next to the bed. "
-        "The pillow is supported by the side table. The pillow is closest to the mug.")
+        "The pillow is supported by the side table. The pillow is closest to the mug."
+    )
 
 
 def test_relation_paragraph_floor_and_no_neighbours() -> None:
@@ -195,17 +206,17 @@ def test_book_on_table() -> None:
 
 def test_chair_facing_table() -> None:
     table = Box3D((0.0, 0.0, 0.375), (1.2, 0.8, 0.75))
-    chair = Box3D((0.0, -0.8, 0.45), (0.45, 0.45, 0.9), yaw=0.0)   # front = +y, the table
+    chair = Box3D((0.0, -0.8, 0.45), (0.45, 0.45, 0.9), yaw=0.0)  # front = +y, the table
     turned = Box3D((0.0, -0.8, 0.45), (0.45, 0.45, 0.9), yaw=math.pi)  # front = -y
     rels = box_relations([("DiningTable", table), ("Chair", chair)])
     assert (1, "facing", 0) in rels
-    assert (0, "facing", 1) not in rels   # a dining table has no front
+    assert (0, "facing", 1) not in rels  # a dining table has no front
     assert (1, "next_to", 0) in rels
     assert (1, "facing", 0) not in box_relations([("DiningTable", table), ("Chair", turned)])
     # A non-facing class in the same pose does not face anything.
     assert (1, "facing", 0) not in box_relations([("DiningTable", table), ("Stool", chair)])
     # A TV faces a sofa 1.8 m in front of it, not one 2.5 m away.
-    tv = Box3D((0.0, 0.0, 1.0), (1.0, 0.1, 0.6), yaw=math.pi / 2)       # front = -x
+    tv = Box3D((0.0, 0.0, 1.0), (1.0, 0.1, 0.6), yaw=math.pi / 2)  # front = -x
     sofa_near = Box3D((-1.8, 0.0, 0.4), (2.0, 0.9, 0.8), yaw=-math.pi / 2)
     sofa_far = Box3D((-2.5 - 0.45, 0.0, 0.4), (2.0, 0.9, 0.8), yaw=-math.pi / 2)
     assert (0, "facing", 1) in box_relations([("Television", tv), ("Sofa", sofa_near)])
@@ -216,19 +227,29 @@ def test_chair_facing_table() -> None:
 
 def test_two_aligned_cabinets() -> None:
     a = Box3D((0.0, 2.0, 0.45), (0.6, 0.5, 0.9))
-    b = Box3D((0.6, 2.0, 0.45), (0.6, 0.5, 0.9))                   # side by side, touching
+    b = Box3D((0.6, 2.0, 0.45), (0.6, 0.5, 0.9))  # side by side, touching
     perpendicular = Box3D((-0.55, 2.0, 0.45), (0.5, 0.4, 0.9), yaw=math.pi / 2)
     skew = Box3D((0.3, 1.0, 0.45), (0.6, 0.5, 0.9), yaw=math.radians(30))
-    offset = Box3D((1.25, 2.3, 0.45), (0.6, 0.5, 0.9))             # shifted back 0.3 m
-    far = Box3D((3.0, 2.0, 0.45), (0.6, 0.5, 0.9))                 # coplanar but 2.1 m away
-    rels = set(box_relations([("Cabinet", a), ("Cabinet", b), ("Cabinet", perpendicular),
-                              ("Cabinet", skew), ("Cabinet", offset), ("Cabinet", far)]))
+    offset = Box3D((1.25, 2.3, 0.45), (0.6, 0.5, 0.9))  # shifted back 0.3 m
+    far = Box3D((3.0, 2.0, 0.45), (0.6, 0.5, 0.9))  # coplanar but 2.1 m away
+    rels = set(
+        box_relations(
+            [
+                ("Cabinet", a),
+                ("Cabinet", b),
+                ("Cabinet", perpendicular),
+                ("Cabinet", skew),
+                ("Cabinet", offset),
+                ("Cabinet", far),
+            ]
+        )
+    )
     assert {(0, "aligned_with", 1), (1, "aligned_with", 0)} <= rels
     assert (0, "next_to", 1) in rels
-    assert (0, "aligned_with", 2) in rels                          # perpendicular, coplanar
+    assert (0, "aligned_with", 2) in rels  # perpendicular, coplanar
     assert (0, "aligned_with", 3) not in rels and (3, "aligned_with", 0) not in rels
-    assert (1, "aligned_with", 4) in rels                          # side faces x = 0.9, 0.95
-    assert (0, "aligned_with", 4) not in rels                      # nothing within 0.1 m
+    assert (1, "aligned_with", 4) in rels  # side faces x = 0.9, 0.95
+    assert (0, "aligned_with", 4) not in rels  # nothing within 0.1 m
     assert (0, "aligned_with", 5) not in rels and (1, "aligned_with", 5) not in rels
 
 

@@ -35,7 +35,9 @@ def top_down(world: World, scene_dict: dict) -> tuple[np.ndarray, np.ndarray, np
 def look_down(world: World, scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     height = 1.25 * (max(scene.width, scene.depth) / 2 + 0.3) + 1.0
     eye = np.array([scene.width / 2, scene.depth / 2, height])
-    rgb, depth, mask = world.render(eye, np.array([0, 0, -1.0]), np.array([0, 1.0, 0]), 200, segmentation=True)
+    rgb, depth, mask = world.render(
+        eye, np.array([0, 0, -1.0]), np.array([0, 1.0, 0]), 200, segmentation=True
+    )
     assert mask is not None
     return rgb, depth, mask
 

@@ -11,11 +11,30 @@ torch = pytest.importorskip("torch")
 
 from tidee.agent.classes import CLASS_INDEX  # noqa: E402
 from tidee.agent.mapping.memory import ObjectMemory  # noqa: E402
-from tidee.agent.reasoning.memex import (PLACE_CLASSES, REL_INDEX, GraphNode, aabb_relations,  # noqa: E402
-                                         check_seeds, make_graph, oriented_relations)
-from tidee.agent.reasoning.rgcn import (DEFAULT_WEIGHTS, DEFAULT_WITHOUT_MEMEX, PlacementRGCN,  # noqa: E402
-                                        RGCNConfig, RGCNPlacement, RGCNTrainConfig, collate, evaluate_placement,
-                                        heldout_rooms, load_rgcn, placement_data, relational_mean, train_rgcn)
+from tidee.agent.reasoning.memex import (
+    PLACE_CLASSES,
+    REL_INDEX,
+    GraphNode,
+    aabb_relations,  # noqa: E402
+    check_seeds,
+    make_graph,
+    oriented_relations,
+)
+from tidee.agent.reasoning.rgcn import (
+    DEFAULT_WEIGHTS,
+    DEFAULT_WITHOUT_MEMEX,
+    PlacementRGCN,  # noqa: E402
+    RGCNConfig,
+    RGCNPlacement,
+    RGCNTrainConfig,
+    collate,
+    evaluate_placement,
+    heldout_rooms,
+    load_rgcn,
+    placement_data,
+    relational_mean,
+    train_rgcn,
+)
 
 
 def _random_nodes(rng: np.random.Generator, n: int) -> list[GraphNode]:
@@ -34,7 +53,9 @@ def test_aabb_relations_match_box_relations_on_axis_aligned_boxes():
         fast = {tuple(e) for e in aabb_relations(nodes)}
         # box_relations on yaw-0 boxes, without "facing" (no front on an axis-aligned box)
         slow = {tuple(e) for e in oriented_relations(nodes) if e[1] != REL_INDEX["facing"]}
-        assert fast == slow, f"trial {trial}: only fast {sorted(fast - slow)[:5]}, only slow {sorted(slow - fast)[:5]}"
+        assert fast == slow, (
+            f"trial {trial}: only fast {sorted(fast - slow)[:5]}, only slow {sorted(slow - fast)[:5]}"
+        )
         assert len(fast) > 10
 
 
@@ -55,25 +76,34 @@ def test_relational_mean_on_a_hand_built_graph():
     w = torch.stack([torch.eye(2), 2 * torch.eye(2)])
     edges = torch.tensor([[1, 0, 0], [2, 0, 0], [2, 1, 1]])
     out = relational_mean(x, edges, w, 3)
-    assert torch.allclose(out[0], torch.tensor([2.0, 3.0]))      # mean of x1, x2 through W0
-    assert torch.allclose(out[1], torch.tensor([8.0, 8.0]))      # x2 through W1
-    assert torch.allclose(out[2], torch.zeros(2))                # no incoming edge
+    assert torch.allclose(out[0], torch.tensor([2.0, 3.0]))  # mean of x1, x2 through W0
+    assert torch.allclose(out[1], torch.tensor([8.0, 8.0]))  # x2 through W1
+    assert torch.allclose(out[2], torch.zeros(2))  # no incoming edge
 
 
 def test_collate_takes_the_object_out_of_its_graph():
-    nodes = [GraphNode("DiningTable", (0, 0, 0), (1.2, 0.8, 0.75)), GraphNode("Mug", (0.5, 0.3, 0.75), (0.6, 0.4, 0.85)),
-             GraphNode("Chair", (1.3, 0.0, 0.0), (1.8, 0.5, 0.9))]
+    nodes = [
+        GraphNode("DiningTable", (0, 0, 0), (1.2, 0.8, 0.75)),
+        GraphNode("Mug", (0.5, 0.3, 0.75), (0.6, 0.4, 0.85)),
+        GraphNode("Chair", (1.3, 0.0, 0.0), (1.8, 0.5, 0.9)),
+    ]
     g = make_graph(nodes, aabb_relations(nodes), "Kitchen")
     b = collate([(g, 1, None, 0), (g, 0, None, 2)])
     assert b["oop_labels"].tolist() == [CLASS_INDEX["Mug"], CLASS_INDEX["DiningTable"]]
     assert b["scene_seg"].tolist() == [0, 0, 1, 1]
-    assert b["scene_labels"].tolist() == [CLASS_INDEX["DiningTable"], CLASS_INDEX["Chair"],
-                                          CLASS_INDEX["Mug"], CLASS_INDEX["Chair"]]
+    assert b["scene_labels"].tolist() == [
+        CLASS_INDEX["DiningTable"],
+        CLASS_INDEX["Chair"],
+        CLASS_INDEX["Mug"],
+        CLASS_INDEX["Chair"],
+    ]
     e = b["scene_edges"].tolist()
     nt, al = REL_INDEX["next_to"], REL_INDEX["aligned_with"]
     # sample 0 (mug out): table <-> chair next to and aligned; sample 1 (table out): mug and chair
     # are 0.7 m apart (not next to) with faces 0.1 m apart (aligned); nothing touches the OOP node
-    assert sorted(map(tuple, e)) == sorted([(0, nt, 1), (0, al, 1), (1, nt, 0), (1, al, 0), (2, al, 3), (3, al, 2)])
+    assert sorted(map(tuple, e)) == sorted(
+        [(0, nt, 1), (0, al, 1), (1, nt, 0), (1, al, 0), (2, al, 3), (3, al, 2)]
+    )
     model = PlacementRGCN(RGCNConfig(hidden=16, use_memex=False))
     assert model(b).shape == (2, len(PLACE_CLASSES))
 
@@ -92,15 +122,19 @@ def tiny_data():
 
 def test_training_reduces_the_loss(tiny_data):
     assert len(tiny_data.memex) > 20 and tiny_data.n_samples > 50
-    result = train_rgcn(RGCNTrainConfig(steps=100, batch_size=32, hidden=32, threads=1), data=tiny_data,
-                        progress=False)
+    result = train_rgcn(
+        RGCNTrainConfig(steps=100, batch_size=32, hidden=32, threads=1), data=tiny_data, progress=False
+    )
     h = result["history"]
     assert h[-1]["cross_entropy"] < 0.8 * h[0]["cross_entropy"], h
 
 
 def test_without_memex_has_no_memory_and_trains(tiny_data):
-    result = train_rgcn(RGCNTrainConfig(steps=30, batch_size=16, hidden=16, use_memex=False, threads=1),
-                        data=tiny_data, progress=False)
+    result = train_rgcn(
+        RGCNTrainConfig(steps=30, batch_size=16, hidden=16, use_memex=False, threads=1),
+        data=tiny_data,
+        progress=False,
+    )
     model = result["model"]
     assert not hasattr(model, "mem_layers") and result["memex_nodes"] == 0
     assert all(math.isfinite(h["cross_entropy"]) for h in result["history"])
@@ -129,12 +163,20 @@ def test_shipped_rgcn_clears_a_floor_on_test_rooms(shipped):
 
 def test_placement_model_ranks_from_an_object_memory(shipped):
     mem = ObjectMemory()
-    mem.add_or_merge("CounterTop", 0.9, np.array([1.0, 0.0, 0.45]), np.array([0.5, -0.3, 0.0]),
-                     np.array([1.5, 0.3, 0.9]), 1)
-    mem.add_or_merge("Sink", 0.9, np.array([1.0, 1.5, 0.5]), np.array([0.6, 1.2, 0.0]), np.array([1.4, 1.8, 1.0]),
-                     1)
-    mug = mem.add_or_merge("Mug", 0.8, np.array([2.5, 2.5, 0.05]), np.array([2.45, 2.45, 0.0]),
-                           np.array([2.55, 2.55, 0.1]), 1)
+    mem.add_or_merge(
+        "CounterTop",
+        0.9,
+        np.array([1.0, 0.0, 0.45]),
+        np.array([0.5, -0.3, 0.0]),
+        np.array([1.5, 0.3, 0.9]),
+        1,
+    )
+    mem.add_or_merge(
+        "Sink", 0.9, np.array([1.0, 1.5, 0.5]), np.array([0.6, 1.2, 0.0]), np.array([1.4, 1.8, 1.0]), 1
+    )
+    mug = mem.add_or_merge(
+        "Mug", 0.8, np.array([2.5, 2.5, 0.05]), np.array([2.45, 2.45, 0.0]), np.array([2.55, 2.55, 0.1]), 1
+    )
     ranked = RGCNPlacement(shipped[0]).predict(mug, mem, "Kitchen")
     names = [r for r, _ in ranked]
     assert sorted(names) == sorted(PLACE_CLASSES)

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
 
-from tidee.server.catalog import CATEGORIES, ROOM_TEMPLATES, receptacle_weights
+from tidee.server.catalog import ROOM_TEMPLATES, receptacle_weights
 from tidee.server.rooms import NAV_CELL, generate_scene, main_component, nav_grid
 from tidee.server.scene import FLOOR_ID, Scene
 from tidee.server.splits import SPLIT_SEEDS, mess_config, num_configs, rooms
@@ -30,7 +29,9 @@ def scenes(world):
 
 def test_same_seed_same_scene(world, scenes):
     again = generate_scene("Kitchen", 200, world=World(renderer="tiny"))
-    assert json.dumps(again.to_dict(), sort_keys=True) == json.dumps(scenes["Kitchen"].to_dict(), sort_keys=True)
+    assert json.dumps(again.to_dict(), sort_keys=True) == json.dumps(
+        scenes["Kitchen"].to_dict(), sort_keys=True
+    )
     other = generate_scene("Kitchen", 201, world=world)
     assert other.to_dict() != scenes["Kitchen"].to_dict()
 
@@ -41,12 +42,24 @@ def test_export_load_round_trip(world, scenes, tmp_path):
     scene.save(str(path))
     loaded = Scene.load(str(path))
     assert loaded.to_dict() == scene.to_dict()
-    world.build(loaded)            # building from the export changes nothing
+    world.build(loaded)  # building from the export changes nothing
     assert world.export().to_dict() == scene.to_dict()
     d = json.loads(path.read_text())
     assert {"room_type", "seed", "objects"} <= set(d)
-    for key in ("id", "type", "variant", "pickupable", "receptacle", "openable", "is_open", "parent",
-                "parent_type", "position", "orientation", "size"):
+    for key in (
+        "id",
+        "type",
+        "variant",
+        "pickupable",
+        "receptacle",
+        "openable",
+        "is_open",
+        "parent",
+        "parent_type",
+        "position",
+        "orientation",
+        "size",
+    ):
         assert key in d["objects"][0]
 
 
@@ -72,11 +85,14 @@ def test_room_contents(scenes, room_type):
 def test_floor_is_one_walkable_area(world, scenes, room_type):
     scene = scenes[room_type]
     world.build(scene)
-    free = nav_grid([world.aabb(o.id) for o in scene.objects if not o.pickupable and o.type != "Floor"],
-                    scene.width, scene.depth)
+    free = nav_grid(
+        [world.aabb(o.id) for o in scene.objects if not o.pickupable and o.type != "Floor"],
+        scene.width,
+        scene.depth,
+    )
     main = main_component(free)
     assert main.sum() >= 0.9 * free.sum()
-    assert main.sum() * NAV_CELL ** 2 > 0.25 * scene.width * scene.depth
+    assert main.sum() * NAV_CELL**2 > 0.25 * scene.width * scene.depth
 
 
 def test_some_openable_holds_objects():
@@ -86,8 +102,9 @@ def test_some_openable_holds_objects():
         for seed in range(0, 4):
             scene = generate_scene("Kitchen", seed, world=w)
             by_id = scene.by_id()
-            held_inside += sum(1 for o in scene.objects if o.pickupable and o.parent in by_id
-                               and by_id[o.parent].openable)
+            held_inside += sum(
+                1 for o in scene.objects if o.pickupable and o.parent in by_id and by_id[o.parent].openable
+            )
     finally:
         w.close()
     assert held_inside > 0
@@ -102,4 +119,3 @@ def test_splits():
         mess_config("test", 100)
     seeds = [set(SPLIT_SEEDS[s]) for s in SPLIT_SEEDS]
     assert not (seeds[0] & seeds[1]) and not (seeds[0] & seeds[2]) and not (seeds[1] & seeds[2])
-

@@ -29,8 +29,8 @@ def _play(library: SceneLibrary) -> list[tuple[np.ndarray, np.ndarray, tuple]]:
 
 def test_a_cached_scene_plays_the_same_episode_bit_for_bit(tmp_path) -> None:
     cache = SceneCache(tmp_path)
-    fresh, fresh_state = _play(SceneLibrary(disk=None))          # no disk cache at all
-    filled, _ = _play(SceneLibrary(disk=cache))                  # generates and stores
+    fresh, fresh_state = _play(SceneLibrary(disk=None))  # no disk cache at all
+    filled, _ = _play(SceneLibrary(disk=cache))  # generates and stores
     assert cache.path(SPEC.room_type, SPEC.seed, SPEC.mess_index).exists()
     assert cache.path(SPEC.room_type, SPEC.seed, None).exists()  # the tidy room too
     warm_cache = SceneCache(tmp_path)
@@ -38,7 +38,9 @@ def test_a_cached_scene_plays_the_same_episode_bit_for_bit(tmp_path) -> None:
     assert warm_cache.hits == 1 and warm_cache.misses == 0
     for a, b, c in zip(fresh, filled, loaded):
         for x, y, z in zip(a, b, c):
-            assert np.array_equal(np.asarray(x), np.asarray(y)) and np.array_equal(np.asarray(x), np.asarray(z))
+            assert np.array_equal(np.asarray(x), np.asarray(y)) and np.array_equal(
+                np.asarray(x), np.asarray(z)
+            )
     assert json.dumps(fresh_state, sort_keys=True) == json.dumps(loaded_state, sort_keys=True)
 
 
@@ -49,11 +51,11 @@ def test_a_damaged_entry_is_ignored_and_regenerated(tmp_path) -> None:
     assert cache.load("Kitchen", 3, 7) == scene
     path = cache.path("Kitchen", 3, 7)
     entry = json.loads(gzip.open(path, "rt").read())
-    entry["scene"]["objects"][0]["position"][2] = 0.95           # a flipped value: checksum fails
+    entry["scene"]["objects"][0]["position"][2] = 0.95  # a flipped value: checksum fails
     with gzip.open(path, "wt") as f:
         json.dump(entry, f)
     assert cache.load("Kitchen", 3, 7) is None and not path.exists()
-    path.write_bytes(b"\x1f\x8b not gzip")                        # a torn file
+    path.write_bytes(b"\x1f\x8b not gzip")  # a torn file
     assert cache.load("Kitchen", 3, 7) is None
     assert cache.load("Kitchen", 3, 8) is None and cache.misses == 3
 
@@ -67,7 +69,7 @@ def test_an_unwritable_cache_only_costs_speed(tmp_path) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("not a directory")
     cache = SceneCache(blocker)
-    cache.store("Kitchen", 3, None, {"a": 1})        # logs, does not raise
+    cache.store("Kitchen", 3, None, {"a": 1})  # logs, does not raise
     assert cache.load("Kitchen", 3, None) is None
 
 
@@ -80,7 +82,7 @@ def test_the_library_prefers_memory_then_disk(tmp_path, mess) -> None:
     world = World(renderer="tiny")
     try:
         lib.scene(world, "Kitchen", 202, mess)
-        lib.scene(world, "Kitchen", 202, mess)       # from memory: the disk is not asked again
+        lib.scene(world, "Kitchen", 202, mess)  # from memory: the disk is not asked again
         assert cache.hits == 0
         lib2 = SceneLibrary(disk=SceneCache(tmp_path))
         lib2.scene(world, "Kitchen", 202, mess)

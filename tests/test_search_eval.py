@@ -18,23 +18,44 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def test_cli_parses_the_table_2_run():
-    args = _parser().parse_args(["eval", "search", "--split", "test", "--out", "x", "--categories-per-room", "3",
-                                 "--methods", "frontier,network", "--workers", "2"])
+    args = _parser().parse_args(
+        [
+            "eval",
+            "search",
+            "--split",
+            "test",
+            "--out",
+            "x",
+            "--categories-per-room",
+            "3",
+            "--methods",
+            "frontier,network",
+            "--workers",
+            "2",
+        ]
+    )
     cfg = se.config_from_args(args)
     assert cfg.split == "test" and cfg.methods == ("frontier", "network") and cfg.categories_per_room == 3
     assert cfg.max_steps == 200 and cfg.radius == 1.5 and cfg.perception == "learned"
-    assert se.config_from_args(_parser().parse_args(["eval", "search", "--out", "x", "--categories-per-room", "0"])
-                               ).categories_per_room is None
+    assert (
+        se.config_from_args(
+            _parser().parse_args(["eval", "search", "--out", "x", "--categories-per-room", "0"])
+        ).categories_per_room
+        is None
+    )
 
 
-@pytest.mark.parametrize("argv", [
-    ["--split", "train"],                # training rooms would measure memorisation
-    ["--methods", "network,random"],
-    ["--categories-per-room", "-1"],
-    ["--categories-per-room", "two"],
-    ["--workers", "8"],
-    [],                                  # --out is required
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--split", "train"],  # training rooms would measure memorisation
+        ["--methods", "network,random"],
+        ["--categories-per-room", "-1"],
+        ["--categories-per-room", "two"],
+        ["--workers", "8"],
+        [],  # --out is required
+    ],
+)
 def test_cli_refuses_bad_input(argv, capsys):
     base = [] if argv == [] else ["--out", "x"]
     with pytest.raises(SystemExit):
@@ -52,27 +73,47 @@ def test_config_validation_says_what_is_wrong():
 
 
 def test_summary_counts_failures_as_max_steps():
-    recs = [{"method": "network", "success": True, "stopped": True, "steps": 40, "steps_scored": 40},
-            {"method": "network", "success": False, "stopped": False, "steps": 199, "steps_scored": 200},
-            {"method": "frontier", "success": False, "stopped": True, "steps": 80, "steps_scored": 200}]
+    recs = [
+        {"method": "network", "success": True, "stopped": True, "steps": 40, "steps_scored": 40},
+        {"method": "network", "success": False, "stopped": False, "steps": 199, "steps_scored": 200},
+        {"method": "frontier", "success": False, "stopped": True, "steps": 80, "steps_scored": 200},
+    ]
     s = se.summarize(recs, ("network", "frontier"))
-    assert s["network"] == {"episodes": 2, "successes": 1, "success_pct": 50.0, "mean_steps_all": 120.0,
-                            "mean_steps_successes": 40.0, "stopped_pct": 50.0, "detected_pct": 0.0,
-                            "goal_sources": {}}
+    assert s["network"] == {
+        "episodes": 2,
+        "successes": 1,
+        "success_pct": 50.0,
+        "mean_steps_all": 120.0,
+        "mean_steps_successes": 40.0,
+        "stopped_pct": 50.0,
+        "detected_pct": 0.0,
+        "goal_sources": {},
+    }
     assert s["frontier"]["success_pct"] == 0.0 and s["frontier"]["mean_steps_successes"] is None
 
 
 def test_jobs_sample_categories_present_in_test_rooms():
     cfg = se.SearchEvalConfig(out="x", rooms=2, categories_per_room=2, methods=("frontier",))
     jobs = se.episodes(cfg)
-    assert len(jobs) == 4 and {(j["room_type"], j["seed"]) for j in jobs} == {("Kitchen", 200), ("Kitchen", 201)}
-    assert jobs == se.episodes(cfg)       # seeded
+    assert len(jobs) == 4 and {(j["room_type"], j["seed"]) for j in jobs} == {
+        ("Kitchen", 200),
+        ("Kitchen", 201),
+    }
+    assert jobs == se.episodes(cfg)  # seeded
 
 
 @pytest.mark.slow
 def test_one_short_search_episode(tmp_path):
-    cfg = se.SearchEvalConfig(out=str(tmp_path), rooms=1, categories_per_room=1, methods=("frontier",),
-                              perception="oracle", max_steps=40, workers=1, examples=0)
+    cfg = se.SearchEvalConfig(
+        out=str(tmp_path),
+        rooms=1,
+        categories_per_room=1,
+        methods=("frontier",),
+        perception="oracle",
+        max_steps=40,
+        workers=1,
+        examples=0,
+    )
     res = se.run_search_eval(cfg, command="test", progress=False)
     assert res["summary"]["frontier"]["episodes"] == 1
     assert (tmp_path / "search.md").exists() and (tmp_path / "search.json").exists()
@@ -98,11 +139,11 @@ def test_a_tracked_object_placed_in_the_frame_from_the_map():
         c = np.array([x, y, z])
         return TrackedObject(0, "Candle", 0.5, c, c - 0.05, c + 0.05)
 
-    assert _in_frame_unoccluded(body(3.0), obj(1.0, 0.0))            # ahead, 1 m, nothing in front
-    assert not _in_frame_unoccluded(body(0.5), obj(1.0, 0.0))        # something 0.5 m in front of it
-    assert not _in_frame_unoccluded(body(3.0), obj(2.0, 0.0))        # out of reach
-    assert not _in_frame_unoccluded(body(3.0), obj(1.0, 1.0))        # at the image edge (45 degrees left)
-    assert not _in_frame_unoccluded(body(3.0), obj(-1.0, 0.0))       # behind the camera
+    assert _in_frame_unoccluded(body(3.0), obj(1.0, 0.0))  # ahead, 1 m, nothing in front
+    assert not _in_frame_unoccluded(body(0.5), obj(1.0, 0.0))  # something 0.5 m in front of it
+    assert not _in_frame_unoccluded(body(3.0), obj(2.0, 0.0))  # out of reach
+    assert not _in_frame_unoccluded(body(3.0), obj(1.0, 1.0))  # at the image edge (45 degrees left)
+    assert not _in_frame_unoccluded(body(3.0), obj(-1.0, 0.0))  # behind the camera
 
     # Picking at the projected centroid (the tidy policy) also needs the ray to meet the object:
     # the wall 3 m behind it is not the object; a surface at the centroid's depth is.
@@ -121,7 +162,7 @@ def test_a_tracked_object_placed_in_the_frame_from_the_map():
     candle = Detection("Candle", 0.4, (120, 120, 140, 140))
     assert projected_sighting(body(1.05, [other]), obj(1.0, 0.0)) is None
     assert projected_sighting(body(1.05, [table, candle]), obj(1.0, 0.0)) is not None
-    off = Detection("TennisRacket", 0.6, (0, 0, 40, 40))           # elsewhere in the frame
+    off = Detection("TennisRacket", 0.6, (0, 0, 40, 40))  # elsewhere in the frame
     assert projected_sighting(body(1.05, [off]), obj(1.0, 0.0)) is not None
 
 
@@ -155,14 +196,14 @@ def test_a_start_hemmed_in_by_the_map_still_plans():
 
     body = _still_body()
     m = body.mapper
-    for y in np.arange(-1.0, 1.0, 0.02):           # a bed edge 0.2 m ahead and a dresser 0.2 m behind
+    for y in np.arange(-1.0, 1.0, 0.02):  # a bed edge 0.2 m ahead and a dresser 0.2 m behind
         m.stamp_obstacle((0.2, y), radius=0.03)
         m.stamp_obstacle((-0.2, y), radius=0.03)
     m.stood[m.grid.to_cell((0.0, 0.0))] = True
     plain = FMMPlanner(m.traversible(AGENT_RADIUS), m.grid).reachable_from((0.0, 0.0))
     assert plain.sum() < TRAPPED_CELLS
     reach = planner_from(body).reachable_from((0.0, 0.0))
-    assert reach.sum() > 100 and reach[m.grid.to_cell((0.0, 0.8))]     # along the corridor between them
+    assert reach.sum() > 100 and reach[m.grid.to_cell((0.0, 0.8))]  # along the corridor between them
     # with room around it the agent keeps the full radius
     free = _still_body()
     assert np.array_equal(planner_from(free).traversible, free.mapper.traversible(AGENT_RADIUS))
@@ -205,17 +246,23 @@ def test_a_second_pick_aims_at_what_stands_over_the_track():
     from tidee.agent.perception.base import Detection
     from tidee.agent.policy.skills import raised_sighting
 
-    pose = np.eye(4)        # camera 1 m up looking straight down (image right = -y, image down = -x)
+    pose = np.eye(4)  # camera 1 m up looking straight down (image right = -y, image down = -x)
     pose[:3, :3] = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
     pose[:3, 3] = (0.0, 0.0, 1.0)
     k = np.array([[128.0, 0.0, 128.0], [0.0, 128.0, 128.0], [0.0, 0.0, 1.0]])
     floor = np.full((256, 256), 1.0, np.float32)
     mug = floor.copy()
-    mug[150:160, 150:160] = 0.9                  # 10 cm tall, a few centimetres off the centroid
+    mug[150:160, 150:160] = 0.9  # 10 cm tall, a few centimetres off the centroid
     pts, _ = unproject(mug, k, pose, mask=np.pad(np.ones((10, 10), bool), ((150, 96), (150, 96))))
     c = pts.mean(0)
-    track = TrackedObject(0, "Mug", 0.5, np.array([c[0] + 0.04, c[1] - 0.03, 0.05]),
-                          np.array([c[0] - 0.01, c[1] - 0.08, 0.0]), np.array([c[0] + 0.09, c[1] + 0.02, 0.1]))
+    track = TrackedObject(
+        0,
+        "Mug",
+        0.5,
+        np.array([c[0] + 0.04, c[1] - 0.03, 0.05]),
+        np.array([c[0] - 0.01, c[1] - 0.08, 0.0]),
+        np.array([c[0] + 0.09, c[1] + 0.02, 0.1]),
+    )
 
     def body(depth, detections=()):
         obs = SimpleNamespace(depth=depth, intrinsics=k, camera_pose=pose)
@@ -240,12 +287,13 @@ def test_a_detection_of_the_category_counts_only_within_the_stop_radius():
     from tidee.agent.perception.base import Detection
     from tidee.agent.policy.search import _in_view
 
-    pose = np.eye(4)           # camera 1.5 m up at the origin looking along +x, as above
+    pose = np.eye(4)  # camera 1.5 m up at the origin looking along +x, as above
     pose[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     pose[:3, 3] = (0.0, 0.0, 1.5)
     k = np.array([[128.0, 0.0, 128.0], [0.0, 128.0, 128.0], [0.0, 0.0, 1.0]])
-    stand = TrackedObject(0, "TVStand", 0.5, np.array([1.0, 0.0, 0.4]), np.array([0.8, -0.3, 0.0]),
-                          np.array([1.2, 0.3, 0.8]))
+    stand = TrackedObject(
+        0, "TVStand", 0.5, np.array([1.0, 0.0, 0.4]), np.array([0.8, -0.3, 0.0]), np.array([1.2, 0.3, 0.8])
+    )
 
     def body(depth: float, detections):
         obs = SimpleNamespace(depth=np.full((256, 256), depth, np.float32), intrinsics=k, camera_pose=pose)
@@ -266,8 +314,14 @@ def test_a_detection_from_across_the_room_is_not_stopping_near_it():
     from tidee.agent.policy.search import approach_and_verify
     from tidee.agent.policy.skills import footprint_gap
 
-    bell = TrackedObject(0, "Dumbbell", 0.5, np.array([0.9, -1.45, 0.06]), np.array([0.77, -1.59, 0.01]),
-                         np.array([1.04, -1.34, 0.11]))
+    bell = TrackedObject(
+        0,
+        "Dumbbell",
+        0.5,
+        np.array([0.9, -1.45, 0.06]),
+        np.array([0.77, -1.59, 0.01]),
+        np.array([1.04, -1.34, 0.11]),
+    )
     assert footprint_gap(bell.box_min, bell.box_max, 0.0, 0.0) == pytest.approx(np.hypot(0.77, 1.34))
     assert footprint_gap(bell.box_min, bell.box_max, 0.9, -1.4) == 0.0
     body = _still_body(detections=[Detection("Dumbbell", 0.49, (10, 200, 30, 220))])
@@ -331,12 +385,29 @@ def test_a_stuck_walk_gives_up_after_a_full_turn(monkeypatch):
 
 
 def test_goal_sources_are_shares_of_the_goals_walked_to():
-    recs = [{"method": "network", "success": True, "stopped": True, "steps": 40, "steps_scored": 40,
-             "goals": {"proposed": 3, "fallback": 1}},
-            {"method": "network", "success": False, "stopped": False, "steps": 199, "steps_scored": 200,
-             "goals": {"proposed": 2, "random": 2, "fallback": 2}}]
-    assert se.summarize(recs, ("network",))["network"]["goal_sources"] == {"fallback": 30.0, "proposed": 50.0,
-                                                                           "random": 20.0}
+    recs = [
+        {
+            "method": "network",
+            "success": True,
+            "stopped": True,
+            "steps": 40,
+            "steps_scored": 40,
+            "goals": {"proposed": 3, "fallback": 1},
+        },
+        {
+            "method": "network",
+            "success": False,
+            "stopped": False,
+            "steps": 199,
+            "steps_scored": 200,
+            "goals": {"proposed": 2, "random": 2, "fallback": 2},
+        },
+    ]
+    assert se.summarize(recs, ("network",))["network"]["goal_sources"] == {
+        "fallback": 30.0,
+        "proposed": 50.0,
+        "random": 20.0,
+    }
     with pytest.raises(ValueError, match="network-fallback"):
         se.SearchEvalConfig(out="x", network_fallback="nearest")
     args = _parser().parse_args(["eval", "search", "--out", "x", "--network-fallback", "frontier"])
@@ -361,7 +432,11 @@ def test_search_walks_to_the_fallback_once_the_proposer_has_nothing(monkeypatch)
 
     monkeypatch.setattr(search, "navigate", fake_navigate)
     monkeypatch.setattr(search, "look_around", no_look)
-    network_points = [[(2.0, 0.0)], [(2.0, 0.0)], [(2.0, 0.0), (0.0, 2.0)]]   # the second call: only a visited point
+    network_points = [
+        [(2.0, 0.0)],
+        [(2.0, 0.0)],
+        [(2.0, 0.0), (0.0, 2.0)],
+    ]  # the second call: only a visited point
 
     def propose(body, label, visited):
         return network_points.pop(0) if network_points else []
@@ -370,8 +445,9 @@ def test_search_walks_to_the_fallback_once_the_proposer_has_nothing(monkeypatch)
         return [(-2.0 - 1.5 * len(visited), 0.0)]
 
     counts: dict[str, int] = {}
-    skill = search.search_object(_still_body(), "Mug", propose, np.random.default_rng(0), fallback=frontier,
-                                 counts=counts)
+    skill = search.search_object(
+        _still_body(), "Mug", propose, np.random.default_rng(0), fallback=frontier, counts=counts
+    )
     for _ in range(5):
         next(skill)
     skill.close()

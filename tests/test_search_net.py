@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
@@ -30,11 +28,17 @@ def _synthetic(n_maps: int = 6, seed: int = 0) -> dict:
         for c in (CLASS_INDEX["Bed"], CLASS_INDEX["Sofa"]):
             cx, cy = rng.uniform(-3, 3, size=2)
             i, j = grid.to_cell((cx, cy))
-            x[m, c, i - 3:i + 4, j - 3:j + 4] = 255
+            x[m, c, i - 3 : i + 4, j - 3 : j + 4] = 255
             rows.append((c, cx, cy, 0.3, 0.3, 0.0))
         insts.append(np.asarray(rows, np.float32))
         rooms.append(("Bedroom", m, -1))
-    return {"x": x, "inst": insts, "owner": np.arange(n_maps), "seen": [[] for _ in range(n_maps)], "rooms": rooms}
+    return {
+        "x": x,
+        "inst": insts,
+        "owner": np.arange(n_maps),
+        "seen": [[] for _ in range(n_maps)],
+        "rooms": rooms,
+    }
 
 
 def test_model_output_shapes():
@@ -60,7 +64,7 @@ def test_targets_peak_on_the_footprint():
     assert t[1].max() == 0.0
     i, j = sn.out_grid().to_cell((1.0, -2.0))
     assert t[0, i, j] == pytest.approx(1.0)
-    i, j = sn.out_grid().to_cell((1.0, 0.0))     # 1.8 m from the footprint
+    i, j = sn.out_grid().to_cell((1.0, 0.0))  # 1.8 m from the footprint
     assert t[0, i, j] < 0.01
 
 
@@ -74,7 +78,9 @@ def test_a_few_training_steps_reduce_the_loss():
     xt, ct, tt = torch.from_numpy(x), torch.from_numpy(c), torch.from_numpy(t)
     losses = []
     for _ in range(12):
-        loss = torch.nn.functional.binary_cross_entropy_with_logits(model(xt, ct), tt, pos_weight=torch.tensor(10.0))
+        loss = torch.nn.functional.binary_cross_entropy_with_logits(
+            model(xt, ct), tt, pos_weight=torch.tensor(10.0)
+        )
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -83,8 +89,18 @@ def test_a_few_training_steps_reduce_the_loss():
 
 
 def test_train_search_net_ships_weights_with_a_manifest(tmp_path):
-    cfg = sn.SearchTrainConfig(out=str(tmp_path / "net.pt"), work_dir=str(tmp_path / "work"), steps=3, batch_size=2,
-                               classes_per_map=2, width=8, embed=8, val_fraction=0.34, threads=1, log_every=1)
+    cfg = sn.SearchTrainConfig(
+        out=str(tmp_path / "net.pt"),
+        work_dir=str(tmp_path / "work"),
+        steps=3,
+        batch_size=2,
+        classes_per_map=2,
+        width=8,
+        embed=8,
+        val_fraction=0.34,
+        threads=1,
+        log_every=1,
+    )
     summary = sn.train_search_net(cfg, command="test", data=_synthetic(), progress=False, docs_png=None)
     assert summary["steps"] == 3 and len(summary["history"]) == 3
     manifest = read_manifest(tmp_path / "net.pt")
@@ -109,11 +125,12 @@ def test_augmentation_moves_instances_with_the_map():
 
 # --- farthest point sampling and search points -------------------------------------------------
 
+
 def test_fps_spreads_points_in_order():
     pts = np.array([[0, 0], [0.1, 0], [5, 0], [5, 5], [0, 5], [2.5, 2.5]], float)
     idx = sn.farthest_point_sampling(pts, 4)
     assert idx[0] == 0
-    assert idx[1] == 3                            # the farthest from (0, 0)
+    assert idx[1] == 3  # the farthest from (0, 0)
     assert set(idx[2:].tolist()) == {2, 4}
     assert len(set(idx.tolist())) == 4
 
@@ -134,16 +151,16 @@ def test_search_points_on_a_hand_made_heatmap():
     grid = GridSpec.centred(128, 0.1)
     heat = np.zeros((128, 128))
     a, b = grid.to_cell((2.0, 1.0)), grid.to_cell((-1.0, -3.0))
-    heat[a[0] - 2:a[0] + 3, a[1] - 2:a[1] + 3] = 0.7
+    heat[a[0] - 2 : a[0] + 3, a[1] - 2 : a[1] + 3] = 0.7
     heat[a] = 0.8
-    heat[b[0] - 2:b[0] + 3, b[1] - 2:b[1] + 3] = 0.9
+    heat[b[0] - 2 : b[0] + 3, b[1] - 2 : b[1] + 3] = 0.9
     pts, scores = sn.search_points(heat, grid, threshold=0.5, k=3, min_dist_m=1.0)
-    assert len(pts) == 2                                   # one per blob: the rest is suppressed
-    assert np.allclose(pts[0], (-0.95, -2.95), atol=0.3)   # hottest first
+    assert len(pts) == 2  # one per blob: the rest is suppressed
+    assert np.allclose(pts[0], (-0.95, -2.95), atol=0.3)  # hottest first
     assert np.allclose(pts[1], (2.05, 1.05), atol=0.06)
     assert scores[0] >= scores[1]
     valid = np.ones_like(heat, bool)
-    valid[b[0] - 3:b[0] + 4, b[1] - 3:b[1] + 4] = False
+    valid[b[0] - 3 : b[0] + 4, b[1] - 3 : b[1] + 4] = False
     pts, _ = sn.search_points(heat, grid, threshold=0.5, k=3, valid=valid)
     assert len(pts) == 1 and np.allclose(pts[0], (2.05, 1.05), atol=0.06)
     # nothing above the threshold: fall back to the cells within half the maximum
@@ -166,11 +183,12 @@ def test_snap_to_mask_moves_points_onto_allowed_cells():
 
 # --- the shipped weights on held-out (test-room) maps -------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def held_out_maps():
     """A few map snapshots of test rooms (oracle detections, short exploration): evaluation only."""
-    from tidee.protocol.transport import InProcessTransport
     from tidee.agent.perception import make_perception
+    from tidee.protocol.transport import InProcessTransport
 
     cfg = sn.SearchGenConfig(split="test", snapshots=2, max_steps=70, perception="oracle", workers=1)
     samples = []
@@ -183,9 +201,9 @@ def held_out_maps():
 
 
 def test_shipped_weights_load_and_beat_the_occupancy_baseline(held_out_maps):
-    manifest = read_manifest(sn.DEFAULT_WEIGHTS)         # checksum verified
+    manifest = read_manifest(sn.DEFAULT_WEIGHTS)  # checksum verified
     seeds = manifest["data"]["room_seeds"]
-    assert seeds and all(split_of(s) in ("train", "train_pool") for s in seeds)   # training rooms only
+    assert seeds and all(split_of(s) in ("train", "train_pool") for s in seeds)  # training rooms only
     vs = sn.VisualSearch.load()
     m = sn.heldout_metrics(vs, held_out_maps)
     assert m["network"]["n"] >= 20

@@ -9,22 +9,31 @@ import sys
 import threading
 import time
 import uuid
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import numpy as np
 import pytest
 import zenoh
 
 from tests.fakes import FakeEpisode
+from tidee.launch import free_port
 from tidee.protocol import keys
 from tidee.protocol.client import RemoteError, SimClient
 from tidee.protocol.codec import decode, encode
-from tidee.protocol.messages import (Action, ActionName, EpisodeSpec, ErrorCode, ErrorReply, Observation,
-                                     ResetRequest, StepRequest)
+from tidee.protocol.messages import (
+    Action,
+    ActionName,
+    EpisodeSpec,
+    ErrorCode,
+    ErrorReply,
+    Observation,
+    ResetRequest,
+    StepRequest,
+)
 from tidee.protocol.zenoh_config import make_config
 from tidee.server.service import ServerConfig, SimServer
-from tidee.launch import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 SPEC = EpisodeSpec(resolution=32, max_steps=50)
@@ -66,8 +75,9 @@ def raw_zenoh(server: SimServer) -> Iterator[zenoh.Session]:
 
 
 def client(server: SimServer, **kwargs: Any) -> SimClient:
-    return SimClient(endpoint=server.config.endpoint, server_id=server.config.server_id, timeout=10.0,
-                     **kwargs)
+    return SimClient(
+        endpoint=server.config.endpoint, server_id=server.config.server_id, timeout=10.0, **kwargs
+    )
 
 
 def raw_request(z: zenoh.Session, key: str, payload: bytes) -> Any:
@@ -82,14 +92,21 @@ def test_episode_end_to_end(server: SimServer, raw_zenoh: zenoh.Session) -> None
     # The client shares the viewer's Zenoh session, so the server learns of the feed's
     # subscriber (same link, in order) before the first reset arrives.
     with client(server, zsession=raw_zenoh) as c:
-        feed = raw_zenoh.declare_subscriber(keys.observations(server.config.server_id, c.session_id),
-                                            lambda sample: frames.append(sample.payload.to_bytes()))
+        feed = raw_zenoh.declare_subscriber(
+            keys.observations(server.config.server_id, c.session_id),
+            lambda sample: frames.append(sample.payload.to_bytes()),
+        )
         obs = c.reset(SPEC)
         assert isinstance(obs, Observation) and obs.session == c.session_id and obs.step == 0
         assert obs.rgb.shape == (32, 32, 3) and obs.depth.dtype == np.float32
         assert server.sessions == (c.session_id,)
-        live = [str(r.ok.key_expr) for r in raw_zenoh.liveliness().get(
-            keys.alive_sessions_wildcard(server.config.server_id), timeout=5.0) if r.ok is not None]
+        live = [
+            str(r.ok.key_expr)
+            for r in raw_zenoh.liveliness().get(
+                keys.alive_sessions_wildcard(server.config.server_id), timeout=5.0
+            )
+            if r.ok is not None
+        ]
         assert live == [keys.alive_session(server.config.server_id, c.session_id)]
 
         obs = c.step(Action(ActionName.MoveAhead))
@@ -128,8 +145,10 @@ def test_two_sessions_step_concurrently(server: SimServer) -> None:
     def run(c: SimClient, seed: int) -> None:
         try:
             c.reset(EpisodeSpec(resolution=32, seed=seed, max_steps=100))
-            seen[c.session_id] = [(o.step, o.agent_pose[0], o.session == c.session_id)
-                                  for o in (c.step(Action(ActionName.MoveAhead)) for _ in range(steps))]
+            seen[c.session_id] = [
+                (o.step, o.agent_pose[0], o.session == c.session_id)
+                for o in (c.step(Action(ActionName.MoveAhead)) for _ in range(steps))
+            ]
         except BaseException as e:  # surfaced below
             errors.append(e)
 
@@ -151,8 +170,9 @@ def test_two_sessions_step_concurrently(server: SimServer) -> None:
         c.close()
 
 
-def test_bad_requests_get_precise_errors_and_others_keep_working(server: SimServer,
-                                                                 raw_zenoh: zenoh.Session) -> None:
+def test_bad_requests_get_precise_errors_and_others_keep_working(
+    server: SimServer, raw_zenoh: zenoh.Session
+) -> None:
     sid = server.config.server_id
     with client(server) as good:
         good.reset(SPEC)
@@ -201,7 +221,7 @@ def test_a_mess_index_outside_the_rooms_split_is_refused_with_the_valid_range(se
             c.reset(EpisodeSpec(seed=200, mess_index=5, resolution=32, max_steps=50))
         assert info.value.code == ErrorCode.invalid_field
         assert "spec.mess_index" in info.value.message and "configurations 0-4" in info.value.message
-        obs = c.reset(EpisodeSpec(seed=200, mess_index=4, resolution=32, max_steps=50))   # still usable
+        obs = c.reset(EpisodeSpec(seed=200, mess_index=4, resolution=32, max_steps=50))  # still usable
         assert obs.step == 0
 
 
@@ -245,8 +265,9 @@ def test_session_of_a_vanished_client_is_freed(server: SimServer) -> None:
     survivor.close()
 
 
-def test_request_sent_by_a_client_that_then_vanished_opens_no_session(server: SimServer,
-                                                                     raw_zenoh: zenoh.Session) -> None:
+def test_request_sent_by_a_client_that_then_vanished_opens_no_session(
+    server: SimServer, raw_zenoh: zenoh.Session
+) -> None:
     sid = server.config.server_id
     raw_zenoh.liveliness().declare_token(keys.alive_client(sid, "ghost")).undeclare()
     assert wait_until(lambda: "ghost" in server._departed)  # the server saw the client leave
@@ -266,8 +287,10 @@ def test_no_server_is_a_timeout() -> None:
 
 def test_serve_shuts_down_cleanly_on_sigterm() -> None:
     endpoint, sid = free_endpoint(), f"t{uuid.uuid4().hex[:8]}"
-    code = ("from tidee.server.service import ServerConfig, serve; from tests.fakes import FakeEpisode; "
-            f"serve(ServerConfig(endpoint={endpoint!r}, server_id={sid!r}), FakeEpisode)")
+    code = (
+        "from tidee.server.service import ServerConfig, serve; from tests.fakes import FakeEpisode; "
+        f"serve(ServerConfig(endpoint={endpoint!r}, server_id={sid!r}), FakeEpisode)"
+    )
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env)
     try:

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import time
 import tracemalloc
-from typing import Any, Iterator
+from collections.abc import Iterator
+from typing import Any
 
 import pytest
 import zenoh
@@ -44,7 +45,7 @@ def test_config_refuses_nonsense_limits() -> None:
 def test_one_client_holds_at_most_its_quota_and_a_close_releases_a_slot(shared_zenoh: Any) -> None:
     server = start_server(max_sessions=8, max_sessions_per_client=2)
     try:
-        z = shared_zenoh(server)   # one Zenoh session: one client, however many session ids it uses
+        z = shared_zenoh(server)  # one Zenoh session: one client, however many session ids it uses
         clients = [client(server, zsession=z) for _ in range(3)]
         clients[0].reset(SPEC)
         clients[1].reset(SPEC)
@@ -55,11 +56,11 @@ def test_one_client_holds_at_most_its_quota_and_a_close_releases_a_slot(shared_z
         assert "max_sessions_per_client=2" in refused.value.message
         assert len(server.sessions) == 2
 
-        other = client(server)     # its own Zenoh session: another client, with its own quota
+        other = client(server)  # its own Zenoh session: another client, with its own quota
         other.reset(SPEC)
 
         clients[0].close()
-        clients[2].reset(SPEC)     # the freed slot is usable at once
+        clients[2].reset(SPEC)  # the freed slot is usable at once
         assert set(server.sessions) == {clients[1].session_id, clients[2].session_id, other.session_id}
         for c in (*clients[1:], other):
             c.close()
@@ -72,7 +73,7 @@ def test_without_source_info_the_session_prefix_names_the_client(shared_zenoh: A
     try:
         z = shared_zenoh(server)
         sid = server.config.server_id
-        for session in ("agentA-0", "agentB-0"):   # hand-made requests carry no source_info
+        for session in ("agentA-0", "agentB-0"):  # hand-made requests carry no source_info
             reply = raw_request(z, keys.sim_op(sid, session, "reset"), _reset(session))
             assert not isinstance(reply, ErrorReply), reply
         reply = raw_request(z, keys.sim_op(sid, "agentA-1", "reset"), _reset("agentA-1"))
@@ -89,7 +90,7 @@ def test_an_idle_session_is_reclaimed_and_its_next_step_says_so() -> None:
             idle.reset(SPEC)
             busy.reset(SPEC)
             deadline = time.monotonic() + 2.5
-            while time.monotonic() < deadline:        # requests keep a session alive
+            while time.monotonic() < deadline:  # requests keep a session alive
                 busy.step(Action(ActionName.MoveAhead))
                 time.sleep(0.2)
             assert server.sessions == (busy.session_id,)
@@ -97,7 +98,7 @@ def test_an_idle_session_is_reclaimed_and_its_next_step_says_so() -> None:
                 idle.step(Action(ActionName.MoveAhead))
             assert gone.value.code == ErrorCode.unknown_session
             assert f"session {idle.session_id!r} was reclaimed after 1 s idle" in gone.value.message
-            idle.reset(SPEC)                          # a reset starts afresh, as after a close
+            idle.reset(SPEC)  # a reset starts afresh, as after a close
             idle.step(Action(ActionName.MoveAhead))
     finally:
         server.stop()
@@ -123,7 +124,7 @@ def test_an_oversized_request_is_refused_without_copying_it(shared_zenoh: Any) -
         key = keys.sim_op(server.config.server_id, session, "reset")
         size = 20 << 20
         payload = zenoh.ZBytes(bytes(size))
-        tracemalloc.start()      # Python's allocations only: Zenoh's own buffers are not traced
+        tracemalloc.start()  # Python's allocations only: Zenoh's own buffers are not traced
         try:
             reply = raw_request(z, key, payload)
             _, python_peak = tracemalloc.get_traced_memory()
@@ -144,5 +145,3 @@ def _served(z: zenoh.Session, server: SimServer) -> bool:
 
 def _reset(session: str) -> bytes:
     return encode(ResetRequest(session, SPEC))
-
-

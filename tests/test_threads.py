@@ -13,18 +13,20 @@ from tidee.threads import threads_per_process, use_threads
 def test_threads_are_the_cores_shared_among_busy_processes() -> None:
     assert threads_per_process(1, cores=2) == 2
     assert threads_per_process(2, cores=2) == 1
-    assert threads_per_process(3, cores=2) == 1          # never zero
+    assert threads_per_process(3, cores=2) == 1  # never zero
     assert threads_per_process(2, cores=16) == 8
     with pytest.raises(ValueError, match="processes must be >= 1"):
         threads_per_process(0)
 
 
 def test_use_threads_reaches_torch_whether_imported_before_or_after() -> None:
-    code = ("from tidee.threads import use_threads\n"
-            "use_threads(1)\n"
-            "import os, torch\n"
-            "print(torch.get_num_threads(), os.environ['OMP_NUM_THREADS'])\n"
-            "use_threads(2); print(torch.get_num_threads())\n")
+    code = (
+        "from tidee.threads import use_threads\n"
+        "use_threads(1)\n"
+        "import os, torch\n"
+        "print(torch.get_num_threads(), os.environ['OMP_NUM_THREADS'])\n"
+        "use_threads(2); print(torch.get_num_threads())\n"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == ["1", "1", "2"]

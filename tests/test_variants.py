@@ -29,7 +29,9 @@ class FakeSearcher:
 
     def points(self, mapper, label, agent_xy, k=3, visited=(), heat=None):
         self.calls += 1
-        assert heat is not None and heat.shape == mapper.voxel_grid.shape   # the shown heatmap, not a second one
+        assert (
+            heat is not None and heat.shape == mapper.voxel_grid.shape
+        )  # the shown heatmap, not a second one
         self.visited = list(visited)
         return list(self.pts)[:k]
 
@@ -38,8 +40,15 @@ def _policy(searcher=None, variant="TIDEE"):
     mapper = SemanticMapper(MapConfig(), CLASSES)
     body = Body(mapper, obs=SimpleNamespace(step=7, agent_pose=(0.0, 0.0, 0.0, 30.0), steps_left=500))
     events = []
-    policy = TidyPolicy(AgentConfig(variant=variant, perception="oracle"), body, oop=None, placement=None,
-                        room_type="Kitchen", on_event=lambda **kw: events.append(kw), searcher=searcher)
+    policy = TidyPolicy(
+        AgentConfig(variant=variant, perception="oracle"),
+        body,
+        oop=None,
+        placement=None,
+        room_type="Kitchen",
+        on_event=lambda **kw: events.append(kw),
+        searcher=searcher,
+    )
     return policy, events
 
 
@@ -52,7 +61,7 @@ def test_searched_points_are_visited_once_each_and_shown_to_the_viewer():
     assert view.heatmap.shape == policy.body.mapper.voxel_grid.shape and len(view.points) == 3
     # (1.5, 1.2) is within 1 m of a visited point: skipped
     assert policy.search_goal("Fridge") == (3.0, 3.0)
-    assert searcher.visited == [(1.0, 1.0)]          # the network is told where the agent has been
+    assert searcher.visited == [(1.0, 1.0)]  # the network is told where the agent has been
     # another label has its own visited list
     assert policy.search_goal("Sink") == (1.0, 1.0)
     assert [e["label"] for e in events if e["kind"] == "search_point"] == ["Fridge", "Fridge", "Sink"]
@@ -64,14 +73,28 @@ def test_searched_points_are_visited_once_each_and_shown_to_the_viewer():
 def test_receptacles_near_a_proposal_are_placeable_and_sorted_by_distance():
     policy, _ = _policy(FakeSearcher([]), variant="3DSmntMap2Place")
     mem = policy.body.mapper.memory
-    far = mem.add_or_merge("CounterTop", 0.9, np.array([5.0, 0.0, 0.45]), np.array([4.5, -0.3, 0.0]),
-                           np.array([5.5, 0.3, 0.9]), 1)
-    near = mem.add_or_merge("DiningTable", 0.9, np.array([1.6, 0.0, 0.4]), np.array([1.2, -0.4, 0.0]),
-                            np.array([2.0, 0.4, 0.75]), 1)
-    nearer = mem.add_or_merge("Shelf", 0.9, np.array([0.5, 0.9, 0.4]), np.array([0.3, 0.7, 0.0]),
-                              np.array([0.7, 1.1, 0.9]), 1)
-    mem.add_or_merge("Mug", 0.9, np.array([0.4, 0.1, 0.05]), np.array([0.35, 0.05, 0.0]),
-                     np.array([0.45, 0.15, 0.1]), 1)
+    far = mem.add_or_merge(
+        "CounterTop",
+        0.9,
+        np.array([5.0, 0.0, 0.45]),
+        np.array([4.5, -0.3, 0.0]),
+        np.array([5.5, 0.3, 0.9]),
+        1,
+    )
+    near = mem.add_or_merge(
+        "DiningTable",
+        0.9,
+        np.array([1.6, 0.0, 0.4]),
+        np.array([1.2, -0.4, 0.0]),
+        np.array([2.0, 0.4, 0.75]),
+        1,
+    )
+    nearer = mem.add_or_merge(
+        "Shelf", 0.9, np.array([0.5, 0.9, 0.4]), np.array([0.3, 0.7, 0.0]), np.array([0.7, 1.1, 0.9]), 1
+    )
+    mem.add_or_merge(
+        "Mug", 0.9, np.array([0.4, 0.1, 0.05]), np.array([0.35, 0.05, 0.0]), np.array([0.45, 0.15, 0.1]), 1
+    )
     got = policy._receptacles_near((0.5, 0.2), 1.5)
     assert [o.id for o in got] == [nearer.id, near.id]
     assert far.id not in [o.id for o in policy._receptacles_near((0.5, 0.2), 3.0)]
@@ -83,7 +106,10 @@ def test_every_variant_is_built_from_shipped_models():
 
     parts = {v: make_placement(v) for v in AGENT_VARIANTS}
     assert isinstance(parts["TIDEE"][0], RGCNPlacement) and parts["TIDEE"][0].model.cfg.use_memex
-    assert isinstance(parts["WithoutMemex"][0], RGCNPlacement) and not parts["WithoutMemex"][0].model.cfg.use_memex
+    assert (
+        isinstance(parts["WithoutMemex"][0], RGCNPlacement)
+        and not parts["WithoutMemex"][0].model.cfg.use_memex
+    )
     assert parts["3DSmntMap2Place"][0] is None
     for v in ("TIDEE", "WithoutMemex", "3DSmntMap2Place"):
         assert isinstance(parts[v][1], VisualSearch), v
@@ -103,8 +129,12 @@ def test_an_episode_log_keeps_every_search_heatmap(tmp_path):
 
     spec = EpisodeSpec(room_type="Kitchen", seed=200, mess_index=0, resolution=96, max_steps=120)
     with InProcessTransport(renderer="tiny") as transport:
-        runner = EpisodeRunner(AgentConfig(variant="3DSmntMap2Place", perception="oracle"), transport,
-                               session="t", log_dir=tmp_path)
+        runner = EpisodeRunner(
+            AgentConfig(variant="3DSmntMap2Place", perception="oracle"),
+            transport,
+            session="t",
+            log_dir=tmp_path,
+        )
         runner.run(spec, episode_name="ep")
     log = LogReader(tmp_path / "ep")
     points = {e["step"] for e in log.events() if e["kind"] == "search_point"}
@@ -125,10 +155,17 @@ def test_the_agent_stands_nearer_to_a_floor_object_than_to_one_on_a_table():
     policy, _ = _policy(variant="CommonMemory")
     _with_camera(policy)
     mem = policy.body.mapper.memory
-    on_floor = mem.add_or_merge("RemoteControl", 0.9, np.array([2.0, 0.0, 0.02]), np.array([1.95, -0.08, 0.0]),
-                                np.array([2.05, 0.08, 0.04]), 1)
-    on_table = mem.add_or_merge("Mug", 0.9, np.array([2.0, 1.0, 0.8]), np.array([1.95, 0.95, 0.75]),
-                                np.array([2.05, 1.05, 0.85]), 1)
+    on_floor = mem.add_or_merge(
+        "RemoteControl",
+        0.9,
+        np.array([2.0, 0.0, 0.02]),
+        np.array([1.95, -0.08, 0.0]),
+        np.array([2.05, 0.08, 0.04]),
+        1,
+    )
+    on_table = mem.add_or_merge(
+        "Mug", 0.9, np.array([2.0, 1.0, 0.8]), np.array([1.95, 0.95, 0.75]), np.array([2.05, 1.05, 0.85]), 1
+    )
     floor_r, table_r = policy._reach_xy(on_floor), policy._reach_xy(on_table)
     assert table_r > policy.p.approach_m > floor_r
     # standing floor_r from the footprint still leaves the centroid within reach of the eye
@@ -139,15 +176,17 @@ def test_the_agent_stands_nearer_to_a_floor_object_than_to_one_on_a_table():
 def test_a_track_seen_once_is_picked_unseen_only_when_surely_out_of_place():
     policy, _ = _policy(variant="CommonMemory")
     mem = policy.body.mapper.memory
-    knife = mem.add_or_merge("Knife", 0.4, np.array([2.0, 0.0, 0.01]), np.array([1.9, -0.02, 0.0]),
-                             np.array([2.1, 0.02, 0.02]), 1)
+    knife = mem.add_or_merge(
+        "Knife", 0.4, np.array([2.0, 0.0, 0.01]), np.array([1.9, -0.02, 0.0]), np.array([2.1, 0.02, 0.02]), 1
+    )
     assert knife.n_obs == 1
     knife.oop_prob = 0.99
     assert policy._pick_unseen(knife)
-    knife.oop_prob = 0.6                         # flagged (>= 0.5), but one detection is not enough
+    knife.oop_prob = 0.6  # flagged (>= 0.5), but one detection is not enough
     assert not policy._pick_unseen(knife)
-    mem.add_or_merge("Knife", 0.4, np.array([2.0, 0.0, 0.01]), np.array([1.9, -0.02, 0.0]),
-                     np.array([2.1, 0.02, 0.02]), 2)
+    mem.add_or_merge(
+        "Knife", 0.4, np.array([2.0, 0.0, 0.01]), np.array([1.9, -0.02, 0.0]), np.array([2.1, 0.02, 0.02]), 2
+    )
     assert knife.n_obs == 2 and policy._pick_unseen(knife)
     with pytest.raises(ValueError, match="sure_oop"):
         PolicyConfig(sure_oop=0.0)
@@ -156,13 +195,15 @@ def test_a_track_seen_once_is_picked_unseen_only_when_surely_out_of_place():
 def test_an_object_the_agent_dropped_is_not_picked_again():
     policy, _ = _policy(variant="CommonMemory")
     mem = policy.body.mapper.memory
-    pillow = mem.add_or_merge("Pillow", 0.9, np.array([0.6, 0.0, 0.1]), np.array([0.4, -0.2, 0.0]),
-                              np.array([0.8, 0.2, 0.2]), 1)
-    other = mem.add_or_merge("Pillow", 0.9, np.array([3.0, 2.0, 0.1]), np.array([2.8, 1.8, 0.0]),
-                             np.array([3.2, 2.2, 0.2]), 1)
+    pillow = mem.add_or_merge(
+        "Pillow", 0.9, np.array([0.6, 0.0, 0.1]), np.array([0.4, -0.2, 0.0]), np.array([0.8, 0.2, 0.2]), 1
+    )
+    other = mem.add_or_merge(
+        "Pillow", 0.9, np.array([3.0, 2.0, 0.1]), np.array([2.8, 1.8, 0.0]), np.array([3.2, 2.2, 0.2]), 1
+    )
     pillow.out_of_place = other.out_of_place = True
     assert [o.id for o in policy._candidates()] == [pillow.id, other.id]
-    policy.dropped.append(("Pillow", np.array([0.0, 0.0])))     # dropped here: its receptacle was full
+    policy.dropped.append(("Pillow", np.array([0.0, 0.0])))  # dropped here: its receptacle was full
     assert [o.id for o in policy._candidates()] == [other.id]
 
 
@@ -179,8 +220,9 @@ class _StubOOP:
 def test_a_target_that_reads_in_place_up_close_is_not_picked_and_twice_is_given_up():
     policy, events = _policy(variant="CommonMemory")
     mem = policy.body.mapper.memory
-    cup = mem.add_or_merge("Cup", 0.9, np.array([1.0, 0.0, 0.8]), np.array([0.95, -0.05, 0.75]),
-                           np.array([1.05, 0.05, 0.85]), 1)
+    cup = mem.add_or_merge(
+        "Cup", 0.9, np.array([1.0, 0.0, 0.8]), np.array([0.95, -0.05, 0.75]), np.array([1.05, 0.05, 0.85]), 1
+    )
     cup.out_of_place = True
     policy.oop = _StubOOP({cup.id: 0.9})
     assert policy._still_out_of_place(cup) and cup.oop_prob == 0.9
@@ -188,7 +230,7 @@ def test_a_target_that_reads_in_place_up_close_is_not_picked_and_twice_is_given_
     assert not policy._still_out_of_place(cup)
     assert not cup.out_of_place and "give_up" not in cup.meta
     assert [e["kind"] for e in events] == ["oop_cleared"]
-    cup.out_of_place = True                   # flagged again by a later rescoring
+    cup.out_of_place = True  # flagged again by a later rescoring
     assert not policy._still_out_of_place(cup)
     assert cup.meta["give_up"] and cup not in policy._candidates()
 
@@ -216,8 +258,14 @@ def _placing_policy(missing_top, ranked, puts_succeed):
     policy.p = PolicyConfig(missing_top=missing_top)
     policy.placement = _Ranking(ranked)
     mem = policy.body.mapper.memory
-    mem.add_or_merge("CounterTop", 0.9, np.array([2.0, 0.0, 0.45]), np.array([1.5, -0.3, 0.0]),
-                     np.array([2.5, 0.3, 0.9]), 1)
+    mem.add_or_merge(
+        "CounterTop",
+        0.9,
+        np.array([2.0, 0.0, 0.45]),
+        np.array([1.5, -0.3, 0.0]),
+        np.array([2.5, 0.3, 0.9]),
+        1,
+    )
     tried: list[str] = []
 
     def put_on(rec):
@@ -252,7 +300,7 @@ def test_the_top_receptacle_not_in_memory_is_searched_for_first_only_with_missin
     policy, tried, obj = _placing_policy("search", [("CounterTop", 0.7), ("Fridge", 0.3)], puts_succeed=True)
     assert _drive(policy.put_away(obj)) is True and tried == ["put:CounterTop"]
     policy, tried, obj = _placing_policy("search", [("Floor", 0.7), ("Fridge", 0.3)], puts_succeed=True)
-    policy.drop = lambda: iter(())     # the drop on the floor fails (no simulator here)
+    policy.drop = lambda: iter(())  # the drop on the floor fails (no simulator here)
     assert _drive(policy.put_away(obj)) is False and tried == ["search:Fridge"]
     with pytest.raises(ValueError, match="missing_top"):
         PolicyConfig(missing_top="later")
@@ -270,8 +318,14 @@ def test_the_missing_top_flag_reaches_the_agent_config():
 
 # ----------------------------------------------------------------------------- putting on a receptacle
 def _shelf(mem, x, n_obs=1, top=1.7):
-    o = mem.add_or_merge("Shelf", 0.9, np.array([x, 2.0, top / 2]), np.array([x - 0.4, 1.8, 0.0]),
-                         np.array([x + 0.4, 2.2, top]), 1)
+    o = mem.add_or_merge(
+        "Shelf",
+        0.9,
+        np.array([x, 2.0, top / 2]),
+        np.array([x - 0.4, 1.8, 0.0]),
+        np.array([x + 0.4, 2.2, top]),
+        1,
+    )
     o.n_obs = n_obs
     return o
 
@@ -279,11 +333,11 @@ def _shelf(mem, x, n_obs=1, top=1.7):
 def test_receptacle_tracks_seen_twice_come_first_and_stray_ones_are_dropped():
     policy, _ = _policy(variant="CommonMemory")
     mem = policy.body.mapper.memory
-    stray = _shelf(mem, 0.5, top=0.1)                # detected once, nearest
+    stray = _shelf(mem, 0.5, top=0.1)  # detected once, nearest
     real = _shelf(mem, 4.0, n_obs=5)
     far = _shelf(mem, 8.0, n_obs=1)
     assert [o.id for o in policy._instances("Shelf")] == [real.id, stray.id, far.id]
-    stray.meta["unseen"] = True                      # visited in vain: no shelf there
+    stray.meta["unseen"] = True  # visited in vain: no shelf there
     far.meta["full"] = True
     assert [o.id for o in policy._instances("Shelf")] == [real.id]
 
@@ -296,7 +350,7 @@ def test_a_receptacle_whose_track_is_off_is_still_found_by_its_class_in_view():
     policy.body.obs.intrinsics = np.array([[64.0, 0, 64], [0, 64.0, 64], [0, 0, 1]])
     policy.body.obs.depth = np.ones((128, 128), np.float32)
     track = _shelf(policy.body.mapper.memory, 0.0)
-    track.centroid = np.array([0.0, -3.0, 0.8])      # projects far outside the frame: no detection matches it
+    track.centroid = np.array([0.0, -3.0, 0.8])  # projects far outside the frame: no detection matches it
     small = Detection("Shelf", 0.9, (0, 0, 10, 10))
     large = Detection("Shelf", 0.8, (20, 20, 90, 100))
     policy.body.detections = [Detection("Bed", 0.9, (0, 0, 128, 128)), small, large]
@@ -321,7 +375,11 @@ def test_a_receptacle_never_seen_from_beside_its_track_is_marked_and_reported(mo
     assert _drive(policy.put_on(shelf)) is False
     assert shelf.meta["unseen"] is True and shelf.id not in [o.id for o in policy._instances("Shelf")]
     failed = [e for e in events if e["kind"] == "put_failed"]
-    assert len(failed) == 1 and failed[0]["error"] == "not_in_view" and f"track {shelf.id}" in failed[0]["message"]
+    assert (
+        len(failed) == 1
+        and failed[0]["error"] == "not_in_view"
+        and f"track {shelf.id}" in failed[0]["message"]
+    )
 
 
 def _shelf_view(monkeypatch):
@@ -333,13 +391,18 @@ def _shelf_view(monkeypatch):
     rows = list(range(0, 10)) + list(range(20, 30)) + list(range(50, 60))
     cols = range(20, 44)
     index = np.array([r * w + c for r in rows for c in cols])
-    z = {**{r: 2.0 for r in range(0, 10)}, **{r: 1.6 for r in range(20, 30)}, **{r: 0.9 for r in range(50, 60)}}
+    z = {
+        **{r: 2.0 for r in range(0, 10)},
+        **{r: 1.6 for r in range(20, 30)},
+        **{r: 0.9 for r in range(50, 60)},
+    }
     pts = np.array([[1.0, (c - 32) * 0.025, z[r]] for r in rows for c in cols])
     monkeypatch.setattr(skills, "unproject", lambda depth, K, pose, mask=None: (pts, index))
     pose = np.eye(4)
     pose[2, 3] = 0.9
-    body = SimpleNamespace(obs=SimpleNamespace(depth=np.ones((h, w), np.float32), intrinsics=np.eye(3),
-                                               camera_pose=pose))
+    body = SimpleNamespace(
+        obs=SimpleNamespace(depth=np.ones((h, w), np.float32), intrinsics=np.eye(3), camera_pose=pose)
+    )
     mask = np.zeros((h, w), bool)
     mask.flat[index] = True
     return body, skills.Detection("Shelf", 0.9, (20, 0, 44, 60), mask=mask)

@@ -4,11 +4,11 @@ and what ``tidee viewer`` prints."""
 from __future__ import annotations
 
 import pytest
-from tidee.viewer import access
-from tidee.viewer.synthetic import write_synthetic_log
 
 from tests.test_service import wait_until
 from tests.viewer_fakes import synthetic_source
+from tidee.viewer import access
+from tidee.viewer.synthetic import write_synthetic_log
 
 
 @pytest.mark.parametrize("host", ["127.0.0.1", "127.1.2.3", "::1", "[::1]", "localhost", "LocalHost"])
@@ -41,10 +41,10 @@ def test_the_gate_lets_through_only_clients_that_presented_the_token():
     assert not gate.unlock(1, "wrong") and gate.refusal(1) is not None
     assert gate.unlock(1, " s3cret ")
     assert gate.refusal(1) is None
-    assert gate.refusal(2) is not None                 # per client: another page stays locked
-    assert not gate.unlock(1, "s3cre") and gate.refusal(1) is not None   # a wrong value locks again
+    assert gate.refusal(2) is not None  # per client: another page stays locked
+    assert not gate.unlock(1, "s3cre") and gate.refusal(1) is not None  # a wrong value locks again
     gate.unlock(1, "s3cret")
-    gate.forget(1)                                     # disconnected: a new connection starts locked
+    gate.forget(1)  # disconnected: a new connection starts locked
     assert gate.refusal(1) is not None
     open_gate = access.AccessGate(None)
     assert not open_gate.needs_token and open_gate.refusal(None) is None and open_gate.refusal(7) is None
@@ -83,7 +83,7 @@ def test_read_only_viewer_builds_no_command_controls_and_refuses_commands():
             assert wait_until(lambda: app.feed.selected == src.session, 10.0)
             app.command("pause")
             app.command("new_episode", 3, room_type="Kitchen", seed=1, mess_index=0)
-            assert not wait_until(lambda: src.agent.acks, 1.0)   # nothing reached the agent
+            assert not wait_until(lambda: src.agent.acks, 1.0)  # nothing reached the agent
             assert "sent to" not in app.panels.ack.content and not src.agent.paused
 
 
@@ -95,7 +95,7 @@ def test_token_gate_in_the_app_refuses_a_locked_client_and_sends_for_an_unlocked
             app = viewer.app
             assert len(app.panels.command_controls) == 3
             assert wait_until(lambda: app.feed.selected == src.session, 10.0)
-            app.command("pause", 5)                    # client 5 has not presented the token
+            app.command("pause", 5)  # client 5 has not presented the token
             app.present_token(6, "wrong")
             app.command("pause", 6)
             assert not wait_until(lambda: src.agent.acks, 1.0) and not src.agent.paused

@@ -25,14 +25,25 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import pytest
-from tidee.viewer.browser import (CANVAS, DISMISS_SOFTWARE_GL_NOTE, HEIGHT, WIDTH, HeadlessChromium,
-                                  distinct_colors, find_chromium, map_drawn, region_drawn)
-from tidee.agent.classes import CLASSES  # the agent's class list (plain data, no torch)
 
 from tests.test_service import free_endpoint
+from tidee.agent.classes import CLASSES  # the agent's class list (plain data, no torch)
+from tidee.viewer.browser import (
+    CANVAS,
+    DISMISS_SOFTWARE_GL_NOTE,
+    HEIGHT,
+    WIDTH,
+    HeadlessChromium,
+    distinct_colors,
+    find_chromium,
+    map_drawn,
+    region_drawn,
+)
 
-pytestmark = pytest.mark.skipif(find_chromium() is None,
-                                reason="no chromium binary (install Debian's chromium: scripts/install_chromium.sh)")
+pytestmark = pytest.mark.skipif(
+    find_chromium() is None,
+    reason="no chromium binary (install Debian's chromium: scripts/install_chromium.sh)",
+)
 
 CLICK_BUTTON = """(label => {
   const b = [...document.querySelectorAll('button')].find(b => b.textContent.trim() === label);
@@ -40,7 +51,7 @@ CLICK_BUTTON = """(label => {
 # viser dims the whole GUI (opacity 0.5) while its websocket is down: count the dimmed wrappers
 DIMMED = """[...document.querySelectorAll('div')].filter(d => d.style.transition.startsWith('opacity')
   && d.style.opacity === '0.5').length"""
-MAX_STEPS = 180         # the episode ends on its step budget (about 6 steps/s here) after the agent flags objects
+MAX_STEPS = 180  # the episode ends on its step budget (about 6 steps/s here) after the agent flags objects
 
 
 @dataclass
@@ -55,12 +66,33 @@ def telemetry_source(tmp_path) -> Iterator[TelemetrySource]:
     endpoint, session = free_endpoint(), "viewer-e2e"
     tidee = [sys.executable, "-m", "tidee.cli"]
     server = subprocess.Popen(tidee + ["server", "--endpoint", endpoint, "--renderer", "tiny"])
-    agent = subprocess.Popen(tidee + ["agent", "--endpoint", endpoint, "--session", session,
-                                      "--room-type", "LivingRoom", "--seed", "200", "--mess-index", "0",
-                                      "--resolution", "128", "--max-steps", str(MAX_STEPS), "--serve",
-                                      "--perception", "oracle",
-                                      "--oop", "relation_stats",   # flags the most: labels to see
-                                      "--log-dir", str(tmp_path / "runs")])
+    agent = subprocess.Popen(
+        tidee
+        + [
+            "agent",
+            "--endpoint",
+            endpoint,
+            "--session",
+            session,
+            "--room-type",
+            "LivingRoom",
+            "--seed",
+            "200",
+            "--mess-index",
+            "0",
+            "--resolution",
+            "128",
+            "--max-steps",
+            str(MAX_STEPS),
+            "--serve",
+            "--perception",
+            "oracle",
+            "--oop",
+            "relation_stats",  # flags the most: labels to see
+            "--log-dir",
+            str(tmp_path / "runs"),
+        ]
+    )
     try:
         yield TelemetrySource(endpoint, session)
     finally:
@@ -98,23 +130,33 @@ def test_viewer_early_mid_and_finished_in_headless_chromium(telemetry_source: Te
 
     t0 = time.monotonic()
     shots_dir = os.environ.get("TIDEE_VIEWER_SHOTS") or str(tmp_path / "shots")
-    viewer = run_viewer(ViewerConfig(endpoint=telemetry_source.endpoint, port=0, session=telemetry_source.session))
+    viewer = run_viewer(
+        ViewerConfig(endpoint=telemetry_source.endpoint, port=0, session=telemetry_source.session)
+    )
     try:
         app = viewer.app
         with HeadlessChromium(width=WIDTH, height=HEIGHT) as browser:
             browser.navigate(viewer.url)
-            wait_until(lambda: browser.evaluate("document.querySelectorAll('canvas').length") or False, 20,
-                       "the page's canvas")
+            wait_until(
+                lambda: browser.evaluate("document.querySelectorAll('canvas').length") or False,
+                20,
+                "the page's canvas",
+            )
             # 1. early: the first map reaches the page. The agent is paused meanwhile (a browser
             # drawing WebGL in software is slow beside a running agent on a small machine).
-            wait_until(lambda: app.stats.applied["maps"] > 0 and app.stats.applied["frame"] > 0, 60,
-                       "the viewer to receive a map and a frame")
+            wait_until(
+                lambda: app.stats.applied["maps"] > 0 and app.stats.applied["frame"] > 0,
+                60,
+                "the viewer to receive a map and a frame",
+            )
             app.command("pause")
             browser.wait_for(lambda img: map_drawn(img, len(CLASSES)), timeout=60)
             browser.evaluate(DISMISS_SOFTWARE_GL_NOTE)
             early = browser.wait_settled(timeout=15)
             save(early, shots_dir, "early.png")
-            check_panels(early, browser.panel_boxes(), ("camera", "map", "canvas", "plot", "episode"), "early")
+            check_panels(
+                early, browser.panel_boxes(), ("camera", "map", "canvas", "plot", "episode"), "early"
+            )
             assert distinct_colors(early[CANVAS]) > 500
             assert app.stats.last_step < MAX_STEPS / 2, f"not early: step {app.stats.last_step}"
             app.command("resume")
@@ -122,16 +164,23 @@ def test_viewer_early_mid_and_finished_in_headless_chromium(telemetry_source: Te
             # 2. mid-episode: the agent flags objects (labelled in 3D) and is paused at once (its
             # episode would otherwise run on while the browser draws); then the page's own Pause
             # button reaches the agent, and its acknowledgement comes back to the page
-            wait_until(lambda: any("out of place" in h.text
-                                   for h in app.scene.labels.handles[:app.scene.labels.shown]), 90,
-                       "an out-of-place object labelled in the viewer's scene")
+            wait_until(
+                lambda: any(
+                    "out of place" in h.text for h in app.scene.labels.handles[: app.scene.labels.shown]
+                ),
+                90,
+                "an out-of-place object labelled in the viewer's scene",
+            )
             app.command("pause")
             assert browser.evaluate(f"{CLICK_BUTTON}('Pause')") is True
-            wait_until(lambda: "pause" in app.panels.ack.content and "agent: ok" in app.panels.ack.content, 15,
-                       "the agent's ack of the pause command")
+            wait_until(
+                lambda: "pause" in app.panels.ack.content and "agent: ok" in app.panels.ack.content,
+                15,
+                "the agent's ack of the pause command",
+            )
             assert "summary" not in app._latest, "the episode ended before the agent was paused"
             browser.evaluate(DISMISS_SOFTWARE_GL_NOTE)
-            mid = browser.wait_settled(timeout=15)   # the paused status, a last frame and the labels drawn
+            mid = browser.wait_settled(timeout=15)  # the paused status, a last frame and the labels drawn
             save(mid, shots_dir, "mid.png")
             boxes = browser.panel_boxes()
             check_panels(mid, boxes, ("camera", "map", "canvas", "plot", "controls"), "mid")
@@ -148,7 +197,9 @@ def test_viewer_early_mid_and_finished_in_headless_chromium(telemetry_source: Te
             # 3. the end: resumed, the agent spends its step budget and sends its summary
             assert browser.evaluate(f"{CLICK_BUTTON}('Resume')") is True
             wait_until(lambda: "summary" in app._latest, 150, "the agent's episode summary")
-            wait_until(lambda: "Episode finished" in browser.text(), 10, "the Episode finished panel on the page")
+            wait_until(
+                lambda: "Episode finished" in browser.text(), 10, "the Episode finished panel on the page"
+            )
             browser.evaluate(DISMISS_SOFTWARE_GL_NOTE)
             finished = browser.wait_settled(timeout=15)
             save(finished, shots_dir, "finished.png")
@@ -156,8 +207,16 @@ def test_viewer_early_mid_and_finished_in_headless_chromium(telemetry_source: Te
             check_panels(finished, boxes, ("summary", "camera", "map", "canvas"), "finished")
             text = browser.text()
             summary = app._latest["summary"]
-            for words in ("Episode finished", "moved", "found", "put away", "plausible", "false picks",
-                          f"{summary.steps} steps", "tidee viewer --replay"):
+            for words in (
+                "Episode finished",
+                "moved",
+                "found",
+                "put away",
+                "plausible",
+                "false picks",
+                f"{summary.steps} steps",
+                "tidee viewer --replay",
+            ):
                 assert words in text, f"{words!r} is not on the finished page"
             assert browser.evaluate(DIMMED) == 0, "the page is dimmed: its connection to the viewer dropped"
             assert map_drawn(finished, len(CLASSES))
@@ -170,7 +229,9 @@ def test_viewer_early_mid_and_finished_in_headless_chromium(telemetry_source: Te
             save(rgb, shots_dir, "finished_rgb.png")
             canvas, semantic = rgb[CANVAS], finished[CANVAS]
             assert region_drawn(rgb, boxes["canvas"]) and distinct_colors(canvas) > 500
-            assert float(np.any(canvas != semantic, axis=2).mean()) > 0.05   # other colours than the semantic map's
+            assert (
+                float(np.any(canvas != semantic, axis=2).mean()) > 0.05
+            )  # other colours than the semantic map's
         assert time.monotonic() - t0 < 240
     finally:
         viewer.stop()

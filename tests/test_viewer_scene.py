@@ -11,17 +11,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from tidee.protocol.messages import AgentCommand, Detection2D, EpisodeSummary, TrackedObjectMsg
-from tidee.viewer import geometry, images, palette
-from tidee.viewer.synthetic import CLASSES, SyntheticEpisode, write_synthetic_log
 
 from tests.test_service import wait_until
 from tests.viewer_fakes import synthetic_source
+from tidee.protocol.messages import AgentCommand, Detection2D, EpisodeSummary, TrackedObjectMsg
+from tidee.viewer import geometry, images, palette
+from tidee.viewer.synthetic import CLASSES, SyntheticEpisode, write_synthetic_log
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 # --- colours ------------------------------------------------------------------------------
+
 
 def test_class_colors_are_stable_distinct_and_vectorised():
     first = [palette.class_color(i) for i in range(40)]
@@ -59,6 +60,7 @@ def test_object_color_priority():
 
 # --- geometry -------------------------------------------------------------------------------
 
+
 def test_box_corners_and_segments():
     lo, hi = (0.0, 1.0, 2.0), (1.0, 3.0, 2.5)
     corners = geometry.box_corners(lo, hi)
@@ -67,7 +69,7 @@ def test_box_corners_and_segments():
     seg = geometry.boxes_segments(np.array([lo]), np.array([hi]))
     assert seg.shape == (12, 2, 3)
     d = np.abs(seg[:, 1] - seg[:, 0])
-    assert np.all((d > 1e-9).sum(axis=1) == 1)                       # every edge along one axis
+    assert np.all((d > 1e-9).sum(axis=1) == 1)  # every edge along one axis
     assert sorted(np.round(d.max(axis=1), 6)) == [0.5] * 4 + [1.0] * 4 + [2.0] * 4
     ends = [tuple(p) for p in seg.reshape(-1, 3)]
     assert all(ends.count(tuple(c)) == 3 for c in corners.astype(np.float32))  # 3 edges per corner
@@ -83,7 +85,7 @@ def test_oriented_box_matches_axis_aligned_and_rotates():
     assert np.allclose(seg, ref)
     rz = geometry.quat_xyzw_to_matrix((0, 0, math.sin(math.pi / 4), math.cos(math.pi / 4)))  # 90 deg about z
     turned = geometry.oriented_box_segments((0, 0, 0), (1.0, 2.0, 0.5), rz).reshape(-1, 3)
-    assert np.allclose(turned.max(0), (1.0, 0.5, 0.25), atol=1e-6)     # x and y extents swapped
+    assert np.allclose(turned.max(0), (1.0, 0.5, 0.25), atol=1e-6)  # x and y extents swapped
 
 
 def test_polyline_segments():
@@ -109,9 +111,9 @@ def test_rotation_quaternion_round_trip():
 
 def test_camera_pose_from_agent_axes():
     pose = geometry.camera_pose_from_agent(1.0, 2.0, 0.0, 0.0, 0.9)
-    assert np.allclose(pose[:3, 2], [1, 0, 0])     # optical z: forward = +x
-    assert np.allclose(pose[:3, 0], [0, -1, 0])    # optical x: right = -y
-    assert np.allclose(pose[:3, 1], [0, 0, -1])    # optical y: down
+    assert np.allclose(pose[:3, 2], [1, 0, 0])  # optical z: forward = +x
+    assert np.allclose(pose[:3, 0], [0, -1, 0])  # optical x: right = -y
+    assert np.allclose(pose[:3, 1], [0, 0, -1])  # optical y: down
     assert np.allclose(pose[:3, 3], [1, 2, 0.9])
     assert np.allclose(np.linalg.det(pose[:3, :3]), 1.0)
     looking_down = geometry.camera_pose_from_agent(0, 0, 90.0, 30.0, 0.9)
@@ -119,7 +121,7 @@ def test_camera_pose_from_agent_axes():
 
 
 def test_frustum_from_intrinsics_and_pose():
-    k = np.array([[64.0, 0, 64], [0, 64.0, 64], [0, 0, 1]])        # 90 degrees at 128 px
+    k = np.array([[64.0, 0, 64], [0, 64.0, 64], [0, 0, 1]])  # 90 degrees at 128 px
     pose = geometry.camera_pose_from_agent(1.0, 2.0, 90.0, 0.0, 0.9)
     f = geometry.frustum(pose, k, 128, 128)
     assert f.fov == pytest.approx(math.pi / 2) and f.aspect == pytest.approx(1.0)
@@ -133,7 +135,7 @@ def test_frustum_from_intrinsics_and_pose():
 def test_start_from_world_puts_the_start_pose_at_the_origin_facing_x():
     t = geometry.start_from_world(2.0, 3.0, 90.0)
     assert np.allclose(t @ [2.0, 3.0, 0.5, 1.0], [0, 0, 0.5, 1])
-    assert np.allclose(t @ [2.0, 4.0, 0.0, 1.0], [1, 0, 0, 1])     # one metre along the start heading
+    assert np.allclose(t @ [2.0, 4.0, 0.0, 1.0], [1, 0, 0, 1])  # one metre along the start heading
 
 
 def test_grid_plane_and_overview_camera():
@@ -142,7 +144,7 @@ def test_grid_plane_and_overview_camera():
     assert plane.center == pytest.approx((0.0, 0.0, 0.01))
     view = geometry.overview_camera(plane)
     assert view.look_at == pytest.approx((0.0, 0.0, 0.0))
-    assert view.position[2] > 2.0 and view.position[0] < 0          # above, behind the start heading
+    assert view.position[2] > 2.0 and view.position[0] < 0  # above, behind the start heading
     with pytest.raises(ValueError, match="positive cell"):
         geometry.grid_plane((0, 0), 0.0, (4, 4))
 
@@ -150,7 +152,7 @@ def test_grid_plane_and_overview_camera():
 def test_known_plane_frames_the_mapped_cells_only():
     occ = np.zeros((256, 256), np.uint8)
     assert geometry.known_plane((-6.4, -6.4), 0.05, occ) is None
-    occ[100:140, 120:180] = 1                                          # 2 m x 3 m mapped
+    occ[100:140, 120:180] = 1  # 2 m x 3 m mapped
     plane = geometry.known_plane((-6.4, -6.4), 0.05, occ, margin=0.5)
     assert plane.size_x == pytest.approx(3.0) and plane.size_y == pytest.approx(4.0)
     assert plane.center[:2] == pytest.approx((-6.4 + 6.0, -6.4 + 7.5))
@@ -172,23 +174,25 @@ def test_placed_labels_never_overlap_on_screen(seed):
     plane = geometry.FloorPlane((0.5, 0.5, 0.0), 5.0, 4.0)
     view = geometry.screen_view_looking_at(geometry.overview_camera(plane), 1.3, 720)
     n = 40
-    anchors = np.c_[rng.normal(0.5, 0.4, (n, 2)), rng.uniform(0.2, 1.2, n)]   # a tight cluster
+    anchors = np.c_[rng.normal(0.5, 0.4, (n, 2)), rng.uniform(0.2, 1.2, n)]  # a tight cluster
     sizes = np.c_[rng.uniform(40, 190, n), np.full(n, 17.0)]
     placed = geometry.place_labels(anchors, sizes, view, gap_px=3.0)
     before = geometry.label_boxes(view.project(anchors)[0], sizes)
-    assert _overlapping_pairs(before, 3.0)                              # crowded as given ...
+    assert _overlapping_pairs(before, 3.0)  # crowded as given ...
     boxes = geometry.label_boxes(view.project(placed)[0], sizes)
-    assert _overlapping_pairs(boxes, 3.0 - 1e-6) == []                 # ... and apart once placed
-    assert np.allclose(placed[0], anchors[0])                           # the first keeps its spot
+    assert _overlapping_pairs(boxes, 3.0 - 1e-6) == []  # ... and apart once placed
+    assert np.allclose(placed[0], anchors[0])  # the first keeps its spot
     lift = view.project(anchors)[0][:, 1] - view.project(placed)[0][:, 1]
-    assert np.all(lift >= -1e-6)                                        # labels only move up on screen
-    assert np.allclose(view.project(placed)[0][:, 0], view.project(anchors)[0][:, 0])   # never sideways
-    assert np.array_equal(placed, geometry.place_labels(anchors, sizes, view, gap_px=3.0))   # deterministic
+    assert np.all(lift >= -1e-6)  # labels only move up on screen
+    assert np.allclose(view.project(placed)[0][:, 0], view.project(anchors)[0][:, 0])  # never sideways
+    assert np.array_equal(placed, geometry.place_labels(anchors, sizes, view, gap_px=3.0))  # deterministic
 
 
 def test_labels_apart_stay_put_and_labels_behind_the_camera_too():
-    view = geometry.screen_view((0.0, 0.0, 5.0), geometry.rotation_to_wxyz(np.diag([1.0, -1.0, -1.0])), 1.0, 600)
-    anchors = np.array([[-2.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 9.0]])   # the last is behind the camera
+    view = geometry.screen_view(
+        (0.0, 0.0, 5.0), geometry.rotation_to_wxyz(np.diag([1.0, -1.0, -1.0])), 1.0, 600
+    )
+    anchors = np.array([[-2.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, 9.0]])  # the last is behind the camera
     placed = geometry.place_labels(anchors, np.array([[60.0, 17.0]] * 3), view)
     assert np.allclose(placed, anchors)
     with pytest.raises(ValueError, match="one size per anchor"):
@@ -197,57 +201,68 @@ def test_labels_apart_stay_put_and_labels_behind_the_camera_too():
 
 def test_screen_view_projects_like_a_pinhole():
     # a camera 4 m above the origin looking straight down, image +x along world +x
-    view = geometry.screen_view((0.0, 0.0, 4.0), geometry.rotation_to_wxyz(np.diag([1.0, -1.0, -1.0])),
-                                2 * math.atan(0.5), 400)       # focal length 400 px
+    view = geometry.screen_view(
+        (0.0, 0.0, 4.0), geometry.rotation_to_wxyz(np.diag([1.0, -1.0, -1.0])), 2 * math.atan(0.5), 400
+    )  # focal length 400 px
     uv, depth = view.project(np.array([[1.0, 0.5, 0.0]]))
     assert depth[0] == pytest.approx(4.0)
-    assert uv[0] == pytest.approx((100.0, -50.0))               # +y world is up on screen (-v)
-    look = geometry.screen_view_looking_at(geometry.CameraView((0.0, 0.0, 4.0), (0.0, 0.0, 0.0)), 1.0, 400,
-                                           up=(0.0, 1.0, 0.0))
-    assert look.project(np.array([[0.0, 1.0, 0.0]]))[0][0, 1] < 0   # up in the world is up on screen
+    assert uv[0] == pytest.approx((100.0, -50.0))  # +y world is up on screen (-v)
+    look = geometry.screen_view_looking_at(
+        geometry.CameraView((0.0, 0.0, 4.0), (0.0, 0.0, 0.0)), 1.0, 400, up=(0.0, 1.0, 0.0)
+    )
+    assert look.project(np.array([[0.0, 1.0, 0.0]]))[0][0, 1] < 0  # up in the world is up on screen
 
 
 def test_unproject_depth_follows_the_protocol_convention():
     k = np.array([[2.0, 0, 2.0], [0, 2.0, 2.0], [0, 0, 1.0]])
-    pose = geometry.camera_pose_from_agent(1.0, 0.0, 0.0, 0.0, 1.0)    # at (1, 0, 1) looking along +x
+    pose = geometry.camera_pose_from_agent(1.0, 0.0, 0.0, 0.0, 1.0)  # at (1, 0, 1) looking along +x
     depth = np.full((4, 4), 2.0, np.float32)
-    depth[0, 0], depth[3, 3] = 0.0, np.nan                              # invalid: dropped
+    depth[0, 0], depth[3, 3] = 0.0, np.nan  # invalid: dropped
     pts, pix = geometry.unproject_depth(depth, k, pose)
     assert len(pts) == 14 and pts.dtype == np.float32
-    centre = pts[(pix[:, 0] == 2) & (pix[:, 1] == 2)][0]               # pixel (u, v) = (cx, cy)
-    assert centre == pytest.approx((3.0, 0.0, 1.0))                    # 2 m straight ahead
-    right = pts[(pix[:, 0] == 2) & (pix[:, 1] == 3)][0]                # one column right: -y, 1 m over
+    centre = pts[(pix[:, 0] == 2) & (pix[:, 1] == 2)][0]  # pixel (u, v) = (cx, cy)
+    assert centre == pytest.approx((3.0, 0.0, 1.0))  # 2 m straight ahead
+    right = pts[(pix[:, 0] == 2) & (pix[:, 1] == 3)][0]  # one column right: -y, 1 m over
     assert right == pytest.approx((3.0, -1.0, 1.0))
     assert len(geometry.unproject_depth(depth, k, pose, stride=2)[0]) == 3
 
 
 # --- images -----------------------------------------------------------------------------------
 
+
 def test_heatmap_texture_is_the_transposed_grid_with_alpha():
-    heat = np.zeros((6, 4), np.float32)          # X = 6 cells along x, Y = 4 along y
+    heat = np.zeros((6, 4), np.float32)  # X = 6 cells along x, Y = 4 along y
     heat[5, 1] = 1.0
     rgba = images.heatmap_rgba(heat)
     assert rgba.shape == (4, 6, 4) and rgba.dtype == np.uint8
-    assert rgba[1, 5, 3] == 210 and rgba[0, 0, 3] == 0   # viser image: column = +x, row = +y
-    assert rgba[1, 5, 0] > rgba[1, 5, 2]                  # hot is red
+    assert rgba[1, 5, 3] == 210 and rgba[0, 0, 3] == 0  # viser image: column = +x, row = +y
+    assert rgba[1, 5, 0] > rgba[1, 5, 2]  # hot is red
     with pytest.raises(ValueError, match="2D grid"):
         images.heatmap_rgba(np.zeros(3))
 
 
 def test_occupancy_image_is_drawn_x_up_y_left():
     occ = np.ones((10, 8), np.uint8)
-    occ[9, 0] = 2                                 # the cell at max x, min y: top right of the image
+    occ[9, 0] = 2  # the cell at max x, min y: top right of the image
     explored = np.ones_like(occ, bool)
     img = images.occupancy_image(occ, explored, (0.0, 0.0), 0.1, min_width=80)
     assert img.shape == (100, 80, 3)
     assert tuple(img[2, 77]) == images.OBSTACLE_RGB
     assert tuple(img[50, 40]) == images.FREE_RGB
     canvas = images.MapCanvas((0.0, 0.0), 0.1, (10, 8), 10)
-    assert canvas.pixel(0.95, 0.05) == (75, 5)   # the obstacle cell's centre
-    drawn = images.occupancy_image(occ, explored, (0.0, 0.0), 0.1, pose=(0.5, 0.4, 90.0, 0.0),
-                                   trajectory=np.array([[0.1, 0.1], [0.5, 0.4]]),
-                                   path=np.array([[0.5, 0.4], [0.8, 0.4]]),
-                                   goal=(0.8, 0.4), search_points=np.array([[0.3, 0.3]]), min_width=80)
+    assert canvas.pixel(0.95, 0.05) == (75, 5)  # the obstacle cell's centre
+    drawn = images.occupancy_image(
+        occ,
+        explored,
+        (0.0, 0.0),
+        0.1,
+        pose=(0.5, 0.4, 90.0, 0.0),
+        trajectory=np.array([[0.1, 0.1], [0.5, 0.4]]),
+        path=np.array([[0.5, 0.4], [0.8, 0.4]]),
+        goal=(0.8, 0.4),
+        search_points=np.array([[0.3, 0.3]]),
+        min_width=80,
+    )
     assert np.any(np.all(drawn == images.AGENT_RGB, axis=2))
     assert not np.array_equal(drawn, img)
 
@@ -255,16 +270,22 @@ def test_occupancy_image_is_drawn_x_up_y_left():
 def test_occupancy_colors_mark_unknown_free_and_obstacles():
     occ = np.array([[0, 1, 2, 1]], np.uint8)
     c = images.occupancy_colors(occ, np.array([[False, True, True, False]]))
-    assert [tuple(x) for x in c[0]] == [images.UNKNOWN_RGB, images.FREE_RGB, images.OBSTACLE_RGB,
-                                        images.SEEN_FREE_RGB]
+    assert [tuple(x) for x in c[0]] == [
+        images.UNKNOWN_RGB,
+        images.FREE_RGB,
+        images.OBSTACLE_RGB,
+        images.SEEN_FREE_RGB,
+    ]
     with pytest.raises(ValueError, match="same shape"):
         images.occupancy_colors(occ, np.zeros((2, 2), bool))
 
 
 def test_detections_drawn_with_warning_colour_for_out_of_place():
     rgb = np.full((64, 64, 3), 128, np.uint8)
-    dets = [Detection2D("Mug", 0.9, (4, 4, 20, 20), oop_prob=0.95),
-            Detection2D("Book", 0.8, (30, 30, 60, 60), oop_prob=0.1)]
+    dets = [
+        Detection2D("Mug", 0.9, (4, 4, 20, 20), oop_prob=0.95),
+        Detection2D("Book", 0.8, (30, 30, 60, 60), oop_prob=0.1),
+    ]
     img = images.draw_detections(rgb, dets, min_width=256)
     assert img.shape == (256, 256, 3)
     assert np.any(np.all(img == palette.WARNING_RGB, axis=2))
@@ -278,14 +299,17 @@ def test_progress_plot_has_a_fixed_size_for_any_history():
     for img in (empty, one, many):
         assert img.shape == (images.PLOT_SIZE[1], images.PLOT_SIZE[0], 3) and img.dtype == np.uint8
     put_away, found = (np.all(many == c, axis=2) for c in (palette.WARNING_RGB, palette.TRAJECTORY_RGB))
-    assert put_away.sum() > 300 and found.sum() > 300                  # both series drawn
+    assert put_away.sum() > 300 and found.sum() > 300  # both series drawn
+
     def has(img: np.ndarray, color: palette.RGB) -> bool:
         return bool(np.any(np.all(img == color, axis=2)))
 
     legend, plot_area = slice(0, 22), slice(22, None)
     assert has(empty[legend], palette.WARNING_RGB) and not has(empty[plot_area], palette.WARNING_RGB)
-    assert has(one[plot_area], palette.WARNING_RGB) and has(one[plot_area], palette.TRAJECTORY_RGB)  # a dot each
-    assert float(empty.std()) > 10                                       # axes and ticks, not a blank
+    assert has(one[plot_area], palette.WARNING_RGB) and has(
+        one[plot_area], palette.TRAJECTORY_RGB
+    )  # a dot each
+    assert float(empty.std()) > 10  # axes and ticks, not a blank
 
 
 def test_crop_to_known_keeps_the_mapped_part_square():
@@ -293,42 +317,43 @@ def test_crop_to_known_keeps_the_mapped_part_square():
     occ[100:140, 120:180] = 1
     explored = occ > 0
     crop, exp, origin = images.crop_to_known(occ, explored, (-6.4, -6.4), 0.05, margin=0.5)
-    assert crop.shape[0] == crop.shape[1] == 60 + 20                   # the longer side plus margins
-    assert exp.shape == crop.shape and crop.sum() == occ.sum()         # every known cell kept
+    assert crop.shape[0] == crop.shape[1] == 60 + 20  # the longer side plus margins
+    assert exp.shape == crop.shape and crop.sum() == occ.sum()  # every known cell kept
     # rows 100-139 and columns 120-179, 10 cells of margin: an 80-cell square centred on (120, 150)
     assert origin == pytest.approx((-6.4 + 0.05 * 80, -6.4 + 0.05 * 110))
     whole = images.crop_to_known(np.zeros((8, 8), np.uint8), None, (0.0, 0.0), 0.1)
     assert whole[0].shape == (8, 8) and whole[2] == (0.0, 0.0)
     edge = np.zeros((50, 50), np.uint8)
-    edge[0:3, 45:50] = 1                                               # at a corner: the crop stays inside
+    edge[0:3, 45:50] = 1  # at a corner: the crop stays inside
     c, _, _ = images.crop_to_known(edge, None, (0.0, 0.0), 0.1, margin=1.0)
     assert c.shape == (25, 25) and c.sum() == edge.sum()
 
 
 # --- the camera-coloured cloud ------------------------------------------------------------------
 
+
 def test_colour_cloud_fuses_frames_latest_colour_wins_and_stays_capped():
     from tidee.viewer.colour_cloud import ColourCloud
 
     k = np.array([[8.0, 0, 8.0], [0, 8.0, 8.0], [0, 0, 1.0]])
-    pose = geometry.camera_pose_from_agent(0.0, 0.0, 0.0, 0.0, 1.0)    # looking along +x from 1 m up
-    depth = np.full((16, 16), 2.0, np.float32)                         # a wall 2 m ahead
+    pose = geometry.camera_pose_from_agent(0.0, 0.0, 0.0, 0.0, 1.0)  # looking along +x from 1 m up
+    depth = np.full((16, 16), 2.0, np.float32)  # a wall 2 m ahead
     red, blue = np.zeros((16, 16, 3), np.uint8), np.zeros((16, 16, 3), np.uint8)
     red[..., 0], blue[..., 2] = 200, 200
     cloud = ColourCloud(voxel=0.1, cap=10_000, stride=1, floor_z=0.05, ceiling_z=2.4)
     n = cloud.add(red, depth, pose, k)
     pts = cloud.points()
-    assert n == len(pts) > 20 and np.allclose(pts[:, 0], 2.05)        # voxel centres on the wall
+    assert n == len(pts) > 20 and np.allclose(pts[:, 0], 2.05)  # voxel centres on the wall
     assert pts[:, 2].min() > 0.0 and pts[:, 2].max() < 2.4
     assert np.all(cloud.colors() == (200, 0, 0))
-    assert cloud.add(blue, depth, pose, k) == n                         # the same voxels, seen again ...
-    assert np.all(cloud.colors() == (0, 0, 200))                        # ... take the newest colour
-    down = geometry.camera_pose_from_agent(0.0, 0.0, 0.0, 90.0, 1.0)   # looking straight down at the floor
-    assert cloud.add(red, np.full((16, 16), 1.0, np.float32), down, k) == n   # floor points: dropped
+    assert cloud.add(blue, depth, pose, k) == n  # the same voxels, seen again ...
+    assert np.all(cloud.colors() == (0, 0, 200))  # ... take the newest colour
+    down = geometry.camera_pose_from_agent(0.0, 0.0, 0.0, 90.0, 1.0)  # looking straight down at the floor
+    assert cloud.add(red, np.full((16, 16), 1.0, np.float32), down, k) == n  # floor points: dropped
     small = ColourCloud(voxel=0.1, cap=30, stride=1)
     small.add(red, depth, pose, k)
     shifted = pose.copy()
-    shifted[1, 3] = 5.0                                                 # another wall, elsewhere
+    shifted[1, 3] = 5.0  # another wall, elsewhere
     small.add(blue, depth, shifted, k)
     assert len(small) == 30 and np.all(small.colors() == (0, 0, 200))  # over the cap: the newest stay
     small.clear()
@@ -340,14 +365,16 @@ def test_depth_colormap_blacks_out_invalid_depth():
     img = images.colorize_depth(depth, min_width=2)
     assert img.shape == (2, 2, 3)
     assert tuple(img[0, 0]) == (0, 0, 0) and tuple(img[1, 0]) == (0, 0, 0)
-    assert img[0, 1].sum() > img[1, 1].sum()        # near is brighter
+    assert img[0, 1].sum() > img[1, 1].sum()  # near is brighter
 
 
 # --- the scene's nodes (a real viser server, no browser) ---------------------------------------------
 
+
 @pytest.fixture
 def scene_view():
     import viser
+
     from tidee.viewer.scene_view import SceneView
 
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
@@ -370,11 +397,16 @@ def test_scene_updates_assign_to_the_same_nodes(scene_view):
     assert scene_view.boxes.points.shape == (12 * 5, 2, 3)
     oop = [o for o in memory.objects if o.out_of_place]
     assert oop and any(tuple(c) == palette.WARNING_RGB for c in scene_view.boxes.colors[:, 0])
-    texts = [h.text for h in scene_view.labels.handles[:scene_view.labels.shown]]
+    texts = [h.text for h in scene_view.labels.handles[: scene_view.labels.shown]]
     assert any("out of place" in t for t in texts)
     shown = scene_view.node_names()
-    assert shown["/map/voxels"] and shown["/objects/boxes"] and shown["/agent/camera"] and shown["/search/heatmap"]
-    assert not shown["/oracle/boxes"]                                # oracle: off by default
+    assert (
+        shown["/map/voxels"]
+        and shown["/objects/boxes"]
+        and shown["/agent/camera"]
+        and shown["/search/heatmap"]
+    )
+    assert not shown["/oracle/boxes"]  # oracle: off by default
     assert scene_view.heatmap.render_width == pytest.approx(maps.occupancy.shape[0] * maps.cell)
 
 
@@ -385,7 +417,7 @@ def test_scene_layers_colour_modes_and_clear(scene_view):
     by_class = scene_view.voxels.colors.copy()
     scene_view.set_colour_mode("height")
     assert not np.array_equal(by_class, scene_view.voxels.colors)
-    scene_view.set_colour_mode("rgb")              # the camera-coloured cloud replaces the voxel map
+    scene_view.set_colour_mode("rgb")  # the camera-coloured cloud replaces the voxel map
     assert scene_view.rgb_cloud.visible and not scene_view.voxels.visible
     scene_view.set_colour_mode("semantic")
     assert scene_view.voxels.visible and not scene_view.rgb_cloud.visible
@@ -405,11 +437,28 @@ def test_scene_layers_colour_modes_and_clear(scene_view):
 def test_oracle_objects_are_placed_in_the_start_frame(scene_view):
     from tidee.viewer.scene_view import oracle_objects
 
-    scene = {"start": {"x": 2.0, "y": 3.0, "yaw_deg": 90.0}, "mess": [{"id": "Mug_0"}],
-             "objects": [{"id": "Mug_0", "type": "Mug", "pickupable": True, "position": [2.0, 4.0, 0.7],
-                          "orientation": [0, 0, 0, 1], "size": [0.1, 0.1, 0.2]},
-                         {"id": "Wall_0", "type": "Wall", "pickupable": False, "position": [0, 0, 0],
-                          "orientation": [0, 0, 0, 1], "size": [1, 1, 1]}]}
+    scene = {
+        "start": {"x": 2.0, "y": 3.0, "yaw_deg": 90.0},
+        "mess": [{"id": "Mug_0"}],
+        "objects": [
+            {
+                "id": "Mug_0",
+                "type": "Mug",
+                "pickupable": True,
+                "position": [2.0, 4.0, 0.7],
+                "orientation": [0, 0, 0, 1],
+                "size": [0.1, 0.1, 0.2],
+            },
+            {
+                "id": "Wall_0",
+                "type": "Wall",
+                "pickupable": False,
+                "position": [0, 0, 0],
+                "orientation": [0, 0, 0, 1],
+                "size": [1, 1, 1],
+            },
+        ],
+    }
     objs = oracle_objects(scene)
     assert len(objs) == 1 and objs[0].moved and objs[0].label == "Mug"
     assert objs[0].center == pytest.approx((1.0, 0.0, 0.8))
@@ -421,6 +470,7 @@ def test_oracle_objects_are_placed_in_the_start_frame(scene_view):
 
 
 # --- replay ------------------------------------------------------------------------------------
+
 
 def test_replay_gives_the_latest_message_of_each_kind_at_a_step(tmp_path):
     from tidee.viewer.replay import ReplayLog
@@ -467,6 +517,7 @@ def test_replay_of_an_empty_log_says_so(tmp_path):
 
 # --- the live feed over Zenoh --------------------------------------------------------------------
 
+
 def test_live_feed_discovers_the_session_decodes_telemetry_and_commands_it():
     from tidee.viewer.feed import LiveFeed
 
@@ -474,13 +525,19 @@ def test_live_feed_discovers_the_session_decodes_telemetry_and_commands_it():
         feed = LiveFeed(endpoint=src.endpoint)
         try:
             seen: dict = {}
-            assert wait_until(lambda: seen.update(feed.poll()) or {"status", "maps", "memory", "frame"} <= set(seen), 10.0)
+            assert wait_until(
+                lambda: seen.update(feed.poll()) or {"status", "maps", "memory", "frame"} <= set(seen), 10.0
+            )
             assert feed.selected == src.session
-            assert wait_until(lambda: any(s.alive and s.server_id == src.server_id for s in feed.sessions()), 10.0)
+            assert wait_until(
+                lambda: any(s.alive and s.server_id == src.server_id for s in feed.sessions()), 10.0
+            )
             feed.send(AgentCommand(kind="pause", command_id="c1"))
             acks: list = []
-            assert wait_until(lambda: acks.append(feed.poll().get("ack"))
-                              or any(a and a.command_id == "c1" for a in acks), 10.0)
+            assert wait_until(
+                lambda: acks.append(feed.poll().get("ack")) or any(a and a.command_id == "c1" for a in acks),
+                10.0,
+            )
             assert src.agent is not None and src.agent.paused
             with pytest.raises(LookupError, match="no server known"):
                 feed.fetch_state("nobody")
@@ -490,17 +547,22 @@ def test_live_feed_discovers_the_session_decodes_telemetry_and_commands_it():
 
 # --- process hygiene and the command line --------------------------------------------------------------
 
+
 def test_viewer_imports_neither_torch_nor_the_agent():
-    code = ("import sys; import tidee.viewer.app, tidee.viewer.cli, tidee.viewer.bench, tidee.viewer.browser, "
-            "tidee.viewer.synthetic; bad = [m for m in sys.modules if m == 'torch' or m.startswith('torch.') "
-            "or m.startswith('tidee.agent')]; assert not bad, bad")
+    code = (
+        "import sys; import tidee.viewer.app, tidee.viewer.cli, tidee.viewer.bench, tidee.viewer.browser, "
+        "tidee.viewer.synthetic; bad = [m for m in sys.modules if m == 'torch' or m.startswith('torch.') "
+        "or m.startswith('tidee.agent')]; assert not bad, bad"
+    )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO, timeout=60)
 
 
 def test_cli_registers_the_viewer_without_importing_viser():
-    code = ("import sys, argparse; from tidee.viewer.cli import register; p = argparse.ArgumentParser(); "
-            "register(p.add_subparsers()); a = p.parse_args(['viewer', '--port', '0', '--session', 's1']); "
-            "assert a.port == 0 and a.session == 's1' and a.host == '127.0.0.1'; assert 'viser' not in sys.modules")
+    code = (
+        "import sys, argparse; from tidee.viewer.cli import register; p = argparse.ArgumentParser(); "
+        "register(p.add_subparsers()); a = p.parse_args(['viewer', '--port', '0', '--session', 's1']); "
+        "assert a.port == 0 and a.session == 's1' and a.host == '127.0.0.1'; assert 'viser' not in sys.modules"
+    )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO, timeout=60)
     from tidee.viewer.app import ViewerConfig
 
@@ -526,27 +588,51 @@ def test_scene_survives_empty_and_inconsistent_maps(scene_view):
     import dataclasses
 
     maps = SyntheticEpisode().maps(100)
-    scene_view.apply_maps(dataclasses.replace(maps, point_labels=maps.point_labels[:3]))   # labels too short
+    scene_view.apply_maps(dataclasses.replace(maps, point_labels=maps.point_labels[:3]))  # labels too short
     assert scene_view.voxels.colors.shape == scene_view.voxels.points.shape
-    empty = dataclasses.replace(maps, occupancy=np.zeros((0, 0), np.uint8), explored=np.zeros((0, 0), bool),
-                                points=np.zeros((0, 3), np.float32), point_labels=np.zeros(0, np.int16))
+    empty = dataclasses.replace(
+        maps,
+        occupancy=np.zeros((0, 0), np.uint8),
+        explored=np.zeros((0, 0), bool),
+        points=np.zeros((0, 3), np.float32),
+        point_labels=np.zeros(0, np.int16),
+    )
     scene_view.apply_maps(empty)
     assert not scene_view.voxels.visible
 
 
 # --- labels: only what matters, laid out apart ------------------------------------------------------
 
+
 def _tracked(i: int, label: str, x: float, oop: bool = False, held: bool = False) -> TrackedObjectMsg:
-    return TrackedObjectMsg(id=i, label=label, score=0.9 - 0.01 * i, centroid=(x, 0.0, 0.5), box_min=(x - 0.1, -0.1, 0.4),
-                            box_max=(x + 0.1, 0.1, 0.6), oop_prob=0.8 if oop else 0.1, out_of_place=oop, held=held)
+    return TrackedObjectMsg(
+        id=i,
+        label=label,
+        score=0.9 - 0.01 * i,
+        centroid=(x, 0.0, 0.5),
+        box_min=(x - 0.1, -0.1, 0.4),
+        box_max=(x + 0.1, 0.1, 0.6),
+        oop_prob=0.8 if oop else 0.1,
+        out_of_place=oop,
+        held=held,
+    )
 
 
 def test_labelled_objects_are_those_that_matter_unless_all_are_asked_for():
     from tidee.viewer.scene_view import labelled_objects
 
-    objs = [_tracked(0, "Sofa", 0.0), _tracked(1, "Mug", 0.1, oop=True), _tracked(2, "Book", 0.2),
-            _tracked(3, "Laptop", 0.3, held=True), _tracked(4, "Chair", 0.4)]
-    assert [o.label for o in labelled_objects(objs, target_id=2, label_all=False)] == ["Laptop", "Book", "Mug"]
+    objs = [
+        _tracked(0, "Sofa", 0.0),
+        _tracked(1, "Mug", 0.1, oop=True),
+        _tracked(2, "Book", 0.2),
+        _tracked(3, "Laptop", 0.3, held=True),
+        _tracked(4, "Chair", 0.4),
+    ]
+    assert [o.label for o in labelled_objects(objs, target_id=2, label_all=False)] == [
+        "Laptop",
+        "Book",
+        "Mug",
+    ]
     assert [o.label for o in labelled_objects(objs, target_id=None, label_all=False)] == ["Laptop", "Mug"]
     every = [o.label for o in labelled_objects(objs, target_id=2, label_all=True)]
     assert every[:3] == ["Laptop", "Book", "Mug"] and sorted(every) == sorted(o.label for o in objs)
@@ -556,36 +642,60 @@ def test_scene_labels_a_crowd_without_overlap_and_all_on_request(scene_view):
     from tidee.protocol.messages import ObjectMemoryMsg
     from tidee.viewer.scene_view import LABEL_CHAR_PX, LABEL_LINE_PX
 
-    crowd = [_tracked(i, f"Thing{i}", 0.05 * i, oop=i % 3 == 0) for i in range(12)]     # 12 objects in 60 cm
-    scene_view.apply_maps(SyntheticEpisode().maps(300))                                 # a floor: the overview view
+    crowd = [_tracked(i, f"Thing{i}", 0.05 * i, oop=i % 3 == 0) for i in range(12)]  # 12 objects in 60 cm
+    scene_view.apply_maps(SyntheticEpisode().maps(300))  # a floor: the overview view
     scene_view.apply_memory(ObjectMemoryMsg("s", 1, crowd))
-    shown = scene_view.labels.handles[:scene_view.labels.shown]
-    assert len(shown) == 4 and all("out of place" in h.text for h in shown)            # 0, 3, 6, 9 only
+    shown = scene_view.labels.handles[: scene_view.labels.shown]
+    assert len(shown) == 4 and all("out of place" in h.text for h in shown)  # 0, 3, 6, 9 only
     scene_view.set_label_all(True)
-    shown = scene_view.labels.handles[:scene_view.labels.shown]
+    shown = scene_view.labels.handles[: scene_view.labels.shown]
     assert len(shown) == 12 and scene_view.counts["labels"] == 12
     view = scene_view._fallback_view()
     uv = view.project(np.array([h.position for h in shown]))[0]
     sizes = np.array([(len(h.text) * LABEL_CHAR_PX + 10, LABEL_LINE_PX) for h in shown])
     assert _overlapping_pairs(geometry.label_boxes(uv, sizes), 2.9) == []
-    assert scene_view.leaders.visible and len(scene_view.leaders.points) >= 6          # lifted labels: a line each
+    assert scene_view.leaders.visible and len(scene_view.leaders.points) >= 6  # lifted labels: a line each
     scene_view.set_label_all(False)
     assert scene_view.labels.shown == 4
 
 
 # --- the episode's end: feed, replay, panel --------------------------------------------------------
 
+
 def test_summary_panel_says_how_the_episode_ended_and_escapes_text():
     from tidee.viewer.panels import SUMMARY_ID, summary_html
 
-    s = EpisodeSummary(session="s", episode={"room_type": "Kitchen", "seed": 200, "mess_index": 0, "variant": "TIDEE",
-                                             "perception": "learned"}, steps=192, wall_s=142.6,
-                       end_reason="no <b>more</b> objects", put_away=4, moved=5, found=4, plausible=3, false_picks=0,
-                       replay="tidee viewer --replay runs/Kitchen_200_mess0")
+    s = EpisodeSummary(
+        session="s",
+        episode={
+            "room_type": "Kitchen",
+            "seed": 200,
+            "mess_index": 0,
+            "variant": "TIDEE",
+            "perception": "learned",
+        },
+        steps=192,
+        wall_s=142.6,
+        end_reason="no <b>more</b> objects",
+        put_away=4,
+        moved=5,
+        found=4,
+        plausible=3,
+        false_picks=0,
+        replay="tidee viewer --replay runs/Kitchen_200_mess0",
+    )
     page = summary_html(s)
     assert f"id='{SUMMARY_ID}'" in page and "Episode finished" in page and "Kitchen seed 200 mess 0" in page
-    for text in ("moved <b>5</b>", "found <b>4</b>/5", "put away <b>4</b>", "plausible <b>3</b>/5",
-                 "false picks <b>0</b>", "<b>192</b> steps", "<b>143</b> s", "tidee viewer --replay runs/Kitchen_200_mess0"):
+    for text in (
+        "moved <b>5</b>",
+        "found <b>4</b>/5",
+        "put away <b>4</b>",
+        "plausible <b>3</b>/5",
+        "false picks <b>0</b>",
+        "<b>192</b> steps",
+        "<b>143</b> s",
+        "tidee viewer --replay runs/Kitchen_200_mess0",
+    ):
         assert text in page, text
     assert "&lt;b&gt;more" in page and "<b>more" not in page
     unscored = summary_html(EpisodeSummary("s", {}, 10, 1.0, "step budget", 0))
@@ -622,15 +732,17 @@ def test_replay_viewer_shows_the_finished_panel_at_the_end_and_hides_it_before(t
     with run_viewer(ViewerConfig(replay=str(tmp_path), port=0)) as viewer:
         app = viewer.app
         app.replay_seek(39)
-        assert wait_until(lambda: app.panels.summary.visible and "episode finished" in app.panels.title.content, 10.0)
+        assert wait_until(
+            lambda: app.panels.summary.visible and "episode finished" in app.panels.title.content, 10.0
+        )
         assert "Episode finished" in app.panels.summary.content
         assert app.panels.plot.image.shape[:2] == (170, 360)
-        app.set_colour_mode("rgb")                       # the frames up to here, fused
+        app.set_colour_mode("rgb")  # the frames up to here, fused
         assert wait_until(lambda: app.scene.node_names()["/map/rgb"], 10.0)
         assert app.scene.counts["rgb_points"] > 500 and not app.scene.voxels.visible
         app.replay_seek(10)
         assert wait_until(lambda: not app.panels.summary.visible and app.stats.last_step == 10, 10.0)
-        assert app.scene.colour_cloud.frames <= 11       # slid back: the cloud holds what was seen by step 10
+        assert app.scene.colour_cloud.frames <= 11  # slid back: the cloud holds what was seen by step 10
 
 
 def test_live_feed_delivers_the_episode_summary():
@@ -642,7 +754,7 @@ def test_live_feed_delivers_the_episode_summary():
         try:
             seen: dict = {}
             assert wait_until(lambda: seen.update(feed.poll()) or "status" in seen, 10.0)
-            src.agent.stop()                              # the episode ends: the agent says how
+            src.agent.stop()  # the episode ends: the agent says how
             src.agent.publish_summary(wall_s=1.5)
             assert wait_until(lambda: seen.update(feed.poll()) or "summary" in seen, 10.0)
             assert isinstance(seen["summary"], EpisodeSummary) and seen["summary"].session == src.session
@@ -658,9 +770,9 @@ def test_annotated_screenshot_numbers_the_panels_found_and_names_them_below():
     shot = np.full((400, 640, 3), 255, np.uint8)
     boxes = {"camera": (10, 40, 200, 200), "canvas": (220, 0, 420, 400), "summary": (440, 60, 630, 160)}
     out = annotate(shot, boxes)
-    assert out.shape[1] == 640 and out.shape[0] > 400                  # the key goes below the picture
+    assert out.shape[1] == 640 and out.shape[0] > 400  # the key goes below the picture
     ink = np.all(out == INK, axis=2)
-    assert ink[40:200, 10:14].any() and ink[40:200, 197:201].any()     # the camera's box is drawn
-    assert not ink[250:400, 0:200].any()                               # nothing where no panel is
-    assert ink[400:].sum() > 3 * 100                                    # three numbered badges in the key
+    assert ink[40:200, 10:14].any() and ink[40:200, 197:201].any()  # the camera's box is drawn
+    assert not ink[250:400, 0:200].any()  # nothing where no panel is
+    assert ink[400:].sum() > 3 * 100  # three numbered badges in the key
     assert {k for k, _ in PANELS} >= set(boxes) | {"map", "plot", "predictions", "controls"}

@@ -8,9 +8,8 @@ import os
 import signal
 import subprocess
 import sys
-import time
 import uuid
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -61,9 +60,13 @@ def test_real_episode_in_a_child_process_matches_one_in_this_process() -> None:
     from tidee.server.episode import Episode
 
     spec = EpisodeSpec(room_type="Kitchen", seed=3, mess_index=None, resolution=64, max_steps=20)
-    actions = [Action(ActionName.RotateLeft), Action(ActionName.MoveAhead), Action(ActionName.LookDown),
-               Action(ActionName.PickupObject, 0.5, 0.6)]
-    srv = start_server(None, renderer="tiny", processes=1)   # None: real episodes in child processes
+    actions = [
+        Action(ActionName.RotateLeft),
+        Action(ActionName.MoveAhead),
+        Action(ActionName.LookDown),
+        Action(ActionName.PickupObject, 0.5, 0.6),
+    ]
+    srv = start_server(None, renderer="tiny", processes=1)  # None: real episodes in child processes
     local = Episode(renderer="tiny")
     try:
         assert srv.processes is not None and len(srv.processes) == 1
@@ -78,7 +81,7 @@ def test_real_episode_in_a_child_process_matches_one_in_this_process() -> None:
     finally:
         local.close()
         srv.stop()
-    assert srv.processes.pids == [None]   # stop() ended the child
+    assert srv.processes.pids == [None]  # stop() ended the child
 
 
 def test_new_sessions_go_to_the_least_loaded_process(two_process_server: SimServer) -> None:
@@ -90,7 +93,7 @@ def test_new_sessions_go_to_the_least_loaded_process(two_process_server: SimServ
     assert {srv._sessions[s].worker for s in (a.session_id, b.session_id)} == {0, 1}
     freed = pid_of(srv, a.session_id)
     a.close()
-    c.reset(SPEC)   # the process a left has no session now: c goes there, not beside b
+    c.reset(SPEC)  # the process a left has no session now: c goes there, not beside b
     assert pid_of(srv, c.session_id) == freed
     assert b.step(Action(ActionName.MoveAhead)).step == 1 and c.step(Action(ActionName.MoveAhead)).step == 1
     b.close()
@@ -112,7 +115,7 @@ def test_an_exception_in_the_child_becomes_internal_error_and_the_session_surviv
 
 
 def test_an_exception_that_cannot_be_pickled_is_named() -> None:
-    class Local(Exception):   # a local class does not pickle
+    class Local(Exception):  # a local class does not pickle
         pass
 
     portable = _portable(Local("boom"))
@@ -122,7 +125,8 @@ def test_an_exception_that_cannot_be_pickled_is_named() -> None:
 
 
 def test_a_killed_child_fails_its_session_clearly_and_others_keep_working(
-        two_process_server: SimServer) -> None:
+    two_process_server: SimServer,
+) -> None:
     srv = two_process_server
     victim, survivor = client(srv), client(srv)
     victim.reset(SPEC)
@@ -134,7 +138,7 @@ def test_a_killed_child_fails_its_session_clearly_and_others_keep_working(
     assert info.value.code == ErrorCode.internal
     assert "EpisodeProcessDied" in info.value.message and "killed by SIGKILL" in info.value.message
     assert "send reset" in info.value.message
-    with pytest.raises(RemoteError, match="EpisodeProcessDied"):   # still lost, until a reset
+    with pytest.raises(RemoteError, match="EpisodeProcessDied"):  # still lost, until a reset
         victim.state()
     assert survivor.step(Action(ActionName.MoveAhead)).step == 1
     # A reset starts the session again in a fresh child on the same worker.
@@ -151,8 +155,20 @@ def test_sigterm_to_tidee_server_leaves_no_process_behind() -> None:
     pytest.importorskip("pybullet")
     endpoint, sid = free_endpoint(), f"t{uuid.uuid4().hex[:8]}"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    command = [sys.executable, "-m", "tidee.cli", "server", "--endpoint", endpoint, "--server-id", sid,
-               "--renderer", "tiny", "--processes", "2"]
+    command = [
+        sys.executable,
+        "-m",
+        "tidee.cli",
+        "server",
+        "--endpoint",
+        endpoint,
+        "--server-id",
+        sid,
+        "--renderer",
+        "tiny",
+        "--processes",
+        "2",
+    ]
     # Its own process group: what must be empty at the end.
     proc = subprocess.Popen(command, cwd=REPO, env=env, start_new_session=True)
     group = proc.pid
@@ -165,8 +181,10 @@ def test_sigterm_to_tidee_server_leaves_no_process_behind() -> None:
             return False
 
     try:
-        with SimClient(endpoint=endpoint, server_id=sid, timeout=60.0, connect_timeout=30.0) as a, \
-                SimClient(endpoint=endpoint, server_id=sid, timeout=60.0, connect_timeout=30.0) as b:
+        with (
+            SimClient(endpoint=endpoint, server_id=sid, timeout=60.0, connect_timeout=30.0) as a,
+            SimClient(endpoint=endpoint, server_id=sid, timeout=60.0, connect_timeout=30.0) as b,
+        ):
             small = EpisodeSpec(room_type="Kitchen", seed=3, resolution=32)
             a.reset(small)
             b.reset(small)

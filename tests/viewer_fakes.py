@@ -12,17 +12,16 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-from tidee.viewer.synthetic import SyntheticAgent
-
 from tests.test_service import free_endpoint
+from tidee.viewer.synthetic import SyntheticAgent
 
 
 @dataclass
 class TelemetrySource:
-    endpoint: str                  # the peer-mode rendezvous the viewer connects to
-    session: str                   # the session publishing telemetry
+    endpoint: str  # the peer-mode rendezvous the viewer connects to
+    session: str  # the session publishing telemetry
     server_id: str
-    agent: SyntheticAgent | None   # the synthetic publisher (None for a real agent)
+    agent: SyntheticAgent | None  # the synthetic publisher (None for a real agent)
 
 
 @contextmanager
@@ -31,8 +30,14 @@ def synthetic_source(rate_hz: float = 20.0, resolution: int = 128) -> Iterator[T
     as a server would be), declaring its session's liveliness like a server."""
     endpoint = free_endpoint()
     session, server_id = f"e2e{uuid.uuid4().hex[:8]}", f"t{uuid.uuid4().hex[:6]}"
-    agent = SyntheticAgent(session=session, server_id=server_id, endpoint=endpoint, listen=True,
-                           rate_hz=rate_hz, resolution=resolution).start()
+    agent = SyntheticAgent(
+        session=session,
+        server_id=server_id,
+        endpoint=endpoint,
+        listen=True,
+        rate_hz=rate_hz,
+        resolution=resolution,
+    ).start()
     try:
         yield TelemetrySource(endpoint, session, server_id, agent)
     finally:

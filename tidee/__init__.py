@@ -7,6 +7,6 @@ is cheap: neither torch nor pybullet loads until an environment or agent is buil
 
 from tidee.protocol import GYM_ENV_ID, register_gym_env
 
-register_gym_env()   # tidee.protocol registers on import too; calling it here says why we import it
+register_gym_env()  # tidee.protocol registers on import too; calling it here says why we import it
 
 __all__ = ["GYM_ENV_ID", "register_gym_env"]

@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 # EpisodeSpec's resolution range (protocol/messages.py): square images this many pixels a side.
 MIN_RESOLUTION, MAX_RESOLUTION = 16, 1024
-MAX_STEPS = 100_000                                   # EpisodeSpec.max_steps, at most
+MAX_STEPS = 100_000  # EpisodeSpec.max_steps, at most
 
 # Zenoh locators this project uses: PROTOCOL/HOST:PORT (HOST a name, IPv4 or [IPv6]).
 _IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
@@ -59,7 +59,7 @@ def non_negative_float(text: str) -> float:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
-    if not value >= 0:          # also refuses nan
+    if not value >= 0:  # also refuses nan
         raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text}")
     return value
 
@@ -71,28 +71,36 @@ def host(text: str) -> str:
         return text
     except ValueError:
         pass
-    if re.fullmatch(r"[0-9.]+", text):      # looks like IPv4 but is not one (e.g. 256.1.1.1): no DNS lookup
-        raise argparse.ArgumentTypeError(f"{text!r} is not an IPv4 address (four numbers 0-255, e.g. 127.0.0.1)")
+    if re.fullmatch(r"[0-9.]+", text):  # looks like IPv4 but is not one (e.g. 256.1.1.1): no DNS lookup
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not an IPv4 address (four numbers 0-255, e.g. 127.0.0.1)"
+        )
     try:
         socket.getaddrinfo(text, None)
     except (socket.gaierror, UnicodeError) as e:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an IP address or a host name this machine resolves "
-                                         f"({getattr(e, 'strerror', None) or e}); e.g. 127.0.0.1 or 0.0.0.0")
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not an IP address or a host name this machine resolves "
+            f"({getattr(e, 'strerror', None) or e}); e.g. 127.0.0.1 or 0.0.0.0"
+        ) from None
     return text
 
 
 def endpoint(text: str) -> str:
     """A Zenoh endpoint: ``tcp/HOST:PORT`` (or udp, tls, quic, ws), or a unix socket ``unixsock-stream/PATH``."""
     proto, sep, address = text.partition("/")
-    address = address.split("?", 1)[0].split("#", 1)[0]      # Zenoh's ?metadata and #config suffixes
+    address = address.split("?", 1)[0].split("#", 1)[0]  # Zenoh's ?metadata and #config suffixes
     example = "e.g. tcp/127.0.0.1:7447"
     if not sep or not address:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a Zenoh endpoint: expected PROTOCOL/ADDRESS, {example}")
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a Zenoh endpoint: expected PROTOCOL/ADDRESS, {example}"
+        )
     if proto in _OTHER_PROTOCOLS:
         return text
     if proto not in _IP_PROTOCOLS:
-        raise argparse.ArgumentTypeError(f"{text!r}: unknown protocol {proto!r}; expected one of "
-                                         f"{', '.join(_IP_PROTOCOLS + _OTHER_PROTOCOLS)}, {example}")
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: unknown protocol {proto!r}; expected one of "
+            f"{', '.join(_IP_PROTOCOLS + _OTHER_PROTOCOLS)}, {example}"
+        )
     m = _HOST_PORT.match(address)
     if not m:
         raise argparse.ArgumentTypeError(f"{text!r}: the address must be HOST:PORT, {example}")
@@ -103,7 +111,9 @@ def endpoint(text: str) -> str:
         try:
             ipaddress.ip_address(name)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r}: {name!r} is not an IPv4 address, {example}") from None
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: {name!r} is not an IPv4 address, {example}"
+            ) from None
     return text
 
 

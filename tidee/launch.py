@@ -35,32 +35,37 @@ def check_bindable(host: str, port: int, what: str, hint: str = "") -> None:
     A probe, not a reservation: the caller binds right after. ``port`` 0 checks the host alone.
     """
     try:
-        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM,
-                                                             flags=socket.AI_PASSIVE)[0]
+        family, kind, proto, _, address = socket.getaddrinfo(
+            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )[0]
     except (socket.gaierror, UnicodeError) as e:
-        raise OSError(f"{what}: cannot resolve host {host!r} ({getattr(e, 'strerror', None) or e}); "
-                      f"give an IP address of this machine, e.g. 127.0.0.1 or 0.0.0.0") from None
+        raise OSError(
+            f"{what}: cannot resolve host {host!r} ({getattr(e, 'strerror', None) or e}); "
+            f"give an IP address of this machine, e.g. 127.0.0.1 or 0.0.0.0"
+        ) from None
     with socket.socket(family, kind, proto) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)   # as servers bind: TIME_WAIT is no conflict
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as servers bind: TIME_WAIT is no conflict
         try:
             s.bind(address)
         except OSError as e:
             if e.errno == errno.EADDRINUSE:
-                raise OSError(errno.EADDRINUSE, f"{what}: port {port} on {host} is already in use by another "
-                                                f"process{hint}") from None
+                raise OSError(
+                    errno.EADDRINUSE,
+                    f"{what}: port {port} on {host} is already in use by another process{hint}",
+                ) from None
             raise OSError(e.errno, f"{what}: cannot listen on {host}:{port} ({e.strerror}){hint}") from None
 
 
 @dataclass
 class RunConfig:
-    agent_args: list[str] = field(default_factory=list)   # passed through to `tidee agent`
+    agent_args: list[str] = field(default_factory=list)  # passed through to `tidee agent`
     viewer: bool = True
-    viewer_read_only: bool = False      # `tidee viewer --read-only`: no controls that send commands
+    viewer_read_only: bool = False  # `tidee viewer --read-only`: no controls that send commands
     host: str = "127.0.0.1"
     port: int = 8080
     linger: float = 30.0
-    renderer: str = "tiny"              # = agent.perception.TRAINED_RENDERER (the viewer imports this module,
-                                         # never the agent): what the shipped detector was trained on
+    renderer: str = "tiny"  # = agent.perception.TRAINED_RENDERER (the viewer imports this module,
+    # never the agent): what the shipped detector was trained on
     endpoint: str | None = None
 
 
@@ -69,7 +74,7 @@ def wait_for_signal() -> None:
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        while not stop.wait(0.2):   # a bounded wait: the handler runs within 0.2 s of any signal
+        while not stop.wait(0.2):  # a bounded wait: the handler runs within 0.2 s of any signal
             pass
     finally:
         for sig, handler in previous.items():
@@ -82,6 +87,7 @@ def _tidee(*args: str) -> list[str]:
 
 def _interrupt_on_sigterm() -> Callable[[], None]:
     """Make SIGTERM (``kill``) end this process like Ctrl-C; returns a function that undoes it."""
+
     def _raise(*_: object) -> None:
         raise KeyboardInterrupt
 
@@ -118,9 +124,9 @@ def stop_children(procs: list[tuple[str, subprocess.Popen]], grace: float = 15.0
                 p.wait()
 
 
-VIEWER_START_S = 60.0       # the viewer imports viser and binds its port well within this
-CHILD_POLL_S = 0.2          # how often the server and viewer are checked while the agent runs
-_NO_PROXY = urllib.request.build_opener(urllib.request.ProxyHandler({}))   # loopback never goes via a proxy
+VIEWER_START_S = 60.0  # the viewer imports viser and binds its port well within this
+CHILD_POLL_S = 0.2  # how often the server and viewer are checked while the agent runs
+_NO_PROXY = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # loopback never goes via a proxy
 
 
 def _wait_until_listening(proc: subprocess.Popen, host: str, port: int, timeout: float) -> bool:
@@ -146,27 +152,51 @@ def _wait_until_listening(proc: subprocess.Popen, host: str, port: int, timeout:
 def _child_failed(name: str, proc: subprocess.Popen) -> int:
     """One line naming the child (server or viewer) that exited or never listened; exit status 1."""
     rc = proc.poll()
-    why = f"exited with status {rc} (its error is above)" if rc is not None else "did not start listening in time"
+    why = (
+        f"exited with status {rc} (its error is above)"
+        if rc is not None
+        else "did not start listening in time"
+    )
     print(f"run: error: the {name} {why}; stopping the others", file=sys.stderr, flush=True)
     return 1
 
 
 def run_all(cfg: RunConfig) -> int:
-    if cfg.viewer:      # refused before anything starts (the viewer would refuse it too, in its own process)
+    if cfg.viewer:  # refused before anything starts (the viewer would refuse it too, in its own process)
         check_bindable(cfg.host, cfg.port, f"--host {cfg.host} --port {cfg.port}", " (choose another --port)")
     endpoint = cfg.endpoint or f"tcp/127.0.0.1:{free_port()}"
     procs: list[tuple[str, subprocess.Popen]] = []
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     restore = _interrupt_on_sigterm()
     try:
-        procs.append(("server", subprocess.Popen(_tidee("server", "--endpoint", endpoint, "--renderer", cfg.renderer),
-                                                 env=env)))
+        procs.append(
+            (
+                "server",
+                subprocess.Popen(
+                    _tidee("server", "--endpoint", endpoint, "--renderer", cfg.renderer), env=env
+                ),
+            )
+        )
         print(f"run: server on {endpoint}", flush=True)
         if cfg.viewer:
-            procs.append(("viewer", subprocess.Popen(_tidee("viewer", "--endpoint", endpoint, "--host", cfg.host,
-                                                            "--port", str(cfg.port),
-                                                            *(["--read-only"] if cfg.viewer_read_only else [])),
-                                                     env=env)))
+            procs.append(
+                (
+                    "viewer",
+                    subprocess.Popen(
+                        _tidee(
+                            "viewer",
+                            "--endpoint",
+                            endpoint,
+                            "--host",
+                            cfg.host,
+                            "--port",
+                            str(cfg.port),
+                            *(["--read-only"] if cfg.viewer_read_only else []),
+                        ),
+                        env=env,
+                    ),
+                )
+            )
         agent = subprocess.Popen(_tidee("agent", "--endpoint", endpoint, *cfg.agent_args), env=env)
         procs.append(("agent", agent))
         if cfg.viewer:

@@ -22,7 +22,7 @@ def available_cores() -> int:
     """Cores this process may run on (its affinity mask, not the machine's count)."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):   # pragma: no cover - not Linux
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
         return max(1, os.cpu_count() or 1)
 
 
@@ -41,7 +41,7 @@ def use_threads(n: int) -> int:
     for var in _ENV_VARS:
         os.environ[var] = str(n)
     torch = sys.modules.get("torch")
-    if torch is not None:      # imported already; otherwise torch reads OMP_NUM_THREADS when imported
+    if torch is not None:  # imported already; otherwise torch reads OMP_NUM_THREADS when imported
         torch.set_num_threads(n)
     return n
 

@@ -46,8 +46,10 @@ def announce(url: str, token: str | None, read_only: bool) -> str:
         return f"viewer: {url} (read-only: no agent controls)"
     if token is None:
         return f"viewer: {url}"
-    return (f"viewer: {url} (the agent controls need the access token {token}: "
-            f"paste it into 'Access token' on the page)")
+    return (
+        f"viewer: {url} (the agent controls need the access token {token}: "
+        f"paste it into 'Access token' on the page)"
+    )
 
 
 class AccessGate:

@@ -23,18 +23,22 @@ PANELS = (
     ("controls", "Controls: replay slider and play (live: session, pause / resume / step)"),
     ("layers", "Layers: what the 3D map shows, its colours, labels"),
 )
-INK = (200, 20, 110)                   # RGB: a magenta no panel uses
-FOLDERS = ("episode", "controls", "layers")   # their title sits on their top border: the box starts below it
+INK = (200, 20, 110)  # RGB: a magenta no panel uses
+FOLDERS = ("episode", "controls", "layers")  # their title sits on their top border: the box starts below it
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 
 
-def annotate(shot: np.ndarray, boxes: dict[str, tuple[int, int, int, int]], key_scale: float = 0.55) -> np.ndarray:
+def annotate(
+    shot: np.ndarray, boxes: dict[str, tuple[int, int, int, int]], key_scale: float = 0.55
+) -> np.ndarray:
     """``shot`` (RGB) with the panels in ``boxes`` outlined and numbered, and a key below it.
     Panels missing from ``boxes`` (not on the page, or scrolled out of it) are left out."""
     img = np.ascontiguousarray(shot.copy())
     h, w = img.shape[:2]
-    shown = [(n, key, caption) for n, (key, caption) in enumerate(
-        ((k, c) for k, c in PANELS if k in boxes), start=1)]
+    shown = [
+        (n, key, caption)
+        for n, (key, caption) in enumerate(((k, c) for k, c in PANELS if k in boxes), start=1)
+    ]
     for n, key, _ in shown:
         x0, y0, x1, y1 = boxes[key]
         y0 += 9 if key in FOLDERS else 0
@@ -51,8 +55,16 @@ def annotate(shot: np.ndarray, boxes: dict[str, tuple[int, int, int, int]], key_
         col, row = divmod(i, rows)
         x, y = 12 + col * (w // 2), 10 + row * line
         _badge(key, n, (x, y), scale=key_scale)
-        cv2.putText(key, caption, (x + int(34 * key_scale / 0.55), y + int(19 * key_scale / 0.55)), FONT, key_scale,
-                    (40, 40, 40), 1, cv2.LINE_AA)
+        cv2.putText(
+            key,
+            caption,
+            (x + int(34 * key_scale / 0.55), y + int(19 * key_scale / 0.55)),
+            FONT,
+            key_scale,
+            (40, 40, 40),
+            1,
+            cv2.LINE_AA,
+        )
     cv2.line(key, (0, 0), (w, 0), (200, 200, 200), 1)
     return np.vstack([img, key])
 

@@ -31,9 +31,17 @@ from typing import Any
 
 import numpy as np
 import viser
+
 from tidee.launch import check_bindable, free_port, wait_for_signal
 from tidee.protocol import keys
-from tidee.protocol.messages import AgentCommand, AgentFrame, AgentStatus, EpisodeSummary, MapSnapshot, SearchHeatmap
+from tidee.protocol.messages import (
+    AgentCommand,
+    AgentFrame,
+    AgentStatus,
+    EpisodeSummary,
+    MapSnapshot,
+    SearchHeatmap,
+)
 from tidee.viewer import access, geometry, images, palette
 from tidee.viewer.feed import OBSERVATION, LiveFeed
 from tidee.viewer.panels import Panels
@@ -42,26 +50,26 @@ from tidee.viewer.scene_view import LABEL_FALLBACK_HEIGHT, SceneView, oracle_obj
 
 log = logging.getLogger("tidee.viewer")
 
-HISTORY_POINTS = 600             # live plot: (step, fixed, OOP found) rows kept
+HISTORY_POINTS = 600  # live plot: (step, fixed, OOP found) rows kept
 SESSION_REFRESH_S = 1.0
 DRAW_ORDER = ("maps", "memory", "search", "frame", OBSERVATION, "status", "ack", "summary")
-REPLAY_FUSE_MAX = 150            # replay: frames fused into the coloured cloud when jumping ahead, at most
-STOP_NOTE_S = 0.3                # on stop: time for the "viewer stopped" note to reach the browsers
+REPLAY_FUSE_MAX = 150  # replay: frames fused into the coloured cloud when jumping ahead, at most
+STOP_NOTE_S = 0.3  # on stop: time for the "viewer stopped" note to reach the browsers
 
 
 @dataclass
 class ViewerConfig:
-    endpoint: str | None = None          # peer mode: the rendezvous to connect to (default loopback:7447)
-    router: str | None = None            # or client mode through this Zenoh router
-    host: str = "127.0.0.1"              # loopback by default: the viewer can send commands to agents
-    port: int = 8080                     # 0: any free port (the handle's url says which)
-    session: str | None = None           # pin one session; None follows the newest
-    replay: str | None = None            # a log directory to play back instead of live telemetry
-    rate_hz: float = 10.0                # scene/panel updates per second, at most (per kind)
-    max_points: int = 200_000            # voxel points sent to the browser, at most
-    oracle_period_s: float = 1.0         # ground-truth layer: how often to ask the server
-    read_only: bool = False              # no controls that send commands; every command refused
-    token: str | None = None             # the controls' access token (default: random unless host is loopback)
+    endpoint: str | None = None  # peer mode: the rendezvous to connect to (default loopback:7447)
+    router: str | None = None  # or client mode through this Zenoh router
+    host: str = "127.0.0.1"  # loopback by default: the viewer can send commands to agents
+    port: int = 8080  # 0: any free port (the handle's url says which)
+    session: str | None = None  # pin one session; None follows the newest
+    replay: str | None = None  # a log directory to play back instead of live telemetry
+    rate_hz: float = 10.0  # scene/panel updates per second, at most (per kind)
+    max_points: int = 200_000  # voxel points sent to the browser, at most
+    oracle_period_s: float = 1.0  # ground-truth layer: how often to ask the server
+    read_only: bool = False  # no controls that send commands; every command refused
+    token: str | None = None  # the controls' access token (default: random unless host is loopback)
 
     def __post_init__(self) -> None:
         if not 0 <= int(self.port) <= 65535:
@@ -73,8 +81,10 @@ class ViewerConfig:
         if self.session is not None:
             keys.check_id("session", self.session)
         if self.replay is not None and not os.path.isdir(self.replay):
-            raise FileNotFoundError(f"--replay {self.replay!r} is not a directory (expected an episode log "
-                                    f"directory holding telemetry.tlog)")
+            raise FileNotFoundError(
+                f"--replay {self.replay!r} is not a directory (expected an episode log "
+                f"directory holding telemetry.tlog)"
+            )
         if self.token is not None and not self.token.strip():
             raise ValueError("token must not be empty (leave it out for a random one off loopback)")
         if self.endpoint and self.router:
@@ -85,7 +95,7 @@ class ViewerConfig:
 class ViewerStats:
     """What the update worker has done (read by tests and the benchmark)."""
 
-    updates: int = 0                     # worker cycles that drew something
+    updates: int = 0  # worker cycles that drew something
     applied: dict[str, int] = field(default_factory=lambda: collections.defaultdict(int))
     last_step: int = -1
     started: float = field(default_factory=time.monotonic)
@@ -99,39 +109,48 @@ class ViewerApp:
         self.stats = ViewerStats()
         self._stop = threading.Event()
         self._wake = threading.Event()
-        self._lock = threading.Lock()             # guards the requests below (GUI threads -> worker)
+        self._lock = threading.Lock()  # guards the requests below (GUI threads -> worker)
         self._requests: dict[str, Any] = {}
-        self._history: collections.deque[tuple[float, float, float]] = collections.deque(maxlen=HISTORY_POINTS)
+        self._history: collections.deque[tuple[float, float, float]] = collections.deque(
+            maxlen=HISTORY_POINTS
+        )
         self._session_shown: str | None = None
-        self._camera_aimed = False                # at the first map of each session
-        self._latest: dict[str, Any] = {}         # the newest message of each kind on screen
-        self._agent_frames = False                # this session sends AgentFrames (else observations fill in)
+        self._camera_aimed = False  # at the first map of each session
+        self._latest: dict[str, Any] = {}  # the newest message of each kind on screen
+        self._agent_frames = False  # this session sends AgentFrames (else observations fill in)
         self._oracle_on = False
         self._oracle_thread: threading.Thread | None = None
         self._replay_step = self.replay.first_step if self.replay else 0
         self._replay_playing, self._replay_rate = False, 10.0
         self._replay_shown: dict[str, int | None] = {}
-        self._cloud_upto = -1                     # replay: the last frame index fused into the coloured cloud
+        self._cloud_upto = -1  # replay: the last frame index fused into the coloured cloud
         self.access = access.AccessGate(access.required_token(config.host, config.token), config.read_only)
 
         # viser moves to the next free port when one is taken (and retries forever on a host it cannot
         # bind): check first, and refuse a moved port, so the printed URL is the one asked for.
-        check_bindable(config.host, config.port, f"viewer --host {config.host} --port {config.port}",
-                       " (choose another --port, or --port 0 for any free port)")
+        check_bindable(
+            config.host,
+            config.port,
+            f"viewer --host {config.host} --port {config.port}",
+            " (choose another --port, or --port 0 for any free port)",
+        )
         port = config.port or free_port(config.host)
         self.server = viser.ViserServer(host=config.host, port=port, label="tidee", verbose=False)
         if self.server.get_port() != port:
             self.server.stop()
-            raise OSError(f"viewer --port {port}: port {port} on {config.host} was taken while the viewer "
-                          f"started (choose another --port, or --port 0 for any free port)")
+            raise OSError(
+                f"viewer --port {port}: port {port} on {config.host} was taken while the viewer "
+                f"started (choose another --port, or --port 0 for any free port)"
+            )
         self.url = f"http://{_display_host(config.host)}:{self.server.get_port()}"
         self.server.on_client_connect(self._on_client_connect)
         self.server.on_client_disconnect(lambda client: self.access.forget(client.client_id))
         try:
             self.scene = SceneView(self.server, max_points=config.max_points)
             steps = (self.replay.first_step, self.replay.last_step) if self.replay else None
-            self.panels = Panels(self.server, self, steps, initial_session=config.session,
-                                 read_only=config.read_only)
+            self.panels = Panels(
+                self.server, self, steps, initial_session=config.session, read_only=config.read_only
+            )
             if self.replay is None:
                 self.feed = LiveFeed(config.endpoint, config.router, config.session)
         except BaseException:
@@ -155,7 +174,9 @@ class ViewerApp:
             self.feed.close()
         if self.server.get_clients():  # a page left open freezes (dimmed) once we go: say why
             summary: EpisodeSummary | None = self._latest.get("summary")
-            again = f"Replay the episode: `{summary.replay}`" if summary is not None and summary.replay else ""
+            again = (
+                f"Replay the episode: `{summary.replay}`" if summary is not None and summary.replay else ""
+            )
             self.panels.show_stopped(again)
             time.sleep(STOP_NOTE_S)
         self.server.stop()
@@ -236,7 +257,9 @@ class ViewerApp:
             if self._agent_frames:
                 return  # the agent's own frames (with detections) take precedence
             self.scene.apply_frame(msg)
-            self.panels.show_camera(images.upscale(np.asarray(msg.rgb), 512)[0], images.colorize_depth(msg.depth))
+            self.panels.show_camera(
+                images.upscale(np.asarray(msg.rgb), 512)[0], images.colorize_depth(msg.depth)
+            )
             return
         self._latest[kind] = msg
         self.scene.apply(kind, msg)
@@ -244,11 +267,13 @@ class ViewerApp:
             self._show_legend(msg)
             known = geometry.known_plane(msg.origin, msg.cell, msg.occupancy, margin=1.5)
             if not self._camera_aimed and known is not None:
-                self._aim_camera(known)       # at what has been mapped, not the whole (12.8 m) grid
+                self._aim_camera(known)  # at what has been mapped, not the whole (12.8 m) grid
                 self._camera_aimed = True
         elif isinstance(msg, AgentFrame):
             self._agent_frames = True
-            self.panels.show_camera(images.draw_detections(msg.rgb, msg.detections), images.colorize_depth(msg.depth))
+            self.panels.show_camera(
+                images.draw_detections(msg.rgb, msg.detections), images.colorize_depth(msg.depth)
+            )
         elif isinstance(msg, AgentStatus):
             self.stats.last_step = msg.step
             self.panels.show_status(msg)
@@ -272,19 +297,29 @@ class ViewerApp:
         status: AgentStatus | None = self._latest.get("status")
         search: SearchHeatmap | None = self._latest.get("search")
         # the mapped part only (a 12.8 m grid is mostly unknown): the room fills the panel
-        occupancy, explored, origin = images.crop_to_known(maps.occupancy, maps.explored, maps.origin, maps.cell)
+        occupancy, explored, origin = images.crop_to_known(
+            maps.occupancy, maps.explored, maps.origin, maps.cell
+        )
         img = images.occupancy_image(
-            occupancy, explored, origin, maps.cell,
-            pose=status.pose if status else None, trajectory=status.trajectory if status else None,
-            path=status.path if status else None, goal=status.goal if status else None,
-            search_points=search.points if search is not None else None)
+            occupancy,
+            explored,
+            origin,
+            maps.cell,
+            pose=status.pose if status else None,
+            trajectory=status.trajectory if status else None,
+            path=status.path if status else None,
+            goal=status.goal if status else None,
+            search_points=search.points if search is not None else None,
+        )
         self.panels.show_map(img)
 
     def _title(self) -> str:
         finished = " · **episode finished**" if "summary" in self._latest else ""
         if self.replay is not None:
-            return (f"**tidee viewer** · replay of `{os.path.basename(os.path.abspath(self.replay.directory))}` "
-                    f"· session {self.replay.session or '?'}{finished}")
+            return (
+                f"**tidee viewer** · replay of `{os.path.basename(os.path.abspath(self.replay.directory))}` "
+                f"· session {self.replay.session or '?'}{finished}"
+            )
         assert self.feed is not None
         session = self._session_shown or "none yet"
         mode = "pinned" if self.feed.pinned else "newest"
@@ -301,8 +336,9 @@ class ViewerApp:
         self.server.initial_camera.position = view.position
         self.server.initial_camera.look_at = view.look_at
         # labels laid out for this view until a browser reports its own camera
-        self.scene.set_label_view(geometry.screen_view_looking_at(view, self.server.initial_camera.fov,
-                                                                  LABEL_FALLBACK_HEIGHT))
+        self.scene.set_label_view(
+            geometry.screen_view_looking_at(view, self.server.initial_camera.fov, LABEL_FALLBACK_HEIGHT)
+        )
         for client in self.server.get_clients().values():
             try:
                 with client.atomic():
@@ -357,8 +393,11 @@ class ViewerApp:
             self.scene.push_cloud(force=True)
         self.panels.show_plot(self.replay.history(step))
         trunc = f" · **log truncated** ({self.replay.corrupt_message})" if self.replay.truncated else ""
-        self.panels.show_replay_step(step, f"step {step} of {self.replay.first_step}–{self.replay.last_step} · "
-                                           f"{self.replay.messages} messages{trunc}")
+        self.panels.show_replay_step(
+            step,
+            f"step {step} of {self.replay.first_step}–{self.replay.last_step} · "
+            f"{self.replay.messages} messages{trunc}",
+        )
 
     def _catch_up_cloud(self, frame: int | None) -> None:
         """Replay: fuse the frames up to ``frame`` (its index in the log) not fused yet, so the
@@ -392,7 +431,9 @@ class ViewerApp:
         except (ValueError, RuntimeError) as e:
             self.panels.show_sent(f"**not sent**: {e}")
             return
-        self.panels.show_sent(f"**{kind}** sent to `{target}` (id {cmd.command_id}); waiting for the agent's ack…")
+        self.panels.show_sent(
+            f"**{kind}** sent to `{target}` (id {cmd.command_id}); waiting for the agent's ack…"
+        )
 
     def present_token(self, client_id: int | None, token: str) -> None:
         if client_id is None or not token.strip():
@@ -405,8 +446,9 @@ class ViewerApp:
     def _notify(self, client_id: int | None, title: str, body: str) -> None:
         client = self.server.get_clients().get(client_id) if client_id is not None else None
         if client is not None:
-            client.add_notification(title, body, auto_close_seconds=6.0,
-                                    color="green" if title.endswith("unlocked") else "red")
+            client.add_notification(
+                title, body, auto_close_seconds=6.0, color="green" if title.endswith("unlocked") else "red"
+            )
 
     def set_layer(self, layer: str, on: bool) -> None:
         with self._lock:
@@ -465,8 +507,14 @@ class ViewerApp:
     # --- oracle ------------------------------------------------------------------------------------
     def _set_oracle(self, on: bool) -> None:
         self._oracle_on = on
-        if on and self.feed is not None and (self._oracle_thread is None or not self._oracle_thread.is_alive()):
-            self._oracle_thread = threading.Thread(target=self._oracle_loop, daemon=True, name="tidee-viewer-oracle")
+        if (
+            on
+            and self.feed is not None
+            and (self._oracle_thread is None or not self._oracle_thread.is_alive())
+        ):
+            self._oracle_thread = threading.Thread(
+                target=self._oracle_loop, daemon=True, name="tidee-viewer-oracle"
+            )
             self._oracle_thread.start()
 
     def _oracle_loop(self) -> None:

@@ -46,9 +46,26 @@ def _free_endpoint() -> str:
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
-def _run_agent(endpoint: str, steps: int, work_ms: float, wait_viewer: float, timeout: float) -> dict[str, Any]:
-    cmd = [sys.executable, "-m", "tidee.viewer.synthetic", "--endpoint", endpoint, "--session", "bench",
-           "--steps", str(steps), "--rate", "0", "--work-ms", str(work_ms), "--wait-viewer", str(wait_viewer)]
+def _run_agent(
+    endpoint: str, steps: int, work_ms: float, wait_viewer: float, timeout: float
+) -> dict[str, Any]:
+    cmd = [
+        sys.executable,
+        "-m",
+        "tidee.viewer.synthetic",
+        "--endpoint",
+        endpoint,
+        "--session",
+        "bench",
+        "--steps",
+        str(steps),
+        "--rate",
+        "0",
+        "--work-ms",
+        str(work_ms),
+        "--wait-viewer",
+        str(wait_viewer),
+    ]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, check=False)
     if out.returncode != 0:
         raise RuntimeError(f"the synthetic agent failed ({out.returncode}): {out.stderr[-2000:]}")
@@ -64,14 +81,15 @@ def _chromium_cpu_s(chromium: HeadlessChromium | None) -> float:
         try:
             with open(f"/proc/{pid}/stat") as f:
                 fields = f.read().rsplit(")", 1)[1].split()
-            total += (int(fields[11]) + int(fields[12])) / tick      # utime + stime
+            total += (int(fields[11]) + int(fields[12])) / tick  # utime + stime
         except (OSError, IndexError, ValueError):
             pass
     return total
 
 
-def _attached_run(endpoint: str, steps: int, work_ms: float, timeout: float, browser: bool,
-                  rate_hz: float) -> dict[str, Any]:
+def _attached_run(
+    endpoint: str, steps: int, work_ms: float, timeout: float, browser: bool, rate_hz: float
+) -> dict[str, Any]:
     handle = run_viewer(ViewerConfig(endpoint=endpoint, port=0, session="bench", rate_hz=rate_hz))
     chromium = None
     try:
@@ -80,7 +98,7 @@ def _attached_run(endpoint: str, steps: int, work_ms: float, timeout: float, bro
             chromium.navigate(handle.url)
             time.sleep(3.0)  # the page loads and its WebGL context starts
         stats = handle.app.stats
-        samples: list[tuple[float, float, int]] = []     # (time, rss MiB, updates)
+        samples: list[tuple[float, float, int]] = []  # (time, rss MiB, updates)
         done = threading.Event()
 
         def sample() -> None:
@@ -104,14 +122,16 @@ def _attached_run(endpoint: str, steps: int, work_ms: float, timeout: float, bro
         return {
             "agent_steps_per_s": agent["steps_per_s"],
             "viewer_updates": updates,
-            "viewer_updates_per_s": round((active[-1][2] - active[0][2]) / span, 2) if len(active) > 1 else 0.0,
+            "viewer_updates_per_s": round((active[-1][2] - active[0][2]) / span, 2)
+            if len(active) > 1
+            else 0.0,
             "viewer_last_step": stats.last_step,
             "rss_before_mb": round(rss_before, 1),
             "rss_after_mb": round(_rss_mb(), 1),
             "rss_growth_mb": round((active[-1][1] if active else rss_before) - quarter[1], 1),
             "rss_max_mb": round(max((s[1] for s in samples), default=rss_before), 1),
             "viewer_matched": agent["viewer_matched"],
-            "browser_cpu_share": round(browser_cpu / elapsed, 3),   # cores the browser kept busy
+            "browser_cpu_share": round(browser_cpu / elapsed, 3),  # cores the browser kept busy
         }
     finally:
         if chromium is not None:
@@ -119,8 +139,13 @@ def _attached_run(endpoint: str, steps: int, work_ms: float, timeout: float, bro
         handle.stop()
 
 
-def run_viewer_bench(steps: int, out_json: str, work_ms: float = 30.0, browser: bool | None = None,
-                     rate_hz: float = ViewerConfig.rate_hz) -> dict[str, Any]:
+def run_viewer_bench(
+    steps: int,
+    out_json: str,
+    work_ms: float = 30.0,
+    browser: bool | None = None,
+    rate_hz: float = ViewerConfig.rate_hz,
+) -> dict[str, Any]:
     """Measure, write ``out_json`` and a Markdown table beside it, and return the figures."""
     from tidee.server.bench_sim import write_report
 
@@ -131,25 +156,33 @@ def run_viewer_bench(steps: int, out_json: str, work_ms: float = 30.0, browser: 
     alone = _run_agent(_free_endpoint(), steps, work_ms, wait_viewer=0.0, timeout=timeout)
     attached = _attached_run(_free_endpoint(), steps, work_ms, timeout, browser=False, rate_hz=rate_hz)
     result: dict[str, Any] = {
-        "steps": steps, "agent_work_ms_per_step": work_ms, "viewer_rate_hz": rate_hz,
+        "steps": steps,
+        "agent_work_ms_per_step": work_ms,
+        "viewer_rate_hz": rate_hz,
         "agent_steps_per_s_alone": alone["steps_per_s"],
         "agent_steps_per_s_with_viewer": attached["agent_steps_per_s"],
-        "agent_slowdown_pct_with_viewer": round(100 * (1 - attached["agent_steps_per_s"] / alone["steps_per_s"]), 1),
+        "agent_slowdown_pct_with_viewer": round(
+            100 * (1 - attached["agent_steps_per_s"] / alone["steps_per_s"]), 1
+        ),
         "viewer_updates_per_s": attached["viewer_updates_per_s"],
         "viewer_updates": attached["viewer_updates"],
-        "viewer_rss_before_mb": attached["rss_before_mb"], "viewer_rss_after_mb": attached["rss_after_mb"],
+        "viewer_rss_before_mb": attached["rss_before_mb"],
+        "viewer_rss_after_mb": attached["rss_after_mb"],
         "viewer_rss_growth_mb": attached["rss_growth_mb"],
     }
     if browser:
         with_browser = _attached_run(_free_endpoint(), steps, work_ms, timeout, browser=True, rate_hz=rate_hz)
-        result.update({
-            "agent_steps_per_s_with_viewer_and_browser": with_browser["agent_steps_per_s"],
-            "agent_slowdown_pct_with_viewer_and_browser": round(
-                100 * (1 - with_browser["agent_steps_per_s"] / alone["steps_per_s"]), 1),
-            "viewer_updates_per_s_with_browser": with_browser["viewer_updates_per_s"],
-            "viewer_rss_growth_mb_with_browser": with_browser["rss_growth_mb"],
-            "browser_cpu_share": with_browser["browser_cpu_share"],
-        })
+        result.update(
+            {
+                "agent_steps_per_s_with_viewer_and_browser": with_browser["agent_steps_per_s"],
+                "agent_slowdown_pct_with_viewer_and_browser": round(
+                    100 * (1 - with_browser["agent_steps_per_s"] / alone["steps_per_s"]), 1
+                ),
+                "viewer_updates_per_s_with_browser": with_browser["viewer_updates_per_s"],
+                "viewer_rss_growth_mb_with_browser": with_browser["rss_growth_mb"],
+                "browser_cpu_share": with_browser["browser_cpu_share"],
+            }
+        )
     result["machine"] = f"{platform.machine()} {os.cpu_count()} cores"
     write_report(out_json, result, "Viewer benchmark (`tidee.viewer.bench`)")
     return result
@@ -158,16 +191,26 @@ def run_viewer_bench(steps: int, out_json: str, work_ms: float = 30.0, browser: 
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m tidee.viewer.bench", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m tidee.viewer.bench",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--work-ms", type=float, default=30.0, help="the synthetic agent's CPU time per step")
     p.add_argument("--no-browser", action="store_true", help="skip the run with headless Chromium")
-    p.add_argument("--rate", type=float, default=ViewerConfig.rate_hz, help="the viewer's updates per second, at most")
+    p.add_argument(
+        "--rate", type=float, default=ViewerConfig.rate_hz, help="the viewer's updates per second, at most"
+    )
     p.add_argument("--out", default="bench/viewer.json")
     args = p.parse_args(argv)
-    result = run_viewer_bench(args.steps, args.out, work_ms=args.work_ms, browser=False if args.no_browser else None,
-                              rate_hz=args.rate)
+    result = run_viewer_bench(
+        args.steps,
+        args.out,
+        work_ms=args.work_ms,
+        browser=False if args.no_browser else None,
+        rate_hz=args.rate,
+    )
     print(json.dumps(result, indent=1))
     return 0
 

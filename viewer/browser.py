@@ -22,14 +22,26 @@ from typing import Any
 
 import cv2
 import numpy as np
-from tidee.viewer.palette import UNLABELLED_RGB, class_color
 from websockets.sync.client import ClientConnection, connect
+
+from tidee.viewer.palette import UNLABELLED_RGB, class_color
 
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 # WebGL without a GPU: SwiftShader (software). Newer Chromium needs it asked for by name.
-FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-         "--disable-component-update", "--disable-sync", "--disable-extensions", "--mute-audio",
-         "--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--hide-scrollbars")
+FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-extensions",
+    "--mute-audio",
+    "--enable-unsafe-swiftshader",
+    "--use-angle=swiftshader",
+    "--hide-scrollbars",
+)
 
 
 # The viewer's page at the default window size: the 3D canvas lies between the left
@@ -88,25 +100,40 @@ def find_chromium() -> str | None:
 class HeadlessChromium:
     """One headless Chromium with a fresh profile and one page, driven over DevTools."""
 
-    def __init__(self, binary: str | None = None, width: int = WIDTH, height: int = HEIGHT,
-                 start_timeout: float = 30.0) -> None:
+    def __init__(
+        self, binary: str | None = None, width: int = WIDTH, height: int = HEIGHT, start_timeout: float = 30.0
+    ) -> None:
         found = binary or find_chromium()
         if found is None:
-            raise FileNotFoundError("no chromium binary found (install Debian's chromium: scripts/install_chromium.sh)")
+            raise FileNotFoundError(
+                "no chromium binary found (install Debian's chromium: scripts/install_chromium.sh)"
+            )
         self.width, self.height = width, height
         self._profile = tempfile.mkdtemp(prefix="tidee-chromium-")
         self._ids = itertools.count(1)
         self._proc = subprocess.Popen(
-            [found, *FLAGS, f"--user-data-dir={self._profile}", f"--window-size={width},{height}",
-             "--remote-debugging-port=0", "--remote-allow-origins=*", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            [
+                found,
+                *FLAGS,
+                f"--user-data-dir={self._profile}",
+                f"--window-size={width},{height}",
+                "--remote-debugging-port=0",
+                "--remote-allow-origins=*",
+                "about:blank",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         try:
             port = self._devtools_port(start_timeout)
-            self._ws: ClientConnection = connect(self._page_socket(port, start_timeout), max_size=64 << 20,
-                                                 open_timeout=start_timeout)
+            self._ws: ClientConnection = connect(
+                self._page_socket(port, start_timeout), max_size=64 << 20, open_timeout=start_timeout
+            )
             self.call("Page.enable")
-            self.call("Emulation.setDeviceMetricsOverride",
-                      {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False})
+            self.call(
+                "Emulation.setDeviceMetricsOverride",
+                {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False},
+            )
         except BaseException:
             self.close()
             raise
@@ -116,7 +143,9 @@ class HeadlessChromium:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self._proc.poll() is not None:
-                raise RuntimeError(f"chromium exited with code {self._proc.returncode} before opening DevTools")
+                raise RuntimeError(
+                    f"chromium exited with code {self._proc.returncode} before opening DevTools"
+                )
             try:
                 with open(path) as f:
                     first = f.readline().strip()
@@ -140,7 +169,9 @@ class HeadlessChromium:
                 raise TimeoutError("chromium has no page target to drive")
             time.sleep(0.1)
 
-    def call(self, method: str, params: dict[str, Any] | None = None, timeout: float = 30.0) -> dict[str, Any]:
+    def call(
+        self, method: str, params: dict[str, Any] | None = None, timeout: float = 30.0
+    ) -> dict[str, Any]:
         """One DevTools command; returns its result (events arriving meanwhile are skipped)."""
         msg_id = next(self._ids)
         self._ws.send(json.dumps({"id": msg_id, "method": method, "params": params or {}}))
@@ -196,7 +227,9 @@ class HeadlessChromium:
             raise RuntimeError("chromium returned a screenshot opencv cannot decode")
         return bgr[..., ::-1].copy()
 
-    def wait_for(self, predicate: Callable[[np.ndarray], bool], timeout: float, interval: float = 0.5) -> np.ndarray:
+    def wait_for(
+        self, predicate: Callable[[np.ndarray], bool], timeout: float, interval: float = 0.5
+    ) -> np.ndarray:
         """Screenshots until ``predicate(image)`` holds; returns that image (``TimeoutError`` otherwise)."""
         deadline = time.monotonic() + timeout
         while True:
@@ -283,9 +316,14 @@ def map_drawn(img: np.ndarray, n_classes: int) -> bool:
     return labelled > 300 and labelled + grey > 3000
 
 
-def region_drawn(img: np.ndarray, box: tuple[int, int, int, int], min_std: float = 12.0,
-                 min_colors: int = 64) -> bool:
+def region_drawn(
+    img: np.ndarray, box: tuple[int, int, int, int], min_std: float = 12.0, min_colors: int = 64
+) -> bool:
     """A panel's region of a screenshot holds a picture, not a blank or flat area."""
     x0, y0, x1, y1 = box
     crop = img[y0:y1, x0:x1]
-    return crop.size > 0 and float(crop.astype(np.float32).std()) > min_std and distinct_colors(crop) >= min_colors
+    return (
+        crop.size > 0
+        and float(crop.astype(np.float32).std()) > min_std
+        and distinct_colors(crop) >= min_colors
+    )

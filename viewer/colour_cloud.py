@@ -9,9 +9,10 @@ first. Pure numpy (vectorised), no viser.
 from __future__ import annotations
 
 import numpy as np
+
 from tidee.viewer import geometry
 
-_BIAS = 1 << 20                       # voxel indices in [-2^20, 2^20) pack into 21 bits each
+_BIAS = 1 << 20  # voxel indices in [-2^20, 2^20) pack into 21 bits each
 
 
 class ColourCloud:
@@ -21,13 +22,25 @@ class ColourCloud:
     and heatmap on it stay visible) and anything above the walls.
     """
 
-    def __init__(self, voxel: float = 0.05, cap: int = 150_000, stride: int = 2, max_depth: float = 6.0,
-                 floor_z: float = 0.05, ceiling_z: float = 2.4) -> None:
+    def __init__(
+        self,
+        voxel: float = 0.05,
+        cap: int = 150_000,
+        stride: int = 2,
+        max_depth: float = 6.0,
+        floor_z: float = 0.05,
+        ceiling_z: float = 2.4,
+    ) -> None:
         if voxel <= 0 or cap < 1 or stride < 1:
             raise ValueError(f"need voxel > 0, cap >= 1 and stride >= 1, got {voxel}, {cap}, {stride}")
-        self.voxel, self.cap, self.stride, self.max_depth = float(voxel), int(cap), int(stride), float(max_depth)
+        self.voxel, self.cap, self.stride, self.max_depth = (
+            float(voxel),
+            int(cap),
+            int(stride),
+            float(max_depth),
+        )
         self.floor_z, self.ceiling_z = float(floor_z), float(ceiling_z)
-        self.frames = 0                       # frames added since the last clear
+        self.frames = 0  # frames added since the last clear
         self.clear()
 
     def clear(self) -> None:
@@ -44,7 +57,7 @@ class ColourCloud:
         """Fuse one frame; returns the number of voxels kept."""
         img = np.asarray(rgb, np.uint8)
         d = np.asarray(depth, np.float32)
-        if img.shape[:2] != d.shape:          # an image and depth of different sizes: pick depth's pixels
+        if img.shape[:2] != d.shape:  # an image and depth of different sizes: pick depth's pixels
             rows = np.arange(d.shape[0]) * img.shape[0] // d.shape[0]
             cols = np.arange(d.shape[1]) * img.shape[1] // d.shape[1]
             img = img[rows][:, cols]
@@ -69,10 +82,10 @@ class ColourCloud:
         self._keys = np.insert(self._keys, at[fresh], keys[fresh])
         self._colors = np.insert(self._colors, at[fresh], colors[fresh], axis=0)
         self._stamps = np.insert(self._stamps, at[fresh], self.frames)
-        if len(self._keys) > self.cap:        # over the cap: the most recently seen voxels stay
+        if len(self._keys) > self.cap:  # over the cap: the most recently seen voxels stay
             cut = np.partition(self._stamps, len(self._stamps) - self.cap)[len(self._stamps) - self.cap]
             keep = self._stamps > cut
-            ties = np.flatnonzero(self._stamps == cut)[:self.cap - int(keep.sum())]
+            ties = np.flatnonzero(self._stamps == cut)[: self.cap - int(keep.sum())]
             keep[ties] = True
             self._keys, self._colors, self._stamps = self._keys[keep], self._colors[keep], self._stamps[keep]
         return len(self)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import zenoh
+
 from tidee.protocol import keys
 from tidee.protocol.codec import ProtocolError, decode, encode
 from tidee.protocol.messages import (
@@ -38,22 +39,29 @@ from tidee.protocol.zenoh_config import make_config, resolve_endpoint, resolve_r
 
 log = logging.getLogger("tidee.viewer.feed")
 
-OBSERVATION = "observation"            # the server's raw feed, beside the agent's telemetry kinds
-MESSAGE_TYPES: dict[str, type] = {"status": AgentStatus, "frame": AgentFrame, "maps": MapSnapshot,
-                                  "memory": ObjectMemoryMsg, "search": SearchHeatmap, "ack": CommandAck,
-                                  "summary": EpisodeSummary, OBSERVATION: Observation}
-RING_CAPACITY = 8                      # per kind, all sessions together
-MAX_SESSIONS = 64                      # known sessions kept (the oldest gone ones are forgotten first)
-LIVELINESS_INBOX = 256                  # liveliness events between two polls (a ring: Zenoh never waits on us)
+OBSERVATION = "observation"  # the server's raw feed, beside the agent's telemetry kinds
+MESSAGE_TYPES: dict[str, type] = {
+    "status": AgentStatus,
+    "frame": AgentFrame,
+    "maps": MapSnapshot,
+    "memory": ObjectMemoryMsg,
+    "search": SearchHeatmap,
+    "ack": CommandAck,
+    "summary": EpisodeSummary,
+    OBSERVATION: Observation,
+}
+RING_CAPACITY = 8  # per kind, all sessions together
+MAX_SESSIONS = 64  # known sessions kept (the oldest gone ones are forgotten first)
+LIVELINESS_INBOX = 256  # liveliness events between two polls (a ring: Zenoh never waits on us)
 
 
 @dataclass
 class SessionInfo:
     session: str
-    server_id: str | None = None       # from liveliness or the observation key
-    alive: bool = False                # a server hosts it now (liveliness token present)
-    last_telemetry: float = 0.0        # monotonic time of the last agent telemetry seen
-    last_seen: float = 0.0             # monotonic time of anything about it
+    server_id: str | None = None  # from liveliness or the observation key
+    alive: bool = False  # a server hosts it now (liveliness token present)
+    last_telemetry: float = 0.0  # monotonic time of the last agent telemetry seen
+    last_seen: float = 0.0  # monotonic time of anything about it
 
     def describe(self) -> str:
         where = f" on {self.server_id}" if self.server_id else ""
@@ -74,26 +82,36 @@ class LiveFeed:
     ``session``: pin this session; None follows the most recently active session.
     """
 
-    def __init__(self, endpoint: str | None = None, router: str | None = None, session: str | None = None) -> None:
+    def __init__(
+        self, endpoint: str | None = None, router: str | None = None, session: str | None = None
+    ) -> None:
         if session is not None:
             keys.check_id("session", session)
         self.where = resolve_router(router) or resolve_endpoint(endpoint)
         self._pinned = session
         self._auto: str | None = None
         self._sessions: dict[str, SessionInfo] = {}
-        self._pending: dict[str, zenoh.Sample] = {}       # newest undecoded sample per kind (selected session)
+        self._pending: dict[str, zenoh.Sample] = {}  # newest undecoded sample per kind (selected session)
         self._lock = threading.Lock()
         self.decode_errors = 0
         self.last_error = ""
-        self._z: zenoh.Session | None = zenoh.open(make_config(listen=False, endpoint=endpoint, router=router))
+        self._z: zenoh.Session | None = zenoh.open(
+            make_config(listen=False, endpoint=endpoint, router=router)
+        )
         try:
             self._subs: dict[str, Any] = {
-                kind: self._z.declare_subscriber(_telemetry_of_kind(kind), zenoh.handlers.RingChannel(RING_CAPACITY))
-                for kind in TELEMETRY_KINDS if kind in MESSAGE_TYPES}   # a kind this viewer cannot show: not heard
-            self._subs[OBSERVATION] = self._z.declare_subscriber(keys.observations_wildcard(),
-                                                                 zenoh.handlers.RingChannel(RING_CAPACITY))
+                kind: self._z.declare_subscriber(
+                    _telemetry_of_kind(kind), zenoh.handlers.RingChannel(RING_CAPACITY)
+                )
+                for kind in TELEMETRY_KINDS
+                if kind in MESSAGE_TYPES
+            }  # a kind this viewer cannot show: not heard
+            self._subs[OBSERVATION] = self._z.declare_subscriber(
+                keys.observations_wildcard(), zenoh.handlers.RingChannel(RING_CAPACITY)
+            )
             self._alive = self._z.liveliness().declare_subscriber(
-                keys.alive_sessions_wildcard(), zenoh.handlers.RingChannel(LIVELINESS_INBOX), history=True)
+                keys.alive_sessions_wildcard(), zenoh.handlers.RingChannel(LIVELINESS_INBOX), history=True
+            )
         except BaseException:
             self.close()
             raise
@@ -133,8 +151,11 @@ class LiveFeed:
         if info is None:
             info = self._sessions[session] = SessionInfo(session)
             if len(self._sessions) > MAX_SESSIONS:
-                stale = min((s for s in self._sessions.values() if not s.alive and s.session != session),
-                            key=lambda s: s.last_seen, default=None)
+                stale = min(
+                    (s for s in self._sessions.values() if not s.alive and s.session != session),
+                    key=lambda s: s.last_seen,
+                    default=None,
+                )
                 if stale is not None:
                     del self._sessions[stale.session]
         info.last_seen = now
@@ -179,7 +200,7 @@ class LiveFeed:
         except ValueError:
             return
         selected = self._pinned or self._auto
-        if selected is None:                 # auto mode, nothing chosen yet: the first one heard
+        if selected is None:  # auto mode, nothing chosen yet: the first one heard
             self._auto = selected = session
         if session == selected:
             self._pending[kind] = sample
@@ -189,7 +210,9 @@ class LiveFeed:
         current = self._sessions.get(self._auto) if self._auto else None
         if current is not None and (current.alive or time.monotonic() - current.last_telemetry < 10.0):
             return self._auto
-        best = max(self._sessions.values(), key=lambda s: (s.alive, s.last_telemetry, s.last_seen), default=None)
+        best = max(
+            self._sessions.values(), key=lambda s: (s.alive, s.last_telemetry, s.last_seen), default=None
+        )
         if best is not None and best.session != self._auto:
             self._pending.clear()
             return best.session
@@ -234,22 +257,27 @@ class LiveFeed:
         ``LookupError`` when no server is known for it, ``TimeoutError`` with no reply."""
         server_id = self.server_of(session)
         if server_id is None:
-            raise LookupError(f"no server known for session {session!r} (no liveliness token or observation seen)")
+            raise LookupError(
+                f"no server known for session {session!r} (no liveliness token or observation seen)"
+            )
         if self._z is None:
             raise RuntimeError("the feed is closed")
-        replies = self._z.get(keys.sim_op(server_id, session, "state"), payload=encode(StateRequest(session)),
-                              timeout=timeout)
+        replies = self._z.get(
+            keys.sim_op(server_id, session, "state"), payload=encode(StateRequest(session)), timeout=timeout
+        )
         for reply in replies:
             if reply.ok is not None:
                 return decode(reply.ok.payload.to_bytes(), expected=StateReply).scene
             payload = reply.err.payload.to_bytes()
             try:
                 err = decode(payload, expected=ErrorReply)
-                raise RuntimeError(f"server {server_id!r} refused the state of {session!r}: {err.code.value}: "
-                                   f"{err.message}")
+                raise RuntimeError(
+                    f"server {server_id!r} refused the state of {session!r}: {err.code.value}: {err.message}"
+                )
             except ProtocolError:
-                raise TimeoutError(f"no state from server {server_id!r} for {session!r}: "
-                                   f"{payload[:80]!r}") from None
+                raise TimeoutError(
+                    f"no state from server {server_id!r} for {session!r}: {payload[:80]!r}"
+                ) from None
         raise TimeoutError(f"no reply from server {server_id!r} to a state request for {session!r}")
 
     def close(self) -> None:

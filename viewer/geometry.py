@@ -32,7 +32,7 @@ def boxes_segments(box_mins: np.ndarray, box_maxs: np.ndarray) -> np.ndarray:
     hi = np.asarray(box_maxs, np.float32).reshape(-1, 3)
     if lo.shape != hi.shape:
         raise ValueError(f"box mins and maxes differ in shape: {lo.shape} vs {hi.shape}")
-    corners = np.where(_CORNER_BITS[None], hi[:, None, :], lo[:, None, :])   # N x 8 x 3
+    corners = np.where(_CORNER_BITS[None], hi[:, None, :], lo[:, None, :])  # N x 8 x 3
     return corners[:, BOX_EDGES].reshape(-1, 2, 3)
 
 
@@ -90,10 +90,13 @@ def quat_xyzw_to_matrix(q: Sequence[float]) -> np.ndarray:
     if n == 0:
         raise ValueError("a zero quaternion is not a rotation")
     x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 @dataclass(frozen=True)
@@ -118,7 +121,9 @@ def frustum(camera_pose: np.ndarray, intrinsics: np.ndarray, width: int, height:
         raise ValueError(f"need a positive image size and focal length, got {width}x{height}, fy={k[1, 1]}")
     fov = 2.0 * math.atan(height / (2.0 * k[1, 1]))
     pos = pose[:3, 3]
-    return Frustum(fov, width / height, rotation_to_wxyz(pose[:3, :3]), (float(pos[0]), float(pos[1]), float(pos[2])))
+    return Frustum(
+        fov, width / height, rotation_to_wxyz(pose[:3, :3]), (float(pos[0]), float(pos[1]), float(pos[2]))
+    )
 
 
 def camera_pose_from_agent(x: float, y: float, yaw_deg: float, pitch_deg: float, height: float) -> np.ndarray:
@@ -128,7 +133,12 @@ def camera_pose_from_agent(x: float, y: float, yaw_deg: float, pitch_deg: float,
     forward = np.array([math.cos(yaw) * math.cos(pitch), math.sin(yaw) * math.cos(pitch), -math.sin(pitch)])
     right = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
     pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, (x, y, height)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = (
+        right,
+        np.cross(forward, right),
+        forward,
+        (x, y, height),
+    )
     return pose
 
 
@@ -137,7 +147,7 @@ def start_from_world(start_x: float, start_y: float, start_yaw_deg: float) -> np
     yaw = math.radians(start_yaw_deg)
     c, s = math.cos(yaw), math.sin(yaw)
     t = np.eye(4)
-    t[:3, :3] = [[c, s, 0], [-s, c, 0], [0, 0, 1]]   # R(-yaw)
+    t[:3, :3] = [[c, s, 0], [-s, c, 0], [0, 0, 1]]  # R(-yaw)
     t[:3, 3] = t[:3, :3] @ np.array([-start_x, -start_y, 0.0])
     return t
 
@@ -159,8 +169,9 @@ def grid_plane(origin: Sequence[float], cell: float, shape: tuple[int, ...], z: 
     return FloorPlane((float(origin[0]) + sx / 2.0, float(origin[1]) + sy / 2.0, z), sx, sy)
 
 
-def known_plane(origin: Sequence[float], cell: float, occupancy: np.ndarray, margin: float = 0.5,
-                z: float = 0.01) -> FloorPlane | None:
+def known_plane(
+    origin: Sequence[float], cell: float, occupancy: np.ndarray, margin: float = 0.5, z: float = 0.01
+) -> FloorPlane | None:
     """The floor rectangle around a grid's known cells (occupancy > 0), ``margin`` metres
     wider on each side; None when nothing is known yet."""
     known = np.argwhere(np.asarray(occupancy) > 0)
@@ -168,8 +179,9 @@ def known_plane(origin: Sequence[float], cell: float, occupancy: np.ndarray, mar
         return None
     lo = np.asarray(origin[:2], float) + known.min(axis=0) * cell - margin
     hi = np.asarray(origin[:2], float) + (known.max(axis=0) + 1) * cell + margin
-    return FloorPlane((float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2, z), float(hi[0] - lo[0]),
-                      float(hi[1] - lo[1]))
+    return FloorPlane(
+        (float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2, z), float(hi[0] - lo[0]), float(hi[1] - lo[1])
+    )
 
 
 @dataclass(frozen=True)
@@ -189,6 +201,7 @@ def overview_camera(plane: FloorPlane) -> CameraView:
 
 # --- screen-sized labels ----------------------------------------------------------------------
 
+
 @dataclass(frozen=True)
 class ScreenView:
     """A pinhole camera, enough to lay out labels drawn at a fixed screen size: its
@@ -196,7 +209,7 @@ class ScreenView:
     length in pixels."""
 
     position: tuple[float, float, float]
-    axes: tuple[tuple[float, float, float], ...]   # 3x3 rows of the rotation matrix
+    axes: tuple[tuple[float, float, float], ...]  # 3x3 rows of the rotation matrix
     focal_px: float
 
     def rotation(self) -> np.ndarray:
@@ -210,18 +223,26 @@ class ScreenView:
         return cam[:, :2] * (self.focal_px / safe)[:, None], depth
 
 
-def screen_view(position: Sequence[float], wxyz: Sequence[float], fov_y: float, image_height: int) -> ScreenView:
+def screen_view(
+    position: Sequence[float], wxyz: Sequence[float], fov_y: float, image_height: int
+) -> ScreenView:
     """The view of a viser client camera (its ``position``, ``wxyz``, vertical ``fov`` and canvas height)."""
     if not 0 < fov_y < math.pi or image_height <= 0:
-        raise ValueError(f"need a vertical fov in (0, pi) and a positive image height, got {fov_y}, {image_height}")
+        raise ValueError(
+            f"need a vertical fov in (0, pi) and a positive image height, got {fov_y}, {image_height}"
+        )
     w, x, y, z = (float(v) for v in wxyz)
     rot = quat_xyzw_to_matrix((x, y, z, w))
-    return ScreenView(tuple(float(v) for v in position), tuple(tuple(float(v) for v in row) for row in rot),
-                      image_height / (2.0 * math.tan(fov_y / 2.0)))
+    return ScreenView(
+        tuple(float(v) for v in position),
+        tuple(tuple(float(v) for v in row) for row in rot),
+        image_height / (2.0 * math.tan(fov_y / 2.0)),
+    )
 
 
-def screen_view_looking_at(view: CameraView, fov_y: float, image_height: int,
-                           up: Sequence[float] = (0.0, 0.0, 1.0)) -> ScreenView:
+def screen_view_looking_at(
+    view: CameraView, fov_y: float, image_height: int, up: Sequence[float] = (0.0, 0.0, 1.0)
+) -> ScreenView:
     """The view of a camera at ``view.position`` looking at ``view.look_at`` with ``up`` up
     (the page's initial camera, before any client has reported its own)."""
     eye, target = np.asarray(view.position, np.float64), np.asarray(view.look_at, np.float64)
@@ -230,7 +251,7 @@ def screen_view_looking_at(view: CameraView, fov_y: float, image_height: int,
         raise ValueError("the camera's position and look_at coincide")
     forward /= np.linalg.norm(forward)
     right = np.cross(forward, np.asarray(up, np.float64))
-    if np.linalg.norm(right) < 1e-9:             # looking straight along up: any right will do
+    if np.linalg.norm(right) < 1e-9:  # looking straight along up: any right will do
         right = np.cross(forward, (1.0, 0.0, 0.0))
     right /= np.linalg.norm(right)
     down = np.cross(forward, right)
@@ -238,7 +259,9 @@ def screen_view_looking_at(view: CameraView, fov_y: float, image_height: int,
     return screen_view(view.position, rotation_to_wxyz(rot), fov_y, image_height)
 
 
-def place_labels(anchors: np.ndarray, sizes_px: np.ndarray, view: ScreenView, gap_px: float = 3.0) -> np.ndarray:
+def place_labels(
+    anchors: np.ndarray, sizes_px: np.ndarray, view: ScreenView, gap_px: float = 3.0
+) -> np.ndarray:
     """Where to draw labels so that none overlaps another on screen: ``Nx3`` world positions.
 
     ``anchors`` (``Nx3``, in priority order) are the points the labels belong to; each label is
@@ -263,11 +286,15 @@ def place_labels(anchors: np.ndarray, sizes_px: np.ndarray, view: ScreenView, ga
         (w, h), (u, v) = sizes[i], uv[i]
         x0, x1, bottom = u - w / 2, u + w / 2, v
         while True:
-            hits = placed[(placed[:, 0] < x1 + gap_px) & (x0 - gap_px < placed[:, 2])
-                          & (placed[:, 1] < bottom + gap_px) & (bottom - h - gap_px < placed[:, 3])]
+            hits = placed[
+                (placed[:, 0] < x1 + gap_px)
+                & (x0 - gap_px < placed[:, 2])
+                & (placed[:, 1] < bottom + gap_px)
+                & (bottom - h - gap_px < placed[:, 3])
+            ]
             if not len(hits):
                 break
-            bottom = float(hits[:, 1].min()) - gap_px     # just above the highest box it meets
+            bottom = float(hits[:, 1].min()) - gap_px  # just above the highest box it meets
         placed = np.vstack([placed, (x0, bottom - h, x1, bottom)])
         out[i] = pts[i] + up_world * ((v - bottom) * depth[i] / view.focal_px)
     return out
@@ -276,26 +303,34 @@ def place_labels(anchors: np.ndarray, sizes_px: np.ndarray, view: ScreenView, ga
 def label_boxes(uv: np.ndarray, sizes_px: np.ndarray) -> np.ndarray:
     """``Nx4`` screen boxes (x0, y0, x1, y1; y down) of labels anchored bottom-centre at ``uv``."""
     uv, sizes = np.asarray(uv, np.float64).reshape(-1, 2), np.asarray(sizes_px, np.float64).reshape(-1, 2)
-    return np.stack([uv[:, 0] - sizes[:, 0] / 2, uv[:, 1] - sizes[:, 1], uv[:, 0] + sizes[:, 0] / 2, uv[:, 1]],
-                    axis=1)
+    return np.stack(
+        [uv[:, 0] - sizes[:, 0] / 2, uv[:, 1] - sizes[:, 1], uv[:, 0] + sizes[:, 0] / 2, uv[:, 1]], axis=1
+    )
 
 
-def unproject_depth(depth: np.ndarray, intrinsics: np.ndarray, camera_pose: np.ndarray, stride: int = 1,
-                    max_depth: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
+def unproject_depth(
+    depth: np.ndarray,
+    intrinsics: np.ndarray,
+    camera_pose: np.ndarray,
+    stride: int = 1,
+    max_depth: float = 6.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Start-frame points of a depth image (every ``stride``-th pixel with depth in
     (0, ``max_depth``]): ``Nx3`` float32 points and the ``Nx2`` (row, column) of their pixels.
     ``camera_pose`` maps the optical frame to the start frame (protocol/messages.py)."""
     d = np.asarray(depth, np.float32)
     k, pose = np.asarray(intrinsics, np.float64), np.asarray(camera_pose, np.float64)
     if d.ndim != 2 or k.shape != (3, 3) or pose.shape != (4, 4):
-        raise ValueError(f"need an HxW depth, 3x3 intrinsics and a 4x4 pose, got {d.shape}, {k.shape}, {pose.shape}")
+        raise ValueError(
+            f"need an HxW depth, 3x3 intrinsics and a 4x4 pose, got {d.shape}, {k.shape}, {pose.shape}"
+        )
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
-    rows, cols = np.mgrid[0:d.shape[0]:stride, 0:d.shape[1]:stride]
+    rows, cols = np.mgrid[0 : d.shape[0] : stride, 0 : d.shape[1] : stride]
     z = d[rows, cols]
     valid = np.isfinite(z) & (z > 0) & (z <= max_depth)
     rows, cols, z = rows[valid], cols[valid], z[valid].astype(np.float64)
-    x = (cols - k[0, 2]) * z / k[0, 0]           # pixel (u, v) -> d (u - cx) / fx: the protocol's convention
+    x = (cols - k[0, 2]) * z / k[0, 0]  # pixel (u, v) -> d (u - cx) / fx: the protocol's convention
     y = (rows - k[1, 2]) * z / k[1, 1]
     pts = np.stack([x, y, z], axis=1) @ pose[:3, :3].T + pose[:3, 3]
     return pts.astype(np.float32), np.stack([rows, cols], axis=1)

@@ -15,13 +15,14 @@ from collections.abc import Sequence
 
 import cv2
 import numpy as np
+
 from tidee.protocol.messages import Detection2D
 from tidee.viewer.palette import PATH_RGB, RGB, SEARCH_POINT_RGB, TRACKED_RGB, TRAJECTORY_RGB, WARNING_RGB
 
-OOP_THRESHOLD = 0.5          # a detection with oop_prob above this is drawn as out of place
+OOP_THRESHOLD = 0.5  # a detection with oop_prob above this is drawn as out of place
 UNKNOWN_RGB: RGB = (44, 46, 52)
 FREE_RGB: RGB = (236, 236, 228)
-SEEN_FREE_RGB: RGB = (196, 206, 196)   # free but not yet explored (seen from afar)
+SEEN_FREE_RGB: RGB = (196, 206, 196)  # free but not yet explored (seen from afar)
 OBSTACLE_RGB: RGB = (70, 84, 130)
 AGENT_RGB: RGB = (220, 30, 30)
 
@@ -47,7 +48,9 @@ def upscale(img: np.ndarray, min_width: int) -> tuple[np.ndarray, int]:
     factor = max(1, math.ceil(min_width / max(img.shape[1], 1)))
     if factor == 1:
         return np.ascontiguousarray(img), 1
-    return cv2.resize(img, (img.shape[1] * factor, img.shape[0] * factor), interpolation=cv2.INTER_NEAREST), factor
+    return cv2.resize(
+        img, (img.shape[1] * factor, img.shape[0] * factor), interpolation=cv2.INTER_NEAREST
+    ), factor
 
 
 def draw_detections(rgb: np.ndarray, detections: Sequence[Detection2D], min_width: int = 512) -> np.ndarray:
@@ -78,7 +81,9 @@ def colorize_depth(depth: np.ndarray, max_depth: float = 5.0, min_width: int = 5
     img, _ = upscale(rgb, min_width)
     if img.shape[1] >= 128:  # room for the scale note
         img = img.copy()
-        _label(img, f"depth 0-{max_depth:g} m", (4, img.shape[0] - 4), (255, 255, 255), _font_scale(img.shape[1]))
+        _label(
+            img, f"depth 0-{max_depth:g} m", (4, img.shape[0] - 4), (255, 255, 255), _font_scale(img.shape[1])
+        )
     return np.ascontiguousarray(img)
 
 
@@ -106,8 +111,11 @@ class MapCanvas:
     def grid_to_image(self, grid_rgb: np.ndarray) -> np.ndarray:
         """An ``X x Y x 3`` per-cell colour grid as the map image (flipped, enlarged)."""
         flipped = np.ascontiguousarray(grid_rgb[::-1, ::-1])
-        return cv2.resize(flipped, (flipped.shape[1] * self.scale, flipped.shape[0] * self.scale),
-                          interpolation=cv2.INTER_NEAREST)
+        return cv2.resize(
+            flipped,
+            (flipped.shape[1] * self.scale, flipped.shape[0] * self.scale),
+            interpolation=cv2.INTER_NEAREST,
+        )
 
 
 def occupancy_colors(occupancy: np.ndarray, explored: np.ndarray | None = None) -> np.ndarray:
@@ -134,7 +142,7 @@ def occupancy_colors(occupancy: np.ndarray, explored: np.ndarray | None = None) 
 def draw_agent(img: np.ndarray, canvas: MapCanvas, pose: Sequence[float], color: RGB = AGENT_RGB) -> None:
     """A filled arrowhead at (x, y) pointing along yaw (degrees, counter-clockwise from +x)."""
     x, y, yaw = float(pose[0]), float(pose[1]), math.radians(float(pose[2]))
-    length = max(0.35, 6 / canvas.scale * canvas.cell)          # metres: visible at any zoom
+    length = max(0.35, 6 / canvas.scale * canvas.cell)  # metres: visible at any zoom
     tip = (x + length * math.cos(yaw), y + length * math.sin(yaw))
     left = (x + 0.45 * length * math.cos(yaw + 2.4), y + 0.45 * length * math.sin(yaw + 2.4))
     right = (x + 0.45 * length * math.cos(yaw - 2.4), y + 0.45 * length * math.sin(yaw - 2.4))
@@ -143,10 +151,18 @@ def draw_agent(img: np.ndarray, canvas: MapCanvas, pose: Sequence[float], color:
     cv2.polylines(img, [tri], True, (255, 255, 255), 1, cv2.LINE_AA)
 
 
-def occupancy_image(occupancy: np.ndarray, explored: np.ndarray | None, origin: Sequence[float], cell: float,
-                    pose: Sequence[float] | None = None, trajectory: np.ndarray | None = None,
-                    path: np.ndarray | None = None, goal: Sequence[float] | None = None,
-                    search_points: np.ndarray | None = None, min_width: int = 360) -> np.ndarray:
+def occupancy_image(
+    occupancy: np.ndarray,
+    explored: np.ndarray | None,
+    origin: Sequence[float],
+    cell: float,
+    pose: Sequence[float] | None = None,
+    trajectory: np.ndarray | None = None,
+    path: np.ndarray | None = None,
+    goal: Sequence[float] | None = None,
+    search_points: np.ndarray | None = None,
+    min_width: int = 360,
+) -> np.ndarray:
     """The 2D occupancy / explored map (+x up) with the trajectory, planned path, goal,
     search points and the agent drawn over it."""
     occ = np.asarray(occupancy)
@@ -165,8 +181,16 @@ def occupancy_image(occupancy: np.ndarray, explored: np.ndarray | None, origin: 
         for rank, (col, row) in enumerate(canvas.pixels(search_points)[:5], start=1):
             cv2.circle(img, (int(col), int(row)), 2 * thick + 1, SEARCH_POINT_RGB, -1, cv2.LINE_AA)
             if rank <= 3:
-                cv2.putText(img, str(rank), (int(col) + 4, int(row) - 4), cv2.FONT_HERSHEY_SIMPLEX,
-                            _font_scale(img.shape[1]), SEARCH_POINT_RGB, 1, cv2.LINE_AA)
+                cv2.putText(
+                    img,
+                    str(rank),
+                    (int(col) + 4, int(row) - 4),
+                    cv2.FONT_HERSHEY_SIMPLEX,
+                    _font_scale(img.shape[1]),
+                    SEARCH_POINT_RGB,
+                    1,
+                    cv2.LINE_AA,
+                )
     if pose is not None:
         draw_agent(img, canvas, pose)
     return img
@@ -181,7 +205,9 @@ def heatmap_rgba(heatmap: np.ndarray, min_alpha: int = 0, max_alpha: int = 210) 
     h = np.clip(np.nan_to_num(h, nan=0.0), 0.0, 1.0)
     level = (h * 255.0).astype(np.uint8)
     rgb = cv2.applyColorMap(level, cv2.COLORMAP_JET)[..., ::-1]
-    alpha = (min_alpha + np.sqrt(h) * (max_alpha - min_alpha)).astype(np.uint8)  # sqrt: the tails stay visible
+    alpha = (min_alpha + np.sqrt(h) * (max_alpha - min_alpha)).astype(
+        np.uint8
+    )  # sqrt: the tails stay visible
     rgba = np.concatenate([rgb, alpha[..., None]], axis=2)
     return np.ascontiguousarray(rgba.transpose(1, 0, 2))
 
@@ -191,13 +217,20 @@ def placeholder(text: str, width: int = 512, height: int = 288) -> np.ndarray:
     img = np.full((height, width, 3), 36, np.uint8)
     scale = _font_scale(width)
     (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-    cv2.putText(img, text, ((width - tw) // 2, (height + th) // 2), cv2.FONT_HERSHEY_SIMPLEX, scale,
-                (200, 200, 200), 1, cv2.LINE_AA)
+    cv2.putText(
+        img,
+        text,
+        ((width - tw) // 2, (height + th) // 2),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        scale,
+        (200, 200, 200),
+        1,
+        cv2.LINE_AA,
+    )
     return img
 
 
-
-PLOT_SIZE = (360, 170)                # width, height of the progress plot image (px): about its size on the page
+PLOT_SIZE = (360, 170)  # width, height of the progress plot image (px): about its size on the page
 PLOT_SERIES = (("put away", WARNING_RGB), ("out of place found", TRAJECTORY_RGB))
 
 
@@ -220,7 +253,7 @@ def progress_plot(history: np.ndarray, size: tuple[int, int] = PLOT_SIZE) -> np.
     rows = np.asarray(history, np.float64).reshape(-1, 3)
     img = np.full((height, width, 3), 255, np.uint8)
     font, scale, ink, grid = cv2.FONT_HERSHEY_SIMPLEX, 0.45, (60, 60, 60), (228, 228, 228)
-    left, right, top, bottom = 34, 14, 26, 26                   # margins: ticks, legend row, x labels
+    left, right, top, bottom = 34, 14, 26, 26  # margins: ticks, legend row, x labels
     x0, x1, y0, y1 = left, width - right, top, height - bottom  # plot area (y down)
     # legend row: swatch + name per series, above the plot area so it never covers a line
     x = left
@@ -239,13 +272,13 @@ def progress_plot(history: np.ndarray, size: tuple[int, int] = PLOT_SIZE) -> np.
         return np.round(np.stack([u, v], axis=-1)).astype(np.int32)
 
     for t in yticks:
-        (_, v), = px(np.array([0.0]), np.array([t]))
+        ((_, v),) = px(np.array([0.0]), np.array([t]))
         cv2.line(img, (x0, int(v)), (x1, int(v)), grid, 1)
         label = f"{t:g}"
         tw = cv2.getTextSize(label, font, scale, 1)[0][0]
         cv2.putText(img, label, (x0 - 6 - tw, int(v) + 5), font, scale, ink, 1, cv2.LINE_AA)
     for t in xticks:
-        (u, _), = px(np.array([t]), np.array([0.0]))
+        ((u, _),) = px(np.array([t]), np.array([0.0]))
         cv2.line(img, (int(u), y1), (int(u), y1 + 4), ink, 1)
         label = f"{t:g}"
         tw = cv2.getTextSize(label, font, scale, 1)[0][0]
@@ -255,7 +288,9 @@ def progress_plot(history: np.ndarray, size: tuple[int, int] = PLOT_SIZE) -> np.
     if not len(rows):
         note = "no steps yet"
         tw = cv2.getTextSize(note, font, scale, 1)[0][0]
-        cv2.putText(img, note, ((x0 + x1 - tw) // 2, (y0 + y1) // 2), font, scale, (150, 150, 150), 1, cv2.LINE_AA)
+        cv2.putText(
+            img, note, ((x0 + x1 - tw) // 2, (y0 + y1) // 2), font, scale, (150, 150, 150), 1, cv2.LINE_AA
+        )
         return img
     for k, (_, color) in reversed(list(enumerate(PLOT_SERIES, start=1))):
         steps, values = rows[:, 0], rows[:, k]
@@ -269,8 +304,13 @@ def progress_plot(history: np.ndarray, size: tuple[int, int] = PLOT_SIZE) -> np.
     return img
 
 
-def crop_to_known(occupancy: np.ndarray, explored: np.ndarray | None, origin: Sequence[float], cell: float,
-                  margin: float = 0.75) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
+def crop_to_known(
+    occupancy: np.ndarray,
+    explored: np.ndarray | None,
+    origin: Sequence[float],
+    cell: float,
+    margin: float = 0.75,
+) -> tuple[np.ndarray, np.ndarray | None, tuple[float, float]]:
     """The square part of a top-down grid around its known cells (occupancy > 0 or explored),
     ``margin`` metres wider on each side: ``(occupancy, explored, origin)`` of the crop. The
     whole grid when nothing is known yet."""

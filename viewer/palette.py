@@ -16,24 +16,43 @@ import numpy as np
 RGB = tuple[int, int, int]
 
 # Layer colours: one meaning each, used in the 3D scene and in the 2D panels alike.
-TRACKED_RGB: RGB = (40, 170, 90)         # a tracked object that is where it belongs
-WARNING_RGB: RGB = (255, 110, 0)         # out of place (orange: visible on light and dark)
-HELD_RGB: RGB = (0, 170, 255)            # the object in the agent's hand
-UNLABELLED_RGB: RGB = (150, 150, 150)    # an occupied voxel with no class
+TRACKED_RGB: RGB = (40, 170, 90)  # a tracked object that is where it belongs
+WARNING_RGB: RGB = (255, 110, 0)  # out of place (orange: visible on light and dark)
+HELD_RGB: RGB = (0, 170, 255)  # the object in the agent's hand
+UNLABELLED_RGB: RGB = (150, 150, 150)  # an occupied voxel with no class
 TRAJECTORY_RGB: RGB = (40, 90, 220)
 PATH_RGB: RGB = (20, 190, 60)
 FRUSTUM_RGB: RGB = (220, 30, 30)
 SEARCH_POINT_RGB: RGB = (230, 0, 200)
-ORACLE_RGB: RGB = (120, 120, 120)        # ground truth, in place
-ORACLE_MOVED_RGB: RGB = (200, 0, 0)      # ground truth, moved by the mess-up
+ORACLE_RGB: RGB = (120, 120, 120)  # ground truth, in place
+ORACLE_MOVED_RGB: RGB = (200, 0, 0)  # ground truth, moved by the mess-up
 
 # Twenty well-separated hues first (then golden-ratio hues): class i always gets colour i.
-_BASE = np.array([
-    (31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 187, 0),
-    (23, 190, 207), (140, 86, 75), (227, 119, 194), (188, 189, 34), (0, 90, 60),
-    (120, 160, 230), (255, 140, 120), (130, 220, 130), (200, 170, 230), (180, 120, 20),
-    (0, 130, 140), (200, 160, 140), (250, 190, 220), (90, 90, 20), (80, 0, 120),
-], dtype=np.uint8)
+_BASE = np.array(
+    [
+        (31, 119, 180),
+        (214, 39, 40),
+        (44, 160, 44),
+        (148, 103, 189),
+        (255, 187, 0),
+        (23, 190, 207),
+        (140, 86, 75),
+        (227, 119, 194),
+        (188, 189, 34),
+        (0, 90, 60),
+        (120, 160, 230),
+        (255, 140, 120),
+        (130, 220, 130),
+        (200, 170, 230),
+        (180, 120, 20),
+        (0, 130, 140),
+        (200, 160, 140),
+        (250, 190, 220),
+        (90, 90, 20),
+        (80, 0, 120),
+    ],
+    dtype=np.uint8,
+)
 _GOLDEN = 0.618033988749895
 
 
@@ -91,8 +110,11 @@ def legend_html(classes: Sequence[str], counts: np.ndarray | None = None, max_ro
             f"<span style='display:inline-block;margin:1px 6px 1px 0;white-space:nowrap'>"
             f"<span style='display:inline-block;width:10px;height:10px;border-radius:2px;"
             f"background:rgb({r},{g},{b});margin-right:3px;vertical-align:middle'></span>"
-            f"{html.escape(name)}{count}</span>")
-    more = f" <span style='color:#888'>+{len(rows) - len(shown)} more</span>" if len(rows) > len(shown) else ""
+            f"{html.escape(name)}{count}</span>"
+        )
+    more = (
+        f" <span style='color:#888'>+{len(rows) - len(shown)} more</span>" if len(rows) > len(shown) else ""
+    )
     return f"<div style='font-size:0.8em;line-height:1.5'>{''.join(items)}{more}</div>"
 
 

@@ -15,20 +15,30 @@ from typing import Protocol
 
 import numpy as np
 import viser
+
 from tidee.protocol.messages import ROOM_TYPES, AgentStatus, CommandAck, EpisodeSummary
 from tidee.viewer import images, palette
 from tidee.viewer.feed import SessionInfo
 from tidee.viewer.scene_view import COLOUR_MODES, LAYERS
 
 AUTO_SESSION = "(follow newest)"
-LAYER_LABELS = {"voxels": "3D map", "objects": "Object memory", "agent": "Agent (camera, paths)",
-                "search": "Search heatmap", "oracle": "Ground truth (oracle)"}
-LAYER_HINTS = {"oracle": "Privileged: the server's true object boxes (moved objects in red), fetched "
-                         "about once a second from the server's state. Not what the agent knows."}
+LAYER_LABELS = {
+    "voxels": "3D map",
+    "objects": "Object memory",
+    "agent": "Agent (camera, paths)",
+    "search": "Search heatmap",
+    "oracle": "Ground truth (oracle)",
+}
+LAYER_HINTS = {
+    "oracle": "Privileged: the server's true object boxes (moved objects in red), fetched "
+    "about once a second from the server's state. Not what the agent knows."
+}
 COLOUR_LABELS = {"semantic": "semantic classes", "rgb": "camera RGB", "height": "height"}
-COLOUR_HINT = ("semantic classes: the agent's voxel map, one colour per class (the legend below); camera RGB: "
-               "the agent's RGB-D frames fused into coloured points; height: the voxel map coloured by height")
-SUMMARY_ID = "tidee-summary"            # DOM ids: the screenshot tools find these panels by them
+COLOUR_HINT = (
+    "semantic classes: the agent's voxel map, one colour per class (the legend below); camera RGB: "
+    "the agent's RGB-D frames fused into coloured points; height: the voxel map coloured by height"
+)
+SUMMARY_ID = "tidee-summary"  # DOM ids: the screenshot tools find these panels by them
 PREDICTIONS_ID = "tidee-predictions"
 
 
@@ -45,28 +55,44 @@ class PanelActions(Protocol):
 
 
 class Panels:
-    def __init__(self, server: viser.ViserServer, actions: PanelActions, replay_steps: tuple[int, int] | None,
-                 initial_session: str | None = None, read_only: bool = False) -> None:
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        actions: PanelActions,
+        replay_steps: tuple[int, int] | None,
+        initial_session: str | None = None,
+        read_only: bool = False,
+    ) -> None:
         gui = server.gui
         self.server, self.actions = server, actions
         self.replay = replay_steps is not None
         self.read_only = read_only
-        self.command_controls: list[object] = []     # the widgets that send commands (none when read-only)
+        self.command_controls: list[object] = []  # the widgets that send commands (none when read-only)
         gui.configure_theme(control_width="medium", show_share_button=False, brand_color=(40, 90, 220))
 
         # --- left: what the agent sees, and its 2D map -----------------------------------------
         self.view_panel = gui.add_panel()
         with self.view_panel.add_tab("Camera", viser.Icon.CAMERA):
-            self.rgb = gui.add_image(images.placeholder("waiting for the agent's camera", 512, 512),
-                                     label="RGB + detections (orange: out of place)", format="jpeg", jpeg_quality=85)
+            self.rgb = gui.add_image(
+                images.placeholder("waiting for the agent's camera", 512, 512),
+                label="RGB + detections (orange: out of place)",
+                format="jpeg",
+                jpeg_quality=85,
+            )
         with self.view_panel.add_tab("Depth", viser.Icon.RULER_MEASURE):
-            self.depth = gui.add_image(images.placeholder("waiting for depth", 512, 512), label="Depth",
-                                       format="jpeg", jpeg_quality=85)
+            self.depth = gui.add_image(
+                images.placeholder("waiting for depth", 512, 512),
+                label="Depth",
+                format="jpeg",
+                jpeg_quality=85,
+            )
         self.view_panel.dock_left()
         self.view_panel.set_width(330)
         self.map_panel = gui.add_panel()
         with self.map_panel.add_tab("2D map", viser.Icon.MAP_2):
-            self.map = gui.add_image(images.placeholder("waiting for the map", 360, 300), label=None, format="png")
+            self.map = gui.add_image(
+                images.placeholder("waiting for the map", 360, 300), label=None, format="png"
+            )
             gui.add_html(_map_key_html())
         self.map_panel.dock_below(self.view_panel)
 
@@ -83,8 +109,9 @@ class Panels:
             # drawn here as an image of a fixed size: it cannot collapse, whatever the panel's
             # layout when it first appears, and it shows the same in every browser and screenshot
             self._plot_key: tuple[int, tuple[float, ...]] | None = None
-            self.plot = gui.add_image(images.progress_plot(np.zeros((0, 3))), label="Progress (by step)",
-                                      format="png")
+            self.plot = gui.add_image(
+                images.progress_plot(np.zeros((0, 3))), label="Progress (by step)", format="png"
+            )
         if self.replay:
             assert replay_steps is not None
             self._build_replay(gui, *replay_steps)
@@ -93,19 +120,28 @@ class Panels:
         with gui.add_folder("Layers", expand_by_default=not self.replay):
             self.layer_boxes = {}
             for layer in LAYERS:
-                box = gui.add_checkbox(LAYER_LABELS[layer], initial_value=layer != "oracle",
-                                       hint=LAYER_HINTS.get(layer))
+                box = gui.add_checkbox(
+                    LAYER_LABELS[layer], initial_value=layer != "oracle", hint=LAYER_HINTS.get(layer)
+                )
                 box.on_update(lambda e, layer=layer: actions.set_layer(layer, bool(e.target.value)))
                 self.layer_boxes[layer] = box
-            self.colour_mode = gui.add_dropdown("3D map colours", tuple(COLOUR_LABELS[m] for m in COLOUR_MODES),
-                                                initial_value=COLOUR_LABELS["semantic"], hint=COLOUR_HINT)
+            self.colour_mode = gui.add_dropdown(
+                "3D map colours",
+                tuple(COLOUR_LABELS[m] for m in COLOUR_MODES),
+                initial_value=COLOUR_LABELS["semantic"],
+                hint=COLOUR_HINT,
+            )
             by_label = {label: mode for mode, label in COLOUR_LABELS.items()}
             self.colour_mode.on_update(lambda e: actions.set_colour_mode(by_label[str(e.target.value)]))
-            self.label_all = gui.add_checkbox("Label all objects", initial_value=False,
-                                              hint="Off: only objects out of place, the current target and the "
-                                                   "held object are labelled")
+            self.label_all = gui.add_checkbox(
+                "Label all objects",
+                initial_value=False,
+                hint="Off: only objects out of place, the current target and the held object are labelled",
+            )
             self.label_all.on_update(lambda e: actions.set_label_all(bool(e.target.value)))
-            gui.add_button("Reset view", icon=viser.Icon.FOCUS_CENTERED).on_click(lambda _: actions.reset_view())
+            gui.add_button("Reset view", icon=viser.Icon.FOCUS_CENTERED).on_click(
+                lambda _: actions.reset_view()
+            )
             gui.add_markdown("**Classes** (voxel colours)")
             self.legend = gui.add_html(palette.legend_html([], np.zeros(0)))
             gui.add_html(_object_key_html())
@@ -115,10 +151,17 @@ class Panels:
         self.agent_folder = gui.add_folder("Agent")
         with self.agent_folder:
             options = (AUTO_SESSION,) if initial_session is None else (AUTO_SESSION, initial_session)
-            self.session = gui.add_dropdown("Session", options, initial_value=initial_session or AUTO_SESSION,
-                                            hint="Live sessions (liveliness) and sessions publishing telemetry")
-            self.session.on_update(lambda e: actions.select_session(
-                None if e.target.value == AUTO_SESSION else str(e.target.value)))
+            self.session = gui.add_dropdown(
+                "Session",
+                options,
+                initial_value=initial_session or AUTO_SESSION,
+                hint="Live sessions (liveliness) and sessions publishing telemetry",
+            )
+            self.session.on_update(
+                lambda e: actions.select_session(
+                    None if e.target.value == AUTO_SESSION else str(e.target.value)
+                )
+            )
             self.sessions_info = gui.add_html("")
             if self.read_only:
                 self.ack = gui.add_markdown("_read-only viewer: no agent controls_")
@@ -132,10 +175,19 @@ class Panels:
             seed = gui.add_number("Seed", 0, min=0, step=1)
             mess = gui.add_number("Mess index", 0, min=0, step=1)
             new_episode = gui.add_button("Start new episode", icon=viser.Icon.PLAYER_PLAY)
-            new_episode.on_click(lambda e: actions.command("new_episode", e.client_id, room_type=room.value,
-                                                           seed=int(seed.value), mess_index=int(mess.value)))
+            new_episode.on_click(
+                lambda e: actions.command(
+                    "new_episode",
+                    e.client_id,
+                    room_type=room.value,
+                    seed=int(seed.value),
+                    mess_index=int(mess.value),
+                )
+            )
         with gui.add_folder("Placement preference", expand_by_default=False):
-            text = gui.add_text("Preference", "", hint='In plain language, e.g. "I want my alarm clock on the desk"')
+            text = gui.add_text(
+                "Preference", "", hint='In plain language, e.g. "I want my alarm clock on the desk"'
+            )
             send = gui.add_button("Send to the agent", icon=viser.Icon.SEND)
             send.on_click(lambda e: actions.command("preference", e.client_id, text=text.value))
         self.command_controls = [run, new_episode, send]
@@ -144,15 +196,20 @@ class Panels:
         """One client's own "Access token" field (client-scoped: what it types reaches no other
         browser), at the top of the Agent folder."""
         with self.agent_folder:
-            field = client.gui.add_text("Access token", "", order=-1.0,
-                                        hint="The token printed where the viewer started: it unlocks this "
-                                             "page's agent controls")
+            field = client.gui.add_text(
+                "Access token",
+                "",
+                order=-1.0,
+                hint="The token printed where the viewer started: it unlocks this page's agent controls",
+            )
         field.on_update(lambda e: self.actions.present_token(e.client_id, str(e.target.value)))
 
     def _build_replay(self, gui: viser.GuiApi, first: int, last: int) -> None:
         actions = self.actions
         with gui.add_folder("Replay"):
-            self.slider = gui.add_slider("Step", min=first, max=max(last, first + 1), step=1, initial_value=first)
+            self.slider = gui.add_slider(
+                "Step", min=first, max=max(last, first + 1), step=1, initial_value=first
+            )
             self.slider.on_update(lambda e: actions.replay_seek(int(e.target.value)))
             self.speed = gui.add_slider("Steps / s", min=1, max=100, step=1, initial_value=10)
             self.play = gui.add_button("Play", icon=viser.Icon.PLAYER_PLAY)
@@ -179,7 +236,8 @@ class Panels:
         room = f"{ep.get('room_type', '?')} seed {ep.get('seed', '?')}"
         room += f" mess {mess}" if mess is not None else " (tidy)"
         lines = [
-            f"**{html.escape(s.phase)}** · step **{s.step}**" + (" · **PAUSED**" if s.paused else "")
+            f"**{html.escape(s.phase)}** · step **{s.step}**"
+            + (" · **PAUSED**" if s.paused else "")
             + (" · **DONE**" if s.done else ""),
             f"{html.escape(room)} · {html.escape(str(ep.get('variant', '')))} "
             f"{html.escape(str(ep.get('perception', '')))}",
@@ -277,9 +335,13 @@ def predictions_html(preds: Sequence[tuple[str, float]]) -> str:
             "<span style='flex:1;background:#e6e6e6;border-radius:3px;height:10px;margin:0 6px'>"
             f"<span style='display:block;width:{pct:.0f}%;height:10px;border-radius:3px;"
             f"background:{palette.css(palette.PATH_RGB)}'></span></span>"
-            f"<span style='width:3.2em;text-align:right'>{prob:.2f}</span></div>")
-    return (f"<div id='{PREDICTIONS_ID}'><div style='font-size:0.8em;color:#666'>where it belongs (top 5)</div>"
-            + "".join(rows) + "</div>")
+            f"<span style='width:3.2em;text-align:right'>{prob:.2f}</span></div>"
+        )
+    return (
+        f"<div id='{PREDICTIONS_ID}'><div style='font-size:0.8em;color:#666'>where it belongs (top 5)</div>"
+        + "".join(rows)
+        + "</div>"
+    )
 
 
 def summary_html(s: EpisodeSummary) -> str:
@@ -287,7 +349,9 @@ def summary_html(s: EpisodeSummary) -> str:
     Every string is escaped (it comes from the network)."""
     ep = s.episode or {}
     mess = ep.get("mess_index")
-    room = f"{ep.get('room_type', '?')} seed {ep.get('seed', '?')}" + (f" mess {mess}" if mess is not None else "")
+    room = f"{ep.get('room_type', '?')} seed {ep.get('seed', '?')}" + (
+        f" mess {mess}" if mess is not None else ""
+    )
     who = " ".join(str(ep[k]) for k in ("variant", "perception") if ep.get(k))
 
     def count(v: int | None, of: int | None = None) -> str:
@@ -295,38 +359,75 @@ def summary_html(s: EpisodeSummary) -> str:
             return "–"
         return f"<b>{v}</b>" + (f"/{of}" if of is not None else "")
 
-    cells = [("moved", count(s.moved)), ("found", count(s.found, s.moved)), ("put away", count(s.put_away)),
-             ("plausible", count(s.plausible, s.moved)), ("false picks", count(s.false_picks))]
-    chips = "".join(f"<span style='display:inline-block;white-space:nowrap;background:#fff;border-radius:4px;"
-                    f"padding:0 5px;margin:2px 4px 0 0'>{html.escape(k)} {v}</span>" for k, v in cells)
-    unscored = ("<div style='color:#777'>moved, found, plausible, false picks: not scored (the server gave no "
-                "state)</div>" if s.moved is None else "")
-    replay = (f"<div style='margin-top:3px'>replay: <code style='font-size:0.9em;word-break:break-all'>"
-              f"{html.escape(s.replay)}</code></div>" if s.replay else "")
-    return (f"<div id='{SUMMARY_ID}' style='border:2px solid #2e7d32;background:#eef7ee;border-radius:6px;"
-            f"padding:5px 8px;margin:2px 8px 6px;font-size:0.85em;line-height:1.4'>"
-            f"<div style='font-size:1.15em;font-weight:700;color:#1b5e20'>&#10004; Episode finished</div>"
-            f"<div>{html.escape(room)} · {html.escape(who)} · <b>{s.steps}</b> steps · <b>{s.wall_s:.0f}</b> s</div>"
-            f"<div style='color:#555'>ended: {html.escape(s.end_reason or '–')}</div>"
-            f"<div title='found and plausible are out of the objects the mess-up moved; plausible by the "
-            f"simulated judge'>{chips}</div>{unscored}{replay}</div>")
+    cells = [
+        ("moved", count(s.moved)),
+        ("found", count(s.found, s.moved)),
+        ("put away", count(s.put_away)),
+        ("plausible", count(s.plausible, s.moved)),
+        ("false picks", count(s.false_picks)),
+    ]
+    chips = "".join(
+        f"<span style='display:inline-block;white-space:nowrap;background:#fff;border-radius:4px;"
+        f"padding:0 5px;margin:2px 4px 0 0'>{html.escape(k)} {v}</span>"
+        for k, v in cells
+    )
+    unscored = (
+        "<div style='color:#777'>moved, found, plausible, false picks: not scored (the server gave no "
+        "state)</div>"
+        if s.moved is None
+        else ""
+    )
+    replay = (
+        f"<div style='margin-top:3px'>replay: <code style='font-size:0.9em;word-break:break-all'>"
+        f"{html.escape(s.replay)}</code></div>"
+        if s.replay
+        else ""
+    )
+    return (
+        f"<div id='{SUMMARY_ID}' style='border:2px solid #2e7d32;background:#eef7ee;border-radius:6px;"
+        f"padding:5px 8px;margin:2px 8px 6px;font-size:0.85em;line-height:1.4'>"
+        f"<div style='font-size:1.15em;font-weight:700;color:#1b5e20'>&#10004; Episode finished</div>"
+        f"<div>{html.escape(room)} · {html.escape(who)} · <b>{s.steps}</b> steps · <b>{s.wall_s:.0f}</b> s</div>"
+        f"<div style='color:#555'>ended: {html.escape(s.end_reason or '–')}</div>"
+        f"<div title='found and plausible are out of the objects the mess-up moved; plausible by the "
+        f"simulated judge'>{chips}</div>{unscored}{replay}</div>"
+    )
 
 
 def _swatch(rgb: palette.RGB, text: str) -> str:
-    return (f"<span style='white-space:nowrap;margin-right:8px'><span style='display:inline-block;width:10px;"
-            f"height:10px;border-radius:2px;background:{palette.css(rgb)};margin-right:3px'></span>{text}</span>")
+    return (
+        f"<span style='white-space:nowrap;margin-right:8px'><span style='display:inline-block;width:10px;"
+        f"height:10px;border-radius:2px;background:{palette.css(rgb)};margin-right:3px'></span>{text}</span>"
+    )
 
 
 def _object_key_html() -> str:
-    items = [(palette.TRACKED_RGB, "tracked"), (palette.WARNING_RGB, "out of place"), (palette.HELD_RGB, "held"),
-             (palette.TRAJECTORY_RGB, "trajectory"), (palette.PATH_RGB, "planned path"),
-             (palette.SEARCH_POINT_RGB, "search points"), (palette.FRUSTUM_RGB, "camera"),
-             (palette.ORACLE_MOVED_RGB, "oracle: moved")]
-    return "<div style='font-size:0.8em;line-height:1.6'>" + "".join(_swatch(c, t) for c, t in items) + "</div>"
+    items = [
+        (palette.TRACKED_RGB, "tracked"),
+        (palette.WARNING_RGB, "out of place"),
+        (palette.HELD_RGB, "held"),
+        (palette.TRAJECTORY_RGB, "trajectory"),
+        (palette.PATH_RGB, "planned path"),
+        (palette.SEARCH_POINT_RGB, "search points"),
+        (palette.FRUSTUM_RGB, "camera"),
+        (palette.ORACLE_MOVED_RGB, "oracle: moved"),
+    ]
+    return (
+        "<div style='font-size:0.8em;line-height:1.6'>" + "".join(_swatch(c, t) for c, t in items) + "</div>"
+    )
 
 
 def _map_key_html() -> str:
-    items = [(images.FREE_RGB, "free, explored"), (images.SEEN_FREE_RGB, "seen"), (images.OBSTACLE_RGB, "obstacle"),
-             (images.UNKNOWN_RGB, "unknown"), (images.AGENT_RGB, "agent"), (palette.PATH_RGB, "path")]
-    return ("<div style='font-size:0.8em;line-height:1.6'>+x (start heading) is up. "
-            + "".join(_swatch(c, t) for c, t in items) + "</div>")
+    items = [
+        (images.FREE_RGB, "free, explored"),
+        (images.SEEN_FREE_RGB, "seen"),
+        (images.OBSTACLE_RGB, "obstacle"),
+        (images.UNKNOWN_RGB, "unknown"),
+        (images.AGENT_RGB, "agent"),
+        (palette.PATH_RGB, "path"),
+    ]
+    return (
+        "<div style='font-size:0.8em;line-height:1.6'>+x (start heading) is up. "
+        + "".join(_swatch(c, t) for c, t in items)
+        + "</div>"
+    )

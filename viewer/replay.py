@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
 from tidee.protocol import codec
 from tidee.protocol.episode_log import LogReader
 from tidee.protocol.messages import AgentFrame, AgentStatus, EpisodeSummary
@@ -27,7 +28,7 @@ class _Track:
     """One kind's messages in step order (a log is written in step order; ties keep the last)."""
 
     steps: list[int] = field(default_factory=list)
-    items: list[Any] = field(default_factory=list)     # messages, or encoded frames (bytes)
+    items: list[Any] = field(default_factory=list)  # messages, or encoded frames (bytes)
 
     def add(self, step: int, item: Any) -> None:
         if self.steps and step < self.steps[-1]:
@@ -69,17 +70,18 @@ class ReplayLog:
             why = f" ({reader.corrupt_message})" if reader.truncated else ""
             raise ValueError(f"{self.directory}: the log holds no telemetry to replay{why}")
         self.messages = count
-        self.summary = reader.summary()        # before the damage report, which counts a damaged summary
+        self.summary = reader.summary()  # before the damage report, which counts a damaged summary
         self.truncated, self.corrupt_message = reader.truncated, reader.corrupt_message
         all_steps = [s for t in self._tracks.values() for s in t.steps[:1] + t.steps[-1:]]
         self.first_step, self.last_step = min(all_steps), max(all_steps)
         if not self._tracks["summary"].steps and isinstance(self.summary, dict):
-            logged = episode_summary(self.summary.get("summary"))   # a log whose tlog lacks it
+            logged = episode_summary(self.summary.get("summary"))  # a log whose tlog lacks it
             if logged is not None:
                 self._tracks["summary"].add(self.last_step, logged)
         status = self._tracks["status"]
-        self._history = np.array([(m.step, m.objects_fixed, m.oop_found) for m in status.items],
-                                 dtype=np.float64).reshape(-1, 3)
+        self._history = np.array(
+            [(m.step, m.objects_fixed, m.oop_found) for m in status.items], dtype=np.float64
+        ).reshape(-1, 3)
 
     def at(self, step: int) -> dict[str, Any]:
         """The latest message of each kind at or before ``step`` (kinds with none are absent)."""
@@ -131,5 +133,5 @@ def episode_summary(record: Any) -> EpisodeSummary | None:
     names = {f.name for f in dataclasses.fields(EpisodeSummary)}
     try:
         return EpisodeSummary(**{k: v for k, v in record.items() if k in names})
-    except TypeError:              # a required field is missing: not a summary this viewer knows
+    except TypeError:  # a required field is missing: not a summary this viewer knows
         return None

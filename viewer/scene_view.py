@@ -15,35 +15,35 @@ the held object); labels are laid out for the viewer's camera so none covers ano
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Any
-
-import time
 
 import cv2
 import numpy as np
 import viser
+
 from tidee.protocol.messages import AgentFrame, AgentStatus, MapSnapshot, ObjectMemoryMsg, SearchHeatmap
 from tidee.viewer import geometry, images, palette
 from tidee.viewer.colour_cloud import ColourCloud
 
 LAYERS = ("voxels", "objects", "agent", "search", "oracle")
-COLOUR_MODES = ("semantic", "rgb", "height")   # how the 3D map is coloured (the "voxels" layer)
-RGB_VOXEL = 0.05                     # the camera-coloured cloud's voxel edge (m) and its point cap
+COLOUR_MODES = ("semantic", "rgb", "height")  # how the 3D map is coloured (the "voxels" layer)
+RGB_VOXEL = 0.05  # the camera-coloured cloud's voxel edge (m) and its point cap
 RGB_MAX_POINTS = 150_000
-RGB_PUSH_PERIOD_S = 1.0              # the coloured cloud goes to the browser at most this often
-RGB_FUSE_PERIOD_S = 0.3              # live frames are fused at most this often (~15 ms each at 256 px)
-LABEL_FONT_SCALE = 0.9               # viser screen-size labels: a 12 px em at scale 1
-LABEL_CHAR_PX, LABEL_LINE_PX = 6.2, 17.0   # a label's box on screen: per character, and its height
-LABEL_FALLBACK_FOV = 1.3             # rad, viser's default camera, until a browser reports its own
-LABEL_FALLBACK_HEIGHT = 720          # px
+RGB_PUSH_PERIOD_S = 1.0  # the coloured cloud goes to the browser at most this often
+RGB_FUSE_PERIOD_S = 0.3  # live frames are fused at most this often (~15 ms each at 256 px)
+LABEL_FONT_SCALE = 0.9  # viser screen-size labels: a 12 px em at scale 1
+LABEL_CHAR_PX, LABEL_LINE_PX = 6.2, 17.0  # a label's box on screen: per character, and its height
+LABEL_FALLBACK_FOV = 1.3  # rad, viser's default camera, until a browser reports its own
+LABEL_FALLBACK_HEIGHT = 720  # px
 MAX_LABELS = 96
 MAX_ORACLE_LABELS = 48
 FRUSTUM_IMAGE_SIZE = 64
-STATUS_CAMERA_HEIGHT = 0.9015        # when only AgentStatus is known: the paper's camera height
-STATUS_FOV = 1.5707963267948966      # and its 90 degree field of view
-FLOOR_LAYER_TOP = 0.05               # unlabelled voxels below this are the floor: not drawn, so the
-                                     # grid, heatmap and paths on the floor stay visible
+STATUS_CAMERA_HEIGHT = 0.9015  # when only AgentStatus is known: the paper's camera height
+STATUS_FOV = 1.5707963267948966  # and its 90 degree field of view
+FLOOR_LAYER_TOP = 0.05  # unlabelled voxels below this are the floor: not drawn, so the
+# grid, heatmap and paths on the floor stay visible
 
 
 @dataclass
@@ -53,7 +53,7 @@ class OracleObject:
     label: str
     center: tuple[float, float, float]
     size: tuple[float, float, float]
-    rotation: np.ndarray                 # 3x3, object -> start frame
+    rotation: np.ndarray  # 3x3, object -> start frame
     moved: bool
 
 
@@ -61,7 +61,9 @@ def oracle_objects(scene: dict[str, Any]) -> list[OracleObject]:
     """Ground truth from a ``StateReply.scene``: every pickupable or moved object, in the start frame."""
     start = scene.get("start")
     if not isinstance(start, dict):
-        raise ValueError("the server's state has no 'start' entry: cannot place ground truth in the start frame")
+        raise ValueError(
+            "the server's state has no 'start' entry: cannot place ground truth in the start frame"
+        )
     t = geometry.start_from_world(float(start["x"]), float(start["y"]), float(start["yaw_deg"]))
     moved = {m.get("id") for m in scene.get("mess", [])}
     out = []
@@ -70,11 +72,18 @@ def oracle_objects(scene: dict[str, Any]) -> list[OracleObject]:
             continue
         size = tuple(float(v) for v in obj["size"])
         rot_world = geometry.quat_xyzw_to_matrix(obj["orientation"])
-        bottom = np.append(np.asarray(obj["position"], np.float64), 1.0)   # bottom-centre, world
+        bottom = np.append(np.asarray(obj["position"], np.float64), 1.0)  # bottom-centre, world
         center_world = bottom[:3] + rot_world @ np.array([0.0, 0.0, size[2] / 2.0])
         center = t[:3, :3] @ center_world + t[:3, 3]
-        out.append(OracleObject(str(obj.get("type", "?")), (float(center[0]), float(center[1]), float(center[2])),
-                                size, t[:3, :3] @ rot_world, obj.get("id") in moved))  # type: ignore[arg-type]
+        out.append(
+            OracleObject(
+                str(obj.get("type", "?")),
+                (float(center[0]), float(center[1]), float(center[2])),
+                size,
+                t[:3, :3] @ rot_world,
+                obj.get("id") in moved,
+            )
+        )  # type: ignore[arg-type]
     return out
 
 
@@ -88,24 +97,31 @@ class _LabelPool:
         self.enabled = True
 
     def show(self, items: list[tuple[str, tuple[float, float, float]]]) -> None:
-        items = items[:self.cap]
+        items = items[: self.cap]
         while len(self.handles) < len(items):
-            self.handles.append(self.scene.add_label(f"{self.prefix}/{len(self.handles)}", "", visible=False,
-                                                     anchor="bottom-center", font_screen_scale=LABEL_FONT_SCALE))
+            self.handles.append(
+                self.scene.add_label(
+                    f"{self.prefix}/{len(self.handles)}",
+                    "",
+                    visible=False,
+                    anchor="bottom-center",
+                    font_screen_scale=LABEL_FONT_SCALE,
+                )
+            )
         for handle, (text, position) in zip(self.handles, items):
             if handle.text != text:
                 handle.text = text
-            if not np.allclose(handle.position, position, atol=1e-4):   # a camera drag moves few labels
+            if not np.allclose(handle.position, position, atol=1e-4):  # a camera drag moves few labels
                 handle.position = position
             if handle.visible != self.enabled:
                 handle.visible = self.enabled
-        for handle in self.handles[len(items):self.shown]:
+        for handle in self.handles[len(items) : self.shown]:
             handle.visible = False
         self.shown = len(items)
 
     def set_enabled(self, enabled: bool) -> None:
         self.enabled = enabled
-        for handle in self.handles[:self.shown]:
+        for handle in self.handles[: self.shown]:
             handle.visible = enabled
 
 
@@ -118,68 +134,137 @@ class SceneView:
         scene = server.scene
         scene.set_up_direction("+z")  # the start frame is z-up; say so rather than rely on a default
         self.colour_mode = "semantic"
-        self.label_all = False                    # label every tracked object, not only those that matter now
-        self.label_view: geometry.ScreenView | None = None   # the browser's camera, for laying labels out
+        self.label_all = False  # label every tracked object, not only those that matter now
+        self.label_view: geometry.ScreenView | None = None  # the browser's camera, for laying labels out
         self.layer_on = {layer: layer != "oracle" for layer in LAYERS}
-        self._has = {name: False for name in ("voxels", "rgb_cloud", "boxes", "leaders", "frustum", "trajectory",
-                                              "path", "goal", "heatmap", "search_points", "oracle")}
+        self._has = {
+            name: False
+            for name in (
+                "voxels",
+                "rgb_cloud",
+                "boxes",
+                "leaders",
+                "frustum",
+                "trajectory",
+                "path",
+                "goal",
+                "heatmap",
+                "search_points",
+                "oracle",
+            )
+        }
         self._map: MapSnapshot | None = None
         self._memory: ObjectMemoryMsg | None = None
         self._target_id: int | None = None
         self.colour_cloud = ColourCloud(voxel=RGB_VOXEL, cap=RGB_MAX_POINTS, floor_z=FLOOR_LAYER_TOP)
-        self._cloud_step: int | None = None       # the step of the last frame fused
-        self._cloud_fused = 0.0                   # when the last live frame was fused (monotonic)
-        self._cloud_pushed = 0.0                  # when the cloud last went to the browser (monotonic)
+        self._cloud_step: int | None = None  # the step of the last frame fused
+        self._cloud_fused = 0.0  # when the last live frame was fused (monotonic)
+        self._cloud_pushed = 0.0  # when the cloud last went to the browser (monotonic)
         self._cloud_dirty = False
-        self._has_frame = False                   # frames place the frustum; else the status pose does
+        self._has_frame = False  # frames place the frustum; else the status pose does
         self.plane: geometry.FloorPlane | None = None
-        self.counts: dict[str, int] = {}          # what the scene holds now (tests and the status line)
+        self.counts: dict[str, int] = {}  # what the scene holds now (tests and the status line)
 
-        self.grid = scene.add_grid("/floor/grid", width=8.0, height=8.0, plane="xy", cell_size=0.25,
-                                   section_size=1.0, cell_color=(215, 215, 215), section_color=(165, 165, 165),
-                                   position=(0.0, 0.0, -0.002))
+        self.grid = scene.add_grid(
+            "/floor/grid",
+            width=8.0,
+            height=8.0,
+            plane="xy",
+            cell_size=0.25,
+            section_size=1.0,
+            cell_color=(215, 215, 215),
+            section_color=(165, 165, 165),
+            position=(0.0, 0.0, -0.002),
+        )
         self.start_axes = scene.add_frame("/floor/start", axes_length=0.25, axes_radius=0.012)
         empty_pts, empty_rgb = np.zeros((1, 3), np.float32), np.zeros((1, 3), np.uint8)
         empty_seg = np.zeros((1, 2, 3), np.float32)
-        self.voxels = scene.add_point_cloud("/map/voxels", empty_pts, empty_rgb, point_size=0.05,
-                                            point_shape="square", point_shading="flat", visible=False)
-        self.rgb_cloud = scene.add_point_cloud("/map/rgb", empty_pts, empty_rgb, point_size=RGB_VOXEL,
-                                               point_shape="square", point_shading="flat", visible=False)
-        self.boxes = scene.add_line_segments("/objects/boxes", empty_seg, (0, 0, 0), thickness=0.012,
-                                             visible=False)
-        self.leaders = scene.add_line_segments("/objects/leaders", empty_seg, (110, 110, 110), thickness=1.5,
-                                               thickness_units="screen", visible=False)
+        self.voxels = scene.add_point_cloud(
+            "/map/voxels",
+            empty_pts,
+            empty_rgb,
+            point_size=0.05,
+            point_shape="square",
+            point_shading="flat",
+            visible=False,
+        )
+        self.rgb_cloud = scene.add_point_cloud(
+            "/map/rgb",
+            empty_pts,
+            empty_rgb,
+            point_size=RGB_VOXEL,
+            point_shape="square",
+            point_shading="flat",
+            visible=False,
+        )
+        self.boxes = scene.add_line_segments(
+            "/objects/boxes", empty_seg, (0, 0, 0), thickness=0.012, visible=False
+        )
+        self.leaders = scene.add_line_segments(
+            "/objects/leaders",
+            empty_seg,
+            (110, 110, 110),
+            thickness=1.5,
+            thickness_units="screen",
+            visible=False,
+        )
         self.labels = _LabelPool(scene, "/objects/labels", MAX_LABELS)
-        self.frustum = scene.add_camera_frustum("/agent/camera", fov=STATUS_FOV, aspect=1.0, scale=0.35,
-                                                thickness=0.02, color=palette.FRUSTUM_RGB, visible=False)
-        self.trajectory = scene.add_line_segments("/agent/trajectory", empty_seg, palette.TRAJECTORY_RGB,
-                                                  thickness=0.025, visible=False)
-        self.path = scene.add_line_segments("/agent/path", empty_seg, palette.PATH_RGB, thickness=0.035,
-                                            visible=False)
+        self.frustum = scene.add_camera_frustum(
+            "/agent/camera",
+            fov=STATUS_FOV,
+            aspect=1.0,
+            scale=0.35,
+            thickness=0.02,
+            color=palette.FRUSTUM_RGB,
+            visible=False,
+        )
+        self.trajectory = scene.add_line_segments(
+            "/agent/trajectory", empty_seg, palette.TRAJECTORY_RGB, thickness=0.025, visible=False
+        )
+        self.path = scene.add_line_segments(
+            "/agent/path", empty_seg, palette.PATH_RGB, thickness=0.035, visible=False
+        )
         self.goal = scene.add_icosphere("/agent/goal", radius=0.06, color=palette.PATH_RGB, visible=False)
-        self.heatmap = scene.add_image("/search/heatmap", np.zeros((2, 2, 4), np.uint8), 1.0, 1.0,
-                                       cast_shadow=False, receive_shadow=False, visible=False)
-        self.search_points = scene.add_point_cloud("/search/points", empty_pts, empty_rgb, point_size=0.09,
-                                                   point_shape="circle", visible=False)
+        self.heatmap = scene.add_image(
+            "/search/heatmap",
+            np.zeros((2, 2, 4), np.uint8),
+            1.0,
+            1.0,
+            cast_shadow=False,
+            receive_shadow=False,
+            visible=False,
+        )
+        self.search_points = scene.add_point_cloud(
+            "/search/points", empty_pts, empty_rgb, point_size=0.09, point_shape="circle", visible=False
+        )
         self.search_labels = _LabelPool(scene, "/search/labels", 5)
-        self.oracle_boxes = scene.add_line_segments("/oracle/boxes", empty_seg, (0, 0, 0), thickness=0.01,
-                                                    visible=False)
+        self.oracle_boxes = scene.add_line_segments(
+            "/oracle/boxes", empty_seg, (0, 0, 0), thickness=0.01, visible=False
+        )
         self.oracle_labels = _LabelPool(scene, "/oracle/labels", MAX_ORACLE_LABELS)
         self.oracle_labels.set_enabled(False)
 
     # --- visibility ---------------------------------------------------------------------
     def _nodes(self) -> dict[str, tuple[str, Any]]:
         """node name -> (layer, handle) for the nodes whose visibility is data AND layer."""
-        return {"voxels": ("voxels", self.voxels), "rgb_cloud": ("voxels", self.rgb_cloud),
-                "boxes": ("objects", self.boxes), "leaders": ("objects", self.leaders),
-                "frustum": ("agent", self.frustum), "trajectory": ("agent", self.trajectory),
-                "path": ("agent", self.path), "goal": ("agent", self.goal), "heatmap": ("search", self.heatmap),
-                "search_points": ("search", self.search_points), "oracle": ("oracle", self.oracle_boxes)}
+        return {
+            "voxels": ("voxels", self.voxels),
+            "rgb_cloud": ("voxels", self.rgb_cloud),
+            "boxes": ("objects", self.boxes),
+            "leaders": ("objects", self.leaders),
+            "frustum": ("agent", self.frustum),
+            "trajectory": ("agent", self.trajectory),
+            "path": ("agent", self.path),
+            "goal": ("agent", self.goal),
+            "heatmap": ("search", self.heatmap),
+            "search_points": ("search", self.search_points),
+            "oracle": ("oracle", self.oracle_boxes),
+        }
 
     def _refresh(self, name: str) -> None:
         layer, handle = self._nodes()[name]
         visible = self._has[name] and self.layer_on[layer]
-        if name in ("voxels", "rgb_cloud"):       # one 3D map at a time: the colour mode picks which
+        if name in ("voxels", "rgb_cloud"):  # one 3D map at a time: the colour mode picks which
             visible = visible and (name == "rgb_cloud") == (self.colour_mode == "rgb")
         if handle.visible != visible:
             handle.visible = visible
@@ -233,8 +318,13 @@ class SceneView:
 
     # --- updates (one per telemetry kind) ---------------------------------------------------
     def apply(self, kind: str, msg: Any) -> None:
-        handler = {"maps": self.apply_maps, "memory": self.apply_memory, "status": self.apply_status,
-                   "frame": self.apply_frame, "search": self.apply_search}.get(kind)
+        handler = {
+            "maps": self.apply_maps,
+            "memory": self.apply_memory,
+            "status": self.apply_status,
+            "frame": self.apply_frame,
+            "search": self.apply_search,
+        }.get(kind)
         if handler is not None:
             handler(msg)
 
@@ -281,8 +371,9 @@ class SceneView:
             mins = np.array([o.box_min for o in objs], np.float32)
             maxs = np.array([o.box_max for o in objs], np.float32)
             segments = geometry.boxes_segments(mins, maxs)
-            colors = np.repeat(np.array([palette.object_color(o.held, o.out_of_place) for o in objs], np.uint8),
-                               24, axis=0).reshape(-1, 2, 3)
+            colors = np.repeat(
+                np.array([palette.object_color(o.held, o.out_of_place) for o in objs], np.uint8), 24, axis=0
+            ).reshape(-1, 2, 3)
             self.boxes.points, self.boxes.colors = segments, colors
         self._set_has("boxes", bool(objs))
         self._memory = msg
@@ -295,8 +386,13 @@ class SceneView:
         objs = self._memory.objects if self._memory is not None else []
         chosen = labelled_objects(objs, self._target_id, self.label_all)[:MAX_LABELS]
         texts = [_object_text(o, o.id == self._target_id) for o in chosen]
-        anchors = np.array([((o.box_min[0] + o.box_max[0]) / 2, (o.box_min[1] + o.box_max[1]) / 2,
-                             o.box_max[2] + 0.03) for o in chosen], np.float64).reshape(-1, 3)
+        anchors = np.array(
+            [
+                ((o.box_min[0] + o.box_max[0]) / 2, (o.box_min[1] + o.box_max[1]) / 2, o.box_max[2] + 0.03)
+                for o in chosen
+            ],
+            np.float64,
+        ).reshape(-1, 3)
         view = self.label_view or self._fallback_view()
         if view is not None and len(anchors):
             sizes = np.array([(len(t) * LABEL_CHAR_PX + 10, LABEL_LINE_PX) for t in texts])
@@ -313,8 +409,9 @@ class SceneView:
     def _fallback_view(self) -> geometry.ScreenView | None:
         if self.plane is None:
             return None
-        return geometry.screen_view_looking_at(geometry.overview_camera(self.plane), LABEL_FALLBACK_FOV,
-                                               LABEL_FALLBACK_HEIGHT)
+        return geometry.screen_view_looking_at(
+            geometry.overview_camera(self.plane), LABEL_FALLBACK_FOV, LABEL_FALLBACK_HEIGHT
+        )
 
     def apply_status(self, msg: AgentStatus) -> None:
         traj = geometry.polyline_segments(msg.trajectory, z=0.02)
@@ -346,8 +443,11 @@ class SceneView:
         if abs(self.frustum.fov - f.fov) > 1e-6 or abs(self.frustum.aspect - f.aspect) > 1e-6:
             self.frustum.fov, self.frustum.aspect = f.fov, f.aspect
         self.frustum.wxyz, self.frustum.position = f.wxyz, f.position
-        small = cv2.resize(np.asarray(msg.rgb), (FRUSTUM_IMAGE_SIZE, max(1, FRUSTUM_IMAGE_SIZE * h // w)),
-                           interpolation=cv2.INTER_AREA)
+        small = cv2.resize(
+            np.asarray(msg.rgb),
+            (FRUSTUM_IMAGE_SIZE, max(1, FRUSTUM_IMAGE_SIZE * h // w)),
+            interpolation=cv2.INTER_AREA,
+        )
         self.frustum.image = small
         self._has_frame = True
         self._set_has("frustum", True)
@@ -368,8 +468,11 @@ class SceneView:
         """Send the coloured cloud to the browser if it changed and is shown, at most every
         ``RGB_PUSH_PERIOD_S`` unless ``force`` (it is large; the semantic map is what updates live)."""
         now = time.monotonic()
-        if self.colour_mode != "rgb" or not self._cloud_dirty or (
-                not force and now - self._cloud_pushed < RGB_PUSH_PERIOD_S):
+        if (
+            self.colour_mode != "rgb"
+            or not self._cloud_dirty
+            or (not force and now - self._cloud_pushed < RGB_PUSH_PERIOD_S)
+        ):
             return
         if len(self.colour_cloud):
             self.rgb_cloud.points = self.colour_cloud.points()
@@ -377,7 +480,6 @@ class SceneView:
         self.counts["rgb_points"] = len(self.colour_cloud)
         self._set_has("rgb_cloud", len(self.colour_cloud) > 0)
         self._cloud_pushed, self._cloud_dirty = now, False
-
 
     def apply_search(self, msg: SearchHeatmap) -> None:
         heat = np.asarray(msg.heatmap)
@@ -395,18 +497,34 @@ class SceneView:
             self.search_points.points = xyz
             self.search_points.colors = np.tile(np.array(palette.SEARCH_POINT_RGB, np.uint8), (len(pts), 1))
         self._set_has("search_points", len(pts) > 0)
-        self.search_labels.show([(f"{rank}" if rank > 1 else f"1: search {msg.target}",
-                                  (float(p[0]), float(p[1]), 0.1)) for rank, p in enumerate(pts[:3], start=1)])
+        self.search_labels.show(
+            [
+                (f"{rank}" if rank > 1 else f"1: search {msg.target}", (float(p[0]), float(p[1]), 0.1))
+                for rank, p in enumerate(pts[:3], start=1)
+            ]
+        )
 
     def apply_oracle(self, objects: list[OracleObject]) -> None:
         if objects:
-            segments = np.concatenate([geometry.oriented_box_segments(o.center, o.size, o.rotation) for o in objects])
-            colors = np.repeat(np.array([palette.ORACLE_MOVED_RGB if o.moved else palette.ORACLE_RGB
-                                         for o in objects], np.uint8), 24, axis=0).reshape(-1, 2, 3)
+            segments = np.concatenate(
+                [geometry.oriented_box_segments(o.center, o.size, o.rotation) for o in objects]
+            )
+            colors = np.repeat(
+                np.array(
+                    [palette.ORACLE_MOVED_RGB if o.moved else palette.ORACLE_RGB for o in objects], np.uint8
+                ),
+                24,
+                axis=0,
+            ).reshape(-1, 2, 3)
             self.oracle_boxes.points, self.oracle_boxes.colors = segments, colors
         self._set_has("oracle", bool(objects))
-        self.oracle_labels.show([(f"oracle: {o.label} (moved)", (o.center[0], o.center[1], o.center[2] + o.size[2] / 2))
-                                 for o in objects if o.moved])
+        self.oracle_labels.show(
+            [
+                (f"oracle: {o.label} (moved)", (o.center[0], o.center[1], o.center[2] + o.size[2] / 2))
+                for o in objects
+                if o.moved
+            ]
+        )
         self.counts["oracle"] = len(objects)
 
     def node_names(self) -> dict[str, bool]:
@@ -417,6 +535,7 @@ class SceneView:
 def labelled_objects(objects: list[Any], target_id: int | None, label_all: bool) -> list[Any]:
     """The tracked objects to label, most important first: held, the current target, out of
     place (most likely first); then, with ``label_all``, the rest (best detected first)."""
+
     def rank(o: Any) -> tuple[int, float]:
         if o.held:
             return 0, 0.0
@@ -425,6 +544,7 @@ def labelled_objects(objects: list[Any], target_id: int | None, label_all: bool)
         if o.out_of_place:
             return 2, -(o.oop_prob or 0.0)
         return 3, -float(o.score)
+
     ranked = sorted(objects, key=rank)
     return ranked if label_all else [o for o in ranked if rank(o)[0] < 3]
 

@@ -14,6 +14,7 @@ import time
 
 import cv2
 import numpy as np
+
 from tidee.viewer.annotate import annotate
 from tidee.viewer.app import ViewerConfig, run_viewer
 from tidee.viewer.browser import DISMISS_SOFTWARE_GL_NOTE, HEIGHT, WIDTH, HeadlessChromium, map_drawn
@@ -26,8 +27,10 @@ def resolve_step(log, at: str) -> int:
     if at == "search":
         steps = log.steps("search")
         if not steps:
-            raise ValueError(f"the log {log.directory} holds no search heatmap (the agent never searched "
-                             "for a receptacle in that episode)")
+            raise ValueError(
+                f"the log {log.directory} holds no search heatmap (the agent never searched "
+                "for a receptacle in that episode)"
+            )
         return int(steps[0])
     try:
         step = int(at)
@@ -38,8 +41,14 @@ def resolve_step(log, at: str) -> int:
     return step
 
 
-def screenshot_replay(log_dir: str, out_png: str, at: str = "end", timeout: float = 60.0,
-                      annotated_png: str | None = None, size: tuple[int, int] = (WIDTH, HEIGHT)) -> int:
+def screenshot_replay(
+    log_dir: str,
+    out_png: str,
+    at: str = "end",
+    timeout: float = 60.0,
+    annotated_png: str | None = None,
+    size: tuple[int, int] = (WIDTH, HEIGHT),
+) -> int:
     """Write the page at ``at`` to ``out_png`` (and its annotated copy to ``annotated_png``);
     return the step shown. ``size``: the browser window (width, height)."""
     handle = run_viewer(ViewerConfig(replay=log_dir, port=0))

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
+
 from tidee.protocol import keys
 from tidee.protocol.codec import ProtocolError, decode, encode
 from tidee.protocol.messages import (
@@ -40,13 +41,25 @@ from tidee.viewer.geometry import camera_pose_from_agent
 
 log = logging.getLogger("tidee.viewer.synthetic")
 
-CLASSES = ["Sofa", "CoffeeTable", "TVStand", "Television", "ArmChair", "Shelf", "DiningTable",
-           "RemoteControl", "Book", "Pillow", "AlarmClock", "Laptop"]
+CLASSES = [
+    "Sofa",
+    "CoffeeTable",
+    "TVStand",
+    "Television",
+    "ArmChair",
+    "Shelf",
+    "DiningTable",
+    "RemoteControl",
+    "Book",
+    "Pillow",
+    "AlarmClock",
+    "Laptop",
+]
 CELL = 0.05
 VOXEL = 0.1
-ROOM_MIN, ROOM_MAX = (-2.5, -2.0), (3.5, 3.0)     # start-frame extent of the room (x, y)
+ROOM_MIN, ROOM_MAX = (-2.5, -2.0), (3.5, 3.0)  # start-frame extent of the room (x, y)
 CAMERA_HEIGHT = 0.9
-EXPLORE_RADIUS = 2.2                              # metres the agent "sees" around each past pose
+EXPLORE_RADIUS = 2.2  # metres the agent "sees" around each past pose
 
 
 @dataclass(frozen=True)
@@ -108,7 +121,7 @@ class SyntheticEpisode:
         shape = (round((ROOM_MAX[0] - ROOM_MIN[0]) / CELL) + 2, round((ROOM_MAX[1] - ROOM_MIN[1]) / CELL) + 2)
         self.origin = (ROOM_MIN[0] - CELL, ROOM_MIN[1] - CELL)
         occ = np.ones(shape, np.uint8)
-        occ[:2, :] = occ[-2:, :] = occ[:, :2] = occ[:, -2:] = 2                  # walls
+        occ[:2, :] = occ[-2:, :] = occ[:, :2] = occ[:, -2:] = 2  # walls
         for box in FURNITURE:
             occ[self._cells(box.lo[0], box.hi[0], 0), self._cells(box.lo[1], box.hi[1], 1)] = 2
         self._occupancy = occ
@@ -119,9 +132,14 @@ class SyntheticEpisode:
 
     def _voxels(self) -> tuple[np.ndarray, np.ndarray]:
         pts, labels = [], []
-        for box in FURNITURE + [_Box(n, tuple(np.subtract(c, np.divide(s, 2))), tuple(np.add(c, np.divide(s, 2))))
-                                for n, c, s, _ in SMALL]:
-            axes = [np.arange(lo + VOXEL / 2, max(hi, lo + VOXEL / 2 + 1e-6), VOXEL) for lo, hi in zip(box.lo, box.hi)]
+        for box in FURNITURE + [
+            _Box(n, tuple(np.subtract(c, np.divide(s, 2))), tuple(np.add(c, np.divide(s, 2))))
+            for n, c, s, _ in SMALL
+        ]:
+            axes = [
+                np.arange(lo + VOXEL / 2, max(hi, lo + VOXEL / 2 + 1e-6), VOXEL)
+                for lo, hi in zip(box.lo, box.hi)
+            ]
             grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
             # keep the shell: voxels on the box's surface, as a depth sensor sees them
             lo_idx = np.array([a[0] for a in axes])
@@ -133,8 +151,10 @@ class SyntheticEpisode:
         zs = np.arange(VOXEL / 2, 1.8, 2 * VOXEL)
         xs = np.arange(ROOM_MIN[0], ROOM_MAX[0] + 1e-6, 2 * VOXEL)
         ys = np.arange(ROOM_MIN[1], ROOM_MAX[1] + 1e-6, 2 * VOXEL)
-        walls = [np.array([(x, y, z) for x in xs for z in zs for y in (ROOM_MIN[1], ROOM_MAX[1])]),
-                 np.array([(x, y, z) for y in ys for z in zs for x in (ROOM_MIN[0], ROOM_MAX[0])])]
+        walls = [
+            np.array([(x, y, z) for x in xs for z in zs for y in (ROOM_MIN[1], ROOM_MAX[1])]),
+            np.array([(x, y, z) for y in ys for z in zs for x in (ROOM_MIN[0], ROOM_MAX[0])]),
+        ]
         for w in walls:
             pts.append(w)
             labels.append(np.full(len(w), -1, np.int16))
@@ -152,7 +172,7 @@ class SyntheticEpisode:
         seen = np.zeros(self._occupancy.shape, bool)
         for s in range(0, step + 1, 10):
             x, y, _ = _loop_pose(s)
-            seen |= (gx - x) ** 2 + (gy - y) ** 2 < EXPLORE_RADIUS ** 2
+            seen |= (gx - x) ** 2 + (gy - y) ** 2 < EXPLORE_RADIUS**2
         return seen
 
     def _seen(self, xy: np.ndarray, explored: np.ndarray) -> np.ndarray:
@@ -169,16 +189,31 @@ class SyntheticEpisode:
         traj = np.array([_loop_pose(s)[:2] for s in range(0, step + 1, max(1, step // 200 + 1))], np.float32)
         path = np.array([_loop_pose(s)[:2] for s in range(step, step + 30, 2)], np.float32)
         return AgentStatus(
-            session=self.session, step=step, phase=phase,
-            episode={"room_type": self.room_type, "seed": self.seed, "mess_index": self.mess_index,
-                     "variant": "tidee", "perception": "synthetic"},
-            pose=self.pose(step), paused=paused, target_object=target[0], target_id=SMALL.index(target),
+            session=self.session,
+            step=step,
+            phase=phase,
+            episode={
+                "room_type": self.room_type,
+                "seed": self.seed,
+                "mess_index": self.mess_index,
+                "variant": "tidee",
+                "perception": "synthetic",
+            },
+            pose=self.pose(step),
+            paused=paused,
+            target_object=target[0],
+            target_id=SMALL.index(target),
             target_receptacle=RECEPTACLES[int(order[0])],
             predictions=[ReceptaclePrediction(RECEPTACLES[int(k)], round(float(probs[k]), 4)) for k in order],
-            held="Laptop" if 300 <= step % 600 < 360 else None, objects_fixed=min(step // 150, 3),
-            oop_found=min(1 + step // 60, 3), done=False,
+            held="Laptop" if 300 <= step % 600 < 360 else None,
+            objects_fixed=min(step // 150, 3),
+            oop_found=min(1 + step // 60, 3),
+            done=False,
             message=f"{phase}: {target[0]} -> {RECEPTACLES[int(order[0])]}",
-            trajectory=traj, path=path, goal=(float(path[-1, 0]), float(path[-1, 1])))
+            trajectory=traj,
+            path=path,
+            goal=(float(path[-1, 0]), float(path[-1, 1])),
+        )
 
     def frame(self, step: int) -> AgentFrame:
         r = self.resolution
@@ -200,22 +235,45 @@ class SyntheticEpisode:
             w, h = 0.14 * r, 0.1 * r
             box = (cx - w, cy - h, cx + w, cy + h)
             color = np.array([(60, 60, 200), (200, 60, 60), (60, 160, 60)][k], np.float32)
-            img[int(box[1]):int(box[3]), int(box[0]):int(box[2])] = color
-            depth[int(box[1]):int(box[3]), int(box[0]):int(box[2])] = 1.2 + 0.5 * k
-            detections.append(Detection2D(label, round(0.8 + 0.05 * k, 3), tuple(float(v) for v in box),
-                                          oop_prob=0.9 if oop else 0.1, track_id=k))
+            img[int(box[1]) : int(box[3]), int(box[0]) : int(box[2])] = color
+            depth[int(box[1]) : int(box[3]), int(box[0]) : int(box[2])] = 1.2 + 0.5 * k
+            detections.append(
+                Detection2D(
+                    label,
+                    round(0.8 + 0.05 * k, 3),
+                    tuple(float(v) for v in box),
+                    oop_prob=0.9 if oop else 0.1,
+                    track_id=k,
+                )
+            )
         img += rng.normal(0, 4, img.shape)
-        return AgentFrame(session=self.session, step=step, rgb=np.clip(img, 0, 255).astype(np.uint8),
-                          depth=depth, camera_pose=camera_pose_from_agent(x, y, yaw, pitch, CAMERA_HEIGHT),
-                          intrinsics=intrinsics(r), detections=detections, perception="synthetic")
+        return AgentFrame(
+            session=self.session,
+            step=step,
+            rgb=np.clip(img, 0, 255).astype(np.uint8),
+            depth=depth,
+            camera_pose=camera_pose_from_agent(x, y, yaw, pitch, CAMERA_HEIGHT),
+            intrinsics=intrinsics(r),
+            detections=detections,
+            perception="synthetic",
+        )
 
     def maps(self, step: int) -> MapSnapshot:
         explored = self._explored(step)
         occ = np.where(explored, self._occupancy, 0).astype(np.uint8)
         keep = self._seen(self._points[:, :2], explored)
-        return MapSnapshot(session=self.session, step=step, origin=self.origin, cell=CELL, occupancy=occ,
-                           explored=explored, voxel_size=VOXEL, points=self._points[keep],
-                           point_labels=self._labels[keep], classes=list(CLASSES))
+        return MapSnapshot(
+            session=self.session,
+            step=step,
+            origin=self.origin,
+            cell=CELL,
+            occupancy=occ,
+            explored=explored,
+            voxel_size=VOXEL,
+            points=self._points[keep],
+            point_labels=self._labels[keep],
+            classes=list(CLASSES),
+        )
 
     def memory(self, step: int) -> ObjectMemoryMsg:
         explored = self._explored(step)
@@ -228,9 +286,19 @@ class SyntheticEpisode:
             centre = c if not held else (*self.pose(step)[:2], 0.6)
             lo = tuple(float(a - b / 2) for a, b in zip(centre, s))
             hi = tuple(float(a + b / 2) for a, b in zip(centre, s))
-            objects.append(TrackedObjectMsg(id=k, label=label, score=0.9, centroid=tuple(float(v) for v in centre),
-                                            box_min=lo, box_max=hi, oop_prob=0.9 if oop else 0.1,
-                                            out_of_place=oop and k >= step // 150 % len(SMALL), held=held))
+            objects.append(
+                TrackedObjectMsg(
+                    id=k,
+                    label=label,
+                    score=0.9,
+                    centroid=tuple(float(v) for v in centre),
+                    box_min=lo,
+                    box_max=hi,
+                    oop_prob=0.9 if oop else 0.1,
+                    out_of_place=oop and k >= step // 150 % len(SMALL),
+                    held=held,
+                )
+            )
         return ObjectMemoryMsg(session=self.session, step=step, objects=objects)
 
     def search(self, step: int) -> SearchHeatmap:
@@ -240,32 +308,63 @@ class SyntheticEpisode:
         ys = self.origin[1] + (np.arange(shape[1]) + 0.5) * CELL
         gx, gy = np.meshgrid(xs, ys, indexing="ij")
         cx, cy = (box.lo[0] + box.hi[0]) / 2, (box.lo[1] + box.hi[1]) / 2
-        heat = np.exp(-((gx - cx) ** 2 + (gy - cy) ** 2) / (2 * 0.6 ** 2))
-        heat += 0.5 * np.exp(-((gx - 0.3) ** 2 + (gy - 2.2) ** 2) / (2 * 0.4 ** 2))
+        heat = np.exp(-((gx - cx) ** 2 + (gy - cy) ** 2) / (2 * 0.6**2))
+        heat += 0.5 * np.exp(-((gx - 0.3) ** 2 + (gy - 2.2) ** 2) / (2 * 0.4**2))
         heat = (heat / heat.max()).astype(np.float32)
         # ranked viewpoints: in front of the receptacle (towards the room's middle), then around it
         toward = np.array([0.5 - cx, 0.5 - cy]) / max(math.hypot(0.5 - cx, 0.5 - cy), 1e-6)
         side = np.array([-toward[1], toward[0]])
         c = np.array([cx, cy])
-        points = np.array([c + 1.0 * toward, c + 0.9 * toward + 0.7 * side, (0.3, 2.2),
-                           c + 0.9 * toward - 0.7 * side, c + 1.6 * toward], np.float32)
-        return SearchHeatmap(session=self.session, step=step, target=box.label, origin=self.origin, cell=CELL,
-                             heatmap=heat, points=points, source="synthetic")
+        points = np.array(
+            [
+                c + 1.0 * toward,
+                c + 0.9 * toward + 0.7 * side,
+                (0.3, 2.2),
+                c + 0.9 * toward - 0.7 * side,
+                c + 1.6 * toward,
+            ],
+            np.float32,
+        )
+        return SearchHeatmap(
+            session=self.session,
+            step=step,
+            target=box.label,
+            origin=self.origin,
+            cell=CELL,
+            heatmap=heat,
+            points=points,
+            source="synthetic",
+        )
 
     def summary(self, steps: int, wall_s: float = 0.0, replay: str = "") -> EpisodeSummary:
         """How an episode of ``steps`` steps ended (kind ``summary``, sent once at the end)."""
         last = self.status(max(steps - 1, 0))
         moved = sum(oop for *_, oop in SMALL)
-        return EpisodeSummary(session=self.session, episode=dict(last.episode), steps=steps, wall_s=round(wall_s, 2),
-                              end_reason="step budget", put_away=last.objects_fixed, moved=moved,
-                              found=min(last.oop_found, moved), plausible=min(last.objects_fixed, moved),
-                              false_picks=0, replay=replay)
+        return EpisodeSummary(
+            session=self.session,
+            episode=dict(last.episode),
+            steps=steps,
+            wall_s=round(wall_s, 2),
+            end_reason="step budget",
+            put_away=last.objects_fixed,
+            moved=moved,
+            found=min(last.oop_found, moved),
+            plausible=min(last.objects_fixed, moved),
+            false_picks=0,
+            replay=replay,
+        )
 
-    def messages(self, step: int, paused: bool = False, kinds: tuple[str, ...] | None = None) -> dict[str, Any]:
+    def messages(
+        self, step: int, paused: bool = False, kinds: tuple[str, ...] | None = None
+    ) -> dict[str, Any]:
         """The telemetry of ``step`` (``kinds``: a subset of status, frame, maps, memory, search)."""
-        makers = {"status": lambda: self.status(step, paused), "frame": lambda: self.frame(step),
-                  "maps": lambda: self.maps(step), "memory": lambda: self.memory(step),
-                  "search": lambda: self.search(step)}
+        makers = {
+            "status": lambda: self.status(step, paused),
+            "frame": lambda: self.frame(step),
+            "maps": lambda: self.maps(step),
+            "memory": lambda: self.memory(step),
+            "search": lambda: self.search(step),
+        }
         return {kind: make() for kind, make in makers.items() if kinds is None or kind in kinds}
 
 
@@ -281,9 +380,18 @@ class SyntheticAgent:
     (the benchmark measures how much a viewer slows that down).
     """
 
-    def __init__(self, session: str = "synthetic", server_id: str = "sim0", endpoint: str | None = None,
-                 router: str | None = None, listen: bool = True, seed: int = 0, resolution: int = 128,
-                 rate_hz: float = 20.0, work_ms: float = 0.0) -> None:
+    def __init__(
+        self,
+        session: str = "synthetic",
+        server_id: str = "sim0",
+        endpoint: str | None = None,
+        router: str | None = None,
+        listen: bool = True,
+        seed: int = 0,
+        resolution: int = 128,
+        rate_hz: float = 20.0,
+        work_ms: float = 0.0,
+    ) -> None:
         self.session = keys.check_id("session", session)
         self.server_id = keys.check_id("server_id", server_id)
         self.episode = SyntheticEpisode(seed=seed, session=session, resolution=resolution)
@@ -291,20 +399,25 @@ class SyntheticAgent:
         self.step = 0
         self.steps_published = 0
         self.paused = False
-        self.acks: list[CommandAck] = []          # the last few, for tests
+        self.acks: list[CommandAck] = []  # the last few, for tests
         self._single_steps = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._z = zenoh.open(make_config(listen=listen, endpoint=endpoint, router=router))
         self._token = self._z.liveliness().declare_token(keys.alive_session(server_id, session))
-        self._pubs = {kind: self._z.declare_publisher(keys.agent_telemetry(session, kind),
-                                                      congestion_control=zenoh.CongestionControl.DROP)
-                      for kind in (*PUBLISH_EVERY, "ack", "summary")}
+        self._pubs = {
+            kind: self._z.declare_publisher(
+                keys.agent_telemetry(session, kind), congestion_control=zenoh.CongestionControl.DROP
+            )
+            for kind in (*PUBLISH_EVERY, "ack", "summary")
+        }
         self._commands = self._z.declare_subscriber(keys.agent_cmd(session), zenoh.handlers.FifoChannel(64))
         self._thread: threading.Thread | None = None
 
     def start(self, steps: int | None = None) -> SyntheticAgent:
-        self._thread = threading.Thread(target=self.run, args=(steps,), daemon=True, name="tidee-synthetic-agent")
+        self._thread = threading.Thread(
+            target=self.run, args=(steps,), daemon=True, name="tidee-synthetic-agent"
+        )
         self._thread.start()
         return self
 
@@ -329,7 +442,7 @@ class SyntheticAgent:
                 next_t += period
                 self._stop.wait(max(0.0, next_t - time.perf_counter()))
         elapsed = time.perf_counter() - t0
-        if steps is not None and published >= steps:   # the episode's end, as an agent reports it
+        if steps is not None and published >= steps:  # the episode's end, as an agent reports it
             self.publish_summary(elapsed)
         return published / elapsed if elapsed > 0 else 0.0
 
@@ -362,11 +475,17 @@ class SyntheticAgent:
                     self._single_steps += 1
                     message = "one step" if self.paused else "stepping (not paused)"
                 elif cmd.kind == "new_episode":
-                    self.episode = SyntheticEpisode(seed=cmd.seed or 0, session=self.session,
-                                                    resolution=self.episode.resolution,
-                                                    room_type=cmd.room_type or "LivingRoom",
-                                                    mess_index=cmd.mess_index)
-                    self.step, message = 0, f"new episode {cmd.room_type} seed {cmd.seed} mess {cmd.mess_index}"
+                    self.episode = SyntheticEpisode(
+                        seed=cmd.seed or 0,
+                        session=self.session,
+                        resolution=self.episode.resolution,
+                        room_type=cmd.room_type or "LivingRoom",
+                        mess_index=cmd.mess_index,
+                    )
+                    self.step, message = (
+                        0,
+                        f"new episode {cmd.room_type} seed {cmd.seed} mess {cmd.mess_index}",
+                    )
                 elif cmd.kind == "preference":
                     message = f"noted: {cmd.text!r} (synthetic agent: no learned response)"
             ack = CommandAck(self.session, cmd.command_id, cmd.kind, ok, message)
@@ -430,7 +549,9 @@ def write_synthetic_log(directory: str, steps: int, seed: int = 0, session: str 
             writer.event(step=step, kind="step")
         summary = episode.summary(steps, replay=f"tidee viewer --replay {directory}")
         writer.message("summary", summary)
-        writer.finish({"steps": steps, "session": session, "synthetic": True, "summary": dataclasses.asdict(summary)})
+        writer.finish(
+            {"steps": steps, "session": session, "synthetic": True, "summary": dataclasses.asdict(summary)}
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -442,25 +563,44 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m tidee.viewer.synthetic", description=main.__doc__)
     p.add_argument("--endpoint", default=None, help="peer-mode rendezvous (default: loopback:7447)")
     p.add_argument("--router", default=None)
-    p.add_argument("--connect", action="store_true",
-                   help="connect to the rendezvous instead of listening on it (when a server already listens)")
+    p.add_argument(
+        "--connect",
+        action="store_true",
+        help="connect to the rendezvous instead of listening on it (when a server already listens)",
+    )
     p.add_argument("--session", default="synthetic")
     p.add_argument("--server-id", default="sim0")
     p.add_argument("--steps", type=int, default=0, help="stop after this many steps (0: run until Ctrl-C)")
     p.add_argument("--rate", type=float, default=10.0, help="steps per second (0: as fast as possible)")
     p.add_argument("--work-ms", type=float, default=0.0, help="CPU time burnt per step (an agent's compute)")
-    p.add_argument("--wait-viewer", type=float, default=0.0, help="wait up to this many seconds for a subscriber")
+    p.add_argument(
+        "--wait-viewer", type=float, default=0.0, help="wait up to this many seconds for a subscriber"
+    )
     p.add_argument("--resolution", type=int, default=128)
     args = p.parse_args(argv)
-    with SyntheticAgent(session=args.session, server_id=args.server_id, endpoint=args.endpoint, router=args.router,
-                        listen=not args.connect, resolution=args.resolution, rate_hz=args.rate,
-                        work_ms=args.work_ms) as agent:
-        for sig in (signal.SIGINT, signal.SIGTERM):  # explicit: a background job may start with SIGINT ignored
+    with SyntheticAgent(
+        session=args.session,
+        server_id=args.server_id,
+        endpoint=args.endpoint,
+        router=args.router,
+        listen=not args.connect,
+        resolution=args.resolution,
+        rate_hz=args.rate,
+        work_ms=args.work_ms,
+    ) as agent:
+        for sig in (
+            signal.SIGINT,
+            signal.SIGTERM,
+        ):  # explicit: a background job may start with SIGINT ignored
             signal.signal(sig, lambda *_: agent.stop())
         matched = agent.wait_for_subscriber(args.wait_viewer) if args.wait_viewer > 0 else False
         rate = agent.run(args.steps or None)
-        print(json.dumps({"steps": agent.steps_published, "steps_per_s": round(rate, 3), "viewer_matched": matched}),
-              flush=True)
+        print(
+            json.dumps(
+                {"steps": agent.steps_published, "steps_per_s": round(rate, 3), "viewer_matched": matched}
+            ),
+            flush=True,
+        )
     return 0
 
 

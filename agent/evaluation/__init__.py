@@ -8,13 +8,42 @@
 
 from __future__ import annotations
 
-from .judge import (AI2THOR_PLACEMENT, MESSY_PLACEMENT, REFERENCE_VARIANTS, judge_score, plausible, prefer,
-                    reference_records)
-from .report import (OBJECT_KEYS, RECORD_KEYS, config_key, format_markdown, pairwise_table,
-                     validate_records, variant_metrics, with_references, write_report)
+from .judge import (
+    AI2THOR_PLACEMENT,
+    MESSY_PLACEMENT,
+    REFERENCE_VARIANTS,
+    judge_score,
+    plausible,
+    prefer,
+    reference_records,
+)
+from .report import (
+    OBJECT_KEYS,
+    RECORD_KEYS,
+    config_key,
+    format_markdown,
+    pairwise_table,
+    validate_records,
+    variant_metrics,
+    with_references,
+    write_report,
+)
 
 __all__ = [
-    "AI2THOR_PLACEMENT", "MESSY_PLACEMENT", "REFERENCE_VARIANTS", "judge_score", "plausible", "prefer",
-    "reference_records", "OBJECT_KEYS", "RECORD_KEYS", "config_key", "format_markdown", "pairwise_table",
-    "validate_records", "variant_metrics", "with_references", "write_report",
+    "AI2THOR_PLACEMENT",
+    "MESSY_PLACEMENT",
+    "REFERENCE_VARIANTS",
+    "judge_score",
+    "plausible",
+    "prefer",
+    "reference_records",
+    "OBJECT_KEYS",
+    "RECORD_KEYS",
+    "config_key",
+    "format_markdown",
+    "pairwise_table",
+    "validate_records",
+    "variant_metrics",
+    "with_references",
+    "write_report",
 ]

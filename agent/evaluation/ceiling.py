@@ -36,10 +36,10 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-SURVEY_FIRST_SEED = 10185   # the shipped rGCN trains on training-pool seeds 10000-10184
+SURVEY_FIRST_SEED = 10185  # the shipped rGCN trains on training-pool seeds 10000-10184
 A, B = "TIDEE", "CommonMemory"
 
-Key = tuple[str, str, Any]          # (room type, category, variant)
+Key = tuple[str, str, Any]  # (room type, category, variant)
 
 
 def _load_report(path: str | Path) -> dict[str, Any]:
@@ -50,7 +50,9 @@ def _load_report(path: str | Path) -> dict[str, Any]:
                 path = path / name
                 break
     if not path.is_file():
-        raise FileNotFoundError(f"no tidy report at {path} (give report.json, report.json.gz or their folder)")
+        raise FileNotFoundError(
+            f"no tidy report at {path} (give report.json, report.json.gz or their folder)"
+        )
     opener = gzip.open if path.suffix == ".gz" else open
     with opener(path, "rt") as f:
         report = json.load(f)
@@ -59,14 +61,17 @@ def _load_report(path: str | Path) -> dict[str, Any]:
     variants = {e.get("variant") for e in report["episodes"]}
     missing = [v for v in (A, B) if v not in variants]
     if missing:
-        raise ValueError(f"{path} has no episodes of {missing}; the ceiling compares {A} with {B} "
-                         f"(run `tidee eval tidy --variants {A},{B}`)")
+        raise ValueError(
+            f"{path} has no episodes of {missing}; the ceiling compares {A} with {B} "
+            f"(run `tidee eval tidy --variants {A},{B}`)"
+        )
     return dict(report)
 
 
 # ------------------------------------------------------------------------ survey
-def survey(rooms_per_type: int, version: int, first_seed: int = SURVEY_FIRST_SEED,
-           progress: bool = True) -> dict[str, Any]:
+def survey(
+    rooms_per_type: int, version: int, first_seed: int = SURVEY_FIRST_SEED, progress: bool = True
+) -> dict[str, Any]:
     """Where tidy rooms of generator ``version`` hold their objects.
 
     Returns ``counts`` {(room type, category, variant): Counter(receptacle type)}, ``objects_per_room``,
@@ -117,12 +122,17 @@ def survey(rooms_per_type: int, version: int, first_seed: int = SURVEY_FIRST_SEE
         dist[key[0]][0] += d
         dist[key[0]][1] += sum(c.values())
     total = sum(n for _, n in dist.values())
-    return {"counts": dict(counts), "rooms_version": version, "rooms": len(per_room),
-            "seeds": [seeds[0], seeds[-1]], "objects": sum(per_room),
-            "objects_per_room": sum(per_room) / len(per_room),
-            "tv": sum(d for d, _ in dist.values()) / total if total else None,
-            "tv_by_room_type": {rt: d / n for rt, (d, n) in dist.items() if n},
-            "seconds": round(time.time() - t0, 1)}
+    return {
+        "counts": dict(counts),
+        "rooms_version": version,
+        "rooms": len(per_room),
+        "seeds": [seeds[0], seeds[-1]],
+        "objects": sum(per_room),
+        "objects_per_room": sum(per_room) / len(per_room),
+        "tv": sum(d for d, _ in dist.values()) / total if total else None,
+        "tv_by_room_type": {rt: d / n for rt, (d, n) in dist.items() if n},
+        "seconds": round(time.time() - t0, 1),
+    }
 
 
 # --------------------------------------------------------------- counterfactuals
@@ -152,8 +162,14 @@ def rooms_choosers(counts: Mapping[Key, Counter]) -> tuple[Chooser, Chooser]:
 
     def common(rt: str, cat: str, variant: Any, present: Sequence[str]) -> str | None:
         have = set(present) | {"Floor"}
-        return next((r for r, _ in sorted(pooled.get(cat, Counter()).items(), key=lambda kv: (-kv[1], kv[0]))
-                     if r in have), None)
+        return next(
+            (
+                r
+                for r, _ in sorted(pooled.get(cat, Counter()).items(), key=lambda kv: (-kv[1], kv[0]))
+                if r in have
+            ),
+            None,
+        )
 
     return tidee, common
 
@@ -196,7 +212,9 @@ def prior_choosers() -> tuple[Chooser, Chooser]:
     return tidee, common
 
 
-def counterfactual(records: Sequence[Mapping[str, Any]], variant: str, choose: Chooser) -> list[dict[str, Any]]:
+def counterfactual(
+    records: Sequence[Mapping[str, Any]], variant: str, choose: Chooser
+) -> list[dict[str, Any]]:
     """Copies of ``variant``'s records with every picked object's final receptacle chosen by ``choose``."""
     out = []
     for rec in records:
@@ -205,8 +223,9 @@ def counterfactual(records: Sequence[Mapping[str, Any]], variant: str, choose: C
         rec = copy.deepcopy(dict(rec))
         for obj in rec["objects"]:
             if obj["picked"]:
-                obj["final_parent_type"] = choose(rec["room_type"], obj["type"], obj["variant"],
-                                                  rec["present_receptacles"])
+                obj["final_parent_type"] = choose(
+                    rec["room_type"], obj["type"], obj["variant"], rec["present_receptacles"]
+                )
         out.append(rec)
     return out
 
@@ -215,13 +234,17 @@ def observed_judge(counts: Mapping[Key, Counter]) -> Callable[..., float]:
     """A judge that scores by the surveyed rooms: the receptacle's count for (room type, category,
     variant) over the largest count among the receptacles present (1 when the survey never saw the
     object in this room type and the receptacle is present)."""
-    def score(category: str, variant: Any, room_type: str, parent: str | None, present: Sequence[str]) -> float:
+
+    def score(
+        category: str, variant: Any, room_type: str, parent: str | None, present: Sequence[str]
+    ) -> float:
         if parent is None:
             return 0.0
         c = _present_counts(counts, (room_type, category, variant), present)
         if not c:
             return 1.0 if parent in set(present) | {"Floor"} else 0.0
         return c.get(parent, 0) / max(c.values())
+
     return score
 
 
@@ -231,8 +254,10 @@ def _cell(records: Sequence[Mapping[str, Any]], judge: Callable[..., float] | No
     from tidee.agent.evaluation.report import pairwise_table
 
     cell = pairwise_table(records, [A, B], judge=judge)[A][B]
-    return {**{k: cell[k] for k in ("n", "wins", "ties", "losses", "pref_a", "p_value")},
-            "mean_judge": {A: cell["mean_a"], B: cell["mean_b"]}}
+    return {
+        **{k: cell[k] for k in ("n", "wins", "ties", "losses", "pref_a", "p_value")},
+        "mean_judge": {A: cell["mean_a"], B: cell["mean_b"]},
+    }
 
 
 def ceilings(report: Mapping[str, Any], counts: Mapping[Key, Counter]) -> dict[str, Any]:
@@ -247,17 +272,32 @@ def ceilings(report: Mapping[str, Any], counts: Mapping[Key, Counter]) -> dict[s
 
 
 # ------------------------------------------------------------------------ command
-def run_ceiling(reports: Sequence[str], out: str | Path, rooms_per_type: int = 200, version: int = 1,
-                command: str = "tidee eval ceiling", progress: bool = True,
-                first_seed: int = SURVEY_FIRST_SEED) -> dict[str, Any]:
+def run_ceiling(
+    reports: Sequence[str],
+    out: str | Path,
+    rooms_per_type: int = 200,
+    version: int = 1,
+    command: str = "tidee eval ceiling",
+    progress: bool = True,
+    first_seed: int = SURVEY_FIRST_SEED,
+) -> dict[str, Any]:
     from tidee.protocol.episode_log import write_json_atomic
 
-    loaded = [(str(p), _load_report(p)) for p in reports]   # fail on a bad report before the survey
+    loaded = [(str(p), _load_report(p)) for p in reports]  # fail on a bad report before the survey
     s = survey(rooms_per_type, version, first_seed=first_seed, progress=progress)
-    result = {"command": command, "judge": "catalog placement priors (receptacle_weights)",
-              "survey": {k: v for k, v in s.items() if k != "counts"},
-              "reports": [{"path": p, "split": ",".join(r.get("config", {}).get("splits", [])) or None,
-                           **ceilings(r, s["counts"])} for p, r in loaded]}
+    result = {
+        "command": command,
+        "judge": "catalog placement priors (receptacle_weights)",
+        "survey": {k: v for k, v in s.items() if k != "counts"},
+        "reports": [
+            {
+                "path": p,
+                "split": ",".join(r.get("config", {}).get("splits", [])) or None,
+                **ceilings(r, s["counts"]),
+            }
+            for p, r in loaded
+        ],
+    }
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "ceiling.json", result)
@@ -265,64 +305,109 @@ def run_ceiling(reports: Sequence[str], out: str | Path, rooms_per_type: int = 2
     return result
 
 
-ROW_NAMES = {"report": "the report's placements",
-             "rooms_learner": "rooms learner (perfect learner of the surveyed rooms, both agents)",
-             "prior_learner": "prior learner (rooms that follow the prior exactly)",
-             "observed_judge": "the report's placements, observed judge"}
+ROW_NAMES = {
+    "report": "the report's placements",
+    "rooms_learner": "rooms learner (perfect learner of the surveyed rooms, both agents)",
+    "prior_learner": "prior learner (rooms that follow the prior exactly)",
+    "observed_judge": "the report's placements, observed judge",
+}
 
 
 def markdown(result: Mapping[str, Any]) -> str:
     s = result["survey"]
-    lines = ["# How far can a learner of the tidy rooms go with the judge?", "",
-             f"`{result['command']}`", "",
-             f"Survey: {s['rooms']} tidy rooms of generator version {s['rooms_version']} (training-pool seeds "
-             f"{s['seeds'][0]}-{s['seeds'][1]} per room type), {s['objects_per_room']:.1f} objects per room. "
-             f"Total-variation distance between where they hold each (room type, category) and the catalog "
-             f"prior: **{s['tv']:.3f}** (" + ", ".join(f"{k} {v:.3f}" for k, v in s["tv_by_room_type"].items())
-             + f"). {s['seconds']:.0f} s.", ""]
+    lines = [
+        "# How far can a learner of the tidy rooms go with the judge?",
+        "",
+        f"`{result['command']}`",
+        "",
+        f"Survey: {s['rooms']} tidy rooms of generator version {s['rooms_version']} (training-pool seeds "
+        f"{s['seeds'][0]}-{s['seeds'][1]} per room type), {s['objects_per_room']:.1f} objects per room. "
+        f"Total-variation distance between where they hold each (room type, category) and the catalog "
+        f"prior: **{s['tv']:.3f}** ("
+        + ", ".join(f"{k} {v:.3f}" for k, v in s["tv_by_room_type"].items())
+        + f"). {s['seconds']:.0f} s.",
+        "",
+    ]
     for rep in result["reports"]:
-        lines += [f"## {rep['path']}" + (f" ({rep['split']})" if rep.get("split") else ""), "",
-                  "TIDEE against CommonMemory on the objects both picked (ties count half).", "",
-                  "| placements | n | won / tied / lost | preference | mean judge TIDEE | mean judge CommonMemory |",
-                  "|---|---|---|---|---|---|"]
+        lines += [
+            f"## {rep['path']}" + (f" ({rep['split']})" if rep.get("split") else ""),
+            "",
+            "TIDEE against CommonMemory on the objects both picked (ties count half).",
+            "",
+            "| placements | n | won / tied / lost | preference | mean judge TIDEE | mean judge CommonMemory |",
+            "|---|---|---|---|---|---|",
+        ]
         for key, name in ROW_NAMES.items():
             c = rep[key]
             pref = "–" if c["pref_a"] is None else f"{100 * c['pref_a']:.1f} %"
             m = c["mean_judge"]
             fmt = lambda x: "–" if x is None else f"{x:.3f}"  # noqa: E731
-            lines.append(f"| {name} | {c['n']} | {c['wins']} / {c['ties']} / {c['losses']} | {pref} | "
-                         f"{fmt(m[A])} | {fmt(m[B])} |")
+            lines.append(
+                f"| {name} | {c['n']} | {c['wins']} / {c['ties']} / {c['losses']} | {pref} | "
+                f"{fmt(m[A])} | {fmt(m[B])} |"
+            )
         lines.append("")
-    lines += ["The first three rows use the simulated judge (the catalog prior); the last scores by the "
-              "surveyed rooms' frequencies. Learners know each object's category and variant, and the "
-              "receptacle types present in its room.", ""]
+    lines += [
+        "The first three rows use the simulated judge (the catalog prior); the last scores by the "
+        "surveyed rooms' frequencies. Learners know each object's category and variant, and the "
+        "receptacle types present in its room.",
+        "",
+    ]
     return "\n".join(lines)
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    command = (f"tidee eval ceiling " + " ".join(f"--report {r}" for r in args.report)
-               + f" --rooms-per-type {args.rooms_per_type} --rooms-version {args.rooms_version}"
-               + (f" --first-seed {args.first_seed}" if args.first_seed != SURVEY_FIRST_SEED else "")
-               + f" --out {args.out}")
-    result = run_ceiling(args.report, args.out, args.rooms_per_type, args.rooms_version, command=command,
-                         first_seed=args.first_seed)
+    command = (
+        "tidee eval ceiling "
+        + " ".join(f"--report {r}" for r in args.report)
+        + f" --rooms-per-type {args.rooms_per_type} --rooms-version {args.rooms_version}"
+        + (f" --first-seed {args.first_seed}" if args.first_seed != SURVEY_FIRST_SEED else "")
+        + f" --out {args.out}"
+    )
+    result = run_ceiling(
+        args.report,
+        args.out,
+        args.rooms_per_type,
+        args.rooms_version,
+        command=command,
+        first_seed=args.first_seed,
+    )
     print(markdown(result))
     return 0
 
 
 def register(eval_sub: argparse._SubParsersAction) -> None:
     """``tidee eval ceiling``."""
-    p = eval_sub.add_parser("ceiling", help="the judge preference a perfect learner of the tidy rooms could reach")
-    p.add_argument("--report", action="append", required=True,
-                   help="a tidy report with TIDEE and CommonMemory episodes (report.json[.gz] or its folder); "
-                        "repeat for several")
+    p = eval_sub.add_parser(
+        "ceiling", help="the judge preference a perfect learner of the tidy rooms could reach"
+    )
+    p.add_argument(
+        "--report",
+        action="append",
+        required=True,
+        help="a tidy report with TIDEE and CommonMemory episodes (report.json[.gz] or its folder); "
+        "repeat for several",
+    )
     p.add_argument("--rooms-per-type", type=int, default=200, help="survey rooms per room type")
     p.add_argument("--rooms-version", type=int, default=1, help="room generator version of the survey")
-    p.add_argument("--first-seed", type=int, default=SURVEY_FIRST_SEED,
-                   help="first training-pool seed of the survey (another seed gives an independent survey)")
+    p.add_argument(
+        "--first-seed",
+        type=int,
+        default=SURVEY_FIRST_SEED,
+        help="first training-pool seed of the survey (another seed gives an independent survey)",
+    )
     p.add_argument("--out", required=True)
     p.set_defaults(func=_cmd)
 
 
-__all__ = ["SURVEY_FIRST_SEED", "ceilings", "counterfactual", "observed_judge", "prior_choosers", "register",
-           "rooms_choosers", "run_ceiling", "survey"]
+__all__ = [
+    "SURVEY_FIRST_SEED",
+    "ceilings",
+    "counterfactual",
+    "observed_judge",
+    "prior_choosers",
+    "register",
+    "rooms_choosers",
+    "run_ceiling",
+    "survey",
+]

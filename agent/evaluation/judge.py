@@ -28,8 +28,14 @@ from typing import Any
 from tidee.server.catalog import DEFAULT_PLAUSIBILITY, is_plausible, receptacle_weights
 
 __all__ = [
-    "AI2THOR_PLACEMENT", "MESSY_PLACEMENT", "REFERENCE_VARIANTS", "DEFAULT_PLAUSIBILITY",
-    "judge_score", "plausible", "prefer", "reference_records",
+    "AI2THOR_PLACEMENT",
+    "MESSY_PLACEMENT",
+    "REFERENCE_VARIANTS",
+    "DEFAULT_PLAUSIBILITY",
+    "judge_score",
+    "plausible",
+    "prefer",
+    "reference_records",
 ]
 
 AI2THOR_PLACEMENT = "AI2THORPlacement"
@@ -37,8 +43,9 @@ MESSY_PLACEMENT = "MessyPlacement"
 REFERENCE_VARIANTS: tuple[str, str] = (AI2THOR_PLACEMENT, MESSY_PLACEMENT)
 
 
-def judge_score(category: str, variant: str | None, room_type: str, parent_type: str | None,
-                present: Iterable[str] | None) -> float:
+def judge_score(
+    category: str, variant: str | None, room_type: str, parent_type: str | None, present: Iterable[str] | None
+) -> float:
     """How good a placement looks to the simulated judge, in [0, 1].
 
     ``category``/``variant``: the object's catalog type and variant (None: none);
@@ -63,8 +70,14 @@ def judge_score(category: str, variant: str | None, room_type: str, parent_type:
     return float(min(1.0, max(0.0, weights.get(parent_type, 0.0) / top)))
 
 
-def plausible(category: str, variant: str | None, room_type: str, parent_type: str | None,
-              present: Iterable[str] | None, threshold: float = DEFAULT_PLAUSIBILITY) -> bool:
+def plausible(
+    category: str,
+    variant: str | None,
+    room_type: str,
+    parent_type: str | None,
+    present: Iterable[str] | None,
+    threshold: float = DEFAULT_PLAUSIBILITY,
+) -> bool:
     """Whether the simulated judge accepts the placement at all.
 
     Wraps :func:`tidee.server.catalog.is_plausible`: the receptacle's prior weight is > 0
@@ -111,19 +124,22 @@ def reference_records(record: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
         raise ValueError(f"reference_records: expected a record dict, got {type(record).__name__}")
     objects = record.get("objects")
     if not isinstance(objects, (list, tuple)):
-        raise ValueError(f"reference_records: the record (variant {record.get('variant')!r}, "
-                         f"room {record.get('room_type')!r}, seed {record.get('seed')!r}, "
-                         f"mess {record.get('mess_index')!r}) has no 'objects' list")
+        raise ValueError(
+            f"reference_records: the record (variant {record.get('variant')!r}, "
+            f"room {record.get('room_type')!r}, seed {record.get('seed')!r}, "
+            f"mess {record.get('mess_index')!r}) has no 'objects' list"
+        )
     for i, obj in enumerate(objects):
         for key in _REF_OBJECT_KEYS:
             if key not in obj:
-                raise ValueError(f"reference_records: object {i} ({obj.get('id', '?')!r}) of the record "
-                                 f"(variant {record.get('variant')!r}, room {record.get('room_type')!r}, "
-                                 f"seed {record.get('seed')!r}, mess {record.get('mess_index')!r}) "
-                                 f"is missing key {key!r}")
+                raise ValueError(
+                    f"reference_records: object {i} ({obj.get('id', '?')!r}) of the record "
+                    f"(variant {record.get('variant')!r}, room {record.get('room_type')!r}, "
+                    f"seed {record.get('seed')!r}, mess {record.get('mess_index')!r}) "
+                    f"is missing key {key!r}"
+                )
     out: dict[str, dict[str, Any]] = {}
-    for name, source in ((AI2THOR_PLACEMENT, "original_parent_type"),
-                         (MESSY_PLACEMENT, "messy_parent_type")):
+    for name, source in ((AI2THOR_PLACEMENT, "original_parent_type"), (MESSY_PLACEMENT, "messy_parent_type")):
         rec = copy.deepcopy(dict(record))
         rec["variant"] = name
         rec["steps"] = 0

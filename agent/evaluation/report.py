@@ -39,18 +39,43 @@ from scipy.stats import binomtest
 
 from tidee.protocol.episode_log import write_atomic
 
-from .judge import (DEFAULT_PLAUSIBILITY, REFERENCE_VARIANTS, judge_score, plausible, prefer,
-                    reference_records)
+from .judge import DEFAULT_PLAUSIBILITY, REFERENCE_VARIANTS, judge_score, plausible, prefer, reference_records
 
 __all__ = [
-    "RECORD_KEYS", "OBJECT_KEYS", "config_key", "validate_records", "with_references",
-    "variant_metrics", "pairwise_table", "write_report", "format_markdown", "load_report", "merge_reports",
+    "RECORD_KEYS",
+    "OBJECT_KEYS",
+    "config_key",
+    "validate_records",
+    "with_references",
+    "variant_metrics",
+    "pairwise_table",
+    "write_report",
+    "format_markdown",
+    "load_report",
+    "merge_reports",
 ]
 
-RECORD_KEYS: tuple[str, ...] = ("variant", "room_type", "seed", "mess_index", "steps", "wall_s",
-                                "present_receptacles", "objects")
-OBJECT_KEYS: tuple[str, ...] = ("id", "type", "variant", "moved", "found", "picked",
-                                "original_parent_type", "messy_parent_type", "final_parent_type")
+RECORD_KEYS: tuple[str, ...] = (
+    "variant",
+    "room_type",
+    "seed",
+    "mess_index",
+    "steps",
+    "wall_s",
+    "present_receptacles",
+    "objects",
+)
+OBJECT_KEYS: tuple[str, ...] = (
+    "id",
+    "type",
+    "variant",
+    "moved",
+    "found",
+    "picked",
+    "original_parent_type",
+    "messy_parent_type",
+    "final_parent_type",
+)
 _BOOL_KEYS = ("moved", "found", "picked")
 
 Config = tuple[Any, str, Any, Any]
@@ -60,8 +85,10 @@ Config = tuple[Any, str, Any, Any]
 
 
 def _describe(i: int, rec: Mapping[str, Any]) -> str:
-    return (f"record {i} (variant {rec.get('variant')!r}, room {rec.get('room_type')!r}, "
-            f"seed {rec.get('seed')!r}, mess {rec.get('mess_index')!r})")
+    return (
+        f"record {i} (variant {rec.get('variant')!r}, room {rec.get('room_type')!r}, "
+        f"seed {rec.get('seed')!r}, mess {rec.get('mess_index')!r})"
+    )
 
 
 def validate_records(records: Iterable[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
@@ -84,23 +111,29 @@ def validate_records(records: Iterable[Mapping[str, Any]]) -> list[Mapping[str, 
             if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
                 raise ValueError(f"{_describe(i, rec)}: {key!r} must be a number, got {x!r}")
         if not isinstance(rec["present_receptacles"], (list, tuple)):
-            raise ValueError(f"{_describe(i, rec)}: 'present_receptacles' must be a list, "
-                             f"got {type(rec['present_receptacles']).__name__}")
+            raise ValueError(
+                f"{_describe(i, rec)}: 'present_receptacles' must be a list, "
+                f"got {type(rec['present_receptacles']).__name__}"
+            )
         if not isinstance(rec["objects"], (list, tuple)):
-            raise ValueError(f"{_describe(i, rec)}: 'objects' must be a list, "
-                             f"got {type(rec['objects']).__name__}")
+            raise ValueError(
+                f"{_describe(i, rec)}: 'objects' must be a list, got {type(rec['objects']).__name__}"
+            )
         seen: set[Any] = set()
         for j, obj in enumerate(rec["objects"]):
             if not isinstance(obj, Mapping):
                 raise ValueError(f"{_describe(i, rec)}: object {j} is not a dict")
             for key in OBJECT_KEYS:
                 if key not in obj:
-                    raise ValueError(f"{_describe(i, rec)}: object {j} ({obj.get('id', '?')!r}) "
-                                     f"is missing key {key!r}")
+                    raise ValueError(
+                        f"{_describe(i, rec)}: object {j} ({obj.get('id', '?')!r}) is missing key {key!r}"
+                    )
             for key in _BOOL_KEYS:
                 if not isinstance(obj[key], (bool, np.bool_)):
-                    raise ValueError(f"{_describe(i, rec)}: object {j} ({obj['id']!r}): {key!r} must "
-                                     f"be a bool, got {obj[key]!r}")
+                    raise ValueError(
+                        f"{_describe(i, rec)}: object {j} ({obj['id']!r}): {key!r} must "
+                        f"be a bool, got {obj[key]!r}"
+                    )
             if obj["id"] in seen:
                 raise ValueError(f"{_describe(i, rec)}: object id {obj['id']!r} appears twice")
             seen.add(obj["id"])
@@ -194,8 +227,19 @@ def variant_metrics(records: Iterable[Mapping[str, Any]]) -> dict[str, dict[str,
     recs = validate_records(records)
     acc: dict[str, dict[str, Any]] = {}
     for v in _variant_order(recs):
-        acc[v] = {"episodes": 0, "moved": 0, "found": 0, "picked": 0, "false_picks": 0, "plausible": 0,
-                  "ok_episodes": 0, "scores": [], "steps": [], "wall_s": [], "end_reasons": {}}
+        acc[v] = {
+            "episodes": 0,
+            "moved": 0,
+            "found": 0,
+            "picked": 0,
+            "false_picks": 0,
+            "plausible": 0,
+            "ok_episodes": 0,
+            "scores": [],
+            "steps": [],
+            "wall_s": [],
+            "end_reasons": {},
+        }
     for i, rec in enumerate(recs):
         a = acc[rec["variant"]]
         a["episodes"] += 1
@@ -245,17 +289,21 @@ def _index(recs: Sequence[Mapping[str, Any]]) -> dict[str, dict[Config, tuple[in
         key = config_key(rec)
         slot = by.setdefault(rec["variant"], {})
         if key in slot:
-            raise ValueError(f"{_describe(i, rec)} repeats the configuration of record {slot[key][0]} "
-                             f"(split, room, seed, mess = {key}); pairwise comparison needs one record "
-                             f"per variant and configuration (build references once per configuration, "
-                             f"e.g. with with_references)")
+            raise ValueError(
+                f"{_describe(i, rec)} repeats the configuration of record {slot[key][0]} "
+                f"(split, room, seed, mess = {key}); pairwise comparison needs one record "
+                f"per variant and configuration (build references once per configuration, "
+                f"e.g. with with_references)"
+            )
         slot[key] = (i, rec)
     return by
 
 
-def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
-             b_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
-             judge: Callable[..., float] | None = None) -> dict[str, Any]:
+def _compare(
+    a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
+    b_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
+    judge: Callable[..., float] | None = None,
+) -> dict[str, Any]:
     wins = ties = losses = configs = 0
     sum_a = sum_b = 0.0
     groups: dict[tuple[str, str | None, str | None, str], int] = {}
@@ -270,20 +318,32 @@ def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
             if ob is None:
                 continue
             if bool(oa["moved"]) != bool(ob["moved"]) or oa["type"] != ob["type"]:
-                raise ValueError(f"object {oa['id']!r} differs between {_describe(ia, ra)} and "
-                                 f"{_describe(ib, rb)} (moved {oa['moved']} vs {ob['moved']}, type "
-                                 f"{oa['type']!r} vs {ob['type']!r}) although they ran the same "
-                                 f"configuration")
+                raise ValueError(
+                    f"object {oa['id']!r} differs between {_describe(ia, ra)} and "
+                    f"{_describe(ib, rb)} (moved {oa['moved']} vs {ob['moved']}, type "
+                    f"{oa['type']!r} vs {ob['type']!r}) although they ran the same "
+                    f"configuration"
+                )
             if not (oa["moved"] and oa["picked"] and ob["picked"]):
                 continue
             if judge is None:
                 sa, _ = _score(ia, ra, oa, oa["final_parent_type"])
                 sb, _ = _score(ib, rb, ob, ob["final_parent_type"])
             else:
-                sa = judge(oa["type"], oa["variant"], ra["room_type"], oa["final_parent_type"],
-                           ra["present_receptacles"])
-                sb = judge(ob["type"], ob["variant"], rb["room_type"], ob["final_parent_type"],
-                           rb["present_receptacles"])
+                sa = judge(
+                    oa["type"],
+                    oa["variant"],
+                    ra["room_type"],
+                    oa["final_parent_type"],
+                    ra["present_receptacles"],
+                )
+                sb = judge(
+                    ob["type"],
+                    ob["variant"],
+                    rb["room_type"],
+                    ob["final_parent_type"],
+                    rb["present_receptacles"],
+                )
             sum_a += sa
             sum_b += sb
             p = prefer(sa, sb)
@@ -299,19 +359,28 @@ def _compare(a_runs: Mapping[Config, tuple[int, Mapping[str, Any]]],
     n = wins + ties + losses
     decided = wins + losses
     return {
-        "n": n, "wins": wins, "ties": ties, "losses": losses,
+        "n": n,
+        "wins": wins,
+        "ties": ties,
+        "losses": losses,
         "pref_a": (wins + ties / 2) / n if n else None,
-        "mean_a": sum_a / n if n else None, "mean_b": sum_b / n if n else None,
+        "mean_a": sum_a / n if n else None,
+        "mean_b": sum_b / n if n else None,
         "p_value": float(binomtest(wins, decided, 0.5, alternative="two-sided").pvalue) if decided else 1.0,
         "configurations": configs,
         # the decided objects grouped by (type, A's receptacle, B's receptacle): what the preference rests on
-        "decided": [{"type": t, "a": a, "b": b, "winner": w, "n": c}
-                    for (t, a, b, w), c in sorted(groups.items(), key=lambda kv: (-kv[1], kv[0][3], str(kv[0])))],
+        "decided": [
+            {"type": t, "a": a, "b": b, "winner": w, "n": c}
+            for (t, a, b, w), c in sorted(groups.items(), key=lambda kv: (-kv[1], kv[0][3], str(kv[0])))
+        ],
     }
 
 
-def pairwise_table(records: Iterable[Mapping[str, Any]], variants: Sequence[str] | None = None,
-                   judge: Callable[..., float] | None = None) -> dict[str, dict[str, dict[str, Any]]]:
+def pairwise_table(
+    records: Iterable[Mapping[str, Any]],
+    variants: Sequence[str] | None = None,
+    judge: Callable[..., float] | None = None,
+) -> dict[str, dict[str, dict[str, Any]]]:
     """The simulated judge's pairwise preferences, as in the paper's Table 1.
 
     Returns ``{A: {B: cell}}`` for every ordered pair of distinct variants A, B: the
@@ -346,8 +415,9 @@ def pairwise_table(records: Iterable[Mapping[str, Any]], variants: Sequence[str]
         names = list(dict.fromkeys(variants))
         missing = [v for v in names if v not in by]
         if missing:
-            raise ValueError(f"pairwise_table: no records for variant(s) {missing}; "
-                             f"the records have {sorted(by)}")
+            raise ValueError(
+                f"pairwise_table: no records for variant(s) {missing}; the records have {sorted(by)}"
+            )
     names += [v for v in REFERENCE_VARIANTS if v in by and v not in names]
     return {a: {b: _compare(by[a], by[b], judge) for b in names if b != a} for a in names}
 
@@ -399,9 +469,11 @@ def _auto_notes(recs: Sequence[Mapping[str, Any]], order: Sequence[str]) -> list
         parts = "; ".join(f"{v}: {', '.join(sorted(per[v]))}" for v in order if v in per)
         notes.append(f"Perception was not oracle for every variant. Perception per variant: {parts}.")
     if any(rec["variant"] in REFERENCE_VARIANTS for rec in recs):
-        notes.append("AI2THORPlacement puts every moved object back at its original receptacle; "
-                     "MessyPlacement leaves it where the mess-up put it. "
-                     "Both pick exactly the moved objects.")
+        notes.append(
+            "AI2THORPlacement puts every moved object back at its original receptacle; "
+            "MessyPlacement leaves it where the mess-up put it. "
+            "Both pick exactly the moved objects."
+        )
     return notes
 
 
@@ -409,22 +481,34 @@ def format_markdown(report: Mapping[str, Any]) -> str:
     """The Markdown text of a report dict as built by :func:`write_report`."""
     metrics: Mapping[str, Mapping[str, Any]] = report["metrics"]
     table: Mapping[str, Mapping[str, Mapping[str, Any]]] = report["pairwise"]
-    lines = [f"# {report['title']}", "",
-             f"{report['config']['n_episodes']} episodes, {report['config']['n_configurations']} "
-             f"configurations, room types: {', '.join(report['config']['room_types']) or '–'}.", "",
-             "## Metrics per variant", "",
-             "| Variant | Episodes | Object success | Episode success | Found rate | False-pick rate "
-             "| Mean judge score | Steps (mean) | Wall s (mean) | Moved | Found | Picked |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        f"# {report['title']}",
+        "",
+        f"{report['config']['n_episodes']} episodes, {report['config']['n_configurations']} "
+        f"configurations, room types: {', '.join(report['config']['room_types']) or '–'}.",
+        "",
+        "## Metrics per variant",
+        "",
+        "| Variant | Episodes | Object success | Episode success | Found rate | False-pick rate "
+        "| Mean judge score | Steps (mean) | Wall s (mean) | Moved | Found | Picked |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for v, m in metrics.items():
-        lines.append(f"| {v} | {m['episodes']} | {_pct(m['object_success'])} | {_pct(m['episode_success'])} "
-                     f"| {_pct(m['found_rate'])} | {_pct(m['false_pick_rate'])} "
-                     f"| {_num(m['mean_judge_score'], 3)} | {_num(m['steps_mean'], 1)} "
-                     f"| {_num(m['wall_s_mean'], 1)} | {m['moved']} | {m['found']} | {m['picked']} |")
+        lines.append(
+            f"| {v} | {m['episodes']} | {_pct(m['object_success'])} | {_pct(m['episode_success'])} "
+            f"| {_pct(m['found_rate'])} | {_pct(m['false_pick_rate'])} "
+            f"| {_num(m['mean_judge_score'], 3)} | {_num(m['steps_mean'], 1)} "
+            f"| {_num(m['wall_s_mean'], 1)} | {m['moved']} | {m['found']} | {m['picked']} |"
+        )
     names = list(table)
-    lines += ["", "## Pairwise preference (simulated judge)", "",
-              "Row A vs column B: % of objects whose final placement the judge prefers for A "
-              "(n objects picked by both, p from a two-sided binomial test).", ""]
+    lines += [
+        "",
+        "## Pairwise preference (simulated judge)",
+        "",
+        "Row A vs column B: % of objects whose final placement the judge prefers for A "
+        "(n objects picked by both, p from a two-sided binomial test).",
+        "",
+    ]
     if names:
         lines.append("| A \\ B | " + " | ".join(names) + " |")
         lines.append("|---|" + "---:|" * len(names))
@@ -438,16 +522,22 @@ def format_markdown(report: Mapping[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _decided_section(table: Mapping[str, Mapping[str, Mapping[str, Any]]], agents: Sequence[str],
-                     top: int = 8) -> list[str]:
+def _decided_section(
+    table: Mapping[str, Mapping[str, Mapping[str, Any]]], agents: Sequence[str], top: int = 8
+) -> list[str]:
     """For the first agent against each other agent: the placements that won and lost it the
     judge's preference, the most frequent first (ties, most objects, are left out)."""
     if len(agents) < 2:
         return []
     a = agents[0]
-    lines = ["", f"## What decided the judge: {a} against the other agents", "",
-             "Objects the judge did not score equal, grouped by (object, where A put it, where B put it); "
-             f"at most {top} groups each way.", ""]
+    lines = [
+        "",
+        f"## What decided the judge: {a} against the other agents",
+        "",
+        "Objects the judge did not score equal, grouped by (object, where A put it, where B put it); "
+        f"at most {top} groups each way.",
+        "",
+    ]
     for b in agents[1:]:
         cell = table[a][b]
         groups = cell.get("decided")
@@ -457,7 +547,9 @@ def _decided_section(table: Mapping[str, Mapping[str, Mapping[str, Any]]], agent
         for winner, word in (("A", "won"), ("B", "lost")):
             g = [d for d in groups if d["winner"] == winner][:top]
             if g:
-                lines.append(f"  - {word}: " + "; ".join(f"{d['type']} {d['a']} vs {d['b']} ×{d['n']}" for d in g))
+                lines.append(
+                    f"  - {word}: " + "; ".join(f"{d['type']} {d['a']} vs {d['b']} ×{d['n']}" for d in g)
+                )
     return lines
 
 
@@ -472,8 +564,12 @@ def _png(fig: Any) -> bytes:
 def _plot_metrics(metrics: Mapping[str, Mapping[str, Any]], title: str) -> bytes:
     from matplotlib.figure import Figure
 
-    keys = [("object_success", "object success"), ("episode_success", "episode success"),
-            ("found_rate", "found rate"), ("mean_judge_score", "mean judge score")]
+    keys = [
+        ("object_success", "object success"),
+        ("episode_success", "episode success"),
+        ("found_rate", "found rate"),
+        ("mean_judge_score", "mean judge score"),
+    ]
     names = list(metrics)
     fig = Figure(figsize=(max(6.0, 1.6 * len(names) + 2), 4.5))
     ax = fig.add_subplot(1, 1, 1)
@@ -548,8 +644,12 @@ def _clean(x: Any) -> Any:
     return x
 
 
-def write_report(records: Iterable[Mapping[str, Any]], out_dir: str | os.PathLike[str], title: str,
-                 notes: Sequence[str] = ()) -> dict[str, Any]:
+def write_report(
+    records: Iterable[Mapping[str, Any]],
+    out_dir: str | os.PathLike[str],
+    title: str,
+    notes: Sequence[str] = (),
+) -> dict[str, Any]:
     """Write the tidy-evaluation report to ``out_dir`` and return it as a dict.
 
     Files (each written atomically: temporary file + ``os.replace``):
@@ -600,11 +700,14 @@ def write_report(records: Iterable[Mapping[str, Any]], out_dir: str | os.PathLik
             "room_types": sorted({str(r["room_type"]) for r in recs}),
             "splits": sorted({str(r.get("split")) for r in recs}),
             "perception": {v: perception[v] for v in order},
-            "judge": {"kind": "simulated", "source": "catalog placement priors (receptacle_weights)",
-                      "score": "prior weight of the final receptacle / largest weight in the room",
-                      "plausibility_threshold": DEFAULT_PLAUSIBILITY,
-                      "pairwise_objects": "moved by the mess-up and picked by both variants",
-                      "p_value": "two-sided exact binomial test, wins vs losses, ties excluded"},
+            "judge": {
+                "kind": "simulated",
+                "source": "catalog placement priors (receptacle_weights)",
+                "score": "prior weight of the final receptacle / largest weight in the room",
+                "plausibility_threshold": DEFAULT_PLAUSIBILITY,
+                "pairwise_objects": "moved by the mess-up and picked by both variants",
+                "p_value": "two-sided exact binomial test, wins vs losses, ties excluded",
+            },
         },
         "notes": _auto_notes(recs, order) + [str(n) for n in notes],
         "metrics": metrics,
@@ -622,6 +725,7 @@ def write_report(records: Iterable[Mapping[str, Any]], out_dir: str | os.PathLik
 
 
 # ------------------------------------------------------------------------ merging
+
 
 def load_report(source: str | os.PathLike[str]) -> dict[str, Any]:
     """A report written by :func:`write_report`: ``source`` is its directory (``report.json``
@@ -647,9 +751,12 @@ def load_report(source: str | os.PathLike[str]) -> dict[str, Any]:
     return report
 
 
-def merge_reports(sources: Sequence[str | os.PathLike[str] | tuple[str | os.PathLike[str], Sequence[str]]],
-                  out_dir: str | os.PathLike[str], variants: Sequence[str] | None = None,
-                  command: str = "") -> dict[str, Any]:
+def merge_reports(
+    sources: Sequence[str | os.PathLike[str] | tuple[str | os.PathLike[str], Sequence[str]]],
+    out_dir: str | os.PathLike[str],
+    variants: Sequence[str] | None = None,
+    command: str = "",
+) -> dict[str, Any]:
     """One report from the episodes of several ``tidee eval tidy`` runs, e.g. a new agent's run
     against the records of an earlier run of CommonMemory, without running the latter again.
 
@@ -672,27 +779,44 @@ def merge_reports(sources: Sequence[str | os.PathLike[str] | tuple[str | os.Path
         report = load_report(src)
         taken: set[str] = set()
         if own is not None:
-            absent = [v for v in own if v not in {r.get("variant") for r in report["episodes"] if isinstance(r, dict)}]
+            absent = [
+                v
+                for v in own
+                if v not in {r.get("variant") for r in report["episodes"] if isinstance(r, dict)}
+            ]
             if absent:
                 raise ValueError(f"merge: no records of {absent} in {src}")
         for i, rec in enumerate(report["episodes"]):
             if not isinstance(rec, dict):
                 raise ValueError(f"merge: {src}: episode {i} is not a record (got {type(rec).__name__})")
             v = rec.get("variant")
-            if v in REFERENCE_VARIANTS or (wanted is not None and v not in wanted) or (own is not None and v not in own):
+            if (
+                v in REFERENCE_VARIANTS
+                or (wanted is not None and v not in wanted)
+                or (own is not None and v not in own)
+            ):
                 continue
             if v in origin and origin[v] != str(src):
-                raise ValueError(f"merge: variant {v!r} is in both {origin[v]} and {src}; "
-                                 f"say which to take from each (--from DIR=VARIANT+VARIANT,...)")
+                raise ValueError(
+                    f"merge: variant {v!r} is in both {origin[v]} and {src}; "
+                    f"say which to take from each (--from DIR=VARIANT+VARIANT,...)"
+                )
             origin.setdefault(str(v), str(src))
             taken.add(str(v))
             rec = dict(rec)
-            if isinstance(rec.get("objects"), list):    # validate_records reports anything else
-                rec["objects"] = [{k: x for k, x in o.items() if k not in ("judge_score", "plausible")}
-                                  if isinstance(o, dict) else o for o in rec["objects"]]
+            if isinstance(rec.get("objects"), list):  # validate_records reports anything else
+                rec["objects"] = [
+                    {k: x for k, x in o.items() if k not in ("judge_score", "plausible")}
+                    if isinstance(o, dict)
+                    else o
+                    for o in rec["objects"]
+                ]
             records.append(rec)
-        kept = [n for n in report.get("notes", []) if isinstance(n, str)
-                and n.startswith(("command:", "split=", "perception:"))]
+        kept = [
+            n
+            for n in report.get("notes", [])
+            if isinstance(n, str) and n.startswith(("command:", "split=", "perception:"))
+        ]
         notes += [f"{src} ({', '.join(sorted(taken)) or 'nothing taken'}): {n}" for n in kept]
     missing = [v for v in (wanted or []) if v not in origin and v not in REFERENCE_VARIANTS]
     if missing:
@@ -702,5 +826,9 @@ def merge_reports(sources: Sequence[str | os.PathLike[str] | tuple[str | os.Path
     if command:
         notes.append(f"command: {command}")
     splits = sorted({str(r.get("split")) for r in records})
-    return write_report(with_references(records), out_dir,
-                        title=f"Tidy evaluation ({', '.join(splits)} rooms, merged)", notes=notes)
+    return write_report(
+        with_references(records),
+        out_dir,
+        title=f"Tidy evaluation ({', '.join(splits)} rooms, merged)",
+        notes=notes,
+    )

@@ -30,9 +30,12 @@ from tidee.agent.perception import TRAINED_RENDERER
 from tidee.agent.reasoning.search_commands import int_at_least
 
 METHODS = ("network", "frontier")
-PAPER = {"network": {"success_pct": 72.4, "mean_steps": 88.8}, "frontier": {"success_pct": 64.8, "mean_steps": 100.9}}
+PAPER = {
+    "network": {"success_pct": 72.4, "mean_steps": 88.8},
+    "frontier": {"success_pct": 64.8, "mean_steps": 100.9},
+}
 NETWORK_FALLBACKS = ("random", "frontier")
-MIN_VISIBLE_PIXELS = 12     # at 256 x 256 (scaled with the resolution)
+MIN_VISIBLE_PIXELS = 12  # at 256 x 256 (scaled with the resolution)
 
 
 @dataclass
@@ -40,7 +43,7 @@ class SearchEvalConfig:
     out: str
     split: str = "test"
     methods: tuple[str, ...] = METHODS
-    categories_per_room: int | None = 8     # None: every category present
+    categories_per_room: int | None = 8  # None: every category present
     max_steps: int = 200
     radius: float = 1.5
     perception: str = "learned"
@@ -48,20 +51,23 @@ class SearchEvalConfig:
     workers: int = 2
     seed: int = 0
     weights: str | None = None
-    rooms: int | None = None                # first N rooms of the split (smoke runs)
-    examples: int = 4                       # heatmap examples in the PNG
-    explored_discount: float = 0.0          # VisualSearch.points: down-weight heat where the map is explored
-    network_fallback: str = "random"        # network: where to go when no search point is left (random | frontier)
+    rooms: int | None = None  # first N rooms of the split (smoke runs)
+    examples: int = 4  # heatmap examples in the PNG
+    explored_discount: float = 0.0  # VisualSearch.points: down-weight heat where the map is explored
+    network_fallback: str = "random"  # network: where to go when no search point is left (random | frontier)
 
     def __post_init__(self) -> None:
         if self.split not in ("test", "val"):
-            raise ValueError(f"tidee eval search scores held-out rooms: --split must be test or val, got "
-                             f"{self.split!r}")
+            raise ValueError(
+                f"tidee eval search scores held-out rooms: --split must be test or val, got {self.split!r}"
+            )
         bad = [m for m in self.methods if m not in METHODS]
         if bad or not self.methods:
             raise ValueError(f"--methods must be a comma list of {METHODS}, got {list(self.methods)}")
         if self.categories_per_room is not None and self.categories_per_room < 1:
-            raise ValueError(f"--categories-per-room must be >= 1 (or 0 for all), got {self.categories_per_room}")
+            raise ValueError(
+                f"--categories-per-room must be >= 1 (or 0 for all), got {self.categories_per_room}"
+            )
         if not 1 <= self.max_steps <= 1000:
             raise ValueError(f"--max-steps must be in [1, 1000], got {self.max_steps}")
         if not self.radius > 0:
@@ -71,7 +77,9 @@ class SearchEvalConfig:
         if not 0 <= self.explored_discount <= 1:
             raise ValueError(f"--explored-discount must be in [0, 1], got {self.explored_discount}")
         if self.network_fallback not in NETWORK_FALLBACKS:
-            raise ValueError(f"--network-fallback must be one of {NETWORK_FALLBACKS}, got {self.network_fallback!r}")
+            raise ValueError(
+                f"--network-fallback must be one of {NETWORK_FALLBACKS}, got {self.network_fallback!r}"
+            )
         if not 1 <= self.workers <= 2:
             raise ValueError(f"--workers must be 1 or 2, got {self.workers}")
 
@@ -90,7 +98,11 @@ def episodes(cfg: SearchEvalConfig) -> list[dict[str, Any]]:
             t.reset(EpisodeSpec(room_type=rt, seed=seed, resolution=32))
             present = sorted({o["type"] for o in t.state()["objects"] if o["type"] in CLASS_INDEX})
             rng = np.random.default_rng([cfg.seed, seed, ROOM_TYPES.index(rt)])
-            n = len(present) if cfg.categories_per_room is None else min(cfg.categories_per_room, len(present))
+            n = (
+                len(present)
+                if cfg.categories_per_room is None
+                else min(cfg.categories_per_room, len(present))
+            )
             chosen = sorted(rng.choice(present, size=n, replace=False).tolist())
             for label in chosen:
                 for method in cfg.methods:
@@ -99,11 +111,16 @@ def episodes(cfg: SearchEvalConfig) -> list[dict[str, Any]]:
 
 
 def _one_episode(job: dict[str, Any], cfg: SearchEvalConfig) -> dict[str, Any]:
+    from tidee.agent.classes import CLASS_INDEX
     from tidee.agent.navigation.explore import FrontierExplorer
     from tidee.agent.perception import make_perception
     from tidee.agent.policy.search import SkillDriver, frontier_proposer, search_object
-    from tidee.agent.reasoning.search_net import DEFAULT_WEIGHTS, VisualSearch, footprint_distance, room_instances
-    from tidee.agent.classes import CLASS_INDEX
+    from tidee.agent.reasoning.search_net import (
+        DEFAULT_WEIGHTS,
+        VisualSearch,
+        footprint_distance,
+        room_instances,
+    )
     from tidee.protocol.messages import EpisodeSpec
     from tidee.protocol.transport import InProcessTransport
 
@@ -111,13 +128,19 @@ def _one_episode(job: dict[str, Any], cfg: SearchEvalConfig) -> dict[str, Any]:
     try:
         w = _WORKER
     except NameError:
-        w = _WORKER = {"transport": InProcessTransport(renderer=TRAINED_RENDERER), "perception": make_perception(cfg.perception)}
+        w = _WORKER = {
+            "transport": InProcessTransport(renderer=TRAINED_RENDERER),
+            "perception": make_perception(cfg.perception),
+        }
     if job["method"] == "network" and "search" not in w:
-        w["search"] = VisualSearch.load(cfg.weights or DEFAULT_WEIGHTS, explored_discount=cfg.explored_discount)
+        w["search"] = VisualSearch.load(
+            cfg.weights or DEFAULT_WEIGHTS, explored_discount=cfg.explored_discount
+        )
     transport = w["transport"]
-    driver = SkillDriver(transport, w["perception"], ground_truth=True)   # ground truth: scoring only
-    spec = EpisodeSpec(room_type=job["room_type"], seed=job["seed"], resolution=cfg.resolution,
-                       max_steps=cfg.max_steps)
+    driver = SkillDriver(transport, w["perception"], ground_truth=True)  # ground truth: scoring only
+    spec = EpisodeSpec(
+        room_type=job["room_type"], seed=job["seed"], resolution=cfg.resolution, max_steps=cfg.max_steps
+    )
     t0 = time.perf_counter()
     body = driver.reset(spec)
     fallback = None
@@ -126,6 +149,7 @@ def _one_episode(job: dict[str, Any], cfg: SearchEvalConfig) -> dict[str, Any]:
 
         def propose(b: Any, label: str, visited: Any) -> list[tuple[float, float]]:
             return vs.points(b.mapper, label, tuple(b.xy), k=3, visited=visited)
+
         if cfg.network_fallback == "frontier":
             fallback = frontier_proposer(FrontierExplorer(body.mapper.grid))
     else:
@@ -142,13 +166,24 @@ def _one_episode(job: dict[str, Any], cfg: SearchEvalConfig) -> dict[str, Any]:
     seg = gt.instance_seg
     min_px = max(4, int(MIN_VISIBLE_PIXELS * (seg.shape[0] / 256.0) ** 2))
     ids, counts = np.unique(seg[seg >= 0], return_counts=True)
-    visible = any(gt.objects[k]["type"] == job["label"] and n >= min_px for k, n in zip(ids.tolist(), counts.tolist()))
+    visible = any(
+        gt.objects[k]["type"] == job["label"] and n >= min_px for k, n in zip(ids.tolist(), counts.tolist())
+    )
     stopped = obs.last_action == "Done"
     success = bool(stopped and visible and dist <= cfg.radius)
-    detected = bool(body.mapper.memory.of_label(job["label"]))   # the detector ever reported the category
-    return {**job, "success": success, "stopped": bool(stopped), "visible": bool(visible), "detected": detected,
-            "distance_m": round(dist, 3), "steps": int(obs.step), "steps_scored": int(obs.step) if success
-            else cfg.max_steps, "goals": goals, "wall_s": round(time.perf_counter() - t0, 2)}
+    detected = bool(body.mapper.memory.of_label(job["label"]))  # the detector ever reported the category
+    return {
+        **job,
+        "success": success,
+        "stopped": bool(stopped),
+        "visible": bool(visible),
+        "detected": detected,
+        "distance_m": round(dist, 3),
+        "steps": int(obs.step),
+        "steps_scored": int(obs.step) if success else cfg.max_steps,
+        "goals": goals,
+        "wall_s": round(time.perf_counter() - t0, 2),
+    }
 
 
 def _worker(args: tuple[dict[str, Any], SearchEvalConfig]) -> dict[str, Any]:
@@ -160,13 +195,18 @@ def summarize(records: list[dict[str, Any]], methods: tuple[str, ...]) -> dict[s
     for m in methods:
         rs = [r for r in records if r["method"] == m]
         succ = [r for r in rs if r["success"]]
-        out[m] = {"episodes": len(rs), "successes": len(succ),
-                  "success_pct": round(100.0 * len(succ) / len(rs), 1) if rs else None,
-                  "mean_steps_all": round(float(np.mean([r["steps_scored"] for r in rs])), 1) if rs else None,
-                  "mean_steps_successes": round(float(np.mean([r["steps"] for r in succ])), 1) if succ else None,
-                  "stopped_pct": round(100.0 * sum(r["stopped"] for r in rs) / len(rs), 1) if rs else None,
-                  "detected_pct": round(100.0 * sum(r.get("detected", False) for r in rs) / len(rs), 1) if rs else None,
-                  "goal_sources": _goal_sources(rs)}
+        out[m] = {
+            "episodes": len(rs),
+            "successes": len(succ),
+            "success_pct": round(100.0 * len(succ) / len(rs), 1) if rs else None,
+            "mean_steps_all": round(float(np.mean([r["steps_scored"] for r in rs])), 1) if rs else None,
+            "mean_steps_successes": round(float(np.mean([r["steps"] for r in succ])), 1) if succ else None,
+            "stopped_pct": round(100.0 * sum(r["stopped"] for r in rs) / len(rs), 1) if rs else None,
+            "detected_pct": round(100.0 * sum(r.get("detected", False) for r in rs) / len(rs), 1)
+            if rs
+            else None,
+            "goal_sources": _goal_sources(rs),
+        }
     return out
 
 
@@ -183,41 +223,67 @@ def _goal_sources(records: list[dict[str, Any]]) -> dict[str, float]:
 
 def markdown(result: dict[str, Any]) -> str:
     s = result["summary"]
-    lines = [f"# Object search ({result['config']['split']} rooms): visual search network vs frontier", "",
-             f"command: `{result['command']}`", "",
-             "| method | episodes | success % | mean steps (all, failures = max) | mean steps (successes) |",
-             "|---|---|---|---|---|"]
+    lines = [
+        f"# Object search ({result['config']['split']} rooms): visual search network vs frontier",
+        "",
+        f"command: `{result['command']}`",
+        "",
+        "| method | episodes | success % | mean steps (all, failures = max) | mean steps (successes) |",
+        "|---|---|---|---|---|",
+    ]
     names = {"network": "visual search network (ours, CPU)", "frontier": "frontier exploration (ours, CPU)"}
     for m, v in s.items():
-        lines.append(f"| {names[m]} | {v['episodes']} | {v['success_pct']} | {v['mean_steps_all']} | "
-                     f"{v['mean_steps_successes']} |")
-    lines.append(f"| paper: TIDEE visual search network | 591 | {PAPER['network']['success_pct']} | "
-                 f"{PAPER['network']['mean_steps']} | - |")
-    lines.append(f"| paper: exploration baseline | 591 | {PAPER['frontier']['success_pct']} | "
-                 f"{PAPER['frontier']['mean_steps']} | - |")
+        lines.append(
+            f"| {names[m]} | {v['episodes']} | {v['success_pct']} | {v['mean_steps_all']} | "
+            f"{v['mean_steps_successes']} |"
+        )
+    lines.append(
+        f"| paper: TIDEE visual search network | 591 | {PAPER['network']['success_pct']} | "
+        f"{PAPER['network']['mean_steps']} | - |"
+    )
+    lines.append(
+        f"| paper: exploration baseline | 591 | {PAPER['frontier']['success_pct']} | "
+        f"{PAPER['frontier']['mean_steps']} | - |"
+    )
     pairs: dict[tuple, dict[str, bool]] = {}
     for e in result["episodes"]:
         pairs.setdefault((e["room_type"], e["seed"], e["label"]), {})[e["method"]] = e["success"]
     if all(len(v) == 2 for v in pairs.values()) and len(s) == 2:
-        n = {k: sum(1 for v in pairs.values() if (v["network"], v["frontier"]) == k)
-             for k in ((True, True), (True, False), (False, True), (False, False))}
-        lines += ["", f"Paired outcomes over {len(pairs)} (room, category) searches: both succeed {n[(True, True)]}, "
-                  f"network only {n[(True, False)]}, frontier only {n[(False, True)]}, neither {n[(False, False)]}. "
-                  "Detector reported the category at some point: " +
-                  ", ".join(f"{m} {v['detected_pct']} %" for m, v in s.items()) + "."]
+        n = {
+            k: sum(1 for v in pairs.values() if (v["network"], v["frontier"]) == k)
+            for k in ((True, True), (True, False), (False, True), (False, False))
+        }
+        lines += [
+            "",
+            f"Paired outcomes over {len(pairs)} (room, category) searches: both succeed {n[(True, True)]}, "
+            f"network only {n[(True, False)]}, frontier only {n[(False, True)]}, neither {n[(False, False)]}. "
+            "Detector reported the category at some point: "
+            + ", ".join(f"{m} {v['detected_pct']} %" for m, v in s.items())
+            + ".",
+        ]
     sources = {m: v.get("goal_sources") for m, v in s.items() if v.get("goal_sources")}
     if sources:
-        lines += ["", "Where the search goals came from (% of goals walked to): " + "; ".join(
-            f"{m}: " + ", ".join(f"{k} {pct}" for k, pct in src.items()) for m, src in sources.items()) +
-            f". The network's fallback: {result['config'].get('network_fallback', 'random')}."]
+        lines += [
+            "",
+            "Where the search goals came from (% of goals walked to): "
+            + "; ".join(
+                f"{m}: " + ", ".join(f"{k} {pct}" for k, pct in src.items()) for m, src in sources.items()
+            )
+            + f". The network's fallback: {result['config'].get('network_fallback', 'random')}.",
+        ]
     c = result["config"]
-    lines += ["", f"Success: the agent says Stop within {c['radius']} m of an instance's footprint with an instance "
-              f"of the category in the final frame (ground-truth segmentation, >= {MIN_VISIBLE_PIXELS} px at 256^2), "
-              f"within {c['max_steps']} steps. Perception: {c['perception']}. "
-              f"Categories per room: {c['categories_per_room'] or 'all'} (seed {c['seed']}). "
-              f"Rooms: {result['rooms']} tidy {c['split']} rooms; the paper has 20 AI2-THOR test rooms, 591 episodes.",
-              f"Wall time {result['wall_s']} s with {c['workers']} worker(s).", "",
-              "![heatmaps](search_examples.png)", ""]
+    lines += [
+        "",
+        f"Success: the agent says Stop within {c['radius']} m of an instance's footprint with an instance "
+        f"of the category in the final frame (ground-truth segmentation, >= {MIN_VISIBLE_PIXELS} px at 256^2), "
+        f"within {c['max_steps']} steps. Perception: {c['perception']}. "
+        f"Categories per room: {c['categories_per_room'] or 'all'} (seed {c['seed']}). "
+        f"Rooms: {result['rooms']} tidy {c['split']} rooms; the paper has 20 AI2-THOR test rooms, 591 episodes.",
+        f"Wall time {result['wall_s']} s with {c['workers']} worker(s).",
+        "",
+        "![heatmaps](search_examples.png)",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -238,7 +304,9 @@ def save_examples(cfg: SearchEvalConfig, jobs: list[dict[str, Any]], path: Path)
 
     picks = [j for j in jobs if j["method"] == jobs[0]["method"]]
     rng = np.random.default_rng(cfg.seed)
-    picks = [picks[i] for i in sorted(rng.choice(len(picks), size=min(cfg.examples, len(picks)), replace=False))]
+    picks = [
+        picks[i] for i in sorted(rng.choice(len(picks), size=min(cfg.examples, len(picks)), replace=False))
+    ]
     if not picks:
         return
     vs = VisualSearch.load(cfg.weights or DEFAULT_WEIGHTS)
@@ -246,8 +314,14 @@ def save_examples(cfg: SearchEvalConfig, jobs: list[dict[str, Any]], path: Path)
     with InProcessTransport(renderer=TRAINED_RENDERER) as t:
         driver = SkillDriver(t, make_perception(cfg.perception))
         for ax, job in zip(axes[0], picks):
-            body = driver.reset(EpisodeSpec(room_type=job["room_type"], seed=job["seed"], resolution=cfg.resolution,
-                                            max_steps=cfg.max_steps))
+            body = driver.reset(
+                EpisodeSpec(
+                    room_type=job["room_type"],
+                    seed=job["seed"],
+                    resolution=cfg.resolution,
+                    max_steps=cfg.max_steps,
+                )
+            )
             driver.run(look_around(body))
             heat = vs.heatmap(body.mapper, job["label"])
             g = body.mapper.voxel_grid
@@ -275,8 +349,8 @@ def save_examples(cfg: SearchEvalConfig, jobs: list[dict[str, Any]], path: Path)
 def run_search_eval(cfg: SearchEvalConfig, command: str = "", progress: bool = True) -> dict[str, Any]:
     from tqdm import tqdm
 
-    from tidee.threads import threads_per_process, use_threads
     from tidee.protocol.episode_log import write_json_atomic
+    from tidee.threads import threads_per_process, use_threads
 
     t0 = time.time()
     out = Path(cfg.out)
@@ -285,20 +359,30 @@ def run_search_eval(cfg: SearchEvalConfig, command: str = "", progress: bool = T
     records: list[dict[str, Any]] = []
     bar = tqdm(total=len(jobs), desc="search episodes", disable=not progress)
     if cfg.workers > 1 and len(jobs) > 1:
-        with cf.ProcessPoolExecutor(cfg.workers, mp_context=mp.get_context("spawn"),
-                                    initializer=use_threads, initargs=(threads_per_process(cfg.workers),)) as pool:
+        with cf.ProcessPoolExecutor(
+            cfg.workers,
+            mp_context=mp.get_context("spawn"),
+            initializer=use_threads,
+            initargs=(threads_per_process(cfg.workers),),
+        ) as pool:
             for rec in pool.map(_worker, [(j, cfg) for j in jobs]):
                 records.append(rec)
                 bar.update()
     else:
-        use_threads(1)      # measured with one thread in process
+        use_threads(1)  # measured with one thread in process
         for j in jobs:
             records.append(_one_episode(j, cfg))
             bar.update()
     bar.close()
-    result = {"command": command, "config": asdict(cfg), "rooms": len({(j["room_type"], j["seed"]) for j in jobs}),
-              "summary": summarize(records, cfg.methods), "paper": PAPER, "episodes": records,
-              "wall_s": round(time.time() - t0, 1)}
+    result = {
+        "command": command,
+        "config": asdict(cfg),
+        "rooms": len({(j["room_type"], j["seed"]) for j in jobs}),
+        "summary": summarize(records, cfg.methods),
+        "paper": PAPER,
+        "episodes": records,
+        "wall_s": round(time.time() - t0, 1),
+    }
     if "network" in cfg.methods and cfg.examples > 0:
         save_examples(cfg, jobs, out / "search_examples.png")
     write_json_atomic(out / "search.json", result)
@@ -311,7 +395,9 @@ def _methods(text: str) -> tuple[str, ...]:
     ms = tuple(m.strip() for m in text.split(",") if m.strip())
     bad = [m for m in ms if m not in METHODS]
     if bad or not ms:
-        raise argparse.ArgumentTypeError(f"methods must be a comma list of {', '.join(METHODS)}; got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"methods must be a comma list of {', '.join(METHODS)}; got {text!r}"
+        )
     return ms
 
 
@@ -322,8 +408,12 @@ def add_eval_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", default="test", choices=("test", "val"), help="held-out rooms only")
     p.add_argument("--out", required=True, help="directory for search.json, search.md, search_examples.png")
     p.add_argument("--methods", type=_methods, default=METHODS, help="comma list of network, frontier")
-    p.add_argument("--categories-per-room", type=_count_from_0, default=8,
-                   help="categories sampled per room (seeded); 0: every category present")
+    p.add_argument(
+        "--categories-per-room",
+        type=_count_from_0,
+        default=8,
+        help="categories sampled per room (seeded); 0: every category present",
+    )
     p.add_argument("--max-steps", type=_count_from_0, default=200)
     p.add_argument("--radius", type=float, default=1.5, help="success radius, metres")
     p.add_argument("--perception", default="learned", choices=("learned", "oracle"))
@@ -331,30 +421,51 @@ def add_eval_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--weights", default=None, help="default: agent/weights/search_net.pt")
     p.add_argument("--rooms", type=_count_from_0, default=0, help="first N rooms of the split (0: all)")
-    p.add_argument("--explored-discount", type=float, default=0.0,
-                   help="network: scale heat by (1 - d * explored) before choosing search points (0: paper)")
-    p.add_argument("--network-fallback", default="random", choices=NETWORK_FALLBACKS,
-                   help="network: where to go once no search point is left: a random reachable point, or the "
-                        "nearest frontier")
+    p.add_argument(
+        "--explored-discount",
+        type=float,
+        default=0.0,
+        help="network: scale heat by (1 - d * explored) before choosing search points (0: paper)",
+    )
+    p.add_argument(
+        "--network-fallback",
+        default="random",
+        choices=NETWORK_FALLBACKS,
+        help="network: where to go once no search point is left: a random reachable point, or the "
+        "nearest frontier",
+    )
     p.set_defaults(func=_cmd_eval_search)
 
 
 def config_from_args(args: argparse.Namespace) -> SearchEvalConfig:
-    return SearchEvalConfig(out=args.out, split=args.split, methods=tuple(args.methods),
-                            categories_per_room=args.categories_per_room or None, max_steps=args.max_steps,
-                            radius=args.radius, perception=args.perception, workers=args.workers, seed=args.seed,
-                            weights=args.weights, rooms=args.rooms or None, explored_discount=args.explored_discount,
-                            network_fallback=args.network_fallback)
+    return SearchEvalConfig(
+        out=args.out,
+        split=args.split,
+        methods=tuple(args.methods),
+        categories_per_room=args.categories_per_room or None,
+        max_steps=args.max_steps,
+        radius=args.radius,
+        perception=args.perception,
+        workers=args.workers,
+        seed=args.seed,
+        weights=args.weights,
+        rooms=args.rooms or None,
+        explored_discount=args.explored_discount,
+        network_fallback=args.network_fallback,
+    )
 
 
 def _cmd_eval_search(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
-    command = (f"tidee eval search --split {cfg.split} --methods {','.join(cfg.methods)} "
-               f"--categories-per-room {args.categories_per_room} --max-steps {cfg.max_steps} --radius {cfg.radius} "
-               f"--perception {cfg.perception} --workers {cfg.workers} --seed {cfg.seed} --out {cfg.out}"
-               + (f" --weights {cfg.weights}" if cfg.weights else "") + (f" --rooms {cfg.rooms}" if cfg.rooms else "")
-               + (f" --explored-discount {cfg.explored_discount}" if cfg.explored_discount else "")
-               + (f" --network-fallback {cfg.network_fallback}" if cfg.network_fallback != "random" else ""))
+    command = (
+        f"tidee eval search --split {cfg.split} --methods {','.join(cfg.methods)} "
+        f"--categories-per-room {args.categories_per_room} --max-steps {cfg.max_steps} --radius {cfg.radius} "
+        f"--perception {cfg.perception} --workers {cfg.workers} --seed {cfg.seed} --out {cfg.out}"
+        + (f" --weights {cfg.weights}" if cfg.weights else "")
+        + (f" --rooms {cfg.rooms}" if cfg.rooms else "")
+        + (f" --explored-discount {cfg.explored_discount}" if cfg.explored_discount else "")
+        + (f" --network-fallback {cfg.network_fallback}" if cfg.network_fallback != "random" else "")
+    )
     result = run_search_eval(cfg, command=command)
     print(markdown(result))
     return 0
@@ -362,7 +473,9 @@ def _cmd_eval_search(args: argparse.Namespace) -> int:
 
 def register(eval_sub: argparse._SubParsersAction) -> None:
     """``tidee eval search`` (Table 2)."""
-    p = eval_sub.add_parser("search", help="object search on held-out rooms: search network vs frontier (Table 2)")
+    p = eval_sub.add_parser(
+        "search", help="object search on held-out rooms: search network vs frontier (Table 2)"
+    )
     add_eval_arguments(p)
 
 

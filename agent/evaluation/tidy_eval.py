@@ -17,10 +17,15 @@ from typing import Any
 
 import numpy as np
 
+from tidee.agent.config import (
+    BUILT_VARIANTS,
+    REFERENCE_VARIANTS,
+    AgentConfig,
+    PolicyConfig,
+    check_variant_built,
+)
 from tidee.agent.perception import TRAINED_RENDERER
 from tidee.threads import threads_per_process
-from tidee.agent.config import (BUILT_VARIANTS, REFERENCE_VARIANTS, AgentConfig, PolicyConfig,
-                               check_variant_built)
 
 
 def select_configs(split: str, episodes: int | None) -> list[Any]:
@@ -44,28 +49,42 @@ def _run_one(job: dict[str, Any]) -> dict[str, Any]:
     from tidee.protocol.transport import InProcessTransport
 
     transport = _WORKER.get("transport")
-    if transport is None:        # a caller that did not run _init_worker: make this process's simulator now
+    if transport is None:  # a caller that did not run _init_worker: make this process's simulator now
         transport = _WORKER["transport"] = InProcessTransport(renderer=job["renderer"])
-    cfg = AgentConfig(variant=job["variant"], perception=job["perception"], oop=job["oop"], depth=job["depth"],
-                      explorer=job["explorer"], seed=job["agent_seed"],
-                      detection_threshold=job.get("detection_threshold"),
-                      policy=PolicyConfig(missing_top=job["missing_top"]))
-    spec = EpisodeSpec(room_type=job["room_type"], seed=job["seed"], mess_index=job["mess_index"],
-                       resolution=job["resolution"], max_steps=job["max_steps"])
+    cfg = AgentConfig(
+        variant=job["variant"],
+        perception=job["perception"],
+        oop=job["oop"],
+        depth=job["depth"],
+        explorer=job["explorer"],
+        seed=job["agent_seed"],
+        detection_threshold=job.get("detection_threshold"),
+        policy=PolicyConfig(missing_top=job["missing_top"]),
+    )
+    spec = EpisodeSpec(
+        room_type=job["room_type"],
+        seed=job["seed"],
+        mess_index=job["mess_index"],
+        resolution=job["resolution"],
+        max_steps=job["max_steps"],
+    )
     models = _WORKER.setdefault("models", {})
     key = AgentModels.key_of(cfg)
     if key not in models:
         models[key] = AgentModels.load(cfg)
     runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.get("log_dir"), models=models[key])
-    res = runner.run(spec, evaluate=True,
-                     episode_name=f"{job['variant']}_{spec.room_type}_{spec.seed}_mess{spec.mess_index}")
+    res = runner.run(
+        spec,
+        evaluate=True,
+        episode_name=f"{job['variant']}_{spec.room_type}_{spec.seed}_mess{spec.mess_index}",
+    )
     assert res.record is not None
     record = dict(res.record, split=job["split"])
     record["timing_ms"] = {k: float(np.median(v)) if v else None for k, v in res.timings.items()}
     return record
 
 
-_WORKER: dict[str, Any] = {}     # this process's simulator and loaded models, reused by every episode it runs
+_WORKER: dict[str, Any] = {}  # this process's simulator and loaded models, reused by every episode it runs
 
 
 def _init_worker(renderer: str, threads: int) -> None:
@@ -77,34 +96,66 @@ def _init_worker(renderer: str, threads: int) -> None:
     _WORKER["transport"] = InProcessTransport(renderer=renderer)
 
 
-def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = None,
-                  variants: list[str] | None = None, perception: str = "learned", oop: str = "auto",
-                  explorer: str = "random", resolution: int = 256, max_steps: int = 1000, workers: int = 1,
-                  renderer: str = TRAINED_RENDERER, keep_logs: bool = False, progress: bool = True,
-                  depth: str = "sensor", detection_threshold: float | None = None,
-                  missing_top: str = "skip") -> dict[str, Any]:
+def run_tidy_eval(
+    out: str | Path,
+    split: str = "test",
+    episodes: int | None = None,
+    variants: list[str] | None = None,
+    perception: str = "learned",
+    oop: str = "auto",
+    explorer: str = "random",
+    resolution: int = 256,
+    max_steps: int = 1000,
+    workers: int = 1,
+    renderer: str = TRAINED_RENDERER,
+    keep_logs: bool = False,
+    progress: bool = True,
+    depth: str = "sensor",
+    detection_threshold: float | None = None,
+    missing_top: str = "skip",
+) -> dict[str, Any]:
     from tqdm import tqdm
 
     from tidee.agent.evaluation.report import with_references, write_report
 
     # "auto" resolved as the agent does; a bad threshold or missing_top is refused here, before any episode
-    oop = AgentConfig(perception=perception, oop=oop, detection_threshold=detection_threshold,
-                      policy=PolicyConfig(missing_top=missing_top)).oop
+    oop = AgentConfig(
+        perception=perception,
+        oop=oop,
+        detection_threshold=detection_threshold,
+        policy=PolicyConfig(missing_top=missing_top),
+    ).oop
     variants = variants or list(BUILT_VARIANTS)
     agents = [v for v in variants if v not in REFERENCE_VARIANTS]
     for v in agents:
-        check_variant_built(v)      # reads the placement registry: a registered variant of yours is an agent
+        check_variant_built(v)  # reads the placement registry: a registered variant of yours is an agent
     if not agents:
         raise ValueError("give at least one agent variant (the reference rows need an agent's episodes)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     configs = select_configs(split, episodes)
-    jobs = [{"variant": v, "perception": perception, "oop": oop, "depth": depth, "explorer": explorer, "agent_seed": c.index,
-             "detection_threshold": detection_threshold, "missing_top": missing_top,
-             "room_type": c.room_type, "seed": c.seed, "mess_index": c.mess_index, "split": split,
-             "resolution": resolution, "max_steps": max_steps, "renderer": renderer,
-             "log_dir": str(out / "logs") if keep_logs else None}
-            for c in configs for v in agents]
+    jobs = [
+        {
+            "variant": v,
+            "perception": perception,
+            "oop": oop,
+            "depth": depth,
+            "explorer": explorer,
+            "agent_seed": c.index,
+            "detection_threshold": detection_threshold,
+            "missing_top": missing_top,
+            "room_type": c.room_type,
+            "seed": c.seed,
+            "mess_index": c.mess_index,
+            "split": split,
+            "resolution": resolution,
+            "max_steps": max_steps,
+            "renderer": renderer,
+            "log_dir": str(out / "logs") if keep_logs else None,
+        }
+        for c in configs
+        for v in agents
+    ]
     t0 = time.time()
     records: list[dict[str, Any]] = []
     bar = tqdm(total=len(jobs), desc="tidy episodes", disable=not progress)
@@ -116,8 +167,12 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
             records.append(_run_one(job))
             bar.update()
     else:
-        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                                    initargs=(renderer, threads)) as pool:
+        with cf.ProcessPoolExecutor(
+            workers,
+            mp_context=mp.get_context("spawn"),
+            initializer=_init_worker,
+            initargs=(renderer, threads),
+        ) as pool:
             for rec in pool.map(_run_one, jobs):
                 records.append(rec)
                 bar.update()
@@ -125,21 +180,29 @@ def run_tidy_eval(out: str | Path, split: str = "test", episodes: int | None = N
     all_records = with_references(records)
     keep = set(variants) | set(agents)
     if not any(v in REFERENCE_VARIANTS for v in variants):
-        keep |= set(REFERENCE_VARIANTS)   # the reference rows are always part of Table 1
+        keep |= set(REFERENCE_VARIANTS)  # the reference rows are always part of Table 1
     all_records = [r for r in all_records if r["variant"] in keep]
-    timing = {k: float(np.median([r["timing_ms"][k] for r in records if r.get("timing_ms", {}).get(k) is not None]))
-              for k in ("perception_ms", "mapping_ms", "planning_ms", "step_ms", "sim_ms")}
-    notes = [f"split={split}, {len(configs)} messy configurations x {len(agents)} agents, "
-             f"resolution {resolution}, max {max_steps} steps, OOP detector '{oop}', explorer '{explorer}', "
-             f"missing top receptacle: {missing_top}",
-             f"perception: {perception}" + (" (ORACLE: detections from the simulator's segmentation)"
-                                           if perception == "oracle" else " (the shipped RGB-D detector)")
-             + f", depth: {depth}"
-             + (f", detection threshold {detection_threshold}" if detection_threshold is not None else ""),
-             f"median per-step agent time (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in timing.items()),
-             f"command: tidee eval tidy --split {split} --episodes {len(configs)} --variants {','.join(variants)} "
-             f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} --missing-top {missing_top} "
-             + (f"--detection-threshold {detection_threshold} " if detection_threshold is not None else "") +
-             f"--max-steps {max_steps} --resolution {resolution} --workers {workers} --out {out}",
-             f"total wall time {time.time() - t0:.0f} s with {workers} worker(s)"]
+    timing = {
+        k: float(np.median([r["timing_ms"][k] for r in records if r.get("timing_ms", {}).get(k) is not None]))
+        for k in ("perception_ms", "mapping_ms", "planning_ms", "step_ms", "sim_ms")
+    }
+    notes = [
+        f"split={split}, {len(configs)} messy configurations x {len(agents)} agents, "
+        f"resolution {resolution}, max {max_steps} steps, OOP detector '{oop}', explorer '{explorer}', "
+        f"missing top receptacle: {missing_top}",
+        f"perception: {perception}"
+        + (
+            " (ORACLE: detections from the simulator's segmentation)"
+            if perception == "oracle"
+            else " (the shipped RGB-D detector)"
+        )
+        + f", depth: {depth}"
+        + (f", detection threshold {detection_threshold}" if detection_threshold is not None else ""),
+        "median per-step agent time (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in timing.items()),
+        f"command: tidee eval tidy --split {split} --episodes {len(configs)} --variants {','.join(variants)} "
+        f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} --missing-top {missing_top} "
+        + (f"--detection-threshold {detection_threshold} " if detection_threshold is not None else "")
+        + f"--max-steps {max_steps} --resolution {resolution} --workers {workers} --out {out}",
+        f"total wall time {time.time() - t0:.0f} s with {workers} worker(s)",
+    ]
     return write_report(all_records, out, title=f"Tidy evaluation ({split} rooms)", notes=notes)

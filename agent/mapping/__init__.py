@@ -5,7 +5,16 @@ from tidee.agent.mapping.maps import FREE, OBSTACLE, UNKNOWN, MapConfig, Semanti
 from tidee.agent.mapping.memory import ObjectMemory, TrackedObject
 
 __all__ = [
-    "FREE", "OBSTACLE", "UNKNOWN",
-    "GridSpec", "MapConfig", "ObjectMemory", "SemanticMapper", "TrackedObject",
-    "pixel_rays", "project", "unproject", "valid_depth",
+    "FREE",
+    "OBSTACLE",
+    "UNKNOWN",
+    "GridSpec",
+    "MapConfig",
+    "ObjectMemory",
+    "SemanticMapper",
+    "TrackedObject",
+    "pixel_rays",
+    "project",
+    "unproject",
+    "valid_depth",
 ]

@@ -34,8 +34,9 @@ def _check_camera(intrinsics: np.ndarray, camera_pose: np.ndarray) -> tuple[np.n
     return k, t
 
 
-def pixel_rays(shape: tuple[int, int], intrinsics: np.ndarray,
-               stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def pixel_rays(
+    shape: tuple[int, int], intrinsics: np.ndarray, stride: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
     """Optical-frame rays scaled to unit depth for a strided pixel lattice.
 
     Returns ``(rays, pixel_index)``: rays float64 Nx3 with z = 1 (so depth * ray is the
@@ -70,8 +71,14 @@ def valid_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
         return np.isfinite(depth) & (depth > MIN_DEPTH) & (depth <= max_depth)
 
 
-def unproject(depth: np.ndarray, intrinsics: np.ndarray, camera_pose: np.ndarray, stride: int = 1,
-              max_depth: float = 10.0, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def unproject(
+    depth: np.ndarray,
+    intrinsics: np.ndarray,
+    camera_pose: np.ndarray,
+    stride: int = 1,
+    max_depth: float = 10.0,
+    mask: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Lift a depth image to 3D points in the start frame.
 
     ``depth``: HxW metres along the optical axis (0, negative, inf or nan: no return;
@@ -98,8 +105,9 @@ def unproject(depth: np.ndarray, intrinsics: np.ndarray, camera_pose: np.ndarray
     return points.astype(np.float32), pix
 
 
-def project(points: np.ndarray, intrinsics: np.ndarray, camera_pose: np.ndarray
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def project(
+    points: np.ndarray, intrinsics: np.ndarray, camera_pose: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Project start-frame points (Nx3, metres) into the image.
 
     Returns float64 arrays ``(u, v, z)``: pixel column, pixel row and depth along the
@@ -156,7 +164,7 @@ class GridSpec:
         return np.floor(q).astype(np.int64)
 
     @staticmethod
-    def centred(size: int = 256, cell: float = 0.05) -> "GridSpec":
+    def centred(size: int = 256, cell: float = 0.05) -> GridSpec:
         """A ``size`` x ``size`` grid of ``cell`` metres centred on the start pose."""
         half = size * cell / 2.0
         return GridSpec((-half, -half), cell, (size, size))

@@ -38,8 +38,8 @@ from tidee.agent.mapping.memory import ObjectMemory, TrackedObject
 from tidee.agent.perception.base import Detection
 from tidee.protocol.messages import MapSnapshot, Observation
 
-UNKNOWN, FREE, OBSTACLE = 0, 1, 2   # occupancy_grid values (as MapSnapshot)
-_GAUSS_TRUNCATE = 4.0               # scipy's default: kernels reach 4 sigma
+UNKNOWN, FREE, OBSTACLE = 0, 1, 2  # occupancy_grid values (as MapSnapshot)
+_GAUSS_TRUNCATE = 4.0  # scipy's default: kernels reach 4 sigma
 
 
 def _cells_per(length: float, cell: float, what: str) -> int:
@@ -54,22 +54,22 @@ class MapConfig:
     """Mapping parameters (metres unless noted). Defaults give 256x256 2D maps at 5 cm and a
     128x128x64 voxel grid (10 cm x 10 cm x 5 cm), as in the paper."""
 
-    map_size_m: float = 12.8                       # square map side, centred on the start pose
-    nav_cell: float = 0.05                         # 2D map cell edge
-    voxel_xy: float = 0.1                          # voxel edge along x and y
-    voxel_z: float = 0.05                          # voxel edge along z
+    map_size_m: float = 12.8  # square map side, centred on the start pose
+    nav_cell: float = 0.05  # 2D map cell edge
+    voxel_xy: float = 0.1  # voxel edge along x and y
+    voxel_z: float = 0.05  # voxel edge along z
     voxel_z_range: tuple[float, float] = (-0.1, 3.1)  # heights covered by the voxel grid
-    obstacle_z: tuple[float, float] = (0.1, 1.8)   # points with z in [lo, hi) are obstacles
-    floor_z: float = 0.06                          # points with z below this are floor (free)
-    explored_threshold: int = 1                    # frames with a point before a cell is explored
-    max_depth: float = 8.0                         # farther depths are ignored
-    stride: int = 2                                # pixel subsampling for the maps (not for objects)
-    semantic_sigma_voxels: float = 1.5             # Gaussian dilation of centroids, in xy voxels
-    agent_free_radius: float = 0.15                # disc kept free around each believed position
-    merge_distance: float = 1.0                    # object memory: same label within this merges
-    box_merge: str = "union"                       # object memory: 3D boxes of merged views (mean | union)
-    min_object_points: int = 5                     # detections with fewer valid pixels are skipped
-    max_object_points: int = 4096                  # pixels used for an object's box (subsampled)
+    obstacle_z: tuple[float, float] = (0.1, 1.8)  # points with z in [lo, hi) are obstacles
+    floor_z: float = 0.06  # points with z below this are floor (free)
+    explored_threshold: int = 1  # frames with a point before a cell is explored
+    max_depth: float = 8.0  # farther depths are ignored
+    stride: int = 2  # pixel subsampling for the maps (not for objects)
+    semantic_sigma_voxels: float = 1.5  # Gaussian dilation of centroids, in xy voxels
+    agent_free_radius: float = 0.15  # disc kept free around each believed position
+    merge_distance: float = 1.0  # object memory: same label within this merges
+    box_merge: str = "union"  # object memory: 3D boxes of merged views (mean | union)
+    min_object_points: int = 5  # detections with fewer valid pixels are skipped
+    max_object_points: int = 4096  # pixels used for an object's box (subsampled)
 
     def __post_init__(self) -> None:
         self.voxel_z_range = (float(self.voxel_z_range[0]), float(self.voxel_z_range[1]))
@@ -81,14 +81,16 @@ class MapConfig:
         _cells_per(self.map_size_m, self.voxel_xy, "MapConfig.map_size_m / voxel_xy")
         lo, hi = self.voxel_z_range
         if not lo < hi:
-            raise ValueError(f"MapConfig.voxel_z_range must be (lo, hi) with lo < hi, "
-                             f"got {self.voxel_z_range}")
+            raise ValueError(
+                f"MapConfig.voxel_z_range must be (lo, hi) with lo < hi, got {self.voxel_z_range}"
+            )
         _cells_per(hi - lo, self.voxel_z, "MapConfig.voxel_z_range / voxel_z")
         if not self.obstacle_z[0] < self.obstacle_z[1]:
             raise ValueError(f"MapConfig.obstacle_z must be (lo, hi) with lo < hi, got {self.obstacle_z}")
         if not self.floor_z <= self.obstacle_z[0]:
-            raise ValueError(f"MapConfig.floor_z ({self.floor_z}) must not exceed obstacle_z[0] "
-                             f"({self.obstacle_z[0]})")
+            raise ValueError(
+                f"MapConfig.floor_z ({self.floor_z}) must not exceed obstacle_z[0] ({self.obstacle_z[0]})"
+            )
         if int(self.explored_threshold) < 1:
             raise ValueError(f"MapConfig.explored_threshold must be >= 1, got {self.explored_threshold}")
         if not self.max_depth > MIN_DEPTH:
@@ -96,13 +98,16 @@ class MapConfig:
         if int(self.stride) < 1:
             raise ValueError(f"MapConfig.stride must be >= 1, got {self.stride}")
         if self.semantic_sigma_voxels < 0:
-            raise ValueError(f"MapConfig.semantic_sigma_voxels must be >= 0, "
-                             f"got {self.semantic_sigma_voxels}")
+            raise ValueError(
+                f"MapConfig.semantic_sigma_voxels must be >= 0, got {self.semantic_sigma_voxels}"
+            )
         if self.agent_free_radius < 0:
             raise ValueError(f"MapConfig.agent_free_radius must be >= 0, got {self.agent_free_radius}")
         if int(self.min_object_points) < 1 or int(self.max_object_points) < int(self.min_object_points):
-            raise ValueError(f"MapConfig needs 1 <= min_object_points <= max_object_points, got "
-                             f"{self.min_object_points}, {self.max_object_points}")
+            raise ValueError(
+                f"MapConfig needs 1 <= min_object_points <= max_object_points, got "
+                f"{self.min_object_points}, {self.max_object_points}"
+            )
 
     @property
     def nav_shape(self) -> tuple[int, int]:
@@ -134,7 +139,7 @@ def _gauss_peak(sigma: float) -> float:
 
 @dataclass
 class _ObjectStats:
-    centroid: np.ndarray   # float64 3
+    centroid: np.ndarray  # float64 3
     box_min: np.ndarray
     box_max: np.ndarray
 
@@ -153,8 +158,9 @@ class SemanticMapper:
     the pickupable classes, whose objects do not block the body's moves).
     """
 
-    def __init__(self, config: MapConfig | None = None, classes: Sequence[str] = (),
-                 passable: Collection[str] = ()) -> None:
+    def __init__(
+        self, config: MapConfig | None = None, classes: Sequence[str] = (), passable: Collection[str] = ()
+    ) -> None:
         self.config = config if config is not None else MapConfig()
         self.classes = list(classes)
         self.passable = frozenset(passable)
@@ -180,12 +186,12 @@ class SemanticMapper:
         self.obstacle = np.zeros((nx, ny), bool)
         self.floor_seen = np.zeros((nx, ny), bool)
         self.seen_count = np.zeros((nx, ny), np.uint16)
-        self.visited = np.zeros((nx, ny), bool)      # discs around believed agent positions
-        self.stood = np.zeros((nx, ny), bool)        # cells the agent's centre has been in
+        self.visited = np.zeros((nx, ny), bool)  # discs around believed agent positions
+        self.stood = np.zeros((nx, ny), bool)  # cells the agent's centre has been in
         self.occupancy = np.zeros(self.voxel_shape, bool)
         self.voxel_labels = np.full(self.voxel_shape, -1, np.int16)
         self.memory.clear()
-        self.last_track_ids: list[int | None] = []   # per detection of the last update
+        self.last_track_ids: list[int | None] = []  # per detection of the last update
         self.steps = 0
 
     @property
@@ -208,8 +214,9 @@ class SemanticMapper:
         k = np.asarray(obs.intrinsics, dtype=np.float64)
         pose = np.asarray(obs.camera_pose, dtype=np.float64)
         if k.shape != (3, 3) or pose.shape != (4, 4):
-            raise ValueError(f"Observation needs 3x3 intrinsics and a 4x4 camera_pose, got "
-                             f"{k.shape} and {pose.shape}")
+            raise ValueError(
+                f"Observation needs 3x3 intrinsics and a 4x4 camera_pose, got {k.shape} and {pose.shape}"
+            )
         rot, trans = pose[:3, :3], pose[:3, 3]
         depth_flat = depth.reshape(-1)
 
@@ -217,14 +224,16 @@ class SemanticMapper:
         d = depth_flat[pix]
         keep = valid_depth(d, cfg.max_depth)
         pix = pix[keep]
-        pts = (rays[keep] * d[keep, None]) @ rot.T + trans      # float64 Nx3, start frame
+        pts = (rays[keep] * d[keep, None]) @ rot.T + trans  # float64 Nx3, start frame
 
         regions = []
         for det in detections:
             region = np.asarray(det.region((h, w)), dtype=bool)
             if region.shape != (h, w):
-                raise ValueError(f"detection {det.label!r}: region shape {region.shape} does not "
-                                 f"match the depth image {(h, w)}")
+                raise ValueError(
+                    f"detection {det.label!r}: region shape {region.shape} does not "
+                    f"match the depth image {(h, w)}"
+                )
             regions.append(region.reshape(-1))
         passable = np.zeros(pix.shape[0], bool)
         for det, region_flat in zip(detections, regions):
@@ -247,9 +256,16 @@ class SemanticMapper:
                 cls = self._class_index.get(det.label)
                 if cls is not None:
                     self._label_voxels(cls, region_flat[pix], pts, vflat, stats)
-                obj = self.memory.add_or_merge(det.label, det.score, stats.centroid, stats.box_min,
-                                               stats.box_max, step=int(obs.step), feature=det.feature,
-                                               oop_prob=det.oop_prob)
+                obj = self.memory.add_or_merge(
+                    det.label,
+                    det.score,
+                    stats.centroid,
+                    stats.box_min,
+                    stats.box_max,
+                    step=int(obs.step),
+                    feature=det.feature,
+                    oop_prob=det.oop_prob,
+                )
                 self.last_track_ids[i] = obj.id
             seen: set[int] = set()
             for tid in self.last_track_ids:
@@ -263,7 +279,7 @@ class SemanticMapper:
         key = (shape, stride, k.tobytes())
         hit = self._rays.get(key)
         if hit is None:
-            if len(self._rays) >= 4:   # a few cameras at most; never grow without bound
+            if len(self._rays) >= 4:  # a few cameras at most; never grow without bound
                 self._rays.clear()
             hit = self._rays[key] = pixel_rays(shape, k, stride)
         return hit
@@ -308,8 +324,16 @@ class SemanticMapper:
         if self.grid.in_bounds(c)[0]:
             self.stood[c[0, 0], c[0, 1]] = True
 
-    def _object_stats(self, region_flat: np.ndarray, valid_full: np.ndarray, depth_flat: np.ndarray,
-                      k: np.ndarray, rot: np.ndarray, trans: np.ndarray, width: int) -> _ObjectStats | None:
+    def _object_stats(
+        self,
+        region_flat: np.ndarray,
+        valid_full: np.ndarray,
+        depth_flat: np.ndarray,
+        k: np.ndarray,
+        rot: np.ndarray,
+        trans: np.ndarray,
+        width: int,
+    ) -> _ObjectStats | None:
         """Centroid (the median-depth pixel's point) and 5-95 % box of a region, or None when
         fewer than ``min_object_points`` of its pixels have a valid depth."""
         cfg = self.config
@@ -330,8 +354,9 @@ class SemanticMapper:
         lo, hi = np.percentile(p[:-1] if p.shape[0] > 1 else p, [5.0, 95.0], axis=0)
         return _ObjectStats(centroid=p[-1].copy(), box_min=lo, box_max=hi)
 
-    def _label_voxels(self, cls: int, in_region: np.ndarray, pts: np.ndarray, vflat: np.ndarray,
-                      stats: _ObjectStats) -> None:
+    def _label_voxels(
+        self, cls: int, in_region: np.ndarray, pts: np.ndarray, vflat: np.ndarray, stats: _ObjectStats
+    ) -> None:
         """Label the voxels of this frame's map points that fall in the detection's pixels and
         within one voxel of its 3D box (drops most background behind a box-only detection)."""
         idx = np.flatnonzero(in_region)
@@ -411,7 +436,7 @@ class SemanticMapper:
         if z_bins < 1 or nz % z_bins:
             raise ValueError(f"z_bins must divide the {nz} voxel heights, got {z_bins}")
         occ = self.occupancy.reshape(nx, ny, z_bins, nz // z_bins).any(axis=3)
-        return np.ascontiguousarray(occ.transpose(2, 0, 1), dtype=np.float32)   # z_bins x X x Y
+        return np.ascontiguousarray(occ.transpose(2, 0, 1), dtype=np.float32)  # z_bins x X x Y
 
     def _centroid_heat(self, label: str, z_bins: int) -> np.ndarray | None:
         """float32 z_bins x X x Y: the label's centroids counted per coarse voxel, Gaussian-blurred
@@ -431,7 +456,7 @@ class SemanticMapper:
         heat = np.zeros((z_bins, nx, ny), np.float32)
         np.add.at(heat, (iz[inside], ij[inside, 0], ij[inside, 1]), 1.0)
         s_xy = float(cfg.semantic_sigma_voxels)
-        s_z = s_xy * cfg.voxel_xy / bin_h          # the same metric spread along z
+        s_z = s_xy * cfg.voxel_xy / bin_h  # the same metric spread along z
         if s_xy > 0:
             heat = gaussian_filter(heat, sigma=(s_z, s_xy, s_xy), mode="constant", truncate=_GAUSS_TRUNCATE)
             heat /= _gauss_peak(s_z) * _gauss_peak(s_xy) ** 2
@@ -466,7 +491,15 @@ class SemanticMapper:
     def snapshot(self, session: str, step: int) -> MapSnapshot:
         """The viewer's ``MapSnapshot`` of the current maps."""
         points, labels = self.voxel_points()
-        return MapSnapshot(session=session, step=int(step), origin=self.grid.origin, cell=self.grid.cell,
-                           occupancy=self.occupancy_grid(), explored=self.explored.copy(),
-                           voxel_size=self.voxel_grid.cell, points=points, point_labels=labels,
-                           classes=list(self.classes))
+        return MapSnapshot(
+            session=session,
+            step=int(step),
+            origin=self.grid.origin,
+            cell=self.grid.cell,
+            occupancy=self.occupancy_grid(),
+            explored=self.explored.copy(),
+            voxel_size=self.voxel_grid.cell,
+            points=points,
+            point_labels=labels,
+            classes=list(self.classes),
+        )

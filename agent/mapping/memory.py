@@ -34,19 +34,19 @@ class TrackedObject:
 
     id: int
     label: str
-    score: float                      # best detection score so far
-    centroid: np.ndarray              # float64 3
-    box_min: np.ndarray               # float64 3: axis-aligned box, lower corner
-    box_max: np.ndarray               # float64 3: upper corner
-    n_obs: int = 1                    # detections merged into it
+    score: float  # best detection score so far
+    centroid: np.ndarray  # float64 3
+    box_min: np.ndarray  # float64 3: axis-aligned box, lower corner
+    box_max: np.ndarray  # float64 3: upper corner
+    n_obs: int = 1  # detections merged into it
     first_seen: int = 0
     last_seen: int = 0
     feature: np.ndarray | None = None  # latest non-None detection feature
-    oop_prob: float | None = None     # running mean of the non-None P(out of place)
-    out_of_place: bool = False        # set by the policy
+    oop_prob: float | None = None  # running mean of the non-None P(out of place)
+    out_of_place: bool = False  # set by the policy
     meta: dict[str, Any] = field(default_factory=dict)  # free slot for the policy
-    weight: float = 0.0               # sum of the merged detections' scores (averaging weight)
-    oop_count: int = 0                # detections that carried an oop_prob
+    weight: float = 0.0  # sum of the merged detections' scores (averaging weight)
+    oop_count: int = 0  # detections that carried an oop_prob
 
     @property
     def xy(self) -> np.ndarray:
@@ -71,9 +71,17 @@ class ObjectMemory:
         self._next_id = 0
 
     # ------------------------------------------------------------------ updates
-    def add_or_merge(self, label: str, score: float, centroid: np.ndarray, box_min: np.ndarray,
-                     box_max: np.ndarray, step: int, feature: np.ndarray | None = None,
-                     oop_prob: float | None = None) -> TrackedObject:
+    def add_or_merge(
+        self,
+        label: str,
+        score: float,
+        centroid: np.ndarray,
+        box_min: np.ndarray,
+        box_max: np.ndarray,
+        step: int,
+        feature: np.ndarray | None = None,
+        oop_prob: float | None = None,
+    ) -> TrackedObject:
         """Merge a 3D detection into the nearest same-label entry within ``merge_distance``
         (3D distance between centroids, metres), or add a new entry. Returns the entry."""
         c = _vec3("centroid", centroid)
@@ -89,11 +97,21 @@ class ObjectMemory:
 
         target = self._nearest_within(label, c, self.merge_distance)
         if target is None:
-            obj = TrackedObject(id=self._next_id, label=label, score=score, centroid=c, box_min=lo,
-                                box_max=hi, n_obs=1, first_seen=int(step), last_seen=int(step),
-                                feature=None if feature is None else np.array(feature),
-                                oop_prob=None if oop_prob is None else float(oop_prob),
-                                weight=w, oop_count=0 if oop_prob is None else 1)
+            obj = TrackedObject(
+                id=self._next_id,
+                label=label,
+                score=score,
+                centroid=c,
+                box_min=lo,
+                box_max=hi,
+                n_obs=1,
+                first_seen=int(step),
+                last_seen=int(step),
+                feature=None if feature is None else np.array(feature),
+                oop_prob=None if oop_prob is None else float(oop_prob),
+                weight=w,
+                oop_count=0 if oop_prob is None else 1,
+            )
             self._objects[obj.id] = obj
             self._next_id += 1
             return obj

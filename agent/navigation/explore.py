@@ -14,8 +14,8 @@ Randomness comes only from the ``np.random.Generator`` passed in.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -47,8 +47,9 @@ def _check_grids(shape: tuple[int, int] | None, **grids: np.ndarray) -> tuple[in
     return (int(shape[0]), int(shape[1]))
 
 
-def _far_enough(shape: tuple[int, int], grid: GridSpec, agent_xy: Sequence[float],
-                min_dist_m: float) -> np.ndarray:
+def _far_enough(
+    shape: tuple[int, int], grid: GridSpec, agent_xy: Sequence[float], min_dist_m: float
+) -> np.ndarray:
     """bool grid: cells whose centres are at least ``min_dist_m`` metres from the agent."""
     x = grid.origin[0] + (np.arange(shape[0]) + 0.5) * grid.cell - float(agent_xy[0])
     y = grid.origin[1] + (np.arange(shape[1]) + 0.5) * grid.cell - float(agent_xy[1])
@@ -72,9 +73,14 @@ def unexplored_fraction(explored: np.ndarray, reachable: np.ndarray) -> float:
     return float((reachable & ~explored).sum()) / n
 
 
-def sample_unexplored_goal(explored: np.ndarray, reachable: np.ndarray, grid: GridSpec,
-                           rng: np.random.Generator, agent_xy: Sequence[float],
-                           min_dist_m: float = 0.5) -> tuple[float, float] | None:
+def sample_unexplored_goal(
+    explored: np.ndarray,
+    reachable: np.ndarray,
+    grid: GridSpec,
+    rng: np.random.Generator,
+    agent_xy: Sequence[float],
+    min_dist_m: float = 0.5,
+) -> tuple[float, float] | None:
     """A random reachable, unexplored cell centre (x, y) metres at least ``min_dist_m`` away.
 
     Cells 8-adjacent to explored space are preferred (sampled from first when any exist):
@@ -89,9 +95,13 @@ def sample_unexplored_goal(explored: np.ndarray, reachable: np.ndarray, grid: Gr
     return _pick(border if border.any() else candidates, grid, rng)
 
 
-def sample_reachable_goal(reachable: np.ndarray, grid: GridSpec, rng: np.random.Generator,
-                          agent_xy: Sequence[float],
-                          min_dist_m: float = 1.0) -> tuple[float, float] | None:
+def sample_reachable_goal(
+    reachable: np.ndarray,
+    grid: GridSpec,
+    rng: np.random.Generator,
+    agent_xy: Sequence[float],
+    min_dist_m: float = 1.0,
+) -> tuple[float, float] | None:
     """A random reachable cell centre (x, y) metres at least ``min_dist_m`` from the agent, or None."""
     shape = _check_grids(tuple(grid.shape), reachable=reachable)
     candidates = reachable & _far_enough(shape, grid, agent_xy, min_dist_m)
@@ -128,8 +138,7 @@ class FrontierExplorer:
             the agent are skipped by ``next_goal``: going there teaches nothing new.
     """
 
-    def __init__(self, grid: GridSpec, min_cluster_cells: int = 5,
-                 min_goal_dist_m: float = 0.25) -> None:
+    def __init__(self, grid: GridSpec, min_cluster_cells: int = 5, min_goal_dist_m: float = 0.25) -> None:
         if min_cluster_cells < 1:
             raise ValueError(f"min_cluster_cells must be >= 1, got {min_cluster_cells}")
         self.grid = grid
@@ -137,8 +146,7 @@ class FrontierExplorer:
         self.min_cluster_cells = int(min_cluster_cells)
         self.min_goal_dist_m = float(min_goal_dist_m)
 
-    def frontier_mask(self, free: np.ndarray, known: np.ndarray,
-                      obstacle: np.ndarray) -> np.ndarray:
+    def frontier_mask(self, free: np.ndarray, known: np.ndarray, obstacle: np.ndarray) -> np.ndarray:
         """bool grid: known, free, non-obstacle cells 4-adjacent to an unknown cell.
 
         Off-grid neighbours do not count as unknown (the map edge is no frontier).
@@ -148,8 +156,7 @@ class FrontierExplorer:
         near_unknown = ndimage.binary_dilation(unknown, structure=_FOUR, border_value=0)
         return free & known & ~obstacle & near_unknown
 
-    def frontiers(self, free: np.ndarray, known: np.ndarray,
-                  obstacle: np.ndarray) -> list[FrontierCluster]:
+    def frontiers(self, free: np.ndarray, known: np.ndarray, obstacle: np.ndarray) -> list[FrontierCluster]:
         """The frontier clusters (8-connected, >= ``min_cluster_cells``), largest first.
 
         Ties in size keep label order (row-major position of the first cell).
@@ -166,21 +173,29 @@ class FrontierExplorer:
         for lab in range(1, n + 1):
             if counts[lab] < self.min_cluster_cells:
                 continue
-            k = order[starts[lab]:starts[lab + 1]]
+            k = order[starts[lab] : starts[lab + 1]]
             cells = np.stack(np.divmod(k, self.shape[1]), axis=1)
             pts = self.grid.cell_to_world(cells)
             c = pts.mean(axis=0)
             nearest = int(np.argmin(np.hypot(pts[:, 0] - c[0], pts[:, 1] - c[1])))
-            clusters.append(FrontierCluster(
-                cells=cells,
-                centroid_xy=(float(c[0]), float(c[1])),
-                goal_xy=(float(pts[nearest, 0]), float(pts[nearest, 1]))))
+            clusters.append(
+                FrontierCluster(
+                    cells=cells,
+                    centroid_xy=(float(c[0]), float(c[1])),
+                    goal_xy=(float(pts[nearest, 0]), float(pts[nearest, 1])),
+                )
+            )
         clusters.sort(key=lambda cl: -cl.size)  # stable: ties keep label order
         return clusters
 
-    def next_goal(self, free: np.ndarray, known: np.ndarray, obstacle: np.ndarray,
-                  distance_from_agent: FMMPlanner | np.ndarray,
-                  agent_xy: Sequence[float]) -> tuple[float, float] | None:
+    def next_goal(
+        self,
+        free: np.ndarray,
+        known: np.ndarray,
+        obstacle: np.ndarray,
+        distance_from_agent: FMMPlanner | np.ndarray,
+        agent_xy: Sequence[float],
+    ) -> tuple[float, float] | None:
         """Goal (x, y) metres of the geodesically nearest frontier cluster, or None.
 
         ``distance_from_agent`` is a geodesic distance field *seeded at the agent* (float

@@ -20,8 +20,8 @@ RotateRight subtracts 90 degrees.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from enum import Enum
-from typing import Sequence
 
 import numpy as np
 import skfmm
@@ -40,11 +40,11 @@ __all__ = [
 class NavStatus(str, Enum):
     """Outcome of the last :meth:`FMMPlanner.next_action` call."""
 
-    arrived = "arrived"          # within the stop radius: action is None
-    progress = "progress"        # a one-move sequence reduces the geodesic distance
-    detour = "detour"            # only a longer sequence reduces it: a two-move pair, or a path
-                                 # found by search over the agent's own move lattice
-    stuck = "stuck"              # nothing reduces it: a rotation towards downhill is returned
+    arrived = "arrived"  # within the stop radius: action is None
+    progress = "progress"  # a one-move sequence reduces the geodesic distance
+    detour = "detour"  # only a longer sequence reduces it: a two-move pair, or a path
+    # found by search over the agent's own move lattice
+    stuck = "stuck"  # nothing reduces it: a rotation towards downhill is returned
     unreachable = "unreachable"  # the agent's cell has no finite distance: action is None
 
 
@@ -103,9 +103,16 @@ class FMMPlanner:
     plan and the status of the last ``next_action``; it holds no global state.
     """
 
-    def __init__(self, traversible: np.ndarray, grid: GridSpec, step_m: float = 0.25,
-                 known: np.ndarray | None = None, crop_margin_m: float = 1.0,
-                 goal_snap_max_m: float = 1.5, goal_snap_slack_m: float = 0.25) -> None:
+    def __init__(
+        self,
+        traversible: np.ndarray,
+        grid: GridSpec,
+        step_m: float = 0.25,
+        known: np.ndarray | None = None,
+        crop_margin_m: float = 1.0,
+        goal_snap_max_m: float = 1.5,
+        goal_snap_slack_m: float = 0.25,
+    ) -> None:
         shape = (int(grid.shape[0]), int(grid.shape[1]))
         trav = np.asarray(traversible)
         if trav.dtype != np.bool_:
@@ -183,8 +190,9 @@ class FMMPlanner:
         return (int(ii[k] + i0), int(jj[k] + j0))
 
     # ------------------------------------------------------------------ goals
-    def set_goal(self, goal_xy: Sequence[float], radius_m: float = 0.0,
-                 start_xy: Sequence[float] | None = None) -> bool:
+    def set_goal(
+        self, goal_xy: Sequence[float], radius_m: float = 0.0, start_xy: Sequence[float] | None = None
+    ) -> bool:
         """Set the goal to the cells within ``radius_m`` metres of ``goal_xy`` (at least its cell).
 
         If none of those cells is traversible, the nearest traversible cells (see
@@ -195,8 +203,10 @@ class FMMPlanner:
         """
         gi, gj = self.to_cell(goal_xy)
         if not self._in_bounds(gi, gj):
-            raise ValueError(f"goal {tuple(goal_xy)} is outside the grid "
-                             f"(origin {self.origin}, cell {self.cell}, shape {self.shape})")
+            raise ValueError(
+                f"goal {tuple(goal_xy)} is outside the grid "
+                f"(origin {self.origin}, cell {self.cell}, shape {self.shape})"
+            )
         mask = np.zeros(self.shape, dtype=bool)
         mask[gi, gj] = True
         if radius_m > 0:
@@ -216,8 +226,9 @@ class FMMPlanner:
         """
         mask = np.asarray(mask)
         if mask.dtype != np.bool_ or mask.shape != self.shape:
-            raise ValueError(f"goal mask must be a bool grid of shape {self.shape}, "
-                             f"got {mask.dtype} {mask.shape}")
+            raise ValueError(
+                f"goal mask must be a bool grid of shape {self.shape}, got {mask.dtype} {mask.shape}"
+            )
         if not mask.any():
             raise ValueError("goal mask is empty")
         allowed = self.traversible
@@ -340,8 +351,9 @@ class FMMPlanner:
         out[ok] = self.traversible[cells[ok, 0], cells[ok, 1]]
         return out
 
-    def _simulate(self, pose: tuple[float, float, float],
-                  seq: Sequence[ActionName]) -> tuple[float, float, float] | None:
+    def _simulate(
+        self, pose: tuple[float, float, float], seq: Sequence[ActionName]
+    ) -> tuple[float, float, float] | None:
         """Pose after ``seq`` from ``pose`` (x, y metres, yaw degrees); None if a move is blocked."""
         x, y, yaw = pose
         for a in seq:
@@ -357,8 +369,9 @@ class FMMPlanner:
                 raise ValueError(f"cannot simulate action {a!r}")
         return (x, y, yaw)
 
-    def _poses_along(self, pose: tuple[float, float, float],
-                     seq: Sequence[ActionName]) -> list[tuple[float, float, float]]:
+    def _poses_along(
+        self, pose: tuple[float, float, float], seq: Sequence[ActionName]
+    ) -> list[tuple[float, float, float]]:
         """The pose *before* each action of an executable sequence."""
         poses = []
         for a in seq:
@@ -368,8 +381,9 @@ class FMMPlanner:
             pose = nxt
         return poses
 
-    def next_action(self, x: float, y: float, yaw_deg: float,
-                    stop_radius_m: float = 0.25) -> ActionName | None:
+    def next_action(
+        self, x: float, y: float, yaw_deg: float, stop_radius_m: float = 0.25
+    ) -> ActionName | None:
         """The first action of the best short sequence towards the goal, or None.
 
         Args are the agent pose in the start frame (metres, degrees). Returns None when the
@@ -403,8 +417,10 @@ class FMMPlanner:
 
         if self._plan:
             action, expected = self._plan.pop(0)
-            if (math.hypot(expected[0] - pose[0], expected[1] - pose[1]) < 1e-3
-                    and abs(wrap_deg(expected[2] - pose[2])) < 1.0):
+            if (
+                math.hypot(expected[0] - pose[0], expected[1] - pose[1]) < 1e-3
+                and abs(wrap_deg(expected[2] - pose[2])) < 1.0
+            ):
                 self.status = NavStatus.detour
                 return action
             self._plan = []  # the world did not follow the plan: replan
@@ -447,12 +463,15 @@ class FMMPlanner:
             return plan[0]
 
         self.status = NavStatus.stuck
-        self.stuck_reason = ("no sequence of moves on the 0.25 m lattice reduces the geodesic distance "
-                             "(the map's way there is narrower or more diagonal than the moves can follow)")
+        self.stuck_reason = (
+            "no sequence of moves on the 0.25 m lattice reduces the geodesic distance "
+            "(the map's way there is narrower or more diagonal than the moves can follow)"
+        )
         return self._rotate_downhill(pose)
 
-    def _lattice_plan(self, pose: tuple[float, float, float], d0: float,
-                      stop_radius_m: float) -> list[ActionName]:
+    def _lattice_plan(
+        self, pose: tuple[float, float, float], d0: float, stop_radius_m: float
+    ) -> list[ActionName]:
         """Actions along the fewest-moves path over the poses the agent's own moves reach.
 
         The geodesic field is continuous: its way to the goal can be a corridor narrower
@@ -504,17 +523,19 @@ class FMMPlanner:
         queue = [start]
         best, best_d = start, d0
         goal = None
-        for node in queue:                          # breadth first: the list grows as it is read
+        for node in queue:  # breadth first: the list grows as it is read
             i, j = node
             if dist[i, j] <= stop_radius_m:
                 goal = node
                 break
             if dist[i, j] < best_d:
                 best, best_d = node, float(dist[i, j])
-            for nxt, ok in (((i + 1, j), i + 1 < xs.size and edge_x[i, j]),
-                            ((i - 1, j), i > 0 and edge_x[i - 1, j]),
-                            ((i, j + 1), j + 1 < ys.size and edge_y[i, j]),
-                            ((i, j - 1), j > 0 and edge_y[i, j - 1])):
+            for nxt, ok in (
+                ((i + 1, j), i + 1 < xs.size and edge_x[i, j]),
+                ((i - 1, j), i > 0 and edge_x[i - 1, j]),
+                ((i, j + 1), j + 1 < ys.size and edge_y[i, j]),
+                ((i, j - 1), j > 0 and edge_y[i, j - 1]),
+            ):
                 if ok and nxt not in parent:
                     parent[nxt] = node
                     queue.append(nxt)
@@ -527,8 +548,8 @@ class FMMPlanner:
             path.append(parent[path[-1]])
         path.reverse()
         actions: list[ActionName] = []
-        for (i, j), (k, l) in zip(path, path[1:]):
-            heading = math.degrees(math.atan2(l - j, k - i))
+        for (i, j), (k, m) in zip(path, path[1:]):
+            heading = math.degrees(math.atan2(m - j, k - i))
             turn = wrap_deg(heading - yaw)
             if abs(turn) > 135.0:
                 actions += [ActionName.RotateLeft, ActionName.RotateLeft]

@@ -13,7 +13,7 @@ PERCEPTIONS = ("oracle", "learned")
 TRAINED_RENDERER = "tiny"
 # How the detector's heatmap peaks become detections (``detector.decode``); the agent's is the first.
 PEAK_MODES = ("class-max", "per-class", "per-class-single")
-AGENT_THRESHOLD = 0.3     # the learned detector's score below which the agent drops a detection
+AGENT_THRESHOLD = 0.3  # the learned detector's score below which the agent drops a detection
 
 
 def make_perception(name: str, threshold: float | None = None) -> Perception:
@@ -34,5 +34,12 @@ def make_perception(name: str, threshold: float | None = None) -> Perception:
     raise ValueError(f"unknown perception {name!r}; choose one of {PERCEPTIONS}")
 
 
-__all__ = ["Detection", "Perception", "PERCEPTIONS", "PEAK_MODES", "AGENT_THRESHOLD", "TRAINED_RENDERER",
-           "make_perception"]
+__all__ = [
+    "Detection",
+    "Perception",
+    "PERCEPTIONS",
+    "PEAK_MODES",
+    "AGENT_THRESHOLD",
+    "TRAINED_RENDERER",
+    "make_perception",
+]

@@ -21,39 +21,49 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
-from tidee.agent.perception import TRAINED_RENDERER
 from tidee.agent.classes import CLASS_INDEX, CLASSES
+from tidee.agent.perception import TRAINED_RENDERER
 from tidee.server.splits import MESSES_PER_ROOM, ROOM_TYPES, SPLIT_SEEDS, TRAIN_POOL, split_of
 
 # A random walk: mostly forward, with turns and looks, like an exploring agent.
-WALK_ACTIONS = ("MoveAhead", "MoveAhead", "MoveAhead", "RotateLeft", "RotateRight", "MoveLeft", "MoveRight",
-                "LookDown", "LookUp")
-MIN_PIXELS = 12          # at 256^2 (scaled with resolution): smaller instances are not targets
+WALK_ACTIONS = (
+    "MoveAhead",
+    "MoveAhead",
+    "MoveAhead",
+    "RotateLeft",
+    "RotateRight",
+    "MoveLeft",
+    "MoveRight",
+    "LookDown",
+    "LookUp",
+)
+MIN_PIXELS = 12  # at 256^2 (scaled with resolution): smaller instances are not targets
 
 
 @dataclass
 class GenConfig:
-    split: str = "train"                 # "train" (train seeds + pool) or "test" (evaluation only)
-    rooms_per_type: int = 60             # train: seeds 0-19 first, then the pool 10000...
-    skip_rooms: int = 0                  # start after this many rooms of that order (unseen rooms)
-    messes_per_room: int = 2             # messy configurations per room (plus the tidy one)
+    split: str = "train"  # "train" (train seeds + pool) or "test" (evaluation only)
+    rooms_per_type: int = 60  # train: seeds 0-19 first, then the pool 10000...
+    skip_rooms: int = 0  # start after this many rooms of that order (unseen rooms)
+    messes_per_room: int = 2  # messy configurations per room (plus the tidy one)
     walks_per_config: int = 2
-    frames_per_walk: int = 6             # frames kept per walk (every ``stride``-th step)
+    frames_per_walk: int = 6  # frames kept per walk (every ``stride``-th step)
     stride: int = 3
     resolution: int = 256
     seed: int = 0
     shard_size: int = 256
     room_types: tuple[str, ...] = ROOM_TYPES
-    oop_views_only: bool = False         # keep only messy frames with an out-of-place object in view
-    per_config: int | None = None        # stop a configuration once it has this many frames
-    tidy: bool = True                    # include the tidy configuration of each room
-    renderer: str = TRAINED_RENDERER     # auto | egl | tiny
+    oop_views_only: bool = False  # keep only messy frames with an out-of-place object in view
+    per_config: int | None = None  # stop a configuration once it has this many frames
+    tidy: bool = True  # include the tidy configuration of each room
+    renderer: str = TRAINED_RENDERER  # auto | egl | tiny
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -65,8 +75,10 @@ def room_seeds(split: str, rooms_per_type: int, skip: int = 0) -> list[int]:
     else:
         raise ValueError(f"split must be train, val or test, got {split!r}")
     if skip < 0 or not 1 <= rooms_per_type <= len(seeds) - skip:
-        raise ValueError(f"{split} has {len(seeds)} rooms per type; asked for {rooms_per_type} after skipping {skip}")
-    return seeds[skip:skip + rooms_per_type]
+        raise ValueError(
+            f"{split} has {len(seeds)} rooms per type; asked for {rooms_per_type} after skipping {skip}"
+        )
+    return seeds[skip : skip + rooms_per_type]
 
 
 def configs(cfg: GenConfig) -> list[tuple[str, int, int | None]]:
@@ -74,7 +86,9 @@ def configs(cfg: GenConfig) -> list[tuple[str, int, int | None]]:
     out: list[tuple[str, int, int | None]] = []
     limit = MESSES_PER_ROOM["train" if cfg.split == "train" else cfg.split]
     if cfg.messes_per_room > limit:
-        raise ValueError(f"{cfg.split} rooms have {limit} messy configurations; asked for {cfg.messes_per_room}")
+        raise ValueError(
+            f"{cfg.split} rooms have {limit} messy configurations; asked for {cfg.messes_per_room}"
+        )
     for seed in room_seeds(cfg.split, cfg.rooms_per_type, cfg.skip_rooms):
         for rt in cfg.room_types:
             if cfg.tidy:
@@ -83,8 +97,9 @@ def configs(cfg: GenConfig) -> list[tuple[str, int, int | None]]:
     return out
 
 
-def frame_targets(inst_seg: np.ndarray, objects: list[dict], depth: np.ndarray,
-                  min_pixels: int = MIN_PIXELS) -> tuple[np.ndarray, list[dict]]:
+def frame_targets(
+    inst_seg: np.ndarray, objects: list[dict], depth: np.ndarray, min_pixels: int = MIN_PIXELS
+) -> tuple[np.ndarray, list[dict]]:
     """(inst int16 HxW, one dict per visible instance) from the simulator's segmentation."""
     h = inst_seg.shape[0]
     min_px = max(4, int(min_pixels * (h / 256.0) ** 2))
@@ -100,13 +115,22 @@ def frame_targets(inst_seg: np.ndarray, objects: list[dict], depth: np.ndarray,
         ys, xs = np.nonzero(m)
         j = len(rows)
         inst[m] = j
-        rows.append({"cls": CLASS_INDEX[o["type"]], "box": [xs.min(), ys.min(), xs.max() + 1, ys.max() + 1],
-                     "oop": int(bool(o.get("moved"))), "pix": int(n), "inst": j, "id": o["id"]})
+        rows.append(
+            {
+                "cls": CLASS_INDEX[o["type"]],
+                "box": [xs.min(), ys.min(), xs.max() + 1, ys.max() + 1],
+                "oop": int(bool(o.get("moved"))),
+                "pix": int(n),
+                "inst": j,
+                "id": o["id"],
+            }
+        )
     return inst, rows
 
 
-def iter_frames(cfg: GenConfig, jobs: list[tuple[str, int, int | None]] | None = None,
-                progress: bool = True) -> Iterator[dict]:
+def iter_frames(
+    cfg: GenConfig, jobs: list[tuple[str, int, int | None]] | None = None, progress: bool = True
+) -> Iterator[dict]:
     """Frames with targets, deterministic in ``cfg`` (one Episode, rooms in order)."""
     from tqdm import tqdm
 
@@ -116,36 +140,57 @@ def iter_frames(cfg: GenConfig, jobs: list[tuple[str, int, int | None]] | None =
     jobs = configs(cfg) if jobs is None else jobs
     for _, seed, _ in jobs:
         if cfg.split == "train" and split_of(seed) not in ("train", "train_pool"):
-            raise ValueError(f"seed {seed} is a {split_of(seed)} room: detector training data only comes from "
-                             "training rooms")
+            raise ValueError(
+                f"seed {seed} is a {split_of(seed)} room: detector training data only comes from "
+                "training rooms"
+            )
     ep = Episode(renderer=cfg.renderer)
     try:
-        for j, (rt, seed, mess) in enumerate(tqdm(jobs, desc=f"{cfg.split} configurations", disable=not progress)):
-            rng = np.random.default_rng([cfg.seed, seed, ROOM_TYPES.index(rt), 0 if mess is None else mess + 1])
+        for _j, (rt, seed, mess) in enumerate(
+            tqdm(jobs, desc=f"{cfg.split} configurations", disable=not progress)
+        ):
+            rng = np.random.default_rng(
+                [cfg.seed, seed, ROOM_TYPES.index(rt), 0 if mess is None else mess + 1]
+            )
             in_config = 0
             for w in range(cfg.walks_per_config):
                 if cfg.per_config is not None and in_config >= cfg.per_config:
                     break
-                spec = EpisodeSpec(room_type=rt, seed=seed, mess_index=mess, resolution=cfg.resolution,
-                                   start_seed=int(rng.integers(1 << 30)), max_steps=10_000)
+                spec = EpisodeSpec(
+                    room_type=rt,
+                    seed=seed,
+                    mess_index=mess,
+                    resolution=cfg.resolution,
+                    start_seed=int(rng.integers(1 << 30)),
+                    max_steps=10_000,
+                )
                 obs = ep.reset(spec, ground_truth=True)
                 kept = 0
                 for t in range(cfg.frames_per_walk * cfg.stride * 3):
                     if t % cfg.stride == cfg.stride - 1:
-                        inst, rows = frame_targets(obs.ground_truth.instance_seg, obs.ground_truth.objects,
-                                                   obs.depth)
+                        inst, rows = frame_targets(
+                            obs.ground_truth.instance_seg, obs.ground_truth.objects, obs.depth
+                        )
                         keep = bool(rows) and (not cfg.oop_views_only or any(r["oop"] for r in rows))
                         if keep:
                             kept += 1
                             in_config += 1
-                            yield {"rgb": obs.rgb, "depth": obs.depth, "inst": inst, "objects": rows,
-                                   "room_type": rt, "seed": seed, "mess_index": mess, "walk": w,
-                                   "pose": obs.agent_pose}
+                            yield {
+                                "rgb": obs.rgb,
+                                "depth": obs.depth,
+                                "inst": inst,
+                                "objects": rows,
+                                "room_type": rt,
+                                "seed": seed,
+                                "mess_index": mess,
+                                "walk": w,
+                                "pose": obs.agent_pose,
+                            }
                             if kept >= cfg.frames_per_walk or in_config == cfg.per_config:
                                 break
                     name = WALK_ACTIONS[int(rng.integers(len(WALK_ACTIONS)))]
                     if name == "LookUp" and ep.pitch <= 0:
-                        name = "LookDown"          # the agent rarely looks above the horizon
+                        name = "LookDown"  # the agent rarely looks above the horizon
                     # only the frame the next iteration keeps is rendered (Episode.act skips the rest)
                     ok, _, _ = ep.act(Action(name=name))
                     if not ok and name == "MoveAhead":
@@ -204,11 +249,15 @@ def _part_worker(a: tuple) -> dict:
     return _generate_part(cfg, jobs, out, prefix, progress=prefix == "p0_")
 
 
-def generate(cfg: GenConfig, out: str | Path, command: str = "", progress: bool = True, workers: int = 1) -> dict:
+def generate(
+    cfg: GenConfig, out: str | Path, command: str = "", progress: bool = True, workers: int = 1
+) -> dict:
     """Write shards + manifest.json under ``out`` (``workers`` processes); returns the manifest."""
     if cfg.split != "train":
-        raise ValueError("tidee gen detection writes training data only (split train); evaluation builds "
-                         "its test frames itself")
+        raise ValueError(
+            "tidee gen detection writes training data only (split train); evaluation builds "
+            "its test frames itself"
+        )
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
@@ -221,12 +270,18 @@ def generate(cfg: GenConfig, out: str | Path, command: str = "", progress: bool 
         args = [(cfg, jobs[i::workers], out, f"p{i}_") for i in range(workers)]
         with mp.get_context("spawn").Pool(workers) as pool:
             parts = pool.map(_part_worker, args)
-    manifest = {"command": command, "config": asdict(cfg), "classes": list(CLASSES),
-                "shards": [s for p in parts for s in p["shards"]],
-                "frames": sum(p["frames"] for p in parts), "instances": sum(p["instances"] for p in parts),
-                "oop_instances": sum(p["oop_instances"] for p in parts),
-                "rooms": sorted({f"{rt}:{s}" for rt, s, _ in jobs}), "configurations": len(jobs),
-                "seconds": round(time.time() - t0, 1)}
+    manifest = {
+        "command": command,
+        "config": asdict(cfg),
+        "classes": list(CLASSES),
+        "shards": [s for p in parts for s in p["shards"]],
+        "frames": sum(p["frames"] for p in parts),
+        "instances": sum(p["instances"] for p in parts),
+        "oop_instances": sum(p["oop_instances"] for p in parts),
+        "rooms": sorted({f"{rt}:{s}" for rt, s, _ in jobs}),
+        "configurations": len(jobs),
+        "seconds": round(time.time() - t0, 1),
+    }
     (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return manifest
 
@@ -238,7 +293,9 @@ def _read_manifest(root: Path) -> dict:
     return manifest
 
 
-def _concat_shards(paths: list[Path], with_inst: bool, limit: int | None) -> tuple[dict[str, np.ndarray], int]:
+def _concat_shards(
+    paths: list[Path], with_inst: bool, limit: int | None
+) -> tuple[dict[str, np.ndarray], int]:
     """Shard files in order, concatenated (object frame indices rebased), until ``limit`` frames;
     also how many of ``paths`` were read."""
     parts: dict[str, list[np.ndarray]] = {}
@@ -275,12 +332,15 @@ def data_dirs(spec: str | Path | list[str]) -> list[Path]:
         raise ValueError(f"--data names no directory: {spec!r}")
     for d in dirs:
         if not (d / "manifest.json").exists():
-            raise ValueError(f"--data {d}: no manifest.json there (make it with `tidee gen detection --out {d}`)")
+            raise ValueError(
+                f"--data {d}: no manifest.json there (make it with `tidee gen detection --out {d}`)"
+            )
     return dirs
 
 
-def load_datasets(spec: str | Path | list[str], with_inst: bool = False,
-                  limit: int | None = None) -> tuple[dict[str, np.ndarray], list[dict]]:
+def load_datasets(
+    spec: str | Path | list[str], with_inst: bool = False, limit: int | None = None
+) -> tuple[dict[str, np.ndarray], list[dict]]:
     """Shards of one or several ``tidee gen detection`` directories, concatenated, with their manifests.
 
     The directories must hold different rooms: a room in two of them would count twice."""
@@ -290,26 +350,48 @@ def load_datasets(spec: str | Path | list[str], with_inst: bool = False,
     for d, m in zip(dirs, manifests):
         for room in m.get("rooms", []):
             if room in seen:
-                raise ValueError(f"room {room} is in both {seen[room]} and {d}; "
-                                 "generate the second with --skip-rooms past the first")
+                raise ValueError(
+                    f"room {room} is in both {seen[room]} and {d}; "
+                    "generate the second with --skip-rooms past the first"
+                )
             seen[room] = d
     shards = [(i, d / name) for i, (d, m) in enumerate(zip(dirs, manifests)) for name in m["shards"]]
     data, read = _concat_shards([p for _, p in shards], with_inst, limit)
     # a --limit-frames run may stop before the last directory: only the manifests it read
-    return data, manifests[:shards[read - 1][0] + 1] if read else []
+    return data, manifests[: shards[read - 1][0] + 1] if read else []
 
 
-def held_out_frames(split: str = "test", rooms_per_type: int = 5, messes: int = 2, walks: int = 1,
-                    frames_per_walk: int = 5, seed: int = 7, oop_views_only: bool = False, tidy: bool = True,
-                    per_config: int | None = None, resolution: int = 256, renderer: str = TRAINED_RENDERER,
-                    progress: bool = True) -> dict[str, np.ndarray]:
+def held_out_frames(
+    split: str = "test",
+    rooms_per_type: int = 5,
+    messes: int = 2,
+    walks: int = 1,
+    frames_per_walk: int = 5,
+    seed: int = 7,
+    oop_views_only: bool = False,
+    tidy: bool = True,
+    per_config: int | None = None,
+    resolution: int = 256,
+    renderer: str = TRAINED_RENDERER,
+    progress: bool = True,
+) -> dict[str, np.ndarray]:
     """Frames of the val or test rooms, rendered now and packed like a shard (evaluation only;
     never written next to training data). ``per_config`` caps the frames of a configuration."""
     if split not in ("val", "test"):
         raise ValueError(f"evaluation frames come from the val or test rooms, not {split!r}")
-    cfg = GenConfig(split=split, rooms_per_type=rooms_per_type, messes_per_room=messes, walks_per_config=walks,
-                    frames_per_walk=frames_per_walk, seed=seed, oop_views_only=oop_views_only, tidy=tidy,
-                    per_config=per_config, resolution=resolution, renderer=renderer)
+    cfg = GenConfig(
+        split=split,
+        rooms_per_type=rooms_per_type,
+        messes_per_room=messes,
+        walks_per_config=walks,
+        frames_per_walk=frames_per_walk,
+        seed=seed,
+        oop_views_only=oop_views_only,
+        tidy=tidy,
+        per_config=per_config,
+        resolution=resolution,
+        renderer=renderer,
+    )
     frames = list(iter_frames(cfg, progress=progress))
     if not frames:
         raise ValueError(f"no {split} frames with objects in view")
@@ -318,10 +400,25 @@ def held_out_frames(split: str = "test", rooms_per_type: int = 5, messes: int = 
 
 def describe(cfg: GenConfig) -> str:
     n = len(configs(cfg))
-    return (f"{n} configurations x {cfg.walks_per_config} walks x up to {cfg.frames_per_walk} frames "
-            f"= at most {n * cfg.walks_per_config * cfg.frames_per_walk} frames at {cfg.resolution}^2")
+    return (
+        f"{n} configurations x {cfg.walks_per_config} walks x up to {cfg.frames_per_walk} frames "
+        f"= at most {n * cfg.walks_per_config * cfg.frames_per_walk} frames at {cfg.resolution}^2"
+    )
 
 
-__all__ = ["GenConfig", "configs", "frame_targets", "iter_frames", "generate", "load_shards", "held_out_frames",
-           "pack", "describe", "room_seeds", "MIN_PIXELS", "split_data_spec", "data_dirs",
-           "load_datasets"]
+__all__ = [
+    "GenConfig",
+    "configs",
+    "frame_targets",
+    "iter_frames",
+    "generate",
+    "load_shards",
+    "held_out_frames",
+    "pack",
+    "describe",
+    "room_seeds",
+    "MIN_PIXELS",
+    "split_data_spec",
+    "data_dirs",
+    "load_datasets",
+]

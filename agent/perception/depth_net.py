@@ -28,14 +28,21 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from tidee.agent.learning import (WEIGHTS_DIR, load_checkpoint, pick_device, read_manifest, save_checkpoint,
-                                  save_loss_curve, write_manifest)
+from tidee.agent.learning import (
+    WEIGHTS_DIR,
+    load_checkpoint,
+    pick_device,
+    read_manifest,
+    save_checkpoint,
+    save_loss_curve,
+    write_manifest,
+)
 
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "depth.pt"
 DOCS_LOSS_PNG = Path(__file__).resolve().parents[2] / "docs" / "models" / "depth_loss.png"
-RESOLUTION = 256                  # the network's input size; other frames are resized to it
+RESOLUTION = 256  # the network's input size; other frames are resized to it
 VALID_MIN, VALID_MAX = 0.05, 8.0  # metres scored; 0 is "nothing", the far plane (20 m) shows through doors
-TYPICAL_DEPTH = 1.0               # metres: about the median of the training frames (mostly near views)
+TYPICAL_DEPTH = 1.0  # metres: about the median of the training frames (mostly near views)
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
@@ -43,6 +50,7 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 @dataclass(frozen=True)
 class EvalSet:
     """The held-out frames a depth model is scored on (training's final eval and ``tidee eval depth``)."""
+
     rooms_per_type: int = 5
     messes: int = 1
     frames_per_walk: int = 5
@@ -51,9 +59,11 @@ class EvalSet:
 
 # --- the network ---------------------------------------------------------------------------------
 
+
 def _conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False), nn.BatchNorm2d(c_out),
-                         nn.ReLU(inplace=True))
+    return nn.Sequential(
+        nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)
+    )
 
 
 class DepthNet(nn.Module):
@@ -65,8 +75,12 @@ class DepthNet(nn.Module):
     output is squashed to log depth in [log min_depth, log max_depth].
     """
 
-    def __init__(self, widths: tuple[int, ...] | list[int] = (16, 24, 48, 96), min_depth: float = 0.1,
-                 max_depth: float = 8.0):
+    def __init__(
+        self,
+        widths: tuple[int, ...] | list[int] = (16, 24, 48, 96),
+        min_depth: float = 0.1,
+        max_depth: float = 8.0,
+    ):
         super().__init__()
         if len(widths) != 4:
             raise ValueError(f"widths needs 4 entries (scales 1/2 to 1/16), got {list(widths)}")
@@ -77,7 +91,8 @@ class DepthNet(nn.Module):
         w = self.widths
         self.encoder = nn.ModuleList(
             nn.Sequential(_conv_bn_relu(c_in, c_out, 2), _conv_bn_relu(c_out, c_out))
-            for c_in, c_out in zip((3,) + w[:-1], w))
+            for c_in, c_out in zip((3,) + w[:-1], w)
+        )
         self.lateral = nn.ModuleList(nn.Conv2d(w[i + 1], w[i], 1) for i in range(len(w) - 1))
         self.decoder = nn.ModuleList(_conv_bn_relu(w[i], w[i]) for i in range(len(w) - 1))
         self.head = nn.Conv2d(w[0], 1, 3, 1, 1)
@@ -108,7 +123,7 @@ class DepthNet(nn.Module):
     def forward(self, rgb: torch.Tensor) -> torch.Tensor:
         return self.log_depth(rgb).exp()
 
-    def fused(self) -> "DepthNet":
+    def fused(self) -> DepthNet:
         """An inference copy with each BatchNorm folded into its convolution (eval mode only)."""
         from torch.nn.utils.fusion import fuse_conv_bn_eval
 
@@ -122,8 +137,10 @@ class DepthNet(nn.Module):
 
 # --- loss and data -------------------------------------------------------------------------------
 
-def depth_loss(log_pred: torch.Tensor, depth: torch.Tensor,
-               grad_weight: float = 0.5) -> dict[str, torch.Tensor]:
+
+def depth_loss(
+    log_pred: torch.Tensor, depth: torch.Tensor, grad_weight: float = 0.5
+) -> dict[str, torch.Tensor]:
     """L1 on log depth over valid pixels (absolute, so the scale counts) + multi-scale gradient matching.
 
     The gradient term (as in MiDaS) penalises x/y differences of the log-depth residual at
@@ -156,14 +173,17 @@ def batch_indices(n: int, batch_size: int, seed: int, step: int) -> np.ndarray:
     return out
 
 
-def augment(rgb: torch.Tensor, depth: torch.Tensor, seed: int,
-            step: int) -> tuple[torch.Tensor, torch.Tensor]:
+def augment(
+    rgb: torch.Tensor, depth: torch.Tensor, seed: int, step: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Horizontal flip and mild colour jitter, drawn from (seed, step): the same on a resumed run."""
     rng = np.random.default_rng([seed, step, 1])
     b = rgb.shape[0]
     flip = torch.from_numpy(rng.random(b) < 0.5).to(rgb.device)
-    bright, contrast, sat = (torch.from_numpy(rng.uniform(0.8, 1.2, b).astype(np.float32)).to(rgb.device)
-                             .view(b, 1, 1, 1) for _ in range(3))
+    bright, contrast, sat = (
+        torch.from_numpy(rng.uniform(0.8, 1.2, b).astype(np.float32)).to(rgb.device).view(b, 1, 1, 1)
+        for _ in range(3)
+    )
     rgb = torch.where(flip.view(b, 1, 1, 1), rgb.flip(-1), rgb)
     depth = torch.where(flip.view(b, 1, 1), depth.flip(-1), depth)
     rgb = rgb * bright
@@ -187,8 +207,9 @@ def lr_at(step: int, steps: int, lr: float, warmup: int = 50) -> float:
     return lr * warm * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * min(step, steps) / max(1, steps))))
 
 
-def train_step(model: DepthNet, opt: torch.optim.Optimizer, rgb: torch.Tensor, depth: torch.Tensor,
-               lr: float) -> dict[str, float]:
+def train_step(
+    model: DepthNet, opt: torch.optim.Optimizer, rgb: torch.Tensor, depth: torch.Tensor, lr: float
+) -> dict[str, float]:
     for group in opt.param_groups:
         group["lr"] = lr
     model.train()
@@ -201,22 +222,41 @@ def train_step(model: DepthNet, opt: torch.optim.Optimizer, rgb: torch.Tensor, d
 
 # --- training ------------------------------------------------------------------------------------
 
+
 def _data_summary(data_dir: Path) -> dict[str, Any]:
     man_path = data_dir / "manifest.json"
     if not man_path.exists():
-        raise FileNotFoundError(f"no manifest.json in {data_dir}: generate training frames with "
-                                f"`tidee gen detection --out {data_dir}` (or let a running one finish)")
+        raise FileNotFoundError(
+            f"no manifest.json in {data_dir}: generate training frames with "
+            f"`tidee gen detection --out {data_dir}` (or let a running one finish)"
+        )
     manifest = json.loads(man_path.read_text())
-    return {"dir": str(data_dir), "command": manifest.get("command", ""),
-            "rooms": len(manifest.get("rooms", [])), "frames": manifest.get("frames")}
+    return {
+        "dir": str(data_dir),
+        "command": manifest.get("command", ""),
+        "rooms": len(manifest.get("rooms", [])),
+        "frames": manifest.get("frames"),
+    }
 
 
-def train_depth(data_dir: str | Path = "data/detection", out_weights: str | Path = DEFAULT_WEIGHTS,
-                steps: int = 2000, batch_size: int = 16, lr: float = 2e-3, seed: int = 0, device: str = "auto",
-                resume: bool = False, progress: bool = True, command: str = "",
-                work_dir: str | Path = "runs/depth", checkpoint_every: int = 100, log_every: int = 10,
-                eval_set: EvalSet | None = EvalSet(), docs_png: str | Path | None = None,
-                widths: tuple[int, ...] = (16, 24, 48, 96)) -> dict[str, Any]:
+def train_depth(
+    data_dir: str | Path = "data/detection",
+    out_weights: str | Path = DEFAULT_WEIGHTS,
+    steps: int = 2000,
+    batch_size: int = 16,
+    lr: float = 2e-3,
+    seed: int = 0,
+    device: str = "auto",
+    resume: bool = False,
+    progress: bool = True,
+    command: str = "",
+    work_dir: str | Path = "runs/depth",
+    checkpoint_every: int = 100,
+    log_every: int = 10,
+    eval_set: EvalSet | None = EvalSet(),
+    docs_png: str | Path | None = None,
+    widths: tuple[int, ...] = (16, 24, 48, 96),
+) -> dict[str, Any]:
     """Train ``DepthNet`` on the frames under ``data_dir``; write weights + manifest; return a summary.
 
     The checkpoint ``work_dir/checkpoint.pt`` is rewritten every ``checkpoint_every`` steps;
@@ -241,9 +281,15 @@ def train_depth(data_dir: str | Path = "data/detection", out_weights: str | Path
     if n < batch_size:
         raise ValueError(f"{data_dir} has {n} frames, fewer than one batch of {batch_size}")
 
-    run = {"seed": seed, "steps": steps, "batch_size": batch_size, "lr": lr, "widths": list(widths),
-           "frames": n}
-    torch.manual_seed(seed)      # the initial weights; batches and augmentation draw from (seed, step)
+    run = {
+        "seed": seed,
+        "steps": steps,
+        "batch_size": batch_size,
+        "lr": lr,
+        "widths": list(widths),
+        "frames": n,
+    }
+    torch.manual_seed(seed)  # the initial weights; batches and augmentation draw from (seed, step)
     model = DepthNet(widths).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     ckpt_path = work_dir / "checkpoint.pt"
@@ -254,15 +300,24 @@ def train_depth(data_dir: str | Path = "data/detection", out_weights: str | Path
             raise FileNotFoundError(f"--resume: no checkpoint at {ckpt_path}; run without --resume to start")
         if ckpt["run"] != run:
             diff = {k: (ckpt["run"].get(k), v) for k, v in run.items() if ckpt["run"].get(k) != v}
-            raise ValueError(f"--resume: {ckpt_path} was written by a different run (checkpoint vs now: "
-                             f"{diff}); use the same options or another --work-dir")
+            raise ValueError(
+                f"--resume: {ckpt_path} was written by a different run (checkpoint vs now: "
+                f"{diff}); use the same options or another --work-dir"
+            )
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["opt"])
         start, history, sums = ckpt["step"], ckpt["history"], ckpt["sums"]
 
     def checkpoint(step: int) -> None:
-        save_checkpoint(ckpt_path, model=model.state_dict(), opt=opt.state_dict(), step=step, history=history,
-                        sums=sums, run=run)
+        save_checkpoint(
+            ckpt_path,
+            model=model.state_dict(),
+            opt=opt.state_dict(),
+            step=step,
+            history=history,
+            sums=sums,
+            run=run,
+        )
 
     bar = tqdm(range(start, steps), desc="train depth", disable=not progress, initial=start, total=steps)
     for step in bar:
@@ -294,16 +349,31 @@ def train_depth(data_dir: str | Path = "data/detection", out_weights: str | Path
     metrics: dict[str, Any] = {}
     if eval_set is not None:
         held_out = heldout_frames("test", eval_set, progress=progress)
-        metrics = {**evaluate_depth(DepthEstimator(model), held_out), "eval_set": {"split": "test",
-                                                                                   **asdict(eval_set)}}
-    manifest = write_manifest(out_weights, command, data, metrics, train=run, device=device,
-                              train_seconds=round(train_seconds, 1),
-                              final_loss=history[-1]["loss"] if history else None)
-    return {"weights": str(out_weights), "loss_png": str(loss_png), "final_loss": manifest["final_loss"],
-            "metrics": metrics, "train_seconds": manifest["train_seconds"]}
+        metrics = {
+            **evaluate_depth(DepthEstimator(model), held_out),
+            "eval_set": {"split": "test", **asdict(eval_set)},
+        }
+    manifest = write_manifest(
+        out_weights,
+        command,
+        data,
+        metrics,
+        train=run,
+        device=device,
+        train_seconds=round(train_seconds, 1),
+        final_loss=history[-1]["loss"] if history else None,
+    )
+    return {
+        "weights": str(out_weights),
+        "loss_png": str(loss_png),
+        "final_loss": manifest["final_loss"],
+        "metrics": metrics,
+        "train_seconds": manifest["train_seconds"],
+    }
 
 
 # --- inference -----------------------------------------------------------------------------------
+
 
 class DepthModel(Protocol):
     def predict(self, rgb: np.ndarray) -> np.ndarray: ...
@@ -317,13 +387,15 @@ class DepthEstimator:
         self.net = model.fused().to(device).to(memory_format=torch.channels_last)
 
     @classmethod
-    def load(cls, path: str | Path | None = None, device: str = "cpu") -> "DepthEstimator":
+    def load(cls, path: str | Path | None = None, device: str = "cpu") -> DepthEstimator:
         """Shipped weights (``agent/weights/depth.pt`` by default), checked against their manifest."""
         path = Path(path) if path is not None else DEFAULT_WEIGHTS
         if not path.exists():
-            raise FileNotFoundError(f"no depth weights at {path}: train them with `tidee train depth` "
-                                    "(see the README) or pass another path")
-        read_manifest(path)   # FileNotFoundError without a manifest, ValueError on a checksum mismatch
+            raise FileNotFoundError(
+                f"no depth weights at {path}: train them with `tidee train depth` "
+                "(see the README) or pass another path"
+            )
+        read_manifest(path)  # FileNotFoundError without a manifest, ValueError on a checksum mismatch
         state = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(state, dict) or "state_dict" not in state or "config" not in state:
             raise ValueError(f"{path} is not a depth network file (expected a dict with state_dict, config)")
@@ -364,18 +436,28 @@ def time_inference(estimator: DepthEstimator, repeats: int = 30, threads: int = 
             times.append(1000 * (time.perf_counter() - t))
     finally:
         torch.set_num_threads(previous)
-    return {"threads": threads, "median_ms": round(float(np.median(times)), 2),
-            "min_ms": round(min(times), 2)}
+    return {
+        "threads": threads,
+        "median_ms": round(float(np.median(times)), 2),
+        "min_ms": round(min(times), 2),
+    }
 
 
 # --- evaluation ----------------------------------------------------------------------------------
+
 
 def heldout_frames(split: str, eval_set: EvalSet, progress: bool = True) -> dict[str, np.ndarray]:
     """The ``eval_set`` frames of the val or test rooms (``dataset.held_out_frames``)."""
     from tidee.agent.perception.dataset import held_out_frames
 
-    return held_out_frames(split, rooms_per_type=eval_set.rooms_per_type, messes=eval_set.messes,
-                           frames_per_walk=eval_set.frames_per_walk, seed=eval_set.seed, progress=progress)
+    return held_out_frames(
+        split,
+        rooms_per_type=eval_set.rooms_per_type,
+        messes=eval_set.messes,
+        frames_per_walk=eval_set.frames_per_walk,
+        seed=eval_set.seed,
+        progress=progress,
+    )
 
 
 def evaluate_depth(estimator: DepthModel, frames: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -390,18 +472,26 @@ def evaluate_depth(estimator: DepthModel, frames: dict[str, np.ndarray]) -> dict
         est = np.maximum(np.asarray(estimator.predict(rgb), np.float32)[valid], 1e-3)
         d = d[valid]
         ratio = np.maximum(est / d, d / est)
-        per_frame.append((str(room).split(":")[0], float(np.mean(np.abs(est - d) / d)),
-                          float(np.sqrt(np.mean((est - d) ** 2))), float(np.mean(ratio < 1.25))))
+        per_frame.append(
+            (
+                str(room).split(":")[0],
+                float(np.mean(np.abs(est - d) / d)),
+                float(np.sqrt(np.mean((est - d) ** 2))),
+                float(np.mean(ratio < 1.25)),
+            )
+        )
     if not per_frame:
         raise ValueError("no frame has valid depth pixels to score")
     by_type: dict[str, list[float]] = {}
     for rt, abs_rel, _, _ in per_frame:
         by_type.setdefault(rt, []).append(abs_rel)
-    return {"frames": len(per_frame),
-            "abs_rel": round(float(np.mean([f[1] for f in per_frame])), 4),
-            "rmse": round(float(np.mean([f[2] for f in per_frame])), 4),
-            "delta1": round(float(np.mean([f[3] for f in per_frame])), 4),
-            "abs_rel_by_room_type": {rt: round(float(np.mean(v)), 4) for rt, v in sorted(by_type.items())}}
+    return {
+        "frames": len(per_frame),
+        "abs_rel": round(float(np.mean([f[1] for f in per_frame])), 4),
+        "rmse": round(float(np.mean([f[2] for f in per_frame])), 4),
+        "delta1": round(float(np.mean([f[3] for f in per_frame])), 4),
+        "abs_rel_by_room_type": {rt: round(float(np.mean(v)), 4) for rt, v in sorted(by_type.items())},
+    }
 
 
 def colorize_depth(depth: np.ndarray, max_depth: float = 6.0) -> np.ndarray:
@@ -425,16 +515,18 @@ def save_examples(estimator: DepthModel, frames: dict[str, np.ndarray], png: str
         rgb = frames["rgb"][i]
         true = frames["depth"][i].astype(np.float32)
         est = np.asarray(estimator.predict(rgb), np.float32)
-        row = np.concatenate([cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), colorize_depth(true),
-                              colorize_depth(est)], 1)
+        row = np.concatenate(
+            [cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), colorize_depth(true), colorize_depth(est)], 1
+        )
         label = str(frames["frame_room"][i]) if "frame_room" in frames else str(i)
         cv2.putText(row, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
         rows.append(row)
     header = np.zeros((18, rows[0].shape[1], 3), np.uint8)
     w = rgb.shape[1]
     for k, text in enumerate(("RGB", "true depth", "estimated depth")):
-        cv2.putText(header, text, (k * w + 4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
-                    cv2.LINE_AA)
+        cv2.putText(
+            header, text, (k * w + 4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA
+        )
     png = Path(png)
     png.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(png), np.concatenate([header] + rows, 0))
@@ -443,13 +535,19 @@ def save_examples(estimator: DepthModel, frames: dict[str, np.ndarray], png: str
 
 def metrics_markdown(result: dict[str, Any]) -> str:
     m, e = result["metrics"], result["eval_set"]
-    lines = [f"# Depth from RGB: {result['split']} rooms", "",
-             f"Weights `{result['weights']}`; {m['frames']} frames: {e['rooms_per_type']} rooms per type, "
-             f"tidy + {e['messes']} messy configurations each, {e['frames_per_walk']} frames per walk, "
-             f"seed {e['seed']}.", "",
-             "| metric | value |", "|---|---|",
-             f"| abs rel | {m['abs_rel']:.3f} |", f"| RMSE (m) | {m['rmse']:.3f} |",
-             f"| delta < 1.25 | {m['delta1']:.3f} |"]
+    lines = [
+        f"# Depth from RGB: {result['split']} rooms",
+        "",
+        f"Weights `{result['weights']}`; {m['frames']} frames: {e['rooms_per_type']} rooms per type, "
+        f"tidy + {e['messes']} messy configurations each, {e['frames_per_walk']} frames per walk, "
+        f"seed {e['seed']}.",
+        "",
+        "| metric | value |",
+        "|---|---|",
+        f"| abs rel | {m['abs_rel']:.3f} |",
+        f"| RMSE (m) | {m['rmse']:.3f} |",
+        f"| delta < 1.25 | {m['delta1']:.3f} |",
+    ]
     lines += [f"| abs rel, {rt} | {v:.3f} |" for rt, v in m["abs_rel_by_room_type"].items()]
     if "speed" in result:
         s = result["speed"]
@@ -458,5 +556,17 @@ def metrics_markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["DepthNet", "DepthEstimator", "EvalSet", "depth_loss", "train_depth", "evaluate_depth",
-           "save_examples", "heldout_frames", "time_inference", "metrics_markdown", "DEFAULT_WEIGHTS", "DOCS_LOSS_PNG"]
+__all__ = [
+    "DepthNet",
+    "DepthEstimator",
+    "EvalSet",
+    "depth_loss",
+    "train_depth",
+    "evaluate_depth",
+    "save_examples",
+    "heldout_frames",
+    "time_inference",
+    "metrics_markdown",
+    "DEFAULT_WEIGHTS",
+    "DOCS_LOSS_PNG",
+]

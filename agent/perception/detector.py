@@ -32,7 +32,7 @@ RGB_STD = (0.25, 0.25, 0.25)
 @dataclass
 class DetectorConfig:
     num_classes: int = 92
-    widths: tuple[int, ...] = (16, 32, 64, 96, 128)     # stride 2, 4, 8, 16, 32
+    widths: tuple[int, ...] = (16, 32, 64, 96, 128)  # stride 2, 4, 8, 16, 32
     neck: int = 64
     stride: int = 4
     input_size: int = 256
@@ -49,7 +49,7 @@ class DetectorConfig:
         return asdict(self)
 
     @staticmethod
-    def from_dict(d: dict) -> "DetectorConfig":
+    def from_dict(d: dict) -> DetectorConfig:
         d = dict(d)
         d["widths"] = tuple(d["widths"])
         d["extra_blocks"] = tuple(d.get("extra_blocks", (0, 0, 0)))
@@ -57,8 +57,9 @@ class DetectorConfig:
 
 
 def cbr(cin: int, cout: int, stride: int = 1, k: int = 3) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, k, stride, k // 2, bias=False), nn.BatchNorm2d(cout),
-                         nn.ReLU(inplace=True))
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, k, stride, k // 2, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True)
+    )
 
 
 class Residual(nn.Module):
@@ -66,7 +67,7 @@ class Residual(nn.Module):
         super().__init__()
         self.a = cbr(c, c)
         self.b = nn.Sequential(nn.Conv2d(c, c, 3, 1, 1, bias=False), nn.BatchNorm2d(c))
-        if identity:        # the branch's last BN scale at 0: x is post-ReLU, so relu(x + 0) == x
+        if identity:  # the branch's last BN scale at 0: x is post-ReLU, so relu(x + 0) == x
             nn.init.zeros_(self.b[1].weight)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -93,24 +94,43 @@ class CenterDetector(nn.Module):
         self.cfg = cfg
         w = cfg.widths
         cin = 4 if cfg.use_depth else 3
-        self.stem = nn.Sequential(cbr(cin, w[0], 2), cbr(w[0], w[1], 2), cbr(w[1], w[1]),      # /4
-                                  *[Residual(w[1], identity=True) for _ in range(cfg.extra_s4)])
+        self.stem = nn.Sequential(
+            cbr(cin, w[0], 2),
+            cbr(w[0], w[1], 2),
+            cbr(w[1], w[1]),  # /4
+            *[Residual(w[1], identity=True) for _ in range(cfg.extra_s4)],
+        )
         extra = cfg.extra_blocks
-        self.s8 = nn.Sequential(cbr(w[1], w[2], 2), Residual(w[2]),                            # /8
-                                *[Residual(w[2], identity=True) for _ in range(extra[0])])
-        self.s16 = nn.Sequential(cbr(w[2], w[3], 2), Residual(w[3]),                           # /16
-                                 *[Residual(w[3], identity=True) for _ in range(extra[1])])
-        self.s32 = nn.Sequential(cbr(w[3], w[4], 2), Residual(w[4]), Residual(w[4]),           # /32
-                                 *[Residual(w[4], identity=True) for _ in range(extra[2])])
+        self.s8 = nn.Sequential(
+            cbr(w[1], w[2], 2),
+            Residual(w[2]),  # /8
+            *[Residual(w[2], identity=True) for _ in range(extra[0])],
+        )
+        self.s16 = nn.Sequential(
+            cbr(w[2], w[3], 2),
+            Residual(w[3]),  # /16
+            *[Residual(w[3], identity=True) for _ in range(extra[1])],
+        )
+        self.s32 = nn.Sequential(
+            cbr(w[3], w[4], 2),
+            Residual(w[4]),
+            Residual(w[4]),  # /32
+            *[Residual(w[4], identity=True) for _ in range(extra[2])],
+        )
         n = cfg.neck
         self.lat = nn.ModuleList([nn.Conv2d(c, n, 1) for c in (w[1], w[2], w[3], w[4])])
         self.smooth8 = cbr(n, n)
         # at stride 4 every MAC counts: a depthwise-separable smoothing conv, heads read it directly
-        self.smooth4 = nn.Sequential(nn.Conv2d(n, n, 3, 1, 1, groups=n, bias=False), nn.BatchNorm2d(n),
-                                     nn.Conv2d(n, n, 1, bias=False), nn.BatchNorm2d(n), nn.ReLU(inplace=True))
+        self.smooth4 = nn.Sequential(
+            nn.Conv2d(n, n, 3, 1, 1, groups=n, bias=False),
+            nn.BatchNorm2d(n),
+            nn.Conv2d(n, n, 1, bias=False),
+            nn.BatchNorm2d(n),
+            nn.ReLU(inplace=True),
+        )
         self.head_conv = identity_dw_block(n) if cfg.head_conv else nn.Identity()
         self.heat = nn.Conv2d(n, cfg.num_classes, 1)
-        self.box = nn.Conv2d(n, 5, 1)           # size (2), offset (2), oop (1)
+        self.box = nn.Conv2d(n, 5, 1)  # size (2), offset (2), oop (1)
         nn.init.constant_(self.heat.bias, -4.6)  # prior 0.01, as CenterNet / RetinaNet
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -146,36 +166,47 @@ def preprocess(rgb: np.ndarray, depth: np.ndarray | None, use_depth: bool = True
 def gaussian_radius(h: float, w: float, min_overlap: float = 0.7) -> float:
     """CenterNet's radius: the centre may move this far and the box still has IoU >= min_overlap."""
     a1, b1, c1 = 1, h + w, w * h * (1 - min_overlap) / (1 + min_overlap)
-    r1 = (b1 + math.sqrt(b1 ** 2 - 4 * a1 * c1)) / 2
+    r1 = (b1 + math.sqrt(b1**2 - 4 * a1 * c1)) / 2
     a2, b2, c2 = 4, 2 * (h + w), (1 - min_overlap) * w * h
-    r2 = (b2 + math.sqrt(b2 ** 2 - 4 * a2 * c2)) / 2
+    r2 = (b2 + math.sqrt(b2**2 - 4 * a2 * c2)) / 2
     a3, b3, c3 = 4 * min_overlap, -2 * min_overlap * (h + w), (min_overlap - 1) * w * h
-    r3 = (b3 + math.sqrt(b3 ** 2 - 4 * a3 * c3)) / 2
+    r3 = (b3 + math.sqrt(b3**2 - 4 * a3 * c3)) / 2
     return min(r1, r2, r3)
 
 
 def draw_gaussian(heat: np.ndarray, cx: int, cy: int, radius: int) -> None:
     d = 2 * radius + 1
     sigma = d / 6
-    ys, xs = np.ogrid[-radius:radius + 1, -radius:radius + 1]
+    ys, xs = np.ogrid[-radius : radius + 1, -radius : radius + 1]
     g = np.exp(-(xs * xs + ys * ys) / (2 * sigma * sigma))
     H, W = heat.shape
-    l, r = min(cx, radius), min(W - cx, radius + 1)
+    left, r = min(cx, radius), min(W - cx, radius + 1)
     t, b = min(cy, radius), min(H - cy, radius + 1)
-    patch = heat[cy - t:cy + b, cx - l:cx + r]
-    np.maximum(patch, g[radius - t:radius + b, radius - l:radius + r], out=patch)
+    patch = heat[cy - t : cy + b, cx - left : cx + r]
+    np.maximum(patch, g[radius - t : radius + b, radius - left : radius + r], out=patch)
 
 
-def encode_targets(boxes: np.ndarray, classes: np.ndarray, oop: np.ndarray, num_classes: int,
-                   size: int = 256, stride: int = 4, max_objs: int = 64) -> dict[str, np.ndarray]:
+def encode_targets(
+    boxes: np.ndarray,
+    classes: np.ndarray,
+    oop: np.ndarray,
+    num_classes: int,
+    size: int = 256,
+    stride: int = 4,
+    max_objs: int = 64,
+) -> dict[str, np.ndarray]:
     """Dense CenterNet targets for one frame; boxes in input pixels (x0, y0, x1, y1)."""
     out = size // stride
     heat = np.zeros((num_classes, out, out), np.float32)
     ind = np.zeros(max_objs, np.int64)
-    reg = np.zeros((max_objs, 4), np.float32)           # log w, log h, off x, off y
+    reg = np.zeros((max_objs, 4), np.float32)  # log w, log h, off x, off y
     oopt = np.zeros(max_objs, np.float32)
     msk = np.zeros(max_objs, np.float32)
-    order = np.argsort(-(boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1]))[:max_objs] if len(boxes) else []
+    order = (
+        np.argsort(-(boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1]))[:max_objs]
+        if len(boxes)
+        else []
+    )
     for k, i in enumerate(order):
         x0, y0, x1, y1 = boxes[i]
         w, h = max(x1 - x0, 1.0), max(y1 - y0, 1.0)
@@ -196,7 +227,7 @@ def focal_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     pos = target.eq(1).float()
     neg = 1 - pos
     pos_loss = torch.log(p) * (1 - p) ** 2 * pos
-    neg_loss = torch.log(1 - p) * p ** 2 * (1 - target) ** 4 * neg
+    neg_loss = torch.log(1 - p) * p**2 * (1 - target) ** 4 * neg
     n = pos.sum().clamp(min=1)
     return -(pos_loss.sum() + neg_loss.sum()) / n
 
@@ -208,8 +239,13 @@ def gather(x: torch.Tensor, ind: torch.Tensor) -> torch.Tensor:
     return flat.gather(2, ind.unsqueeze(1).expand(b, c, ind.shape[1])).permute(0, 2, 1)
 
 
-def detector_loss(out: dict[str, torch.Tensor], tgt: dict[str, torch.Tensor],
-                  w_size: float = 0.1, w_off: float = 1.0, w_oop: float = 1.0) -> dict[str, torch.Tensor]:
+def detector_loss(
+    out: dict[str, torch.Tensor],
+    tgt: dict[str, torch.Tensor],
+    w_size: float = 0.1,
+    w_off: float = 1.0,
+    w_oop: float = 1.0,
+) -> dict[str, torch.Tensor]:
     heat = focal_loss(out["heat"], tgt["heat"])
     m = tgt["mask"]
     n = m.sum().clamp(min=1)
@@ -230,7 +266,7 @@ class RawDetection:
     score: float
     box: tuple[float, float, float, float]
     oop_prob: float
-    cell: tuple[int, int]            # (row, col) on the output grid
+    cell: tuple[int, int]  # (row, col) on the output grid
 
 
 def check_peaks(peaks: str) -> str:
@@ -240,8 +276,14 @@ def check_peaks(peaks: str) -> str:
     return peaks
 
 
-def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
-           stride: int = 4, classes_per_peak: int = 1, peaks: str = "class-max") -> list[list[RawDetection]]:
+def decode(
+    out: dict[str, torch.Tensor],
+    k: int = 50,
+    threshold: float = 0.2,
+    stride: int = 4,
+    classes_per_peak: int = 1,
+    peaks: str = "class-max",
+) -> list[list[RawDetection]]:
     """Peaks of the class-max heatmap (3x3 max-pool NMS) -> boxes, per image, best first.
 
     Peaks are found on the max over classes (logits: sigmoid is monotonic), so NMS costs a
@@ -263,13 +305,13 @@ def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
         m = min(max(classes_per_peak, 1), c)
         # B x m x H x W, best class first (the agent's m = 1: one max, not a top-k)
         vals, cls_m = logits.topk(m, dim=1) if m > 1 else logits.max(1, keepdim=True)
-        best = vals[:, 0]                                           # B x H x W
+        best = vals[:, 0]  # B x H x W
         keep = F.max_pool2d(best.unsqueeze(1), 3, 1, 1)[:, 0] == best
         vals = torch.where(keep.unsqueeze(1), vals, torch.full_like(vals, -1e4)).reshape(b, -1)
         top, idx = vals.topk(min(k, m * h * w))
         cls_sel = torch.gather(cls_m.reshape(b, -1), 1, idx)
     else:
-        keep = F.max_pool2d(logits, 3, 1, 1) == logits              # B x C x H x W
+        keep = F.max_pool2d(logits, 3, 1, 1) == logits  # B x C x H x W
         if peaks == "per-class-single":
             keep &= logits == logits.max(1, keepdim=True).values
         vals = torch.where(keep, logits, torch.full_like(logits, -1e4)).reshape(b, -1)
@@ -283,7 +325,7 @@ def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
     res: list[list[RawDetection]] = []
     for i in range(b):
         dets = []
-        n = int((scores[i] >= threshold).sum())       # scores are sorted: the first n pass
+        n = int((scores[i] >= threshold).sum())  # scores are sorted: the first n pass
         if n:
             sel = cells[i, :n]
             sc = scores[i, :n].tolist()
@@ -295,11 +337,31 @@ def decode(out: dict[str, torch.Tensor], k: int = 50, threshold: float = 0.2,
                 row, col = divmod(cell, w)
                 cx, cy = (col + of[0][j]) * stride, (row + of[1][j]) * stride
                 bw, bh = sz[0][j], sz[1][j]
-                dets.append(RawDetection(int(cl[j]), float(sc[j]), (cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2),
-                                         float(op[j]), (row, col)))
+                dets.append(
+                    RawDetection(
+                        int(cl[j]),
+                        float(sc[j]),
+                        (cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2),
+                        float(op[j]),
+                        (row, col),
+                    )
+                )
         res.append(dets)
     return res
 
 
-__all__ = ["DetectorConfig", "CenterDetector", "preprocess", "encode_targets", "detector_loss", "decode", "check_peaks",
-           "RawDetection", "gather", "focal_loss", "draw_gaussian", "gaussian_radius", "DEPTH_SCALE"]
+__all__ = [
+    "DetectorConfig",
+    "CenterDetector",
+    "preprocess",
+    "encode_targets",
+    "detector_loss",
+    "decode",
+    "check_peaks",
+    "RawDetection",
+    "gather",
+    "focal_loss",
+    "draw_gaussian",
+    "gaussian_radius",
+    "DEPTH_SCALE",
+]

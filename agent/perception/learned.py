@@ -22,14 +22,25 @@ from tidee.agent.classes import CLASSES
 from tidee.agent.learning import read_manifest, resolve_precision
 from tidee.agent.perception import AGENT_THRESHOLD
 from tidee.agent.perception.base import Detection
-from tidee.agent.perception.detector import (CenterDetector, DetectorConfig, RawDetection, check_peaks, decode,
-                                             preprocess)
+from tidee.agent.perception.detector import (
+    CenterDetector,
+    DetectorConfig,
+    RawDetection,
+    check_peaks,
+    decode,
+    preprocess,
+)
 from tidee.agent.perception.reclassifier import CropClassifier, crop_inputs, det_features, frame_tensor, fuse
 from tidee.protocol.messages import Observation
 
 
-def depth_mask(depth: np.ndarray, box: tuple[int, int, int, int], focal: float,
-               min_tol: float = 0.08, max_tol: float = 1.0) -> np.ndarray | None:
+def depth_mask(
+    depth: np.ndarray,
+    box: tuple[int, int, int, int],
+    focal: float,
+    min_tol: float = 0.08,
+    max_tol: float = 1.0,
+) -> np.ndarray | None:
     """bool HxW: box pixels within the object's depth range around the centre's depth."""
     x0, y0, x1, y1 = box
     if x1 <= x0 or y1 <= y0:
@@ -38,12 +49,12 @@ def depth_mask(depth: np.ndarray, box: tuple[int, int, int, int], focal: float,
     h, w = patch.shape
     cy, cx = h // 2, w // 2
     r = max(1, min(h, w) // 6)
-    core = patch[max(cy - r, 0):cy + r + 1, max(cx - r, 0):cx + r + 1]
+    core = patch[max(cy - r, 0) : cy + r + 1, max(cx - r, 0) : cx + r + 1]
     core = core[core > 0.05]
     if core.size == 0:
         return None
     dc = float(np.median(core))
-    extent = max(w, h) * dc / focal                  # the object's size in metres, from the box
+    extent = max(w, h) * dc / focal  # the object's size in metres, from the box
     tol = float(np.clip(0.6 * extent, min_tol, max_tol))
     m = np.zeros(depth.shape, bool)
     m[y0:y1, x0:x1] = (np.abs(patch - dc) <= tol) & (patch > 0.05)
@@ -84,22 +95,37 @@ class LearnedPerception:
     name = "learned"
     needs_ground_truth = False
 
-    def __init__(self, model: CenterDetector, manifest: dict | None = None, threshold: float = AGENT_THRESHOLD,
-                 max_detections: int = 50, path: Path | None = None, nms_iou: float = 0.5,
-                 precision: str = "auto", classes_per_peak: int = 1, peaks: str = "class-max",
-                 reclassifier: CropClassifier | None = None, reclassifier_manifest: dict | None = None,
-                 alpha: float = 1.0, beta: float = 1.0) -> None:
+    def __init__(
+        self,
+        model: CenterDetector,
+        manifest: dict | None = None,
+        threshold: float = AGENT_THRESHOLD,
+        max_detections: int = 50,
+        path: Path | None = None,
+        nms_iou: float = 0.5,
+        precision: str = "auto",
+        classes_per_peak: int = 1,
+        peaks: str = "class-max",
+        reclassifier: CropClassifier | None = None,
+        reclassifier_manifest: dict | None = None,
+        alpha: float = 1.0,
+        beta: float = 1.0,
+    ) -> None:
         self.peaks = check_peaks(peaks)
         if reclassifier is not None and reclassifier.cfg.num_classes != model.cfg.num_classes:
-            raise ValueError(f"the reclassifier knows {reclassifier.cfg.num_classes} classes, the detector "
-                             f"{model.cfg.num_classes}: retrain it")
-        self.reclassifier = reclassifier.eval().to(memory_format=torch.channels_last) if reclassifier else None
+            raise ValueError(
+                f"the reclassifier knows {reclassifier.cfg.num_classes} classes, the detector "
+                f"{model.cfg.num_classes}: retrain it"
+            )
+        self.reclassifier = (
+            reclassifier.eval().to(memory_format=torch.channels_last) if reclassifier else None
+        )
         self.reclassifier_manifest = reclassifier_manifest or {}
         self.alpha, self.beta = float(alpha), float(beta)
         self.precision = resolve_precision(precision, "cpu")
         self.model = model.eval().to(memory_format=torch.channels_last)
         self.classes_per_peak = classes_per_peak
-        self.path = path                    # the weights file (its manifest is beside it)
+        self.path = path  # the weights file (its manifest is beside it)
         self.cfg = model.cfg
         self.manifest = manifest or {}
         self.threshold = threshold
@@ -107,9 +133,14 @@ class LearnedPerception:
         self.nms_iou = nms_iou
 
     @staticmethod
-    def load(path: str | Path | None = None, threshold: float = AGENT_THRESHOLD, verify: bool = True,
-             precision: str = "auto", classes_per_peak: int = 1,
-             reclassifier: str | Path | None = "default") -> "LearnedPerception":
+    def load(
+        path: str | Path | None = None,
+        threshold: float = AGENT_THRESHOLD,
+        verify: bool = True,
+        precision: str = "auto",
+        classes_per_peak: int = 1,
+        reclassifier: str | Path | None = "default",
+    ) -> LearnedPerception:
         """``reclassifier``: "default" loads the shipped crop classifier when it is there, a path
         loads that one (it must exist), None runs the detector alone. Its fusion weights
         (``alpha``, ``beta``) come from its manifest's ``fusion`` (``tidee eval reclassifier --record``)."""
@@ -121,7 +152,9 @@ class LearnedPerception:
         blob = torch.load(path, map_location="cpu", weights_only=False)
         cfg = DetectorConfig.from_dict(blob["config"])
         if cfg.num_classes != len(CLASSES):
-            raise ValueError(f"{path} predicts {cfg.num_classes} classes; the catalog has {len(CLASSES)}: retrain")
+            raise ValueError(
+                f"{path} predicts {cfg.num_classes} classes; the catalog has {len(CLASSES)}: retrain"
+            )
         model = CenterDetector(cfg)
         model.load_state_dict(blob["state_dict"])
         rc, rc_manifest = None, None
@@ -130,12 +163,27 @@ class LearnedPerception:
         if reclassifier is not None:
             rc, rc_manifest = load_reclassifier(reclassifier, verify=verify)
         fusion = (rc_manifest or {}).get("metrics", {}).get("fusion", {})
-        return LearnedPerception(model, manifest, threshold, path=path, precision=precision,
-                                 classes_per_peak=classes_per_peak, reclassifier=rc, reclassifier_manifest=rc_manifest,
-                                 alpha=fusion.get("alpha", 1.0), beta=fusion.get("beta", 1.0))
+        return LearnedPerception(
+            model,
+            manifest,
+            threshold,
+            path=path,
+            precision=precision,
+            classes_per_peak=classes_per_peak,
+            reclassifier=rc,
+            reclassifier_manifest=rc_manifest,
+            alpha=fusion.get("alpha", 1.0),
+            beta=fusion.get("beta", 1.0),
+        )
 
-    def _reclassify(self, raw: list[list[RawDetection]], rgb: np.ndarray, depth: np.ndarray,
-                    heat: torch.Tensor, threshold: float) -> list[list[RawDetection]]:
+    def _reclassify(
+        self,
+        raw: list[list[RawDetection]],
+        rgb: np.ndarray,
+        depth: np.ndarray,
+        heat: torch.Tensor,
+        threshold: float,
+    ) -> list[list[RawDetection]]:
         """Each detection renamed and rescored by the crop classifier (``reclassifier.fuse``);
         those whose score falls under ``threshold`` are dropped, the rest sorted best first."""
         flat = [(i, d) for i, dets in enumerate(raw) for d in dets]
@@ -165,20 +213,29 @@ class LearnedPerception:
         return self.detect_batch(obs.rgb[None], obs.depth[None])[0]
 
     @torch.inference_mode()
-    def raw_detections(self, rgb: np.ndarray, depth: np.ndarray,
-                       threshold: float) -> tuple[list[list[RawDetection]], dict[str, torch.Tensor]]:
+    def raw_detections(
+        self, rgb: np.ndarray, depth: np.ndarray, threshold: float
+    ) -> tuple[list[list[RawDetection]], dict[str, torch.Tensor]]:
         """The network alone on frames at its input size: each frame's decoded peaks (before the
         reclassifier and NMS) and the network's outputs (float32; ``heat``: class logits)."""
         x = preprocess(rgb, depth, self.cfg.use_depth).contiguous(memory_format=torch.channels_last)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
             out = self.model(x)
         out = {k: v.float() for k, v in out.items()}
-        raw = decode(out, k=self.max_detections, threshold=threshold, stride=self.cfg.stride,
-                     classes_per_peak=self.classes_per_peak, peaks=self.peaks)
+        raw = decode(
+            out,
+            k=self.max_detections,
+            threshold=threshold,
+            stride=self.cfg.stride,
+            classes_per_peak=self.classes_per_peak,
+            peaks=self.peaks,
+        )
         return raw, out
 
     @torch.inference_mode()
-    def detect_batch(self, rgbs: np.ndarray, depths: np.ndarray, threshold: float | None = None) -> list[list[Detection]]:
+    def detect_batch(
+        self, rgbs: np.ndarray, depths: np.ndarray, threshold: float | None = None
+    ) -> list[list[Detection]]:
         rgbs = np.asarray(rgbs)
         depths = np.asarray(depths, dtype=np.float32)
         if rgbs.ndim != 4 or rgbs.shape[-1] != 3 or depths.shape != rgbs.shape[:3]:
@@ -189,7 +246,9 @@ class LearnedPerception:
             import cv2
 
             rgb_in = np.stack([cv2.resize(r, (size, size), interpolation=cv2.INTER_AREA) for r in rgbs])
-            depth_in = np.stack([cv2.resize(d, (size, size), interpolation=cv2.INTER_NEAREST) for d in depths])
+            depth_in = np.stack(
+                [cv2.resize(d, (size, size), interpolation=cv2.INTER_NEAREST) for d in depths]
+            )
         else:
             rgb_in, depth_in = rgbs, depths
         thr = self.threshold if threshold is None else threshold
@@ -203,8 +262,12 @@ class LearnedPerception:
         for i, dets in enumerate(raw):
             frame = []
             if len(dets) > 1 and self.nms_iou < 1.0:
-                keep = nms(np.array([d.box for d in dets]), np.array([d.score for d in dets]),
-                           np.array([d.cls for d in dets]), self.nms_iou)
+                keep = nms(
+                    np.array([d.box for d in dets]),
+                    np.array([d.score for d in dets]),
+                    np.array([d.cls for d in dets]),
+                    self.nms_iou,
+                )
                 dets = [dets[k] for k in sorted(keep)]
             for d in dets:
                 x0 = int(np.clip(np.floor(d.box[0] * sx), 0, w - 1))
@@ -212,10 +275,17 @@ class LearnedPerception:
                 x1 = int(np.clip(np.ceil(d.box[2] * sx), x0 + 1, w))
                 y1 = int(np.clip(np.ceil(d.box[3] * sy), y0 + 1, h))
                 box = (x0, y0, x1, y1)
-                frame.append(Detection(
-                    label=CLASSES[d.cls], score=float(d.score), box=box, mask=depth_mask(depths[i], box, focal),
-                    feature=feat[i, :, d.cell[0], d.cell[1]].numpy().astype(np.float32),
-                    oop_prob=float(d.oop_prob), source=self.name))
+                frame.append(
+                    Detection(
+                        label=CLASSES[d.cls],
+                        score=float(d.score),
+                        box=box,
+                        mask=depth_mask(depths[i], box, focal),
+                        feature=feat[i, :, d.cell[0], d.cell[1]].numpy().astype(np.float32),
+                        oop_prob=float(d.oop_prob),
+                        source=self.name,
+                    )
+                )
             result.append(frame)
         return result
 

@@ -24,8 +24,9 @@ class OraclePerception:
     def detect(self, obs: Observation) -> list[Detection]:
         gt = obs.ground_truth
         if gt is None:
-            raise ValueError("oracle perception needs ground truth in the observation; "
-                             "reset/step with ground_truth=True")
+            raise ValueError(
+                "oracle perception needs ground truth in the observation; reset/step with ground_truth=True"
+            )
         seg = gt.instance_seg
         valid = (seg >= 0) & (obs.depth > 0.05) & (obs.depth < self.max_depth)
         ids, counts = np.unique(seg[valid], return_counts=True)
@@ -39,7 +40,13 @@ class OraclePerception:
                 continue
             mask = (seg == k) & valid
             ys, xs = np.nonzero(mask)
-            out.append(Detection(label=label, score=1.0,
-                                 box=(int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1),
-                                 mask=mask, source=self.name))
+            out.append(
+                Detection(
+                    label=label,
+                    score=1.0,
+                    box=(int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1),
+                    mask=mask,
+                    source=self.name,
+                )
+            )
         return out

@@ -17,12 +17,27 @@ from typing import Any
 import numpy as np
 import torch
 
-from tidee.agent.learning import (WEIGHTS_DIR, dataset_record, load_checkpoint, pick_device, resolve_precision,
-                                  resume_training, save_checkpoint, save_loss_curve, sha256_file, ship_weights,
-                                  write_manifest)
+from tidee.agent.learning import (
+    WEIGHTS_DIR,
+    dataset_record,
+    load_checkpoint,
+    pick_device,
+    resolve_precision,
+    resume_training,
+    save_checkpoint,
+    save_loss_curve,
+    sha256_file,
+    ship_weights,
+    write_manifest,
+)
 from tidee.agent.perception.dataset import load_datasets
-from tidee.agent.perception.detector import (CenterDetector, DetectorConfig, detector_loss, encode_targets,
-                                             preprocess)
+from tidee.agent.perception.detector import (
+    CenterDetector,
+    DetectorConfig,
+    detector_loss,
+    encode_targets,
+    preprocess,
+)
 
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
 
@@ -39,35 +54,38 @@ class TrainConfig:
     warmup: int = 200
     seed: int = 0
     device: str = "auto"
-    threads: int = 0                 # torch CPU threads (0: torch's default)
+    threads: int = 0  # torch CPU threads (0: torch's default)
     ckpt_every: int = 200
     log_every: int = 20
     limit_frames: int | None = None  # use only the first N frames (tests, smoke runs)
-    init: str | None = None          # start from these detector weights (a grown model: see init_from)
-    precision: str = "auto"          # auto | fp32 | bf16 (autocast; weights, optimiser and losses stay fp32)
-    loader_workers: int = 0          # >0: batches built in that many processes (see ParallelBatches)
+    init: str | None = None  # start from these detector weights (a grown model: see init_from)
+    precision: str = "auto"  # auto | fp32 | bf16 (autocast; weights, optimiser and losses stay fp32)
+    loader_workers: int = 0  # >0: batches built in that many processes (see ParallelBatches)
 
 
 class Batches:
     """Random minibatches with flips and brightness jitter, targets encoded on the fly."""
 
-    def __init__(self, data: dict[str, np.ndarray], cfg: DetectorConfig, batch_size: int,
-                 seed: int | list[int]) -> None:
+    def __init__(
+        self, data: dict[str, np.ndarray], cfg: DetectorConfig, batch_size: int, seed: int | list[int]
+    ) -> None:
         self.data, self.cfg, self.batch_size = data, cfg, batch_size
         self.rng = np.random.default_rng(seed)
         n = len(data["rgb"])
         order = np.argsort(data["obj_frame"], kind="stable")
         frames = data["obj_frame"][order]
         starts = np.searchsorted(frames, np.arange(n + 1))
-        self.rows = [order[starts[i]:starts[i + 1]] for i in range(n)]
+        self.rows = [order[starts[i] : starts[i + 1]] for i in range(n)]
 
     def state(self) -> dict:
         return self.rng.bit_generator.state
 
     def set_state(self, s: dict) -> None:
         if "parallel_workers" in s:
-            raise ValueError(f"the checkpoint's sampler was a {s['parallel_workers']}-worker stream; resume with "
-                             f"--loader-workers {s['parallel_workers']} or pass --no-resume")
+            raise ValueError(
+                f"the checkpoint's sampler was a {s['parallel_workers']}-worker stream; resume with "
+                f"--loader-workers {s['parallel_workers']} or pass --no-resume"
+            )
         self.rng.bit_generator.state = s
 
     def __call__(self) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -86,8 +104,14 @@ class Batches:
                 boxes[:, [0, 2]] = size - boxes[:, [2, 0]]
             gain = rng.uniform(0.8, 1.2, 3) * rng.uniform(0.85, 1.15)
             rgb[b] = np.clip(rgb[b] * gain, 0, 255).astype(np.uint8)
-            t = encode_targets(boxes, d["obj_cls"][rows], d["obj_oop"][rows], self.cfg.num_classes,
-                               size=size, stride=self.cfg.stride)
+            t = encode_targets(
+                boxes,
+                d["obj_cls"][rows],
+                d["obj_oop"][rows],
+                self.cfg.num_classes,
+                size=size,
+                stride=self.cfg.stride,
+            )
             for k, v in t.items():
                 targets.setdefault(k, []).append(v)
         x = preprocess(rgb, depth, self.cfg.use_depth)
@@ -97,8 +121,9 @@ class Batches:
 class _BatchStream(torch.utils.data.IterableDataset):
     """Endless ``Batches`` in a DataLoader worker, seeded by (seed, worker, start step)."""
 
-    def __init__(self, data: dict[str, np.ndarray], cfg: DetectorConfig, batch_size: int, seed: int,
-                 start: int) -> None:
+    def __init__(
+        self, data: dict[str, np.ndarray], cfg: DetectorConfig, batch_size: int, seed: int, start: int
+    ) -> None:
         super().__init__()
         self.data, self.cfg, self.batch_size, self.seed, self.start = data, cfg, batch_size, seed, start
 
@@ -121,8 +146,9 @@ class ParallelBatches:
     uninterrupted run would have drawn.
     """
 
-    def __init__(self, data: dict[str, np.ndarray], cfg: DetectorConfig, batch_size: int, seed: int,
-                 workers: int) -> None:
+    def __init__(
+        self, data: dict[str, np.ndarray], cfg: DetectorConfig, batch_size: int, seed: int, workers: int
+    ) -> None:
         if workers < 1:
             raise ValueError(f"ParallelBatches needs at least one worker, not {workers}")
         self.data, self.cfg, self.batch_size, self.seed, self.workers = data, cfg, batch_size, seed, workers
@@ -133,15 +159,22 @@ class ParallelBatches:
 
     def set_state(self, s: dict) -> None:
         if not isinstance(s, dict) or s.get("parallel_workers") != self.workers:
-            raise ValueError(f"the checkpoint's sampler was not a {self.workers}-worker stream; resume with the "
-                             "same --loader-workers or pass --no-resume")
+            raise ValueError(
+                f"the checkpoint's sampler was not a {self.workers}-worker stream; resume with the "
+                "same --loader-workers or pass --no-resume"
+            )
         self.start, self.drawn, self._it = int(s["start"]), 0, None
 
     def __call__(self) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         if self._it is None:
             stream = _BatchStream(self.data, self.cfg, self.batch_size, self.seed, self.start)
-            loader = torch.utils.data.DataLoader(stream, batch_size=None, num_workers=self.workers,
-                                                 prefetch_factor=4, pin_memory=torch.cuda.is_available())
+            loader = torch.utils.data.DataLoader(
+                stream,
+                batch_size=None,
+                num_workers=self.workers,
+                prefetch_factor=4,
+                pin_memory=torch.cuda.is_available(),
+            )
             self._it = iter(loader)
         self.drawn += 1
         return next(self._it)
@@ -166,17 +199,28 @@ def init_from(model: CenterDetector, weights: str | Path) -> dict[str, Any]:
         raise ValueError(f"--init {weights}: not a detector weights file (no state_dict)")
     old = DetectorConfig.from_dict(blob["config"])
     new = model.cfg
-    if (old.num_classes, old.widths, old.neck, old.stride, old.use_depth) != \
-            (new.num_classes, new.widths, new.neck, new.stride, new.use_depth):
-        raise ValueError(f"--init {weights}: its architecture {old.to_dict()} is not a subset of {new.to_dict()}")
+    if (old.num_classes, old.widths, old.neck, old.stride, old.use_depth) != (
+        new.num_classes,
+        new.widths,
+        new.neck,
+        new.stride,
+        new.use_depth,
+    ):
+        raise ValueError(
+            f"--init {weights}: its architecture {old.to_dict()} is not a subset of {new.to_dict()}"
+        )
     own = model.state_dict()
     for k, v in blob["state_dict"].items():
         if k not in own or own[k].shape != v.shape:
             raise ValueError(f"--init {weights}: tensor {k} {tuple(v.shape)} has no place in the grown model")
     missing = [k for k in own if k not in blob["state_dict"]]
     model.load_state_dict(blob["state_dict"], strict=False)
-    lineage: dict[str, Any] = {"weights": str(weights), "sha256": sha256_file(weights), "config": old.to_dict(),
-                               "new_tensors": len(missing)}
+    lineage: dict[str, Any] = {
+        "weights": str(weights),
+        "sha256": sha256_file(weights),
+        "config": old.to_dict(),
+        "new_tensors": len(missing),
+    }
     man = weights.with_suffix(".json")
     if man.exists():
         m = json.loads(man.read_text())
@@ -193,9 +237,15 @@ def lr_at(step: int, cfg: TrainConfig) -> float:
     return cfg.lr * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * min(t, 1.0))))
 
 
-def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, resume: bool = True,
-                   progress: bool = True, command: str = "", data: dict[str, np.ndarray] | None = None,
-                   ship: bool = True) -> dict[str, Any]:
+def train_detector(
+    cfg: TrainConfig,
+    model_cfg: DetectorConfig | None = None,
+    resume: bool = True,
+    progress: bool = True,
+    command: str = "",
+    data: dict[str, np.ndarray] | None = None,
+    ship: bool = True,
+) -> dict[str, Any]:
     """Train; returns {"history": [...], "out": path, ...}. ``data`` overrides loading shards (tests)."""
     from tqdm import tqdm
 
@@ -209,19 +259,25 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
         data, data_manifests = load_datasets(cfg.data, limit=cfg.limit_frames)
     if cfg.limit_frames is not None:
         keep = data["obj_frame"] < cfg.limit_frames
-        data = {**{k: v[:cfg.limit_frames] for k, v in data.items() if not k.startswith("obj_")},
-                **{k: v[keep] for k, v in data.items() if k.startswith("obj_")}}
+        data = {
+            **{k: v[: cfg.limit_frames] for k, v in data.items() if not k.startswith("obj_")},
+            **{k: v[keep] for k, v in data.items() if k.startswith("obj_")},
+        }
     model = CenterDetector(model_cfg)
     lineage = init_from(model, cfg.init) if cfg.init else None
     precision = resolve_precision(cfg.precision, device)
     model = model.to(device, memory_format=torch.channels_last)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    batches = (ParallelBatches(data, model_cfg, cfg.batch_size, cfg.seed, cfg.loader_workers)
-               if cfg.loader_workers else Batches(data, model_cfg, cfg.batch_size, cfg.seed))
+    batches = (
+        ParallelBatches(data, model_cfg, cfg.batch_size, cfg.seed, cfg.loader_workers)
+        if cfg.loader_workers
+        else Batches(data, model_cfg, cfg.batch_size, cfg.seed)
+    )
     work = Path(cfg.work_dir)
     ckpt_path = work / "checkpoint.pt"
-    step, history = (resume_training(ckpt_path, cfg.seed, model_cfg.to_dict(), model, opt, batches)
-                     if resume else (0, []))
+    step, history = (
+        resume_training(ckpt_path, cfg.seed, model_cfg.to_dict(), model, opt, batches) if resume else (0, [])
+    )
     t0 = time.time()
     model.train()
     bar = tqdm(total=cfg.steps, initial=step, desc="train detector", disable=not progress)
@@ -249,28 +305,54 @@ def train_detector(cfg: TrainConfig, model_cfg: DetectorConfig | None = None, re
             bar.set_postfix(loss=f"{history[-1]['total']:.3f}", heat=f"{history[-1]['heat']:.3f}")
         bar.update(1)
         if step % cfg.ckpt_every == 0 or step == cfg.steps:
-            save_checkpoint(ckpt_path, model=model.state_dict(), optimizer=opt.state_dict(),
-                            sampler=batches.state(), torch_rng=torch.get_rng_state(), step=step, history=history,
-                            train_config=asdict(cfg), model_config=model_cfg.to_dict())
+            save_checkpoint(
+                ckpt_path,
+                model=model.state_dict(),
+                optimizer=opt.state_dict(),
+                sampler=batches.state(),
+                torch_rng=torch.get_rng_state(),
+                step=step,
+                history=history,
+                train_config=asdict(cfg),
+                model_config=model_cfg.to_dict(),
+            )
             save_loss_curve(history, work / "loss.png", f"detector ({step} steps, batch {cfg.batch_size})")
     bar.close()
     if isinstance(batches, ParallelBatches):
         batches.close()
-    result: dict[str, Any] = {"history": history, "seconds": round(time.time() - t0, 1), "steps": step,
-                              "device": device, "precision": precision, "work_dir": str(work)}
+    result: dict[str, Any] = {
+        "history": history,
+        "seconds": round(time.time() - t0, 1),
+        "steps": step,
+        "device": device,
+        "precision": precision,
+        "work_dir": str(work),
+    }
     if ship:
         curve = ship_weights(cfg.out, model, model_cfg.to_dict(), work / "loss.png", "detector_loss.png")
         result["manifest"] = write_manifest(
-            cfg.out, command=command,
-            data=dataset_record(cfg.data, data, data_manifests,
-                                "train (seeds 0-19 + pool 10000...), never val/test"),
+            cfg.out,
+            command=command,
+            data=dataset_record(
+                cfg.data, data, data_manifests, "train (seeds 0-19 + pool 10000...), never val/test"
+            ),
             metrics={"train_loss_final": history[-1] if history else None},
             train_config={**asdict(cfg), "precision_used": precision, "device_used": device},
             model_config=model_cfg.to_dict(),
             parameters=int(sum(p.numel() for p in model.parameters())),
-            **({"init": lineage} if lineage else {}), loss_curve=curve)
+            **({"init": lineage} if lineage else {}),
+            loss_curve=curve,
+        )
         result["out"] = str(cfg.out)
     return result
 
 
-__all__ = ["TrainConfig", "Batches", "ParallelBatches", "train_detector", "DEFAULT_WEIGHTS", "lr_at", "init_from"]
+__all__ = [
+    "TrainConfig",
+    "Batches",
+    "ParallelBatches",
+    "train_detector",
+    "DEFAULT_WEIGHTS",
+    "lr_at",
+    "init_from",
+]

@@ -25,9 +25,19 @@ from tidee.agent.mapping.maps import MapConfig, SemanticMapper
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import FrontierExplorer, sample_reachable_goal
 from tidee.agent.perception.base import Detection
-from tidee.agent.policy.skills import (Body, Skill, face_point, footprint_gap, frontier_goal,
-                                       goal_mask_near_box, look_around, navigate, pitch_to, projected_sighting,
-                                       reachable_mask)
+from tidee.agent.policy.skills import (
+    Body,
+    Skill,
+    face_point,
+    footprint_gap,
+    frontier_goal,
+    goal_mask_near_box,
+    look_around,
+    navigate,
+    pitch_to,
+    projected_sighting,
+    reachable_mask,
+)
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
 
 # A detection of the target counts as "stopped near it" when its near side is this close (x, y);
@@ -41,8 +51,9 @@ Proposer = Callable[[Body, str, Sequence[tuple[float, float]]], list[tuple[float
 class SkillDriver:
     """Runs skills against a transport: each step detects, maps, then asks the skill for an action."""
 
-    def __init__(self, transport: Any, perception: Any, map_config: MapConfig | None = None,
-                 ground_truth: bool = False) -> None:
+    def __init__(
+        self, transport: Any, perception: Any, map_config: MapConfig | None = None, ground_truth: bool = False
+    ) -> None:
         self.transport, self.perception = transport, perception
         self.map_config = map_config
         # Ground truth travels in the observations for oracle perception or for scoring only.
@@ -162,14 +173,23 @@ def approach_and_verify(body: Body, obj: TrackedObject, radius: float = 1.0, bud
     return False
 
 
-def _unvisited(goals: Sequence[tuple[float, float]], visited: Sequence[tuple[float, float]],
-               radius: float) -> list[tuple[float, float]]:
+def _unvisited(
+    goals: Sequence[tuple[float, float]], visited: Sequence[tuple[float, float]], radius: float
+) -> list[tuple[float, float]]:
     return [g for g in goals if all(math.dist(g, v) > radius for v in visited)]
 
 
-def search_object(body: Body, label: str, propose: Proposer, rng: np.random.Generator,
-                  goal_budget: int = 40, approach_radius: float = 1.0, visit_radius: float = 1.0,
-                  fallback: Proposer | None = None, counts: dict[str, int] | None = None) -> Skill:
+def search_object(
+    body: Body,
+    label: str,
+    propose: Proposer,
+    rng: np.random.Generator,
+    goal_budget: int = 40,
+    approach_radius: float = 1.0,
+    visit_radius: float = 1.0,
+    fallback: Proposer | None = None,
+    counts: dict[str, int] | None = None,
+) -> Skill:
     """Find an instance of ``label`` and stop near it with it in view (yields ``Done``); True on Stop.
 
     The loop (paper: search points visited in rank order, re-predicted as the map grows):
@@ -181,7 +201,7 @@ def search_object(body: Body, label: str, propose: Proposer, rng: np.random.Gene
     the walk the moment the target is detected, and look around there. ``counts``, when
     given, tallies where the goals came from: ``proposed``, ``fallback``, ``random``.
     """
-    rejected: set[int] = set()        # failed twice, or deferred until the next search point
+    rejected: set[int] = set()  # failed twice, or deferred until the next search point
     tries: dict[int, int] = {}
     visited: list[tuple[float, float]] = []
 
@@ -214,9 +234,8 @@ def search_object(body: Body, label: str, propose: Proposer, rng: np.random.Gene
         yield from _interruptible(body, navigate(body, goal_xy=goal, budget=goal_budget), seen)
         if not seen():
             yield from _interruptible(body, look_around(body, pitches=(30.0,)), seen)
-        rejected = {i for i in rejected if tries.get(i, 0) >= 2}   # deferred ones: try again from here
+        rejected = {i for i in rejected if tries.get(i, 0) >= 2}  # deferred ones: try again from here
     return False
 
 
-__all__ = ["Proposer", "SkillDriver", "approach_and_verify", "frontier_proposer",
-           "search_object"]
+__all__ = ["Proposer", "SkillDriver", "approach_and_verify", "frontier_proposer", "search_object"]

@@ -24,7 +24,7 @@ from tidee.agent.perception.base import Detection
 from tidee.protocol.messages import Action, ActionName, Observation
 
 Skill = Generator[Action, None, bool]
-AGENT_RADIUS = 0.2            # metres (the server's collision radius)
+AGENT_RADIUS = 0.2  # metres (the server's collision radius)
 PITCHES = (-30.0, 0.0, 30.0, 60.0)
 MOVE_M = 0.25
 
@@ -36,7 +36,7 @@ class Body:
     mapper: SemanticMapper
     obs: Observation | None = None
     detections: list[Detection] = field(default_factory=list)
-    path: np.ndarray | None = None        # float32 Mx2: the current planned path (viewer)
+    path: np.ndarray | None = None  # float32 Mx2: the current planned path (viewer)
     goal: tuple[float, float] | None = None
     nav_steps: int = 0
 
@@ -56,6 +56,7 @@ class Body:
 
 # --- navigation ---------------------------------------------------------------------------
 
+
 def footprint_gap(box_min: np.ndarray, box_max: np.ndarray, x, y):
     """Metres from points (x, y) (scalars or broadcasting arrays) to a box's (x, y) footprint;
     0 inside it."""
@@ -64,8 +65,9 @@ def footprint_gap(box_min: np.ndarray, box_max: np.ndarray, x, y):
     return np.hypot(dx, dy)
 
 
-def goal_mask_near_box(mapper: SemanticMapper, box_min: np.ndarray, box_max: np.ndarray,
-                       radius: float) -> np.ndarray:
+def goal_mask_near_box(
+    mapper: SemanticMapper, box_min: np.ndarray, box_max: np.ndarray, radius: float
+) -> np.ndarray:
     """bool grid: cells whose centre is within ``radius`` of the box's (x, y) footprint."""
     g = mapper.grid
     xs = g.origin[0] + (np.arange(g.shape[0]) + 0.5) * g.cell
@@ -73,9 +75,9 @@ def goal_mask_near_box(mapper: SemanticMapper, box_min: np.ndarray, box_max: np.
     return footprint_gap(box_min, box_max, xs[:, None], ys[None, :]) <= radius
 
 
-STUCK_TURNS = 4              # 90-degree turns on the spot before a stuck walk gives up
-ON_THE_SPOT = 8              # actions without a move before any walk gives up (a plan turns twice at most)
-TRAPPED_CELLS = 20           # a start component this small (0.05 m² at 5 cm cells): the agent is hemmed in
+STUCK_TURNS = 4  # 90-degree turns on the spot before a stuck walk gives up
+ON_THE_SPOT = 8  # actions without a move before any walk gives up (a plan turns twice at most)
+TRAPPED_CELLS = 20  # a start component this small (0.05 m² at 5 cm cells): the agent is hemmed in
 
 
 def planner_and_reach(body: Body) -> tuple[FMMPlanner, np.ndarray]:
@@ -106,8 +108,10 @@ def can_step(planner: FMMPlanner, xy: tuple[float, float]) -> bool:
     """Whether one of the four lattice moves (``MOVE_M`` along ±x or ±y: the agent's headings
     are multiples of 90° in the start frame) from ``xy`` stays on the planner's traversible cells."""
     x, y = xy
-    return any(planner.segment_free(x, y, x + dx, y + dy)
-               for dx, dy in ((MOVE_M, 0.0), (-MOVE_M, 0.0), (0.0, MOVE_M), (0.0, -MOVE_M)))
+    return any(
+        planner.segment_free(x, y, x + dx, y + dy)
+        for dx, dy in ((MOVE_M, 0.0), (-MOVE_M, 0.0), (0.0, MOVE_M), (0.0, -MOVE_M))
+    )
 
 
 def planner_from(body: Body) -> FMMPlanner:
@@ -119,8 +123,9 @@ def reachable_mask(body: Body) -> np.ndarray:
     return planner_and_reach(body)[1]
 
 
-def frontier_goal(body: Body, explorer: FrontierExplorer,
-                  planner: FMMPlanner | None = None) -> tuple[float, float] | None:
+def frontier_goal(
+    body: Body, explorer: FrontierExplorer, planner: FMMPlanner | None = None
+) -> tuple[float, float] | None:
     """The explorer's next goal from where the agent stands: the geodesically nearest
     frontier (None: none left). ``planner``: one already built for this step."""
     planner = planner or planner_from(body)
@@ -130,8 +135,14 @@ def frontier_goal(body: Body, explorer: FrontierExplorer,
     return explorer.next_goal(occ == 1, mapper.explored | (occ > 0), mapper.obstacle, planner, tuple(body.xy))
 
 
-def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: np.ndarray | None = None,
-             radius: float = 0.0, stop_radius: float = 0.2, budget: int = 60) -> Skill:
+def navigate(
+    body: Body,
+    goal_xy: tuple[float, float] | None = None,
+    goal_mask: np.ndarray | None = None,
+    radius: float = 0.0,
+    stop_radius: float = 0.2,
+    budget: int = 60,
+) -> Skill:
     """Walk to a goal with fast-marching planning, replanning every step on the growing map.
 
     A blocked move stamps an obstacle in front of the agent (the failed cell) and replans.
@@ -143,8 +154,8 @@ def navigate(body: Body, goal_xy: tuple[float, float] | None = None, goal_mask: 
     (plans that disagree from one step to the next: left, right, left ...).
     """
     bumps = stuck = on_spot = 0
-    narrow_at: tuple[float, float] | None = None     # where the half-radius map was needed
-    if goal_mask is not None:    # shown to viewers: the centre of the goal region
+    narrow_at: tuple[float, float] | None = None  # where the half-radius map was needed
+    if goal_mask is not None:  # shown to viewers: the centre of the goal region
         body.goal = body.mapper.grid.to_world(np.argwhere(goal_mask).mean(0)) if goal_mask.any() else None
     else:
         assert goal_xy is not None
@@ -246,6 +257,7 @@ def look_around(body: Body, pitches: tuple[float, ...] = (30.0, 0.0)) -> Skill:
 
 # --- finding things in view -----------------------------------------------------------------
 
+
 @dataclass
 class Sighting:
     """A tracked object seen in the current frame: the detection and the pixel to act on
@@ -254,8 +266,8 @@ class Sighting:
     detection: Detection | None
     u: int
     v: int
-    distance: float        # eye-to-surface distance along the ray at (u, v), metres
-    point: np.ndarray      # start-frame 3D point at (u, v)
+    distance: float  # eye-to-surface distance along the ray at (u, v), metres
+    point: np.ndarray  # start-frame 3D point at (u, v)
 
     def action(self, name: ActionName, shape: tuple[int, int]) -> Action:
         h, w = shape
@@ -284,8 +296,14 @@ def find_in_view(body: Body, obj: TrackedObject, max_pixel_gap: float = 0.15) ->
     return sighting_of(body, best[1])
 
 
-def projected_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, margin: float = 0.1,
-                       nearer_tol: float = 0.15, farther_tol: float = 0.15) -> Sighting | None:
+def projected_sighting(
+    body: Body,
+    obj: TrackedObject,
+    reach: float = 1.4,
+    margin: float = 0.1,
+    nearer_tol: float = 0.15,
+    farther_tol: float = 0.15,
+) -> Sighting | None:
     """``obj`` placed in the frame from the agent's own map, without a detection: its tracked
     centroid projects at least ``margin`` inside the image, within ``reach`` of the camera,
     and the depth at that pixel is at most ``nearer_tol`` nearer (nothing in front of it)
@@ -307,17 +325,26 @@ def projected_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, margi
     d = float(obs.depth[vi, ui])
     if not -nearer_tol <= d - float(z[0]) <= farther_tol:
         return None
-    if _other_pickupable_at(body, obj.label, ui, vi):   # seen up close as another small thing: a confusion
+    if _other_pickupable_at(body, obj.label, ui, vi):  # seen up close as another small thing: a confusion
         return None
-    pts, _ = unproject(obs.depth, obs.intrinsics, obs.camera_pose,
-                       mask=np.eye(1, h * w, vi * w + ui, dtype=bool).reshape(h, w))
+    pts, _ = unproject(
+        obs.depth,
+        obs.intrinsics,
+        obs.camera_pose,
+        mask=np.eye(1, h * w, vi * w + ui, dtype=bool).reshape(h, w),
+    )
     if len(pts) == 0:
         return None
     return Sighting(None, ui, vi, float(np.linalg.norm(pts[0] - cam)), pts[0])
 
 
-def raised_sighting(body: Body, obj: TrackedObject, reach: float = 1.4, min_rise: float = 0.01,
-                    skip: tuple[int, int] | None = None) -> Sighting | None:
+def raised_sighting(
+    body: Body,
+    obj: TrackedObject,
+    reach: float = 1.4,
+    min_rise: float = 0.01,
+    skip: tuple[int, int] | None = None,
+) -> Sighting | None:
     """A second pixel to pick ``obj`` at, after the first hit its support (a pick that reported
     "Floor cannot be picked up": a box's centre or a projected centroid can miss a mug or a key
     ring by a few centimetres). Among the pixels within ``reach`` whose 3D point lies over the
@@ -355,9 +382,16 @@ def _other_pickupable_at(body: Body, label: str, u: int, v: int) -> bool:
     return any(d.label != label and d.label in PICKUPABLE and d.region(shape)[v, u] for d in body.detections)
 
 
-def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: float = 1.4,
-                avoid: list[np.ndarray] | None = None, avoid_m: float = 0.4,
-                within: tuple[np.ndarray, np.ndarray] | None = None, within_m: float = 0.15) -> Sighting | None:
+def sighting_of(
+    body: Body,
+    det: Detection,
+    prefer_top: bool = False,
+    reach: float = 1.4,
+    avoid: list[np.ndarray] | None = None,
+    avoid_m: float = 0.4,
+    within: tuple[np.ndarray, np.ndarray] | None = None,
+    within_m: float = 0.15,
+) -> Sighting | None:
     """The pixel of a detection to act on: its region's most central pixel with valid depth.
 
     ``prefer_top``: for putting things on a receptacle, prefer pixels whose 3D point lies near
@@ -387,7 +421,7 @@ def sighting_of(body: Body, det: Detection, prefer_top: bool = False, reach: flo
             if (inside & near).any():
                 near &= inside
         keep = _top_band(pts, near)
-        if not keep.any():         # empty only when nothing is within reach
+        if not keep.any():  # empty only when nothing is within reach
             keep = np.ones(len(xs), bool)
         if avoid:
             far = np.min([np.linalg.norm(pts - a, axis=1) for a in avoid], axis=0) > avoid_m

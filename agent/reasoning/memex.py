@@ -51,7 +51,7 @@ FLOOR = "Floor"
 PLACE_CLASSES: tuple[str, ...] = tuple(sorted(PLACEABLE_RECEPTACLES)) + (FLOOR,)
 PLACE_INDEX = {c: i for i, c in enumerate(PLACE_CLASSES)}
 GEOM_FEATURES = ("log_long_side", "log_short_side", "log_height", "z_bottom", "z_top")
-MEMORY_SEEDS = range(0, 5)          # per room type: the Memex rooms (train split)
+MEMORY_SEEDS = range(0, 5)  # per room type: the Memex rooms (train split)
 
 
 @dataclass(frozen=True)
@@ -61,8 +61,8 @@ class GraphNode:
     label: str
     box_min: tuple[float, float, float]
     box_max: tuple[float, float, float]
-    yaw: float | None = None          # radians; None: unknown (the agent's boxes)
-    size: tuple[float, float, float] | None = None   # oriented extents when yaw is known
+    yaw: float | None = None  # radians; None: unknown (the agent's boxes)
+    size: tuple[float, float, float] | None = None  # oriented extents when yaw is known
 
     def geom(self) -> np.ndarray:
         lo, hi = np.asarray(self.box_min, float), np.asarray(self.box_max, float)
@@ -70,17 +70,19 @@ class GraphNode:
         if self.size is not None:
             ext = np.maximum(np.asarray(self.size, float), 1e-3)
         long_side, short_side = max(ext[0], ext[1]), min(ext[0], ext[1])
-        return np.array([math.log(long_side), math.log(short_side), math.log(ext[2]), lo[2], hi[2]], np.float32)
+        return np.array(
+            [math.log(long_side), math.log(short_side), math.log(ext[2]), lo[2], hi[2]], np.float32
+        )
 
 
 @dataclass
 class Graph:
     """Nodes as arrays plus (src, relation, dst) edges: "src <relation> dst"."""
 
-    labels: np.ndarray                 # int64 N: CLASS_INDEX
-    geom: np.ndarray                   # float32 N x len(GEOM_FEATURES)
-    edges: np.ndarray                  # int64 E x 3: src, relation index, dst
-    room: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # int64 N: room type index
+    labels: np.ndarray  # int64 N: CLASS_INDEX
+    geom: np.ndarray  # float32 N x len(GEOM_FEATURES)
+    edges: np.ndarray  # int64 E x 3: src, relation index, dst
+    room: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # int64 N: room type index
 
     def __post_init__(self) -> None:
         n = len(self.labels)
@@ -103,9 +105,15 @@ def _box3d(n: GraphNode) -> Box3D:
     return Box3D(center=tuple(centre), size=tuple(np.maximum(hi - lo, 1e-3)), yaw=0.0)
 
 
-def aabb_relations(nodes: Sequence[GraphNode], vertical_tol: float = 0.05, contact_tol: float = 0.05,
-                   support_margin: float = 0.02, next_to_m: float = 0.5, align_plane_m: float = 0.1,
-                   align_max_gap_m: float = 1.0) -> np.ndarray:
+def aabb_relations(
+    nodes: Sequence[GraphNode],
+    vertical_tol: float = 0.05,
+    contact_tol: float = 0.05,
+    support_margin: float = 0.02,
+    next_to_m: float = 0.5,
+    align_plane_m: float = 0.1,
+    align_max_gap_m: float = 1.0,
+) -> np.ndarray:
     """int64 E x 3 (i, relation, j) for axis-aligned boxes: above, below, supported_by, next_to,
     aligned_with — the rules of ``box_relations`` (same defaults) for yaw-0 boxes, vectorised."""
     n = len(nodes)
@@ -118,18 +126,24 @@ def aabb_relations(nodes: Sequence[GraphNode], vertical_tol: float = 0.05, conta
     ox = np.minimum(hi[:, None, 0], hi[None, :, 0]) - np.maximum(lo[:, None, 0], lo[None, :, 0])
     oy = np.minimum(hi[:, None, 1], hi[None, :, 1]) - np.maximum(lo[:, None, 1], lo[None, :, 1])
     overlap = (ox > eps) & (oy > eps)
-    above = (lo[:, None, 2] >= hi[None, :, 2] - vertical_tol) & overlap        # i above j
+    above = (lo[:, None, 2] >= hi[None, :, 2] - vertical_tol) & overlap  # i above j
     below = above.T
     cx, cy = (lo[:, 0] + hi[:, 0]) / 2, (lo[:, 1] + hi[:, 1]) / 2
-    inside = ((np.abs(cx[:, None] - (lo[None, :, 0] + hi[None, :, 0]) / 2)
-               <= (hi[None, :, 0] - lo[None, :, 0]) / 2 + support_margin)
-              & (np.abs(cy[:, None] - (lo[None, :, 1] + hi[None, :, 1]) / 2)
-                 <= (hi[None, :, 1] - lo[None, :, 1]) / 2 + support_margin))
+    inside = (
+        np.abs(cx[:, None] - (lo[None, :, 0] + hi[None, :, 0]) / 2)
+        <= (hi[None, :, 0] - lo[None, :, 0]) / 2 + support_margin
+    ) & (
+        np.abs(cy[:, None] - (lo[None, :, 1] + hi[None, :, 1]) / 2)
+        <= (hi[None, :, 1] - lo[None, :, 1]) / 2 + support_margin
+    )
     supported = above & (np.abs(lo[:, None, 2] - hi[None, :, 2]) <= contact_tol) & inside
     gap_x = np.maximum(0.0, -ox)
     gap_y = np.maximum(0.0, -oy)
     gap = np.where((ox >= 0) & (oy >= 0), 0.0, np.hypot(gap_x, gap_y))
-    z_over = np.maximum(lo[:, None, 2], lo[None, :, 2]) <= np.minimum(hi[:, None, 2], hi[None, :, 2]) + vertical_tol
+    z_over = (
+        np.maximum(lo[:, None, 2], lo[None, :, 2])
+        <= np.minimum(hi[:, None, 2], hi[None, :, 2]) + vertical_tol
+    )
     next_to = ~above & ~below & z_over & (gap <= next_to_m)
     planes = []
     for ax in (0, 1):
@@ -139,8 +153,13 @@ def aabb_relations(nodes: Sequence[GraphNode], vertical_tol: float = 0.05, conta
     aligned = np.logical_or.reduce(planes) & (gap <= align_max_gap_m)
     out = []
     off_diag = ~np.eye(n, dtype=bool)
-    for rel, m in (("above", above), ("below", below), ("supported_by", supported), ("next_to", next_to),
-                   ("aligned_with", aligned)):
+    for rel, m in (
+        ("above", above),
+        ("below", below),
+        ("supported_by", supported),
+        ("next_to", next_to),
+        ("aligned_with", aligned),
+    ):
         i, j = np.nonzero(m & off_diag)
         out.append(np.stack([i, np.full_like(i, REL_INDEX[rel]), j], axis=1))
     e = np.concatenate(out).astype(np.int64)
@@ -159,11 +178,18 @@ def make_graph(nodes: Sequence[GraphNode], edges: np.ndarray, room_type: str | N
     unknown = sorted({nd.label for nd in nodes} - set(CLASS_INDEX))
     if unknown:
         raise ValueError(f"graph nodes of unknown classes {unknown}; known: the {len(CLASSES)} CLASSES")
-    room = (np.full(len(nodes), ROOM_TYPES.index(room_type), np.int64) if room_type is not None
-            else np.zeros(0, np.int64))
+    room = (
+        np.full(len(nodes), ROOM_TYPES.index(room_type), np.int64)
+        if room_type is not None
+        else np.zeros(0, np.int64)
+    )
     geom = np.stack([nd.geom() for nd in nodes]) if nodes else np.zeros((0, len(GEOM_FEATURES)), np.float32)
-    return Graph(labels=np.array([CLASS_INDEX[nd.label] for nd in nodes], np.int64), geom=geom,
-                 edges=np.asarray(edges, np.int64).reshape(-1, 3), room=room)
+    return Graph(
+        labels=np.array([CLASS_INDEX[nd.label] for nd in nodes], np.int64),
+        geom=geom,
+        edges=np.asarray(edges, np.int64).reshape(-1, 3),
+        room=room,
+    )
 
 
 # --------------------------------------------------------------------- from the simulator (training)
@@ -179,7 +205,9 @@ def scene_nodes(scene) -> tuple[list[GraphNode], list]:
         c, s = abs(math.cos(yaw)), abs(math.sin(yaw))
         hx, hy = (c * sx + s * sy) / 2, (s * sx + c * sy) / 2
         x, y, z = (float(v) for v in o.position)
-        nodes.append(GraphNode(o.type, (x - hx, y - hy, z), (x + hx, y + hy, z + sz), yaw=yaw, size=(sx, sy, sz)))
+        nodes.append(
+            GraphNode(o.type, (x - hx, y - hy, z), (x + hx, y + hy, z + sz), yaw=yaw, size=(sx, sy, sz))
+        )
         objs.append(o)
     return nodes, objs
 
@@ -191,8 +219,11 @@ def axis_aligned(nodes: Iterable[GraphNode]) -> list[GraphNode]:
 
 def memory_nodes(memory, exclude_id: int | None = None) -> list[GraphNode]:
     """GraphNodes of the agent's ``ObjectMemory`` (start frame; heights are world heights)."""
-    return [GraphNode(o.label, tuple(float(v) for v in o.box_min), tuple(float(v) for v in o.box_max))
-            for o in memory if o.id != exclude_id and o.label in CLASS_INDEX]
+    return [
+        GraphNode(o.label, tuple(float(v) for v in o.box_min), tuple(float(v) for v in o.box_max))
+        for o in memory
+        if o.id != exclude_id and o.label in CLASS_INDEX
+    ]
 
 
 def check_seeds(memory_seeds: Iterable[int], train_seeds: Iterable[int]) -> None:
@@ -203,11 +234,14 @@ def check_seeds(memory_seeds: Iterable[int], train_seeds: Iterable[int]) -> None
     for name, seeds in (("memory", mem), ("training", train)):
         bad = sorted(s for s in seeds if split_of(s) not in ("train", "train_pool"))
         if bad:
-            raise ValueError(f"{name} rooms must be training seeds ({SPLIT_SEEDS['train']} or the pool), "
-                             f"got {bad[:5]}")
+            raise ValueError(
+                f"{name} rooms must be training seeds ({SPLIT_SEEDS['train']} or the pool), got {bad[:5]}"
+            )
     both = sorted(mem & train)
     if both:
-        raise ValueError(f"seeds {both[:5]} are both Memex memory rooms and rGCN training rooms; they must differ")
+        raise ValueError(
+            f"seeds {both[:5]} are both Memex memory rooms and rGCN training rooms; they must differ"
+        )
 
 
 @dataclass
@@ -217,11 +251,11 @@ class RoomSamples:
 
     room_type: str
     seed: int
-    graph: Graph                       # the whole room, axis-aligned boxes, five relations
-    targets: np.ndarray                # int64 S: node index of the object taken out
-    labels: np.ndarray                 # int64 S: PLACE_INDEX of its receptacle
-    variants: list[str | None]         # S: catalog variant (evaluation only: the judge needs it)
-    present: list[str]                 # receptacle types in the room (evaluation only)
+    graph: Graph  # the whole room, axis-aligned boxes, five relations
+    targets: np.ndarray  # int64 S: node index of the object taken out
+    labels: np.ndarray  # int64 S: PLACE_INDEX of its receptacle
+    variants: list[str | None]  # S: catalog variant (evaluation only: the judge needs it)
+    present: list[str]  # receptacle types in the room (evaluation only)
 
 
 def room_samples(scene) -> RoomSamples:
@@ -235,8 +269,15 @@ def room_samples(scene) -> RoomSamples:
             labels.append(PLACE_INDEX[o.parent_type])
             variants.append(o.variant)
     present = sorted({o.type for o in scene.objects if o.receptacle and not o.pickupable})
-    return RoomSamples(scene.room_type, int(scene.seed), graph, np.array(targets, np.int64),
-                       np.array(labels, np.int64), variants, present)
+    return RoomSamples(
+        scene.room_type,
+        int(scene.seed),
+        graph,
+        np.array(targets, np.int64),
+        np.array(labels, np.int64),
+        variants,
+        present,
+    )
 
 
 def build_memex(scenes: Iterable) -> Graph:
@@ -266,6 +307,8 @@ def generate_rooms(room_types: Sequence[str], seeds: Sequence[int], progress: bo
     world = World(renderer="tiny")
     try:
         jobs = [(rt, s) for s in seeds for rt in room_types]
-        return [generate_scene(rt, s, world=world) for rt, s in tqdm(jobs, desc="rooms", disable=not progress)]
+        return [
+            generate_scene(rt, s, world=world) for rt, s in tqdm(jobs, desc="rooms", disable=not progress)
+        ]
     finally:
         world.close()

@@ -30,8 +30,14 @@ FLOOR = "Floor"
 
 
 def as_ref(o: TrackedObject) -> ObjectRef:
-    return ObjectRef(id=o.id, label=o.label, centroid=o.centroid, box_min=o.box_min, box_max=o.box_max,
-                     receptacle=o.label in RECEPTACLES)
+    return ObjectRef(
+        id=o.id,
+        label=o.label,
+        centroid=o.centroid,
+        box_min=o.box_min,
+        box_max=o.box_max,
+        receptacle=o.label in RECEPTACLES,
+    )
 
 
 def support_label(obj: TrackedObject, others: list[TrackedObject]) -> str:
@@ -57,8 +63,9 @@ def support_labels(targets: list[TrackedObject], objects: list[TrackedObject]) -
 class OOPDetector(Protocol):
     name: str
 
-    def score_all(self, targets: list[TrackedObject], objects: list[TrackedObject],
-                  room_type: str) -> dict[int, float]:
+    def score_all(
+        self, targets: list[TrackedObject], objects: list[TrackedObject], room_type: str
+    ) -> dict[int, float]:
         """P(out of place) for each target (by id), given every tracked object."""
         ...
 
@@ -76,8 +83,10 @@ def register_oop_detector(name: str) -> Callable[[F], F]:
         if name == "auto":
             raise ValueError("'auto' is AgentConfig's choice by perception, not a detector name")
         if name in OOP_DETECTORS:
-            raise ValueError(f"OOP detector {name!r} is already registered ({OOP_DETECTORS[name]!r}); "
-                             f"register yours under another name")
+            raise ValueError(
+                f"OOP detector {name!r} is already registered ({OOP_DETECTORS[name]!r}); "
+                f"register yours under another name"
+            )
         OOP_DETECTORS[name] = factory
         return factory
 
@@ -89,8 +98,10 @@ def check_oop_detector(name: str) -> Callable[[], OOPDetector]:
     try:
         return OOP_DETECTORS[name]
     except KeyError:
-        raise ValueError(f"unknown OOP detector {name!r}; registered: {', '.join(OOP_DETECTORS)} "
-                         f"(register_oop_detector adds one)") from None
+        raise ValueError(
+            f"unknown OOP detector {name!r}; registered: {', '.join(OOP_DETECTORS)} "
+            f"(register_oop_detector adds one)"
+        ) from None
 
 
 def make_oop(name: str) -> OOPDetector:
@@ -112,11 +123,12 @@ class RelationStatsOOP:
         self.stats = stats or PlacementStats.load()
         self.rare = rare
 
-    def score_all(self, targets: list[TrackedObject], objects: list[TrackedObject],
-                  room_type: str) -> dict[int, float]:
+    def score_all(
+        self, targets: list[TrackedObject], objects: list[TrackedObject], room_type: str
+    ) -> dict[int, float]:
         supports = support_labels(targets, objects)
         for t in targets:
-            t.meta["support"] = supports[t.id]     # for logs and the viewer
+            t.meta["support"] = supports[t.id]  # for logs and the viewer
         return {t.id: self.probability(t.label, supports[t.id], room_type) for t in targets}
 
     def probability(self, label: str, support: str, room_type: str) -> float:
@@ -131,12 +143,15 @@ class VisualOOP:
 
     name = "visual"
 
-    def score_all(self, targets: list[TrackedObject], objects: list[TrackedObject],
-                  room_type: str) -> dict[int, float]:
+    def score_all(
+        self, targets: list[TrackedObject], objects: list[TrackedObject], room_type: str
+    ) -> dict[int, float]:
         missing = [t.label for t in targets if t.oop_prob is None]
         if missing:
-            raise ValueError(f"visual OOP needs learned perception (detections with an OOP head); "
-                             f"{missing[0]} has no oop_prob")
+            raise ValueError(
+                f"visual OOP needs learned perception (detections with an OOP head); "
+                f"{missing[0]} has no oop_prob"
+            )
         return {t.id: float(t.oop_prob) for t in targets}  # type: ignore[arg-type]
 
 

@@ -31,7 +31,9 @@ from tidee.agent.reasoning.stats import PlacementStats
 class PlacementModel(Protocol):
     name: str
 
-    def predict(self, obj: TrackedObject, memory: ObjectMemory, room_type: str) -> list[tuple[str, float]]: ...
+    def predict(
+        self, obj: TrackedObject, memory: ObjectMemory, room_type: str
+    ) -> list[tuple[str, float]]: ...
 
 
 PlacementFactory = Callable[[], PlacementModel | None]
@@ -58,8 +60,10 @@ def register_placement(name: str, *, search: bool = False) -> Callable[[F], F]:
 
     def register(factory: F) -> F:
         if name in PLACEMENT_MODELS:
-            raise ValueError(f"placement model {name!r} is already registered "
-                             f"({PLACEMENT_MODELS[name].factory!r}); register yours under another name")
+            raise ValueError(
+                f"placement model {name!r} is already registered "
+                f"({PLACEMENT_MODELS[name].factory!r}); register yours under another name"
+            )
         PLACEMENT_MODELS[name] = PlacementEntry(factory, search)
         return factory
 
@@ -71,8 +75,10 @@ def check_variant(variant: str) -> PlacementEntry:
     try:
         return PLACEMENT_MODELS[variant]
     except KeyError:
-        raise ValueError(f"unknown variant {variant!r}; registered: {', '.join(PLACEMENT_MODELS)} "
-                         f"(register_placement adds one)") from None
+        raise ValueError(
+            f"unknown variant {variant!r}; registered: {', '.join(PLACEMENT_MODELS)} "
+            f"(register_placement adds one)"
+        ) from None
 
 
 def make_placement(variant: str) -> tuple[PlacementModel | None, object | None]:

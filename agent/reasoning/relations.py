@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence, Union
 
 import numpy as np
 
@@ -84,7 +84,7 @@ class ObjectRef:
         return self.box_min is not None
 
 
-Support = Union[ObjectRef, str]
+Support = ObjectRef | str
 
 
 def words(label: str) -> str:
@@ -117,10 +117,16 @@ WALLED_CONTAINERS = frozenset({"Box", "GarbageCan"})
 however low it lies (nothing on the floor can be under them)."""
 
 
-def supported_by(target: ObjectRef, others: Sequence[ObjectRef], floor_z: float = 0.0,
-                 xy_margin_m: float = 0.1, top_tol_m: float = 0.05,
-                 floor_band_m: float = 0.2, height_weight: float = 4.0,
-                 off_floor_m: float = 0.05) -> Support:
+def supported_by(
+    target: ObjectRef,
+    others: Sequence[ObjectRef],
+    floor_z: float = 0.0,
+    xy_margin_m: float = 0.1,
+    top_tol_m: float = 0.05,
+    floor_band_m: float = 0.2,
+    height_weight: float = 4.0,
+    off_floor_m: float = 0.05,
+) -> Support:
     """The receptacle the target rests on, or ``"Floor"``. Only receptacles are candidates.
 
     Rules, first match wins (metres, start frame):
@@ -153,17 +159,21 @@ def supported_by(target: ObjectRef, others: Sequence[ObjectRef], floor_z: float 
 
     def xy_in(o: ObjectRef, margin: float = xy_margin_m) -> bool:
         assert o.box_min is not None and o.box_max is not None
-        return (o.box_min[0] - margin <= tx <= o.box_max[0] + margin
-                and o.box_min[1] - margin <= ty <= o.box_max[1] + margin)
+        return (
+            o.box_min[0] - margin <= tx <= o.box_max[0] + margin
+            and o.box_min[1] - margin <= ty <= o.box_max[1] + margin
+        )
 
     boxed = [o for o in recs if o.has_box and xy_in(o)]
     bottom = float(target.box_min[2]) if target.has_box else tz  # type: ignore[index]
     surfaces = [o for o in boxed if o.box_max[2] <= bottom + top_tol_m]  # type: ignore[index]
     if surfaces:
+
         def misfit(o: ObjectRef) -> float:
             ox = max(o.box_min[0] - tx, 0.0, tx - o.box_max[0])  # type: ignore[index]
             oy = max(o.box_min[1] - ty, 0.0, ty - o.box_max[1])  # type: ignore[index]
             return height_weight * (bottom - float(o.box_max[2])) + math.hypot(ox, oy)  # type: ignore[index]
+
         # min keeps the first of equal misfits: the nearest, as candidates are sorted by distance
         return min(_by_distance(target, surfaces), key=misfit)
 
@@ -171,8 +181,14 @@ def supported_by(target: ObjectRef, others: Sequence[ObjectRef], floor_z: float 
         return float(np.prod(np.subtract(o.box_max, o.box_min)))  # type: ignore[arg-type]
 
     off_floor = target.has_box and bottom - floor_z >= off_floor_m
-    shelves = [o for o in recs if o.has_box and xy_in(o, 0.0) and o.box_min[2] <= tz <= o.box_max[2]  # type: ignore[index]
-               and (off_floor or o.label in WALLED_CONTAINERS)]
+    shelves = [
+        o
+        for o in recs
+        if o.has_box
+        and xy_in(o, 0.0)
+        and o.box_min[2] <= tz <= o.box_max[2]  # type: ignore[index]
+        and (off_floor or o.label in WALLED_CONTAINERS)
+    ]
     if shelves:
         return min(shelves, key=volume)
     if tz - floor_z <= floor_band_m or (target.has_box and bottom - floor_z <= 0.5 * floor_band_m):
@@ -186,8 +202,9 @@ def supported_by(target: ObjectRef, others: Sequence[ObjectRef], floor_z: float 
     return FLOOR
 
 
-def next_to(target: ObjectRef, others: Sequence[ObjectRef], d: float = 1.0,
-            receptacles_only: bool = True) -> list[ObjectRef]:
+def next_to(
+    target: ObjectRef, others: Sequence[ObjectRef], d: float = 1.0, receptacles_only: bool = True
+) -> list[ObjectRef]:
     """Objects whose centroid is within ``d`` metres (euclidean, 3D) of the target's, nearest first.
 
     By default only receptacles count (the paper's example: "next to the side table",
@@ -199,8 +216,9 @@ def next_to(target: ObjectRef, others: Sequence[ObjectRef], d: float = 1.0,
     return [o for o in _by_distance(target, cands) if _dist(target, o) < d]
 
 
-def closest_to(target: ObjectRef, others: Sequence[ObjectRef],
-               include_receptacles: bool = False) -> ObjectRef | None:
+def closest_to(
+    target: ObjectRef, others: Sequence[ObjectRef], include_receptacles: bool = False
+) -> ObjectRef | None:
     """The object with the nearest centroid (euclidean, 3D), or None if there is none.
 
     By default only non-receptacles count (receptacles are covered by ``next_to`` and
@@ -211,8 +229,9 @@ def closest_to(target: ObjectRef, others: Sequence[ObjectRef],
     return ranked[0] if ranked else None
 
 
-def centroid_relations(target: ObjectRef, others: Sequence[ObjectRef],
-                       d: float = 1.0) -> list[tuple[str, str]]:
+def centroid_relations(
+    target: ObjectRef, others: Sequence[ObjectRef], d: float = 1.0
+) -> list[tuple[str, str]]:
     """The target's relations as (relation, label) pairs, in paragraph order.
 
     Relations: "next_to" for each ``next_to`` receptacle (nearest first), then one
@@ -237,14 +256,29 @@ def relation_paragraph(target: ObjectRef, others: Sequence[ObjectRef], d: float 
     The pillow is closest to the mug."
     """
     name = words(target.label)
-    return " ".join(f"The {name} {_PHRASES[rel]} the {words(label)}."
-                    for rel, label in centroid_relations(target, others, d))
+    return " ".join(
+        f"The {name} {_PHRASES[rel]} the {words(label)}."
+        for rel, label in centroid_relations(target, others, d)
+    )
 
 
 # ---------------------------------------------------------------------------- box relations
 # Classes with a meaningful front (local +y) for the "facing" relation.
-FACING_CLASSES = frozenset({"Toilet", "Laptop", "Chair", "Desk", "Television", "ArmChair",
-                            "Sofa", "Microwave", "CoffeeMachine", "Fridge", "Toaster"})
+FACING_CLASSES = frozenset(
+    {
+        "Toilet",
+        "Laptop",
+        "Chair",
+        "Desk",
+        "Television",
+        "ArmChair",
+        "Sofa",
+        "Microwave",
+        "CoffeeMachine",
+        "Fridge",
+        "Toaster",
+    }
+)
 
 
 @dataclass(frozen=True)
@@ -291,23 +325,28 @@ class Box3D:
         ux, uy = self.axes()
         hx, hy = self.size[0] / 2.0, self.size[1] / 2.0
         c = np.array(self.center[:2])
-        return np.array([c - hx * ux - hy * uy, c + hx * ux - hy * uy,
-                         c + hx * ux + hy * uy, c - hx * ux + hy * uy])
+        return np.array(
+            [c - hx * ux - hy * uy, c + hx * ux - hy * uy, c + hx * ux + hy * uy, c - hx * ux + hy * uy]
+        )
 
     def contains_xy(self, xy: Sequence[float], margin: float = 0.0) -> bool:
         """True if the point (metres) lies in the footprint grown by ``margin`` metres."""
         ux, uy = self.axes()
         v = np.asarray(xy, dtype=np.float64)[:2] - np.array(self.center[:2])
-        return (abs(float(v @ ux)) <= self.size[0] / 2.0 + margin
-                and abs(float(v @ uy)) <= self.size[1] / 2.0 + margin)
+        return (
+            abs(float(v @ ux)) <= self.size[0] / 2.0 + margin
+            and abs(float(v @ uy)) <= self.size[1] / 2.0 + margin
+        )
 
-    def front_prism(self, depth: float, z_pad: float) -> "Box3D":
+    def front_prism(self, depth: float, z_pad: float) -> Box3D:
         """The box extruded ``depth`` metres from the front face, z grown by ``z_pad`` each side."""
         _, uy = self.axes()
         off = (self.size[1] + depth) / 2.0
-        return Box3D(center=(self.center[0] + off * uy[0], self.center[1] + off * uy[1],
-                             self.center[2]),
-                     size=(self.size[0], depth, self.size[2] + 2.0 * z_pad), yaw=self.yaw)
+        return Box3D(
+            center=(self.center[0] + off * uy[0], self.center[1] + off * uy[1], self.center[2]),
+            size=(self.size[0], depth, self.size[2] + 2.0 * z_pad),
+            yaw=self.yaw,
+        )
 
     def side_faces(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """(outward unit normal, face centre) in world (x, y) for the 4 vertical faces."""
@@ -321,15 +360,15 @@ class Box3D:
 class BoxRelationParams:
     """Thresholds of :func:`box_relations` (metres, degrees)."""
 
-    vertical_tol_m: float = 0.05     # slack on "bottom above top" and on z-interval overlap
-    contact_tol_m: float = 0.05      # |bottom of i - top of j| for supported_by
-    support_margin_m: float = 0.02   # i's centre must be inside j's footprint grown by this
-    next_to_m: float = 0.5           # max horizontal gap between footprints for next_to
-    align_angle_deg: float = 10.0    # yaw difference from a multiple of 90 degrees
-    align_plane_m: float = 0.1       # max distance between parallel face planes
-    align_max_gap_m: float = 1.0     # aligned objects must also be this close (footprints)
-    facing_depth_m: float = 2.0      # length of the prism extruded from the front face
-    facing_z_pad_m: float = 0.1      # the prism's z extent grows by this on each side
+    vertical_tol_m: float = 0.05  # slack on "bottom above top" and on z-interval overlap
+    contact_tol_m: float = 0.05  # |bottom of i - top of j| for supported_by
+    support_margin_m: float = 0.02  # i's centre must be inside j's footprint grown by this
+    next_to_m: float = 0.5  # max horizontal gap between footprints for next_to
+    align_angle_deg: float = 10.0  # yaw difference from a multiple of 90 degrees
+    align_plane_m: float = 0.1  # max distance between parallel face planes
+    align_max_gap_m: float = 1.0  # aligned objects must also be this close (footprints)
+    facing_depth_m: float = 2.0  # length of the prism extruded from the front face
+    facing_z_pad_m: float = 0.1  # the prism's z extent grows by this on each side
 
 
 def _project(poly: np.ndarray, axis: np.ndarray) -> tuple[float, float]:
@@ -383,8 +422,11 @@ def _above(a: Box3D, b: Box3D, p: BoxRelationParams) -> bool:
 
 
 def _supported_by(a: Box3D, b: Box3D, p: BoxRelationParams) -> bool:
-    return (_above(a, b, p) and abs(a.z_min - b.z_max) <= p.contact_tol_m
-            and b.contains_xy(a.center[:2], p.support_margin_m))
+    return (
+        _above(a, b, p)
+        and abs(a.z_min - b.z_max) <= p.contact_tol_m
+        and b.contains_xy(a.center[:2], p.support_margin_m)
+    )
 
 
 def _next_to(a: Box3D, b: Box3D, p: BoxRelationParams) -> bool:
@@ -414,8 +456,9 @@ def _facing(label: str, a: Box3D, b: Box3D, p: BoxRelationParams) -> bool:
     return _z_overlap(prism, b, 0.0) and _polys_overlap(prism.footprint(), b.footprint())
 
 
-def box_relations(boxes: Sequence[tuple[str, Box3D]],
-                  params: BoxRelationParams = BoxRelationParams()) -> list[tuple[int, str, int]]:
+def box_relations(
+    boxes: Sequence[tuple[str, Box3D]], params: BoxRelationParams = BoxRelationParams()
+) -> list[tuple[int, str, int]]:
     """All pairwise relations as (i, relation, j) triples: "box i <relation> box j".
 
     Pairs are visited i ascending, then j ascending (i != j); per pair the relations come

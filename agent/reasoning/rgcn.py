@@ -41,17 +41,37 @@ import torch.nn.functional as F
 from torch import nn
 
 from tidee.agent.classes import CLASS_INDEX, CLASSES
-from tidee.agent.learning import (WEIGHTS_DIR, load_checkpoint, read_manifest, save_checkpoint, save_loss_curve,
-                                  write_manifest)
-from tidee.agent.reasoning.memex import (GEOM_FEATURES, MEMORY_SEEDS, PLACE_CLASSES, RELATIONS, ROOM_TYPES, Graph,
-                                         GraphNode, RoomSamples, aabb_relations, build_memex, check_seeds,
-                                         generate_rooms, make_graph, memory_nodes, room_samples)
+from tidee.agent.learning import (
+    WEIGHTS_DIR,
+    load_checkpoint,
+    read_manifest,
+    save_checkpoint,
+    save_loss_curve,
+    write_manifest,
+)
+from tidee.agent.reasoning.memex import (
+    GEOM_FEATURES,
+    MEMORY_SEEDS,
+    PLACE_CLASSES,
+    RELATIONS,
+    ROOM_TYPES,
+    Graph,
+    GraphNode,
+    RoomSamples,
+    aabb_relations,
+    build_memex,
+    check_seeds,
+    generate_rooms,
+    make_graph,
+    memory_nodes,
+    room_samples,
+)
 from tidee.agent.reasoning.stats import _ranges
 
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "rgcn.pt"
 DEFAULT_WITHOUT_MEMEX = WEIGHTS_DIR / "rgcn_without_memex.pt"
 DEFAULT_CACHE = Path("runs/cache/rgcn")
-SCENE_RELATIONS = 5          # the agent's axis-aligned boxes give every relation but "facing"
+SCENE_RELATIONS = 5  # the agent's axis-aligned boxes give every relation but "facing"
 
 
 @dataclass
@@ -71,8 +91,8 @@ def relational_mean(x: torch.Tensor, edges: torch.Tensor, weight: torch.Tensor, 
     if edges.numel() == 0:
         return out
     src, rel, dst = edges[:, 0], edges[:, 1], edges[:, 2]
-    xw = torch.einsum("nh,rhk->rnk", x, weight)               # R x N x H_out
-    msg = xw[rel, src]                                         # E x H_out
+    xw = torch.einsum("nh,rhk->rnk", x, weight)  # R x N x H_out
+    msg = xw[rel, src]  # E x H_out
     key = dst * weight.shape[0] + rel
     count = torch.zeros(n_out * weight.shape[0], dtype=x.dtype, device=x.device)
     count.index_add_(0, key, torch.ones_like(key, dtype=x.dtype))
@@ -151,7 +171,7 @@ class PlacementRGCN(nn.Module):
             self._mem_cache = by_class.detach()
         return by_class
 
-    def train(self, mode: bool = True) -> "PlacementRGCN":
+    def train(self, mode: bool = True) -> PlacementRGCN:
         self._mem_cache = None
         return super().train(mode)
 
@@ -180,8 +200,11 @@ class PlacementRGCN(nn.Module):
 
 
 # --------------------------------------------------------------------- batches
-def collate(items: Sequence[tuple[Graph, int, np.ndarray | None, int]], keep: Sequence[np.ndarray] | None = None,
-            oop_geom_override: Sequence[np.ndarray] | None = None) -> dict[str, torch.Tensor]:
+def collate(
+    items: Sequence[tuple[Graph, int, np.ndarray | None, int]],
+    keep: Sequence[np.ndarray] | None = None,
+    oop_geom_override: Sequence[np.ndarray] | None = None,
+) -> dict[str, torch.Tensor]:
     """One batch from (room graph, index of the OOP node or -1, OOP geom if not in the graph,
     room type index). The OOP node is taken out of its scene graph with its edges; ``keep``
     (bool per node) drops further scene nodes (training augmentation)."""
@@ -208,14 +231,16 @@ def collate(items: Sequence[tuple[Graph, int, np.ndarray | None, int]], keep: Se
         seg.append(np.full(int(mask.sum()), s, np.int64))
         rooms.append(room)
         offset += int(mask.sum())
-    cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape))
-    return {"scene_labels": torch.as_tensor(cat(labels, (0,)), dtype=torch.long),
-            "scene_geom": torch.as_tensor(cat(geom, (0, len(GEOM_FEATURES))), dtype=torch.float32),
-            "scene_edges": torch.as_tensor(cat(edges, (0, 3)), dtype=torch.long).reshape(-1, 3),
-            "scene_seg": torch.as_tensor(cat(seg, (0,)), dtype=torch.long),
-            "oop_labels": torch.as_tensor(np.array(o_lab), dtype=torch.long),
-            "oop_geom": torch.as_tensor(np.stack(o_geom), dtype=torch.float32),
-            "room": torch.as_tensor(np.array(rooms), dtype=torch.long)}
+    cat = lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape)
+    return {
+        "scene_labels": torch.as_tensor(cat(labels, (0,)), dtype=torch.long),
+        "scene_geom": torch.as_tensor(cat(geom, (0, len(GEOM_FEATURES))), dtype=torch.float32),
+        "scene_edges": torch.as_tensor(cat(edges, (0, 3)), dtype=torch.long).reshape(-1, 3),
+        "scene_seg": torch.as_tensor(cat(seg, (0,)), dtype=torch.long),
+        "oop_labels": torch.as_tensor(np.array(o_lab), dtype=torch.long),
+        "oop_geom": torch.as_tensor(np.stack(o_geom), dtype=torch.float32),
+        "room": torch.as_tensor(np.array(rooms), dtype=torch.long),
+    }
 
 
 # --------------------------------------------------------------------- data
@@ -237,29 +262,43 @@ def _seed_list(rooms_per_type: int, skip: int = 0) -> list[int]:
     return room_seeds("train", rooms_per_type, skip)
 
 
-def placement_data(train_rooms_per_type: int = 200, memory_seeds: Sequence[int] = MEMORY_SEEDS,
-                   cache_dir: str | Path | None = DEFAULT_CACHE, progress: bool = True) -> PlacementData:
+def placement_data(
+    train_rooms_per_type: int = 200,
+    memory_seeds: Sequence[int] = MEMORY_SEEDS,
+    cache_dir: str | Path | None = DEFAULT_CACHE,
+    progress: bool = True,
+) -> PlacementData:
     """The Memex (memory rooms) and training samples (the next ``train_rooms_per_type`` training
     seeds of every type after the memory rooms). Cached as a pickle keyed by the seeds."""
     mem = list(memory_seeds)
-    train = [s for s in _seed_list(train_rooms_per_type + len(mem)) if s not in set(mem)][:train_rooms_per_type]
+    train = [s for s in _seed_list(train_rooms_per_type + len(mem)) if s not in set(mem)][
+        :train_rooms_per_type
+    ]
     check_seeds(mem, train)
-    return _cached(f"train_m{mem[0]}-{mem[-1]}_n{len(train)}", cache_dir,
-                   lambda: PlacementData(build_memex(generate_rooms(ROOM_TYPES, mem, progress)),
-                                         [room_samples(s) for s in generate_rooms(ROOM_TYPES, train, progress)],
-                                         mem, train))
+    return _cached(
+        f"train_m{mem[0]}-{mem[-1]}_n{len(train)}",
+        cache_dir,
+        lambda: PlacementData(
+            build_memex(generate_rooms(ROOM_TYPES, mem, progress)),
+            [room_samples(s) for s in generate_rooms(ROOM_TYPES, train, progress)],
+            mem,
+            train,
+        ),
+    )
 
 
-def heldout_rooms(split: str = "test", cache_dir: str | Path | None = DEFAULT_CACHE,
-               progress: bool = True) -> list[RoomSamples]:
+def heldout_rooms(
+    split: str = "test", cache_dir: str | Path | None = DEFAULT_CACHE, progress: bool = True
+) -> list[RoomSamples]:
     """Samples of the tidy held-out rooms (evaluation only)."""
     from tidee.server.splits import SPLIT_SEEDS
 
     if split not in ("val", "test"):
         raise ValueError(f"evaluation rooms come from val or test, got {split!r}")
     seeds = list(SPLIT_SEEDS[split])
-    return _cached(f"{split}", cache_dir,
-                   lambda: [room_samples(s) for s in generate_rooms(ROOM_TYPES, seeds, progress)])
+    return _cached(
+        f"{split}", cache_dir, lambda: [room_samples(s) for s in generate_rooms(ROOM_TYPES, seeds, progress)]
+    )
 
 
 def _cached(key: str, cache_dir: str | Path | None, build):
@@ -279,7 +318,7 @@ def _augment(g: Graph, t: int, rng: np.random.Generator, drop: float) -> tuple[n
     """Scene nodes kept (the agent never maps every object) and the OOP box with estimation noise."""
     keep = rng.random(len(g)) >= drop
     geom = g.geom[t].copy()
-    geom[:3] += rng.normal(0.0, 0.12, 3)      # log sizes: +-12 % (its heights are not read)
+    geom[:3] += rng.normal(0.0, 0.12, 3)  # log sizes: +-12 % (its heights are not read)
     return keep, geom
 
 
@@ -298,9 +337,15 @@ class RGCNTrainConfig:
     threads: int = 2
 
 
-def train_rgcn(cfg: RGCNTrainConfig, out: str | Path | None = None, loss_png: str | Path | None = None,
-               command: str = "tidee train rgcn", data: PlacementData | None = None, progress: bool = True,
-               cache_dir: str | Path | None = DEFAULT_CACHE) -> dict[str, Any]:
+def train_rgcn(
+    cfg: RGCNTrainConfig,
+    out: str | Path | None = None,
+    loss_png: str | Path | None = None,
+    command: str = "tidee train rgcn",
+    data: PlacementData | None = None,
+    progress: bool = True,
+    cache_dir: str | Path | None = DEFAULT_CACHE,
+) -> dict[str, Any]:
     from tqdm import tqdm
 
     torch.manual_seed(cfg.seed)
@@ -319,7 +364,9 @@ def train_rgcn(cfg: RGCNTrainConfig, out: str | Path | None = None, loss_png: st
     t0 = time.time()
     model.train()
     running = []
-    bar = tqdm(range(cfg.steps), desc="rgcn" if cfg.use_memex else "rgcn (without memex)", disable=not progress)
+    bar = tqdm(
+        range(cfg.steps), desc="rgcn" if cfg.use_memex else "rgcn (without memex)", disable=not progress
+    )
     for step in bar:
         lr = cfg.lr * 0.5 * (1 + math.cos(math.pi * step / cfg.steps))
         for group in opt.param_groups:
@@ -347,22 +394,39 @@ def train_rgcn(cfg: RGCNTrainConfig, out: str | Path | None = None, loss_png: st
             bar.set_postfix(loss=f"{np.mean(running):.3f}")
             running = []
     seconds = time.time() - t0
-    result: dict[str, Any] = {"history": history, "seconds": round(seconds, 1), "samples": len(index),
-                              "memex_nodes": len(data.memex) if cfg.use_memex else 0, "model": model}
+    result: dict[str, Any] = {
+        "history": history,
+        "seconds": round(seconds, 1),
+        "samples": len(index),
+        "memex_nodes": len(data.memex) if cfg.use_memex else 0,
+        "model": model,
+    }
     if out is not None:
         out = Path(out)
         save_checkpoint(out, state_dict=model.state_dict(), config=asdict(model.cfg))
         if loss_png is not None:
-            save_loss_curve(history, loss_png, "rGCN placement" + ("" if cfg.use_memex else " (WithoutMemex)"))
-        write_manifest(out, command=command,
-                       data={"memory_rooms": {"room_types": list(ROOM_TYPES), "seeds": data.memory_seeds},
-                             "training_rooms": {"room_types": list(ROOM_TYPES), "seeds": _ranges(data.train_seeds),
-                                                "n_per_type": len(data.train_seeds)},
-                             "samples": len(index), "memex_nodes": result["memex_nodes"],
-                             "memex_edges": int(len(data.memex.edges)) if cfg.use_memex else 0},
-                       metrics={"final_train_cross_entropy": history[-1]["cross_entropy"]},
-                       train_config=asdict(cfg), train_seconds=round(seconds, 1),
-                       parameters=int(sum(p.numel() for p in model.parameters())))
+            save_loss_curve(
+                history, loss_png, "rGCN placement" + ("" if cfg.use_memex else " (WithoutMemex)")
+            )
+        write_manifest(
+            out,
+            command=command,
+            data={
+                "memory_rooms": {"room_types": list(ROOM_TYPES), "seeds": data.memory_seeds},
+                "training_rooms": {
+                    "room_types": list(ROOM_TYPES),
+                    "seeds": _ranges(data.train_seeds),
+                    "n_per_type": len(data.train_seeds),
+                },
+                "samples": len(index),
+                "memex_nodes": result["memex_nodes"],
+                "memex_edges": int(len(data.memex.edges)) if cfg.use_memex else 0,
+            },
+            metrics={"final_train_cross_entropy": history[-1]["cross_entropy"]},
+            train_config=asdict(cfg),
+            train_seconds=round(seconds, 1),
+            parameters=int(sum(p.numel() for p in model.parameters())),
+        )
         result["out"] = str(out)
     return result
 
@@ -372,7 +436,7 @@ def load_rgcn(path: str | Path = DEFAULT_WEIGHTS) -> tuple[PlacementRGCN, dict[s
     ckpt = load_checkpoint(path)
     model = PlacementRGCN(RGCNConfig(**ckpt["config"]))
     sd = ckpt["state_dict"]
-    for k in ("mem_labels", "mem_geom", "mem_room", "mem_edges"):   # buffers sized by the memex
+    for k in ("mem_labels", "mem_geom", "mem_room", "mem_edges"):  # buffers sized by the memex
         setattr(model, k, sd[k].clone())
     model.load_state_dict(sd)
     model.eval()
@@ -390,12 +454,13 @@ class RGCNPlacement:
         self.name = "rGCN" if model.cfg.use_memex else "rGCN (WithoutMemex)"
 
     @staticmethod
-    def load(path: str | Path = DEFAULT_WEIGHTS) -> "RGCNPlacement":
+    def load(path: str | Path = DEFAULT_WEIGHTS) -> RGCNPlacement:
         model, manifest = load_rgcn(path)
         return RGCNPlacement(model, manifest)
 
-    def rank_nodes(self, label: str, geom: np.ndarray, scene: Sequence[GraphNode], room_type: str
-                   ) -> list[tuple[str, float]]:
+    def rank_nodes(
+        self, label: str, geom: np.ndarray, scene: Sequence[GraphNode], room_type: str
+    ) -> list[tuple[str, float]]:
         if label not in CLASS_INDEX:
             raise ValueError(f"unknown object class {label!r}")
         if room_type not in ROOM_TYPES:
@@ -408,7 +473,9 @@ class RGCNPlacement:
         return [(PLACE_CLASSES[i], float(p[i])) for i in order]
 
     def predict(self, obj, memory, room_type: str) -> list[tuple[str, float]]:
-        node = GraphNode(obj.label, tuple(float(v) for v in obj.box_min), tuple(float(v) for v in obj.box_max))
+        node = GraphNode(
+            obj.label, tuple(float(v) for v in obj.box_min), tuple(float(v) for v in obj.box_max)
+        )
         return self.rank_nodes(obj.label, node.geom(), memory_nodes(memory, exclude_id=obj.id), room_type)
 
 
@@ -419,15 +486,32 @@ def rank_rooms(model: PlacementRGCN, rooms: Sequence[RoomSamples], batch: int = 
     with torch.no_grad():
         for room in rooms:
             items = [(room.graph, int(t), None, ROOM_TYPES.index(room.room_type)) for t in room.targets]
-            probs = [torch.softmax(model(collate(items[i:i + batch])), dim=1).numpy()
-                     for i in range(0, len(items), batch)]
+            probs = [
+                torch.softmax(model(collate(items[i : i + batch])), dim=1).numpy()
+                for i in range(0, len(items), batch)
+            ]
             out.append(np.concatenate(probs) if probs else np.zeros((0, len(PLACE_CLASSES)), np.float32))
     return out
 
 
-__all__ = ["RGCNConfig", "PlacementRGCN", "RGCNLayer", "relational_mean", "segment_pool", "collate",
-           "PlacementData", "placement_data", "heldout_rooms", "RGCNTrainConfig", "train_rgcn", "load_rgcn",
-           "RGCNPlacement", "rank_rooms", "DEFAULT_WEIGHTS", "DEFAULT_WITHOUT_MEMEX"]
+__all__ = [
+    "RGCNConfig",
+    "PlacementRGCN",
+    "RGCNLayer",
+    "relational_mean",
+    "segment_pool",
+    "collate",
+    "PlacementData",
+    "placement_data",
+    "heldout_rooms",
+    "RGCNTrainConfig",
+    "train_rgcn",
+    "load_rgcn",
+    "RGCNPlacement",
+    "rank_rooms",
+    "DEFAULT_WEIGHTS",
+    "DEFAULT_WITHOUT_MEMEX",
+]
 
 
 # --------------------------------------------------------------------- evaluation
@@ -448,7 +532,9 @@ def evaluate_placement(rooms: Sequence[RoomSamples], rankers: dict[str, Any]) ->
     for name, ranker in rankers.items():
         if isinstance(ranker, PlacementRGCN):
             probs = rank_rooms(ranker, rooms)
-            ranked_of = (lambda r, k, probs=probs: [PLACE_CLASSES[i] for i in np.argsort(-probs[r][k], kind="stable")])
+            ranked_of = lambda r, k, probs=probs: [
+                PLACE_CLASSES[i] for i in np.argsort(-probs[r][k], kind="stable")
+            ]
         else:
             ranked_of = ranker
         top1 = top3 = judge = ok = n = 0.0
@@ -463,15 +549,26 @@ def evaluate_placement(rooms: Sequence[RoomSamples], rankers: dict[str, Any]) ->
                 judge += judge_score(cat, room.variants[k], room.room_type, choice, room.present)
                 ok += plausible(cat, room.variants[k], room.room_type, choice, room.present)
                 n += 1
-        out[name] = {"top1": top1 / max(n, 1), "top3": top3 / max(n, 1), "judge_score": judge / max(n, 1),
-                     "plausible": ok / max(n, 1), "samples": int(n)}
+        out[name] = {
+            "top1": top1 / max(n, 1),
+            "top3": top3 / max(n, 1),
+            "judge_score": judge / max(n, 1),
+            "plausible": ok / max(n, 1),
+            "samples": int(n),
+        }
     return out
 
 
-def run_placement_eval(out: str | Path, split: str = "test", weights: str | Path = DEFAULT_WEIGHTS,
-                       without_memex: str | Path | None = DEFAULT_WITHOUT_MEMEX,
-                       cache_dir: str | Path | None = DEFAULT_CACHE, progress: bool = True,
-                       command: str = "tidee eval placement", record: bool = False) -> dict[str, Any]:
+def run_placement_eval(
+    out: str | Path,
+    split: str = "test",
+    weights: str | Path = DEFAULT_WEIGHTS,
+    without_memex: str | Path | None = DEFAULT_WITHOUT_MEMEX,
+    cache_dir: str | Path | None = DEFAULT_CACHE,
+    progress: bool = True,
+    command: str = "tidee eval placement",
+    record: bool = False,
+) -> dict[str, Any]:
     """``tidee eval placement``: rGCN (TIDEE), WithoutMemex and CommonMemory on the tidy rooms of
     a held-out split; JSON + Markdown in ``out``."""
     from tidee.agent.learning import update_manifest_metrics
@@ -491,26 +588,43 @@ def run_placement_eval(out: str | Path, split: str = "test", weights: str | Path
         rankers["WithoutMemex (scene rGCN)"] = load_rgcn(without_memex)[0]
     rankers["CommonMemory"] = common
     result = evaluate_placement(rooms, rankers)
-    report = {"command": command, "split": split, "rooms": len(rooms),
-              "samples": next(iter(result.values()))["samples"], "rows": result,
-              "note": "Scene graphs from the simulator's boxes made axis-aligned (a complete map); one sample "
-                      "per pickupable object of each tidy room, taken out of its graph. top-1/top-3: the "
-                      "receptacle type it had; judge: the simulated judge's score of the first ranked "
-                      "receptacle present in the room (what the policy would choose)."}
+    report = {
+        "command": command,
+        "split": split,
+        "rooms": len(rooms),
+        "samples": next(iter(result.values()))["samples"],
+        "rows": result,
+        "note": "Scene graphs from the simulator's boxes made axis-aligned (a complete map); one sample "
+        "per pickupable object of each tidy room, taken out of its graph. top-1/top-3: the "
+        "receptacle type it had; judge: the simulated judge's score of the first ranked "
+        "receptacle present in the room (what the policy would choose).",
+    }
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "report.json", report)
-    lines = [f"# Placement: where does an object belong? ({split} rooms)", "",
-             f"`{command}` — {len(rooms)} tidy rooms, {report['samples']} objects.", "",
-             "| ranker | top-1 | top-3 | judge score | plausible |", "|---|---|---|---|---|"]
+    lines = [
+        f"# Placement: where does an object belong? ({split} rooms)",
+        "",
+        f"`{command}` — {len(rooms)} tidy rooms, {report['samples']} objects.",
+        "",
+        "| ranker | top-1 | top-3 | judge score | plausible |",
+        "|---|---|---|---|---|",
+    ]
     for name, m in result.items():
-        lines.append(f"| {name} | {100 * m['top1']:.1f} | {100 * m['top3']:.1f} | {m['judge_score']:.3f} | "
-                     f"{100 * m['plausible']:.1f} |")
+        lines.append(
+            f"| {name} | {100 * m['top1']:.1f} | {100 * m['top3']:.1f} | {m['judge_score']:.3f} | "
+            f"{100 * m['plausible']:.1f} |"
+        )
     lines += ["", report["note"], ""]
     (out / "report.md").write_text("\n".join(lines))
     if record:
         for name, path in (("TIDEE (Memex + rGCN)", weights), ("WithoutMemex (scene rGCN)", without_memex)):
             if name in result and path is not None:
-                update_manifest_metrics(path, {f"{split}_{k}": round(v, 4) if isinstance(v, float) else v
-                                               for k, v in result[name].items()})
+                update_manifest_metrics(
+                    path,
+                    {
+                        f"{split}_{k}": round(v, 4) if isinstance(v, float) else v
+                        for k, v in result[name].items()
+                    },
+                )
     return report

@@ -16,9 +16,17 @@ def _command(prefix: str) -> str:
 def _cmd_gen_search(args: argparse.Namespace) -> int:
     from tidee.agent.reasoning.search_net import SearchGenConfig, generate_search_data
 
-    cfg = SearchGenConfig(out=args.out, split=args.split, rooms_per_type=args.rooms_per_type,
-                          messes_per_room=args.messes, snapshots=args.snapshots, max_steps=args.max_steps,
-                          perception=args.perception, seed=args.seed, workers=args.workers)
+    cfg = SearchGenConfig(
+        out=args.out,
+        split=args.split,
+        rooms_per_type=args.rooms_per_type,
+        messes_per_room=args.messes,
+        snapshots=args.snapshots,
+        max_steps=args.max_steps,
+        perception=args.perception,
+        seed=args.seed,
+        workers=args.workers,
+    )
     print(json.dumps(generate_search_data(cfg, command=_command("tidee gen search")), indent=1))
     return 0
 
@@ -27,11 +35,23 @@ def _cmd_train_search(args: argparse.Namespace) -> int:
     from tidee.agent.learning import ships
     from tidee.agent.reasoning.search_net import DOCS_LOSS_PNG, SearchTrainConfig, train_search_net
 
-    cfg = SearchTrainConfig(data=args.data, out=args.out, work_dir=args.work_dir, steps=args.steps,
-                            batch_size=args.batch_size, lr=args.lr, pos_weight=args.pos_weight, seed=args.seed,
-                            threads=args.threads)
-    result = train_search_net(cfg, command=_command("tidee train search"), resume=not args.no_resume,
-                              docs_png=DOCS_LOSS_PNG if ships(args.out) else None)
+    cfg = SearchTrainConfig(
+        data=args.data,
+        out=args.out,
+        work_dir=args.work_dir,
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        pos_weight=args.pos_weight,
+        seed=args.seed,
+        threads=args.threads,
+    )
+    result = train_search_net(
+        cfg,
+        command=_command("tidee train search"),
+        resume=not args.no_resume,
+        docs_png=DOCS_LOSS_PNG if ships(args.out) else None,
+    )
     result.pop("history", None)
     print(json.dumps(result, indent=1))
     return 0
@@ -57,17 +77,31 @@ _positive_int = int_at_least(1)
 
 def register(gen_sub: argparse._SubParsersAction, train_sub: argparse._SubParsersAction) -> None:
     """``tidee gen search`` and ``tidee train search``."""
-    p = gen_sub.add_parser("search", help="map snapshots + ground-truth object positions for the search network")
+    p = gen_sub.add_parser(
+        "search", help="map snapshots + ground-truth object positions for the search network"
+    )
     p.add_argument("--out", default="data/search")
-    p.add_argument("--split", default="train", choices=("train", "val", "test"),
-                   help="train for training data; val/test only for held-out evaluation sets")
-    p.add_argument("--rooms-per-type", type=_positive_int, default=25,
-                   help="train: seeds 0-19 first, then the training pool")
+    p.add_argument(
+        "--split",
+        default="train",
+        choices=("train", "val", "test"),
+        help="train for training data; val/test only for held-out evaluation sets",
+    )
+    p.add_argument(
+        "--rooms-per-type",
+        type=_positive_int,
+        default=25,
+        help="train: seeds 0-19 first, then the training pool",
+    )
     p.add_argument("--messes", type=int, default=1, help="messy configurations per room besides the tidy one")
     p.add_argument("--snapshots", type=_positive_int, default=6, help="map snapshots per configuration")
     p.add_argument("--max-steps", type=_positive_int, default=200, help="exploration steps per configuration")
-    p.add_argument("--perception", default="oracle", choices=("oracle", "learned"),
-                   help="detections that build the maps (oracle: the simulator's segmentation, cheaper)")
+    p.add_argument(
+        "--perception",
+        default="oracle",
+        choices=("oracle", "learned"),
+        help="detections that build the maps (oracle: the simulator's segmentation, cheaper)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=2, choices=(1, 2))
     p.set_defaults(func=_cmd_gen_search)
@@ -90,7 +124,9 @@ def register_eval(eval_sub: argparse._SubParsersAction) -> None:
     """``tidee eval search`` (Table 2)."""
     from tidee.agent.evaluation.search_eval import add_eval_arguments
 
-    p = eval_sub.add_parser("search", help="object search on held-out rooms: search network vs frontier (Table 2)")
+    p = eval_sub.add_parser(
+        "search", help="object search on held-out rooms: search network vs frontier (Table 2)"
+    )
     add_eval_arguments(p)
 
 

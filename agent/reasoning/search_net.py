@@ -39,18 +39,19 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
 from tidee.agent.classes import CLASS_INDEX, CLASSES, PICKUPABLE
-from tidee.agent.perception import TRAINED_RENDERER
 from tidee.agent.learning import WEIGHTS_DIR
 from tidee.agent.mapping.geometry import GridSpec
 from tidee.agent.mapping.maps import SemanticMapper
+from tidee.agent.perception import TRAINED_RENDERER
 from tidee.server.scene import quat_yaw
 from tidee.server.splits import ROOM_TYPES, split_of
 
@@ -58,8 +59,8 @@ DEFAULT_WEIGHTS = WEIGHTS_DIR / "search_net.pt"
 DOCS_LOSS_PNG = Path(__file__).resolve().parents[2] / "docs" / "models" / "search_net_loss.png"
 Z_BINS = 4
 C_IN = len(CLASSES) + Z_BINS + 1
-IN_SIZE = 128          # input cells per side (the voxel grid)
-OUT_SIZE = 64          # output cells per side
+IN_SIZE = 128  # input cells per side (the voxel grid)
+OUT_SIZE = 64  # output cells per side
 TARGET_SIGMA_M = 0.3
 _CENTROID_SIGMA = 1.5  # voxels, as MapConfig.semantic_sigma_voxels
 
@@ -78,15 +79,17 @@ def search_input(mapper: SemanticMapper) -> np.ndarray:
     """float32 [C_IN, 128, 128] in [0, 1]: the network's view of the agent's map (see module doc)."""
     nx, ny, nz = mapper.voxel_shape
     if (nx, ny) != (IN_SIZE, IN_SIZE) or nz % Z_BINS:
-        raise ValueError(f"the search network reads a {IN_SIZE}x{IN_SIZE} voxel grid with a multiple of {Z_BINS} "
-                         f"heights (the default MapConfig), got {mapper.voxel_shape}")
+        raise ValueError(
+            f"the search network reads a {IN_SIZE}x{IN_SIZE} voxel grid with a multiple of {Z_BINS} "
+            f"heights (the default MapConfig), got {mapper.voxel_shape}"
+        )
     n_cls = len(CLASSES)
     x = np.zeros((C_IN, nx, ny), np.float32)
     lab = mapper.voxel_labels
     ix, iy, iz = np.nonzero(lab >= 0)
     if ix.size:
         cls = lab[ix, iy, iz].astype(np.int64)
-        if mapper.classes != list(CLASSES):   # map the mapper's vocabulary to ours
+        if mapper.classes != list(CLASSES):  # map the mapper's vocabulary to ours
             names = np.array([CLASS_INDEX.get(c, -1) for c in mapper.classes])
             cls = names[cls]
             ok = cls >= 0
@@ -101,10 +104,10 @@ def search_input(mapper: SemanticMapper) -> np.ndarray:
         if not (0 <= i < nx and 0 <= j < ny):
             continue
         i0, i1, j0, j1 = max(i - r, 0), min(i + r + 1, nx), max(j - r, 0), min(j + r + 1, ny)
-        patch = _STAMP[i0 - (i - r):i1 - (i - r), j0 - (j - r):j1 - (j - r)]
+        patch = _STAMP[i0 - (i - r) : i1 - (i - r), j0 - (j - r) : j1 - (j - r)]
         np.maximum(x[c, i0:i1, j0:j1], patch, out=x[c, i0:i1, j0:j1])
     occ = mapper.occupancy.reshape(nx, ny, Z_BINS, nz // Z_BINS).any(axis=3)
-    x[n_cls:n_cls + Z_BINS] = occ.transpose(2, 0, 1)
+    x[n_cls : n_cls + Z_BINS] = occ.transpose(2, 0, 1)
     ex = mapper.explored
     fx, fy = ex.shape[0] // nx, ex.shape[1] // ny
     x[-1] = ex.reshape(nx, fx, ny, fy).mean(axis=(1, 3))
@@ -150,8 +153,9 @@ def footprint_distance(inst: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return np.hypot(np.maximum(u, 0), np.maximum(v, 0)).astype(np.float32)
 
 
-_OUT_XY = out_grid().cell_to_world(np.stack(np.meshgrid(np.arange(OUT_SIZE), np.arange(OUT_SIZE),
-                                                        indexing="ij"), -1).reshape(-1, 2))
+_OUT_XY = out_grid().cell_to_world(
+    np.stack(np.meshgrid(np.arange(OUT_SIZE), np.arange(OUT_SIZE), indexing="ij"), -1).reshape(-1, 2)
+)
 
 
 def target_heat(inst: np.ndarray, classes: Sequence[int], sigma: float = TARGET_SIGMA_M) -> np.ndarray:
@@ -171,7 +175,9 @@ def _build_model(width: int = 32, embed: int = 48) -> Any:
     from torch import nn
 
     def block(i: int, o: int, stride: int = 1) -> nn.Sequential:
-        return nn.Sequential(nn.Conv2d(i, o, 3, stride, 1, bias=False), nn.BatchNorm2d(o), nn.ReLU(inplace=True))
+        return nn.Sequential(
+            nn.Conv2d(i, o, 3, stride, 1, bias=False), nn.BatchNorm2d(o), nn.ReLU(inplace=True)
+        )
 
     class SearchNet(nn.Module):
         """Semantic map [B, C_IN, 128, 128] + class ids [B, K] -> logits [B, K, 64, 64]."""
@@ -180,17 +186,19 @@ def _build_model(width: int = 32, embed: int = 48) -> Any:
             super().__init__()
             w = width
             self.config = {"width": width, "embed": embed}
-            self.enc0 = nn.Sequential(block(C_IN, w, 2), block(w, w))                # 64
-            self.enc1 = nn.Sequential(block(w, 2 * w, 2), block(2 * w, 2 * w))        # 32
-            self.enc2 = nn.Sequential(block(2 * w, 3 * w, 2), block(3 * w, 3 * w))    # 16
-            self.enc3 = nn.Sequential(block(3 * w, 4 * w, 2), block(4 * w, 4 * w))    # 8
+            self.enc0 = nn.Sequential(block(C_IN, w, 2), block(w, w))  # 64
+            self.enc1 = nn.Sequential(block(w, 2 * w, 2), block(2 * w, 2 * w))  # 32
+            self.enc2 = nn.Sequential(block(2 * w, 3 * w, 2), block(3 * w, 3 * w))  # 16
+            self.enc3 = nn.Sequential(block(3 * w, 4 * w, 2), block(4 * w, 4 * w))  # 8
             self.dec2 = block(7 * w, 3 * w)
             self.dec1 = block(5 * w, 2 * w)
             self.dec0 = block(3 * w, embed)
             self.film = nn.Embedding(len(CLASSES), 2 * embed)
             nn.init.zeros_(self.film.weight)
-            self.head = nn.Sequential(nn.Conv2d(embed, 16, 3, 1, 1), nn.ReLU(inplace=True), nn.Conv2d(16, 1, 1))
-            nn.init.constant_(self.head[-1].bias, -3.0)   # start near the positives' rarity
+            self.head = nn.Sequential(
+                nn.Conv2d(embed, 16, 3, 1, 1), nn.ReLU(inplace=True), nn.Conv2d(16, 1, 1)
+            )
+            nn.init.constant_(self.head[-1].bias, -3.0)  # start near the positives' rarity
 
         @staticmethod
         def _up(x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
@@ -207,7 +215,7 @@ def _build_model(width: int = 32, embed: int = 48) -> Any:
 
         def condition(self, feats: torch.Tensor, cls: torch.Tensor) -> torch.Tensor:
             b, k = cls.shape
-            gamma, beta = self.film(cls).chunk(2, dim=-1)          # [B, K, D]
+            gamma, beta = self.film(cls).chunk(2, dim=-1)  # [B, K, D]
             f = feats[:, None] * (1 + gamma[..., None, None]) + beta[..., None, None]
             f = torch.relu(f.flatten(0, 1))
             return self.head(f).view(b, k, *feats.shape[-2:])
@@ -241,8 +249,14 @@ def farthest_point_sampling(points: np.ndarray, k: int, first: int = 0, min_dist
     return np.asarray(chosen, np.int64)
 
 
-def search_points(heatmap: np.ndarray, grid: GridSpec, threshold: float = 0.5, k: int = 3,
-                  valid: np.ndarray | None = None, min_dist_m: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def search_points(
+    heatmap: np.ndarray,
+    grid: GridSpec,
+    threshold: float = 0.5,
+    k: int = 3,
+    valid: np.ndarray | None = None,
+    min_dist_m: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Ranked search points from a heatmap on ``grid``: (float64 [K, 2] start-frame metres, heat [K]).
 
     Cells with heat >= ``threshold`` (where ``valid``, a bool mask on the same grid, allows),
@@ -264,13 +278,14 @@ def search_points(heatmap: np.ndarray, grid: GridSpec, threshold: float = 0.5, k
     if not cand.any():
         cand = np.isfinite(heat) & (heat >= 0.5 * top)
     ij = np.argwhere(cand)
-    scores = heat[cand]   # row-major, as argwhere
+    scores = heat[cand]  # row-major, as argwhere
     xy = grid.cell_to_world(ij)
     idx = farthest_point_sampling(xy, k, first=int(np.argmax(scores)), min_dist=min_dist_m)
     # FPS picks spread-out cells (often a blob's rim); move each to the hottest cell of its Voronoi region.
     nearest = np.argmin(np.linalg.norm(xy[:, None, :] - xy[idx][None, :, :], axis=2), axis=1)
-    best = np.array([np.flatnonzero(nearest == r)[np.argmax(scores[nearest == r])] for r in range(len(idx))],
-                    np.int64).reshape(-1)
+    best = np.array(
+        [np.flatnonzero(nearest == r)[np.argmax(scores[nearest == r])] for r in range(len(idx))], np.int64
+    ).reshape(-1)
     order = best[np.argsort(-scores[best], kind="stable")]
     return xy[order], scores[order]
 
@@ -283,8 +298,13 @@ class VisualSearch:
     ``points(mapper, label, agent_xy, k)``: up to k reachable navigation goals (x, y), best first.
     """
 
-    def __init__(self, model: Any, manifest: dict[str, Any] | None = None, threshold: float = 0.5,
-                 explored_discount: float = 0.0) -> None:
+    def __init__(
+        self,
+        model: Any,
+        manifest: dict[str, Any] | None = None,
+        threshold: float = 0.5,
+        explored_discount: float = 0.0,
+    ) -> None:
         self.model = model.eval()
         self.manifest = manifest or {}
         self.threshold = threshold
@@ -292,8 +312,9 @@ class VisualSearch:
         self.explored_discount = float(explored_discount)
 
     @classmethod
-    def load(cls, path: str | Path = DEFAULT_WEIGHTS, verify: bool = True,
-             explored_discount: float = 0.0) -> VisualSearch:
+    def load(
+        cls, path: str | Path = DEFAULT_WEIGHTS, verify: bool = True, explored_discount: float = 0.0
+    ) -> VisualSearch:
         from tidee.agent.learning import load_checkpoint, read_manifest
 
         manifest = read_manifest(path, verify=verify)
@@ -301,7 +322,9 @@ class VisualSearch:
         assert ckpt is not None
         model = _build_model(**ckpt["config"])
         model.load_state_dict(ckpt["model"])
-        return cls(model, manifest, threshold=float(ckpt.get("threshold", 0.5)), explored_discount=explored_discount)
+        return cls(
+            model, manifest, threshold=float(ckpt.get("threshold", 0.5)), explored_discount=explored_discount
+        )
 
     def logits_for(self, x: np.ndarray, labels: Sequence[str]) -> np.ndarray:
         """float32 [K, 64, 64] logits for one input map [C_IN, 128, 128] and K class labels."""
@@ -321,25 +344,36 @@ class VisualSearch:
 
         logit = self.logits_for(search_input(mapper), [label])
         prob = torch.sigmoid(torch.from_numpy(logit))[None]
-        up = torch.nn.functional.interpolate(prob, size=mapper.voxel_grid.shape, mode="bilinear",
-                                             align_corners=False)
+        up = torch.nn.functional.interpolate(
+            prob, size=mapper.voxel_grid.shape, mode="bilinear", align_corners=False
+        )
         return up[0, 0].numpy()
 
-    def points(self, mapper: SemanticMapper, label: str, agent_xy: Sequence[float], k: int = 3,
-               visited: Sequence[Sequence[float]] = (), visit_radius: float = 1.0,
-               agent_radius: float = 0.2, heat: np.ndarray | None = None) -> list[tuple[float, float]]:
+    def points(
+        self,
+        mapper: SemanticMapper,
+        label: str,
+        agent_xy: Sequence[float],
+        k: int = 3,
+        visited: Sequence[Sequence[float]] = (),
+        visit_radius: float = 1.0,
+        agent_radius: float = 0.2,
+        heat: np.ndarray | None = None,
+    ) -> list[tuple[float, float]]:
         """Up to ``k`` navigation goals (start-frame metres), hottest first: search points of the
         heatmap away from ``visited`` points (within ``visit_radius``), each snapped to the nearest
         nav cell reachable from ``agent_xy``."""
         from tidee.agent.navigation.fmm import FMMPlanner
 
-        if heat is None:        # a caller that also shows the heatmap passes it in: one inference
+        if heat is None:  # a caller that also shows the heatmap passes it in: one inference
             heat = self.heatmap(mapper, label)
         vg = mapper.voxel_grid
-        if self.explored_discount > 0:   # prefer likely places the camera has not covered yet
+        if self.explored_discount > 0:  # prefer likely places the camera has not covered yet
             ex = mapper.explored
             fx, fy = ex.shape[0] // heat.shape[0], ex.shape[1] // heat.shape[1]
-            heat = heat * (1.0 - self.explored_discount * ex.reshape(heat.shape[0], fx, heat.shape[1], fy).mean((1, 3)))
+            heat = heat * (
+                1.0 - self.explored_discount * ex.reshape(heat.shape[0], fx, heat.shape[1], fy).mean((1, 3))
+            )
         valid = np.ones(heat.shape, bool)
         if len(visited):
             centres = vg.cell_to_world(np.argwhere(valid)).reshape(*heat.shape, 2)
@@ -372,11 +406,11 @@ def snap_to_mask(points: np.ndarray, mask: np.ndarray, grid: GridSpec) -> list[t
 @dataclass
 class SearchGenConfig:
     out: str = "data/search"
-    split: str = "train"             # train (seeds 0-19 then the pool) | test (held-out evaluation sets only)
+    split: str = "train"  # train (seeds 0-19 then the pool) | test (held-out evaluation sets only)
     rooms_per_type: int = 20
-    messes_per_room: int = 1         # messy configurations per room, besides the tidy one
-    snapshots: int = 4               # map snapshots per configuration
-    max_steps: int = 200             # exploration steps per configuration
+    messes_per_room: int = 1  # messy configurations per room, besides the tidy one
+    snapshots: int = 4  # map snapshots per configuration
+    max_steps: int = 200  # exploration steps per configuration
     perception: str = "oracle"
     resolution: int = 256
     seed: int = 0
@@ -387,7 +421,9 @@ class SearchGenConfig:
         if self.split not in ("train", "test", "val"):
             raise ValueError(f"split must be train, val or test, got {self.split!r}")
         if self.snapshots < 1 or self.max_steps < 20:
-            raise ValueError(f"need snapshots >= 1 and max_steps >= 20, got {self.snapshots}, {self.max_steps}")
+            raise ValueError(
+                f"need snapshots >= 1 and max_steps >= 20, got {self.snapshots}, {self.max_steps}"
+            )
         if not 1 <= self.workers <= 2:
             raise ValueError(f"workers must be 1 or 2 (this machine's budget), got {self.workers}")
 
@@ -398,7 +434,9 @@ def _jobs(cfg: SearchGenConfig) -> list[tuple[str, int, int | None]]:
     jobs: list[tuple[str, int, int | None]] = []
     for seed in room_seeds(cfg.split, cfg.rooms_per_type):
         if cfg.split == "train" and split_of(seed) not in ("train", "train_pool"):
-            raise ValueError(f"seed {seed} is a {split_of(seed)} room: training data only comes from training rooms")
+            raise ValueError(
+                f"seed {seed} is a {split_of(seed)} room: training data only comes from training rooms"
+            )
         for rt in cfg.room_types:
             jobs.append((rt, seed, None))
             jobs += [(rt, seed, m) for m in range(cfg.messes_per_room)]
@@ -430,8 +468,9 @@ def _explore_skill(body: Any, rng: np.random.Generator) -> Any:
     return True
 
 
-def snapshot_config(job: tuple[str, int, int | None], cfg: SearchGenConfig, transport: Any = None,
-                    perception: Any = None) -> dict[str, Any]:
+def snapshot_config(
+    job: tuple[str, int, int | None], cfg: SearchGenConfig, transport: Any = None, perception: Any = None
+) -> dict[str, Any]:
     """Explore one room configuration; map snapshots at random steps with their ground-truth instances."""
     from tidee.agent.perception import make_perception
     from tidee.agent.policy.search import SkillDriver
@@ -443,8 +482,9 @@ def snapshot_config(job: tuple[str, int, int | None], cfg: SearchGenConfig, tran
     transport = transport or InProcessTransport(renderer=TRAINED_RENDERER)
     perception = perception or make_perception(cfg.perception)
     driver = SkillDriver(transport, perception)
-    spec = EpisodeSpec(room_type=rt, seed=seed, mess_index=mess, resolution=cfg.resolution,
-                       max_steps=cfg.max_steps)
+    spec = EpisodeSpec(
+        room_type=rt, seed=seed, mess_index=mess, resolution=cfg.resolution, max_steps=cfg.max_steps
+    )
     body = driver.reset(spec)
     inst = room_instances(transport.state())
     # Early maps matter most (a search starts after one look-around): half the snapshots in the first 60 steps.
@@ -460,8 +500,15 @@ def snapshot_config(job: tuple[str, int, int | None], cfg: SearchGenConfig, tran
             seen.append(sorted({CLASS_INDEX[o.label] for o in b.mapper.memory if o.label in CLASS_INDEX}))
 
     driver.run(_explore_skill(body, rng), on_step)
-    return {"x": np.stack(xs) if xs else np.zeros((0, C_IN, IN_SIZE, IN_SIZE), np.uint8), "inst": inst,
-            "steps": steps, "seen": seen, "room_type": rt, "seed": seed, "mess_index": mess}
+    return {
+        "x": np.stack(xs) if xs else np.zeros((0, C_IN, IN_SIZE, IN_SIZE), np.uint8),
+        "inst": inst,
+        "steps": steps,
+        "seen": seen,
+        "room_type": rt,
+        "seed": seed,
+        "mess_index": mess,
+    }
 
 
 def _gen_worker(args: tuple[tuple[str, int, int | None], SearchGenConfig]) -> dict[str, Any]:
@@ -473,7 +520,10 @@ def _gen_worker(args: tuple[tuple[str, int, int | None], SearchGenConfig]) -> di
     try:
         transport, perception = _WORKER
     except NameError:
-        transport, perception = _WORKER = (InProcessTransport(renderer=TRAINED_RENDERER), make_perception(cfg.perception))
+        transport, perception = _WORKER = (
+            InProcessTransport(renderer=TRAINED_RENDERER),
+            make_perception(cfg.perception),
+        )
     return snapshot_config(job, cfg, transport, perception)
 
 
@@ -489,8 +539,8 @@ def generate_search_data(cfg: SearchGenConfig, command: str = "", progress: bool
 
     from tqdm import tqdm
 
-    from tidee.threads import threads_per_process, use_threads
     from tidee.protocol.episode_log import write_json_atomic
+    from tidee.threads import threads_per_process, use_threads
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -503,17 +553,25 @@ def generate_search_data(cfg: SearchGenConfig, command: str = "", progress: bool
         nonlocal n_snap
         path = out / _shard_name(res["room_type"], res["seed"], res["mess_index"])
         tmp = path.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, x=res["x"], inst=res["inst"], steps=np.asarray(res["steps"], np.int32),
-                            seen=json.dumps(res["seen"]), room_type=res["room_type"], seed=res["seed"],
-                            mess_index=-1 if res["mess_index"] is None else res["mess_index"])
+        np.savez_compressed(
+            tmp,
+            x=res["x"],
+            inst=res["inst"],
+            steps=np.asarray(res["steps"], np.int32),
+            seen=json.dumps(res["seen"]),
+            room_type=res["room_type"],
+            seed=res["seed"],
+            mess_index=-1 if res["mess_index"] is None else res["mess_index"],
+        )
         tmp.replace(path)
         n_snap += len(res["x"])
 
     bar = tqdm(total=len(todo), desc=f"search data ({cfg.split})", disable=not progress)
     if cfg.workers > 1 and len(todo) > 1:
         ctx = mp.get_context("spawn")
-        with cf.ProcessPoolExecutor(cfg.workers, mp_context=ctx, initializer=use_threads,
-                                    initargs=(threads_per_process(cfg.workers),)) as pool:
+        with cf.ProcessPoolExecutor(
+            cfg.workers, mp_context=ctx, initializer=use_threads, initargs=(threads_per_process(cfg.workers),)
+        ) as pool:
             for res in pool.map(_gen_worker, [(j, cfg) for j in todo]):
                 save(res)
                 bar.update()
@@ -522,13 +580,24 @@ def generate_search_data(cfg: SearchGenConfig, command: str = "", progress: bool
             save(_gen_worker((j, cfg)))
             bar.update()
     bar.close()
-    manifest = {"command": command, "config": asdict(cfg), "configurations": len(jobs),
-                "seeds": sorted({s for _, s, _ in jobs}), "perception": cfg.perception,
-                "snapshots_written_now": n_snap, "seconds_now": round(time.time() - t0, 1),
-                "note": ("maps built by the agent's own mapping with " +
-                         ("ORACLE detections (the simulator's segmentation)" if cfg.perception == "oracle"
-                          else "the shipped learned detector") +
-                         "; targets from the simulator's ground-truth object poses")}
+    manifest = {
+        "command": command,
+        "config": asdict(cfg),
+        "configurations": len(jobs),
+        "seeds": sorted({s for _, s, _ in jobs}),
+        "perception": cfg.perception,
+        "snapshots_written_now": n_snap,
+        "seconds_now": round(time.time() - t0, 1),
+        "note": (
+            "maps built by the agent's own mapping with "
+            + (
+                "ORACLE detections (the simulator's segmentation)"
+                if cfg.perception == "oracle"
+                else "the shipped learned detector"
+            )
+            + "; targets from the simulator's ground-truth object poses"
+        ),
+    }
     write_json_atomic(out / "manifest.json", manifest)
     return manifest
 
@@ -565,7 +634,7 @@ class SearchTrainConfig:
     pos_weight: float = 10.0
     width: int = 32
     embed: int = 48
-    val_fraction: float = 0.1        # of training *rooms*, held out to pick the threshold and report
+    val_fraction: float = 0.1  # of training *rooms*, held out to pick the threshold and report
     seed: int = 0
     threads: int = 2
     log_every: int = 20
@@ -576,11 +645,11 @@ class SearchTrainConfig:
 def _augment(x: np.ndarray, inst: np.ndarray, k: int, flip: bool) -> tuple[np.ndarray, np.ndarray]:
     """Rotate the map by k*90 degrees about the start pose (and mirror y); the same for the instances."""
     inst = inst.copy()
-    if flip:   # y -> -y
+    if flip:  # y -> -y
         x = x[:, :, ::-1]
         inst[:, 2] *= -1
         inst[:, 5] *= -1
-    for _ in range(k):   # (x, y) -> (-y, x): rotate +90 degrees
+    for _ in range(k):  # (x, y) -> (-y, x): rotate +90 degrees
         x = np.rot90(x, 1, axes=(1, 2))
         cx, cy = inst[:, 1].copy(), inst[:, 2].copy()
         inst[:, 1], inst[:, 2] = -cy, cx
@@ -588,8 +657,9 @@ def _augment(x: np.ndarray, inst: np.ndarray, k: int, flip: bool) -> tuple[np.nd
     return np.ascontiguousarray(x), inst
 
 
-def _batch(data: dict[str, Any], idx: Sequence[int], rng: np.random.Generator, k_cls: int,
-           augment: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _batch(
+    data: dict[str, Any], idx: Sequence[int], rng: np.random.Generator, k_cls: int, augment: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     xs, cs, ts = [], [], []
     for i in idx:
         x = data["x"][i].astype(np.float32) / 255.0
@@ -614,9 +684,15 @@ def split_rooms(data: dict[str, Any], val_fraction: float, seed: int) -> tuple[n
     return np.flatnonzero(~is_val), np.flatnonzero(is_val)
 
 
-def train_search_net(cfg: SearchTrainConfig, command: str = "", resume: bool = True, progress: bool = True,
-                     data: dict[str, Any] | None = None, ship: bool = True,
-                     docs_png: Path | None = DOCS_LOSS_PNG) -> dict[str, Any]:
+def train_search_net(
+    cfg: SearchTrainConfig,
+    command: str = "",
+    resume: bool = True,
+    progress: bool = True,
+    data: dict[str, Any] | None = None,
+    ship: bool = True,
+    docs_png: Path | None = DOCS_LOSS_PNG,
+) -> dict[str, Any]:
     """Train from shards (or ``data``); ship weights + manifest when ``ship``. Returns a summary."""
     import torch
     from tqdm import tqdm
@@ -654,8 +730,9 @@ def train_search_net(cfg: SearchTrainConfig, command: str = "", resume: bool = T
         idx = rng.choice(tr_idx, size=min(cfg.batch_size, len(tr_idx)), replace=False)
         x, c, t = _batch(data, idx, rng, cfg.classes_per_map, augment=True)
         logits = model(torch.from_numpy(x), torch.from_numpy(c))
-        loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, torch.from_numpy(t),
-                                                                    pos_weight=pos_weight)
+        loss = torch.nn.functional.binary_cross_entropy_with_logits(
+            logits, torch.from_numpy(t), pos_weight=pos_weight
+        )
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -667,12 +744,24 @@ def train_search_net(cfg: SearchTrainConfig, command: str = "", resume: bool = T
             bar.set_postfix(loss=f"{np.mean(running):.4f}")
             running = []
         if step % cfg.ckpt_every == 0 or step == cfg.steps:
-            save_checkpoint(ckpt_path, model=model.state_dict(), opt=opt.state_dict(), rng=rng.bit_generator.state,
-                            history=history, step=step, cfg=asdict(cfg))
+            save_checkpoint(
+                ckpt_path,
+                model=model.state_dict(),
+                opt=opt.state_dict(),
+                rng=rng.bit_generator.state,
+                history=history,
+                step=step,
+                cfg=asdict(cfg),
+            )
     bar.close()
     model.eval()
-    summary: dict[str, Any] = {"steps": step, "seconds": round(time.time() - t0, 1), "history": history,
-                               "train_snapshots": int(len(tr_idx)), "val_snapshots": int(len(va_idx))}
+    summary: dict[str, Any] = {
+        "steps": step,
+        "seconds": round(time.time() - t0, 1),
+        "history": history,
+        "train_snapshots": int(len(tr_idx)),
+        "val_snapshots": int(len(va_idx)),
+    }
     if len(va_idx):
         vs = VisualSearch(model)
         summary["val"] = heldout_metrics(vs, _as_eval_set(data, va_idx))
@@ -680,18 +769,34 @@ def train_search_net(cfg: SearchTrainConfig, command: str = "", resume: bool = T
     save_loss_curve(history, work / "search_net_loss.png", "visual search network (weighted BCE)")
     if ship:
         out = Path(cfg.out)
-        save_checkpoint(out, model=model.state_dict(), config={"width": cfg.width, "embed": cfg.embed},
-                        threshold=0.5, classes=list(CLASSES), c_in=C_IN)
+        save_checkpoint(
+            out,
+            model=model.state_dict(),
+            config={"width": cfg.width, "embed": cfg.embed},
+            threshold=0.5,
+            classes=list(CLASSES),
+            c_in=C_IN,
+        )
         if docs_png is not None:
             save_loss_curve(history, docs_png, "visual search network (weighted BCE)")
         rooms = sorted({(r[0], r[1]) for r in data["rooms"]})
-        write_manifest(out, command=command,
-                       data={"dir": cfg.data, "snapshots": int(len(data["x"])), "configurations": len(data["rooms"]),
-                             "room_seeds": sorted({s for _, s in rooms}),
-                             "gen_manifest": _read_gen_manifest(cfg.data)},
-                       metrics={k: summary[k] for k in ("val", "val_bce") if k in summary},
-                       train={**asdict(cfg), "seconds": summary["seconds"],
-                              "final_train_bce": history[-1]["train_bce"] if history else None})
+        write_manifest(
+            out,
+            command=command,
+            data={
+                "dir": cfg.data,
+                "snapshots": int(len(data["x"])),
+                "configurations": len(data["rooms"]),
+                "room_seeds": sorted({s for _, s in rooms}),
+                "gen_manifest": _read_gen_manifest(cfg.data),
+            },
+            metrics={k: summary[k] for k in ("val", "val_bce") if k in summary},
+            train={
+                **asdict(cfg),
+                "seconds": summary["seconds"],
+                "final_train_bce": history[-1]["train_bce"] if history else None,
+            },
+        )
         summary["out"] = str(out)
     return summary
 
@@ -711,10 +816,16 @@ def _mean_bce(model: Any, data: dict[str, Any], idx: np.ndarray, cfg: SearchTrai
     losses = []
     with torch.no_grad():
         for s in range(0, len(idx), cfg.batch_size):
-            x, c, t = _batch(data, idx[s:s + cfg.batch_size], rng, cfg.classes_per_map, augment=False)
-            losses.append(float(torch.nn.functional.binary_cross_entropy_with_logits(
-                model(torch.from_numpy(x), torch.from_numpy(c)), torch.from_numpy(t),
-                pos_weight=torch.tensor(cfg.pos_weight))))
+            x, c, t = _batch(data, idx[s : s + cfg.batch_size], rng, cfg.classes_per_map, augment=False)
+            losses.append(
+                float(
+                    torch.nn.functional.binary_cross_entropy_with_logits(
+                        model(torch.from_numpy(x), torch.from_numpy(c)),
+                        torch.from_numpy(t),
+                        pos_weight=torch.tensor(cfg.pos_weight),
+                    )
+                )
+            )
     return float(np.mean(losses))
 
 
@@ -727,7 +838,7 @@ def occupancy_heat(x: np.ndarray) -> np.ndarray:
     """The trivial baseline's [64, 64] heat: class-agnostic clutter (occupancy above the floor band,
     Gaussian-blurred): "objects are where stuff is"."""
     n = len(CLASSES)
-    occ = np.asarray(x[n:n + Z_BINS], np.float32)
+    occ = np.asarray(x[n : n + Z_BINS], np.float32)
     if occ.max() > 1:
         occ = occ / 255.0
     clutter = occ.max(axis=0)
@@ -745,16 +856,18 @@ def _average_precision(score: np.ndarray, positive: np.ndarray) -> float:
     return float(precision[pos].mean())
 
 
-def heldout_metrics(search: VisualSearch | None, samples: list[dict[str, Any]], k: int = 3,
-                    hit_radius: float = 1.0) -> dict[str, Any]:
+def heldout_metrics(
+    search: VisualSearch | None, samples: list[dict[str, Any]], k: int = 3, hit_radius: float = 1.0
+) -> dict[str, Any]:
     """Per (map, present category): cell AP (targets >= 0.5 positive) and hit@k (one of the top-k
     search points within ``hit_radius`` of an instance footprint), for the network and the
     occupancy baseline; also over the categories not yet in the agent's memory ("unseen")."""
     import torch
 
     grid = out_grid()
-    res: dict[str, dict[str, list[float]]] = {m: {"ap": [], "hit": [], "ap_unseen": [], "hit_unseen": []}
-                                             for m in ("network", "occupancy")}
+    res: dict[str, dict[str, list[float]]] = {
+        m: {"ap": [], "hit": [], "ap_unseen": [], "hit_unseen": []} for m in ("network", "occupancy")
+    }
     for s in samples:
         x = np.asarray(s["x"], np.float32)
         if x.max() > 1.0:
@@ -809,7 +922,23 @@ def time_inference(search: VisualSearch, repeats: int = 20) -> dict[str, float]:
     return {"heatmap_ms_median": round(float(np.median(ts)), 1), "threads": 1}
 
 
-__all__ = ["C_IN", "DEFAULT_WEIGHTS", "SearchGenConfig", "SearchTrainConfig", "VisualSearch", "farthest_point_sampling",
-           "footprint_distance", "generate_search_data", "heldout_metrics", "load_search_data", "occupancy_heat",
-           "room_instances", "search_input", "search_points", "snap_to_mask", "target_heat", "time_inference",
-           "train_search_net"]
+__all__ = [
+    "C_IN",
+    "DEFAULT_WEIGHTS",
+    "SearchGenConfig",
+    "SearchTrainConfig",
+    "VisualSearch",
+    "farthest_point_sampling",
+    "footprint_distance",
+    "generate_search_data",
+    "heldout_metrics",
+    "load_search_data",
+    "occupancy_heat",
+    "room_instances",
+    "search_input",
+    "search_points",
+    "snap_to_mask",
+    "target_heat",
+    "time_inference",
+    "train_search_net",
+]

@@ -52,7 +52,7 @@ class PlacementStats:
         """count(receptacle) / count(most common receptacle) for the category: 0 = never seen there."""
         t = self.table(category, room_type)
         if not t:
-            return 1.0   # a category never seen in training: no evidence that any place is wrong
+            return 1.0  # a category never seen in training: no evidence that any place is wrong
         return t.get(receptacle, 0) / max(t.values())
 
     def ranked(self, category: str, room_type: str | None = None) -> list[tuple[str, float]]:
@@ -62,8 +62,9 @@ class PlacementStats:
         return sorted(((k, v / total) for k, v in t.items()), key=lambda kv: (-kv[1], kv[0])) if total else []
 
 
-def build_stats(seeds: list[int], out: str | Path = DEFAULT_PATH, progress: bool = True,
-                command: str = "tidee gen stats") -> dict[str, Any]:
+def build_stats(
+    seeds: list[int], out: str | Path = DEFAULT_PATH, progress: bool = True, command: str = "tidee gen stats"
+) -> dict[str, Any]:
     """Generate the tidy training rooms for ``seeds`` (every room type) and count placements.
 
     ``seeds`` must be training seeds (the train split or the training pool); val and test
@@ -74,8 +75,10 @@ def build_stats(seeds: list[int], out: str | Path = DEFAULT_PATH, progress: bool
     held_out = set(SPLIT_SEEDS["val"]) | set(SPLIT_SEEDS["test"])
     bad = sorted(set(seeds) & held_out)
     if bad:
-        raise ValueError(f"seeds {bad[:5]} are val/test rooms; statistics may only use the train split "
-                         f"{SPLIT_SEEDS['train']} or the training pool {TRAIN_POOL}")
+        raise ValueError(
+            f"seeds {bad[:5]} are val/test rooms; statistics may only use the train split "
+            f"{SPLIT_SEEDS['train']} or the training pool {TRAIN_POOL}"
+        )
     from tqdm import tqdm
 
     from tidee.protocol.messages import ROOM_TYPES
@@ -95,13 +98,22 @@ def build_stats(seeds: list[int], out: str | Path = DEFAULT_PATH, progress: bool
                     counts[ALL_ROOMS][o.type][o.parent_type] += 1
     finally:
         world.close()
-    plain = {r: {c: dict(sorted(t.items())) for c, t in sorted(cats.items())} for r, cats in sorted(counts.items())}
+    plain = {
+        r: {c: dict(sorted(t.items())) for c, t in sorted(cats.items())} for r, cats in sorted(counts.items())
+    }
     digest = hashlib.sha256(json.dumps(plain, sort_keys=True).encode()).hexdigest()
-    data = {"meta": {"command": command,
-                     "split": "train", "seeds": _ranges(seeds), "room_types": list(ROOM_TYPES),
-                     "rooms": len(seeds) * len(ROOM_TYPES), "build_s": round(time.time() - t0, 1),
-                     "sha256_counts": digest},
-            "counts": plain}
+    data = {
+        "meta": {
+            "command": command,
+            "split": "train",
+            "seeds": _ranges(seeds),
+            "room_types": list(ROOM_TYPES),
+            "rooms": len(seeds) * len(ROOM_TYPES),
+            "build_s": round(time.time() - t0, 1),
+            "sha256_counts": digest,
+        },
+        "counts": plain,
+    }
     write_json_atomic(out, data)
     return data
 

@@ -35,14 +35,25 @@ from .categories import CATEGORIES
 from .schema import ROOM_TYPES, Category, Part, Surface, Variant
 
 __all__ = [
-    "CATEGORIES", "PRIORS", "ROOM_TEMPLATES", "ROOM_TYPES", "Look", "look", "sample_size",
-    "receptacle_types", "receptacle_weights", "is_plausible", "variant_weights",
-    "validate_catalog", "load_priors", "load_room_templates",
+    "CATEGORIES",
+    "PRIORS",
+    "ROOM_TEMPLATES",
+    "ROOM_TYPES",
+    "Look",
+    "look",
+    "sample_size",
+    "receptacle_types",
+    "receptacle_weights",
+    "is_plausible",
+    "variant_weights",
+    "validate_catalog",
+    "load_priors",
+    "load_room_templates",
 ]
 
 _DIR = Path(__file__).parent
 _HEX = re.compile(r"^#[0-9a-fA-F]{6}$")
-_TOL = 0.02          # parts may poke out of the box by 2 % of a side (rounding in recipes)
+_TOL = 0.02  # parts may poke out of the box by 2 % of a side (rounding in recipes)
 DEFAULT_PLAUSIBILITY = 0.1
 
 
@@ -83,12 +94,13 @@ def _look(cat: Category, var: Variant | None) -> Look:
     def pick(name: str) -> Any:
         v = getattr(var, name) if var is not None else None
         return getattr(cat, name) if v is None else v
-    return Look(pick("size_min"), pick("size_max"), pick("parts"), pick("palettes"),
-                pick("surfaces"), pick("mass"))
+
+    return Look(
+        pick("size_min"), pick("size_max"), pick("parts"), pick("palettes"), pick("surfaces"), pick("mass")
+    )
 
 
-def look(category: str, variant: str | None = None,
-         categories: Mapping[str, Category] | None = None) -> Look:
+def look(category: str, variant: str | None = None, categories: Mapping[str, Category] | None = None) -> Look:
     cat = (categories or CATEGORIES)[category]
     return _look(cat, cat.variant(variant))
 
@@ -111,8 +123,9 @@ def sample_size(category: str, variant: str | None, rng: _Rng) -> tuple[float, f
 # ------------------------------------------------------------------------- priors
 
 
-def receptacle_types(room_type: str, rooms: Mapping[str, Any] | None = None,
-                     categories: Mapping[str, Category] | None = None) -> frozenset[str]:
+def receptacle_types(
+    room_type: str, rooms: Mapping[str, Any] | None = None, categories: Mapping[str, Category] | None = None
+) -> frozenset[str]:
     """Receptacle types a room of this type can contain: its furniture receptacles, the
     receptacle small objects it lists (Box) and the Floor."""
     rooms = ROOM_TEMPLATES if rooms is None else rooms
@@ -122,8 +135,9 @@ def receptacle_types(room_type: str, rooms: Mapping[str, Any] | None = None,
     return frozenset(n for n in names if n in cats and cats[n].receptacle)
 
 
-def _table(priors: Mapping[str, Any], category: str, variant: str | None,
-           room_type: str) -> Mapping[str, float] | None:
+def _table(
+    priors: Mapping[str, Any], category: str, variant: str | None, room_type: str
+) -> Mapping[str, float] | None:
     entry = priors[category]
     if variant is not None and room_type in entry.get(variant, {}):
         return entry[variant][room_type]
@@ -135,8 +149,9 @@ def _normalised(w: Mapping[str, float]) -> dict[str, float]:
     return {k: v / total for k, v in sorted(w.items(), key=lambda kv: -kv[1])} if total > 0 else {}
 
 
-def receptacle_weights(category: str, variant: str | None, room_type: str,
-                       present: Iterable[str] | None = None) -> dict[str, float]:
+def receptacle_weights(
+    category: str, variant: str | None, room_type: str, present: Iterable[str] | None = None
+) -> dict[str, float]:
     """Prior distribution over receptacle types for an object in a room, summing to 1.
 
     1. The table for (category, variant, room) from PRIORS (variant entry, else "*").
@@ -154,7 +169,7 @@ def receptacle_weights(category: str, variant: str | None, room_type: str,
     """
     if category not in PRIORS:
         raise KeyError(f"no placement prior for {category!r} (only pickupable categories have one)")
-    CATEGORIES[category].variant(variant)   # validates the variant name
+    CATEGORIES[category].variant(variant)  # validates the variant name
     if room_type not in ROOM_TEMPLATES:
         raise KeyError(f"unknown room type {room_type!r}; known: {list(ROOM_TEMPLATES)}")
     room_recs = receptacle_types(room_type)
@@ -163,8 +178,9 @@ def receptacle_weights(category: str, variant: str | None, room_type: str,
         weights = dict(table)
     else:
         weights = {}
-        others = [t for r in ROOM_TYPES if r != room_type
-                  if (t := _table(PRIORS, category, variant, r)) is not None]
+        others = [
+            t for r in ROOM_TYPES if r != room_type if (t := _table(PRIORS, category, variant, r)) is not None
+        ]
         for t in others:
             for rec, w in _normalised(t).items():
                 if rec in room_recs:
@@ -179,8 +195,14 @@ def receptacle_weights(category: str, variant: str | None, room_type: str,
     return out
 
 
-def is_plausible(category: str, variant: str | None, room_type: str, receptacle_type: str,
-                 present: Iterable[str] | None = None, threshold: float = DEFAULT_PLAUSIBILITY) -> bool:
+def is_plausible(
+    category: str,
+    variant: str | None,
+    room_type: str,
+    receptacle_type: str,
+    present: Iterable[str] | None = None,
+    threshold: float = DEFAULT_PLAUSIBILITY,
+) -> bool:
     """True when the receptacle's prior weight is > 0 and >= threshold × the largest weight.
 
     With the default 0.1: a Mug in a Kitchen is plausible on a CounterTop, DiningTable,
@@ -213,13 +235,17 @@ def _round_half_extents(p: Part, s: tuple[float, float, float]) -> tuple[float, 
     e = p.extent
     if p.shape == "box":
         return e[0] / 2, e[1] / 2, e[2] / 2
-    r = e[0] / 2                                       # radius / sx (lathe: at r == 1)
+    r = e[0] / 2  # radius / sx (lathe: at r == 1)
     hz = r * sx / sz if p.shape == "sphere" else e[2] / 2
     return r, r * sx / sy, hz
 
 
-def _check_parts(where: str, parts: tuple[Part, ...], sizes: Iterable[tuple[float, float, float]],
-                 palettes: tuple[dict[str, str], ...]) -> None:
+def _check_parts(
+    where: str,
+    parts: tuple[Part, ...],
+    sizes: Iterable[tuple[float, float, float]],
+    palettes: tuple[dict[str, str], ...],
+) -> None:
     if not parts:
         raise ValueError(f"{where}: no parts")
     if not palettes:
@@ -256,11 +282,17 @@ def _check_parts(where: str, parts: tuple[Part, ...], sizes: Iterable[tuple[floa
             h = _round_half_extents(p, s)
             lo = [p.center[k] - h[k] for k in range(3)]
             hi = [p.center[k] + h[k] for k in range(3)]
-            if (min(lo[0], lo[1]) < -0.5 - _TOL or max(hi[0], hi[1]) > 0.5 + _TOL
-                    or lo[2] < -_TOL or hi[2] > 1 + _TOL):
-                raise ValueError(f"{tag}: outside the bounding box at size {s}: "
-                                 f"spans x {lo[0]:.3f}..{hi[0]:.3f}, y {lo[1]:.3f}..{hi[1]:.3f}, "
-                                 f"z {lo[2]:.3f}..{hi[2]:.3f}")
+            if (
+                min(lo[0], lo[1]) < -0.5 - _TOL
+                or max(hi[0], hi[1]) > 0.5 + _TOL
+                or lo[2] < -_TOL
+                or hi[2] > 1 + _TOL
+            ):
+                raise ValueError(
+                    f"{tag}: outside the bounding box at size {s}: "
+                    f"spans x {lo[0]:.3f}..{hi[0]:.3f}, y {lo[1]:.3f}..{hi[1]:.3f}, "
+                    f"z {lo[2]:.3f}..{hi[2]:.3f}"
+                )
 
 
 def _check_surfaces(where: str, surfaces: tuple[Surface, ...], openable: bool) -> None:
@@ -309,8 +341,7 @@ def _check_category(c: Category) -> None:
         _check_surfaces(wv, lk.surfaces, c.openable)
 
 
-def _check_priors(priors: Mapping[str, Any], rooms: Mapping[str, Any],
-                  cats: Mapping[str, Category]) -> None:
+def _check_priors(priors: Mapping[str, Any], rooms: Mapping[str, Any], cats: Mapping[str, Category]) -> None:
     recs = {r: receptacle_types(r, rooms, cats) for r in rooms}
     for name, entry in priors.items():
         w = f"priors[{name!r}]"
@@ -334,8 +365,10 @@ def _check_priors(priors: Mapping[str, Any], rooms: Mapping[str, Any],
                     if not cats[rec].receptacle:
                         raise ValueError(f"{wr}: {rec!r} is not a receptacle")
                     if rec not in recs[room]:
-                        raise ValueError(f"{wr}: receptacle {rec!r} never appears in a {room} "
-                                         f"(its template has {sorted(recs[room])})")
+                        raise ValueError(
+                            f"{wr}: receptacle {rec!r} never appears in a {room} "
+                            f"(its template has {sorted(recs[room])})"
+                        )
                     if not isinstance(x, (int, float)) or x <= 0:
                         raise ValueError(f"{wr}: weight for {rec!r} must be a positive number, got {x!r}")
     for name, c in cats.items():
@@ -343,8 +376,7 @@ def _check_priors(priors: Mapping[str, Any], rooms: Mapping[str, Any],
             raise ValueError(f"category {name}: pickupable but has no placement prior")
 
 
-def _check_rooms(rooms: Mapping[str, Any], priors: Mapping[str, Any],
-                 cats: Mapping[str, Category]) -> None:
+def _check_rooms(rooms: Mapping[str, Any], priors: Mapping[str, Any], cats: Mapping[str, Category]) -> None:
     if set(rooms) != set(ROOM_TYPES):
         raise ValueError(f"room templates must be exactly {ROOM_TYPES}, got {sorted(rooms)}")
     used: set[str] = set()
@@ -387,7 +419,7 @@ def _check_rooms(rooms: Mapping[str, Any], priors: Mapping[str, Any],
                 bad = set(vw) - known
                 if bad or not vw or min(vw.values()) <= 0:
                     raise ValueError(f"{w}: bad variant_weights for {name}: {vw} (known {sorted(known)})")
-            for var in (vw or known or [None]):
+            for var in vw or known or [None]:
                 if name in priors and _table(priors, name, var, room) is None:
                     raise ValueError(f"{w}: {name} (variant {var}) appears here but has no prior for {room}")
         for name in tpl.get("variant_weights", {}):
@@ -398,9 +430,11 @@ def _check_rooms(rooms: Mapping[str, Any], priors: Mapping[str, Any],
             raise ValueError(f"category {name}: pickupable but in no room's small objects")
 
 
-def validate_catalog(categories: Mapping[str, Category] | None = None,
-                     priors: Mapping[str, Any] | None = None,
-                     rooms: Mapping[str, Any] | None = None) -> None:
+def validate_catalog(
+    categories: Mapping[str, Category] | None = None,
+    priors: Mapping[str, Any] | None = None,
+    rooms: Mapping[str, Any] | None = None,
+) -> None:
     """Check the catalog is self-consistent; raise ValueError naming the first problem.
 
     Defaults to the loaded catalog; pass modified copies to check those instead.

@@ -7,8 +7,12 @@ from .schema import Category
 
 
 def _flags(c: Category) -> str:
-    return " ".join(f for f, on in (("pickup", c.pickupable), ("recept", c.receptacle),
-                                    ("open", c.openable)) if on) or "-"
+    return (
+        " ".join(
+            f for f, on in (("pickup", c.pickupable), ("recept", c.receptacle), ("open", c.openable)) if on
+        )
+        or "-"
+    )
 
 
 def _size(lo: tuple[float, ...], hi: tuple[float, ...]) -> str:
@@ -52,28 +56,40 @@ def render_markdown() -> str:
         looks = [(v.name, look(c.name, v.name)) for v in c.variants]
         variants = "; ".join(f"{n} ({_size(lk.size_min, lk.size_max)})" for n, lk in looks) or "-"
         mass = f"{c.mass:g}" if c.pickupable else "-"
-        lines.append(f"| {c.name} | {c.kind} | {_flags(c)} | {_size(c.size_min, c.size_max)} | {mass} | "
-                     f"{place} | {variants} |")
-    lines += ["", "## Top receptacles per room type", "",
-              "Prior weights after normalisation (top three), for the rooms where the object appears.", "",
-              "| Object | " + " | ".join(ROOM_TYPES) + " |", "|---|" + "---|" * len(ROOM_TYPES)]
+        lines.append(
+            f"| {c.name} | {c.kind} | {_flags(c)} | {_size(c.size_min, c.size_max)} | {mass} | "
+            f"{place} | {variants} |"
+        )
+    lines += [
+        "",
+        "## Top receptacles per room type",
+        "",
+        "Prior weights after normalisation (top three), for the rooms where the object appears.",
+        "",
+        "| Object | " + " | ".join(ROOM_TYPES) + " |",
+        "|---|" + "---|" * len(ROOM_TYPES),
+    ]
     for c in cats:
         if not c.pickupable:
             continue
-        for var in ([None] if not c.variants else [v.name for v in c.variants]):
+        for var in [None] if not c.variants else [v.name for v in c.variants]:
             label = c.name if var is None else f"{c.name} / {var}"
             lines.append(f"| {label} | " + " | ".join(_top(c.name, var, r) for r in ROOM_TYPES) + " |")
     lines += ["", "## Room templates", ""]
     for room, tpl in ROOM_TEMPLATES.items():
         (x0, x1), (y0, y1) = tpl["size"]
-        lines += [f"### {room}", "", f"Floor {x0:g}–{x1:g} × {y0:g}–{y1:g} m; "
-                  f"{tpl['n_small'][0]}–{tpl['n_small'][1]} small objects.", "",
-                  "| Furniture | Count | Required | Notes |", "|---|---|---|---|"]
+        lines += [
+            f"### {room}",
+            "",
+            f"Floor {x0:g}–{x1:g} × {y0:g}–{y1:g} m; {tpl['n_small'][0]}–{tpl['n_small'][1]} small objects.",
+            "",
+            "| Furniture | Count | Required | Notes |",
+            "|---|---|---|---|",
+        ]
         for f in tpl["furniture"]:
             notes = ", ".join(f"{k}: {f[k]}" for k in ("on", "near", "variant") if f.get(k))
             req = "yes" if f["required"] else "no"
-            lines.append(f"| {f['type']} | {f['count'][0]}–{f['count'][1]} | {req} | "
-                         f"{notes} |")
+            lines.append(f"| {f['type']} | {f['count'][0]}–{f['count'][1]} | {req} | {notes} |")
         small = ", ".join(f"{k} {v:g}" for k, v in sorted(tpl["small"].items(), key=lambda kv: -kv[1]))
         lines += ["", f"Small objects (frequency weight): {small}.", ""]
     return "\n".join(lines)

@@ -129,5 +129,6 @@ class Category:
         for v in self.variants:
             if v.name == name:
                 return v
-        raise KeyError(f"category {self.name} has no variant {name!r}; "
-                       f"known: {[v.name for v in self.variants]}")
+        raise KeyError(
+            f"category {self.name} has no variant {name!r}; known: {[v.name for v in self.variants]}"
+        )
