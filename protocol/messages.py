@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from tidee.protocol.vocab import ROOM_TYPES
+
 PROTOCOL_VERSION = 1
 
 
@@ -78,7 +80,6 @@ class ErrorCode(str, Enum):
     internal = "internal"
 
 
-ROOM_TYPES = ("Kitchen", "LivingRoom", "Bedroom", "Bathroom")
 IMAGE_ENCODINGS = ("raw", "jpeg", "png")  # how observation images travel (protocol/README.md)
 SPLITS = ("train", "val", "test")
 

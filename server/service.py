@@ -70,6 +70,7 @@ from tidee.protocol.messages import (
     StepRequest,
 )
 from tidee.protocol.transport import EpisodeLike
+from tidee.protocol.vocab import RENDERERS
 from tidee.protocol.zenoh_config import make_config
 from tidee.server.splits import check_mess_index
 from tidee.server.workers import EpisodeProcesses, available_cores
@@ -82,7 +83,6 @@ REQUEST_TYPES: dict[str, type] = {
     "state": StateRequest,
     "close": CloseRequest,
 }
-RENDERERS = ("auto", "egl", "tiny")
 INBOX_CAPACITY = 1024  # queries or liveliness events waiting for a dispatcher
 DEPARTED_MEMORY = 4096  # how many vanished or reclaimed session ids are remembered
 REAPER_PERIOD_S = 5.0  # the idle reaper looks this often (at timeout/4 for short timeouts)

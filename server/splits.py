@@ -10,7 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-ROOM_TYPES = ("Kitchen", "LivingRoom", "Bedroom", "Bathroom")
+from tidee.protocol.vocab import ROOM_TYPES
+
 SPLIT_SEEDS: dict[str, range] = {
     "train": range(0, 20),
     "val": range(100, 105),

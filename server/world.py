@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tidee.protocol.vocab import RENDERERS
 from tidee.server.bullet import pb, quiet_stdio
 from tidee.server.catalog import CATEGORIES
 from tidee.server.catalog.schema import Category, Part, Surface
@@ -132,7 +133,7 @@ class World:
     """A PyBullet client holding one room."""
 
     def __init__(self, renderer: str = "auto") -> None:
-        if renderer not in ("auto", "egl", "tiny"):
+        if renderer not in RENDERERS:
             raise ValueError(f"renderer must be auto, egl or tiny; got {renderer!r}")
         self.client = pb.connect(pb.DIRECT)
         self.renderer = "tiny"

@@ -31,8 +31,10 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Protocol
 
+from tidee.protocol.vocab import ROOM_TYPES
+
 from .categories import CATEGORIES
-from .schema import ROOM_TYPES, Category, Part, Surface, Variant
+from .schema import Category, Part, Surface, Variant
 
 __all__ = [
     "CATEGORIES",

@@ -25,8 +25,6 @@ ShapeKind = Literal["box", "cylinder", "sphere", "lathe"]
 ColorRole = str
 Hinge = Literal["left", "right", "top", "bottom", "slide"]
 
-ROOM_TYPES: tuple[str, ...] = ("Kitchen", "LivingRoom", "Bedroom", "Bathroom")
-
 
 @dataclass(frozen=True)
 class Part:
