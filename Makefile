@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.tidee-setup
 
-.PHONY: setup demo test test-all clean
+.PHONY: setup demo test test-all lint clean
 
 setup: $(STAMP)
 
@@ -13,6 +13,12 @@ $(STAMP): pyproject.toml scripts/setup.sh
 
 demo: setup
 	$(VENV)/bin/tidee demo
+
+# ruff (format + the rules in pyproject.toml) and mypy: what CI runs before the tests.
+lint: setup
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
 
 test: setup
 	$(PY) -m pytest -q

@@ -29,19 +29,49 @@ AI2THORPlacement and MessyPlacement are reference rows built from the episode re
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, get_args
 
-from tidee.agent.mapping.maps import MapConfig
-from tidee.agent.perception import PERCEPTIONS
-from tidee.agent.reasoning.oop import check_oop_detector
+from tidee import argtypes
+from tidee.agent.mapping.config import MapConfig
+from tidee.agent.perception import PERCEPTIONS, PerceptionMode
+from tidee.agent.reasoning.oop import OOP_DETECTORS, check_oop_detector
 from tidee.agent.reasoning.placement import PAPER_VARIANTS, PLACEMENT_MODELS, check_variant
+from tidee.launch import RunConfig
+from tidee.options import option
+from tidee.paths import RUNS_DIR
+from tidee.protocol.messages import EpisodeSpec
 
 # The paper's agents (Table 1), the default of `tidee eval tidy`. Validation reads the registry,
 # PLACEMENT_MODELS, which also holds any variant a user registers.
 AGENT_VARIANTS = PAPER_VARIANTS
 REFERENCE_VARIANTS = ("AI2THORPlacement", "MessyPlacement")
 BUILT_VARIANTS = AGENT_VARIANTS
-EXPLORERS = ("random", "frontier")
+# How unexplored space is mapped: random reachable goals, or the nearest frontier.
+Explorer = Literal["random", "frontier"]
+EXPLORERS: tuple[Explorer, ...] = get_args(Explorer)
+# Where depth comes from: the sensor, or the shipped depth network from RGB (the paper's +est. depth).
+DepthSource = Literal["sensor", "estimated"]
+DEPTH_SOURCES: tuple[DepthSource, ...] = get_args(DepthSource)
+# The top-ranked receptacle class is not in memory: skip to the ranked classes in memory first,
+# or search for it first (the paper's Algorithm S1).
+MissingTop = Literal["skip", "search"]
+MISSING_TOP: tuple[MissingTop, ...] = get_args(MissingTop)
+
+
+class _OOPChoices:
+    """``--oop`` choices: "auto" and every registered OOP detector (a live view of the registry)."""
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(("auto", *OOP_DETECTORS))
+
+    def __contains__(self, name: object) -> bool:
+        return name == "auto" or name in OOP_DETECTORS
+
+    def __len__(self) -> int:
+        return 1 + len(OOP_DETECTORS)
 
 
 def check_variant_built(variant: str) -> None:
@@ -54,29 +84,33 @@ def check_variant_built(variant: str) -> None:
     check_variant(variant)
 
 
-MISSING_TOP = ("skip", "search")
-
-
 @dataclass
 class PolicyConfig:
     """Thresholds of Algorithm 1 (paper supplement 'Pseudo code')."""
 
-    explore_unexplored_stop: float = 0.12  # A: stop mapping when this fraction of reachable map is unexplored
-    mapping_step_budget: int = 320  # mapping never takes more than this many steps
-    goal_step_budget: int = 60  # steps to reach one navigation goal before giving up
-    oop_threshold: float = 0.5  # P(OOP) at or above which an object is picked
-    sure_oop: float = 0.9  # P(OOP) at which a track seen once is picked at its projected
-    # centroid when the detector misses it up close
-    k_empty_goals: int = 8  # k: stop after this many search goals without a new OOP object
-    m_place_tries: int = 3  # m: placement attempts per receptacle class before moving on
-    max_receptacle_classes: int = 3  # ranked receptacle classes tried before searching / dropping
-    search_goals: int = 4  # goals visited when searching for a receptacle not in memory
-    missing_top: str = "skip"  # the top-ranked receptacle class is not in memory: "skip" to
-    # the ranked classes in memory first (search for it only after
-    # them), or "search" for it first (Algorithm S1)
-    interact_m: float = 1.35  # aim to interact within this eye-to-target distance (server: 1.5)
-    approach_m: float = 0.9  # navigation stop radius around an object's (x, y)
-    reserve_steps: int = 15  # stop handling new objects when fewer steps than this remain
+    explore_unexplored_stop: float = option(
+        0.12, "A: stop mapping when this fraction of the reachable map is unexplored"
+    )
+    mapping_step_budget: int = option(320, "mapping never takes more than this many steps")
+    goal_step_budget: int = option(60, "steps to reach one navigation goal before giving up")
+    oop_threshold: float = option(0.5, "P(out of place) at or above which an object is picked")
+    sure_oop: float = option(
+        0.9,
+        "P(out of place) at which a track seen once is picked at its projected centroid when the "
+        "detector misses it up close",
+    )
+    k_empty_goals: int = option(8, "k: stop after this many search goals without a new out-of-place object")
+    m_place_tries: int = option(3, "m: placement attempts per receptacle class before moving on")
+    max_receptacle_classes: int = option(3, "ranked receptacle classes tried before searching / dropping")
+    search_goals: int = option(4, "goals visited when searching for a receptacle not in memory")
+    missing_top: MissingTop = option(
+        "skip",
+        "the top-ranked receptacle class is not in memory: skip to the ranked classes in memory "
+        "(search for it only after them) | search for it first (the paper's Algorithm S1)",
+    )
+    interact_m: float = option(1.35, "aim to interact within this eye-to-target distance, m (server: 1.5)")
+    approach_m: float = option(0.9, "navigation stop radius around an object's (x, y), m")
+    reserve_steps: int = option(15, "stop handling new objects when fewer steps than this remain")
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.explore_unexplored_stop < 1.0:
@@ -99,21 +133,41 @@ class PolicyConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
 
 
-DEPTH_SOURCES = ("sensor", "estimated")
-
-
 @dataclass
 class AgentConfig:
-    variant: str = "TIDEE"  # the paper's agent; see the table above
-    perception: str = "learned"  # the shipped RGB-D detector; "oracle" reads the segmentation
-    depth: str = "sensor"  # "estimated": depth from RGB by the shipped depth network
-    oop: str = "auto"  # auto: the detector's OOP head (visual) with learned perception,
-    # the language classifier with oracle perception
-    explorer: str = "random"  # how unexplored space is mapped: random goals | frontier
-    detection_threshold: float | None = None  # learned detector's score threshold (None: AGENT_THRESHOLD)
-    seed: int = 0  # the agent's own random draws (goal sampling, RandomReceptacle)
-    policy: PolicyConfig = field(default_factory=PolicyConfig)
-    map: MapConfig = field(default_factory=MapConfig)
+    """The agent: which variant, which perception, which out-of-place detector, how it explores."""
+
+    variant: str = option(
+        "TIDEE",
+        "the agent (placement + receptacle search; see agent/config.py); any registered placement model",
+        choices=PLACEMENT_MODELS,
+    )
+    perception: PerceptionMode = option(
+        "learned", "learned: the shipped RGB-D detector | oracle: reads the simulator's segmentation"
+    )
+    depth: DepthSource = option(
+        "sensor", "estimated: depth from RGB by the shipped depth network (the paper's +est. depth)"
+    )
+    oop: str = option(
+        "auto",
+        "out-of-place detector; auto: visual (the detector's OOP head) with learned perception, "
+        "language with oracle perception",
+        choices=_OOPChoices(),
+    )
+    explorer: Explorer = option("random", "how unexplored space is mapped: random goals | frontier")
+    detection_threshold: float | None = option(
+        None,
+        "learned detector's score threshold (default: 0.3, perception.AGENT_THRESHOLD)",
+        type=argtypes.non_negative_float,
+    )
+    seed: int = option(
+        0,
+        "the agent's own random draws (goal sampling, RandomReceptacle)",
+        flag="--agent-seed",
+        type=argtypes.non_negative_int,
+    )
+    policy: PolicyConfig = option(default_factory=PolicyConfig)
+    map: MapConfig = option(default_factory=MapConfig, cli=False)
 
     def __post_init__(self) -> None:
         check_variant_built(self.variant)
@@ -137,3 +191,66 @@ class AgentConfig:
             raise ValueError(
                 "--oop visual reads the learned detector's OOP head: it needs --perception learned"
             )
+
+
+@dataclass
+class AgentProcessConfig:
+    """``tidee agent``: one agent process, its episodes and its connection to a server."""
+
+    agent: AgentConfig = option(default_factory=AgentConfig)
+    spec: EpisodeSpec = option(default_factory=lambda: EpisodeSpec(seed=200, mess_index=0))
+    endpoint: str | None = option(
+        None,
+        "Zenoh rendezvous endpoint (default: loopback, see protocol/README.md)",
+        type=argtypes.endpoint,
+    )
+    router: str | None = option(
+        None, "connect to this Zenoh router instead of peer mode", type=argtypes.endpoint
+    )
+    server_id: str = option("sim0", "the simulation server to use")
+    session: str | None = option(None, "session id (default: agent-<random>)")
+    episodes: int = option(
+        1, "episodes on consecutive mess indices from --mess-index", type=argtypes.positive_int
+    )
+    serve: bool = option(False, "afterwards, wait for new_episode commands from a viewer")
+    log_dir: Path | None = option(
+        None,
+        "episode logs, replay with tidee viewer --replay (default: runs/ in the tidee checkout)",
+        type=argtypes.output_path,
+    )
+    connect_timeout: float = option(
+        60.0, "seconds to wait for the server to appear before giving up", type=argtypes.non_negative_float
+    )
+    reconnect_timeout: float = option(
+        60.0,
+        "if the server goes away mid-episode, seconds to wait for it to come back before giving up; "
+        "the episode then runs again from the start (at most 3 times; 0: give up at once)",
+        type=argtypes.non_negative_float,
+    )
+    threads: int = option(
+        0,
+        "torch/OpenMP threads (0: the cores this process may use; tidee run gives the agent the cores "
+        "the server does not use)",
+        type=argtypes.non_negative_int,
+    )
+    score: bool = option(True, "score each episode at its end (the summary's moved / found)", cli=False)
+
+    def __post_init__(self) -> None:
+        if not self.reconnect_timeout >= 0:
+            raise ValueError(
+                f"reconnect_timeout must be a number of seconds >= 0, got {self.reconnect_timeout}"
+            )
+        if self.log_dir is None:
+            self.log_dir = RUNS_DIR
+
+
+@dataclass
+class LiveRunConfig:
+    """``tidee run`` / ``tidee demo``: server + agent + viewer as separate processes."""
+
+    agent: AgentProcessConfig = option(default_factory=AgentProcessConfig)
+    launch: RunConfig = option(default_factory=RunConfig)
+
+
+# AgentProcessConfig flags `tidee run` does not take: it starts its own server on its own endpoint.
+LIVE_RUN_SKIP = ("agent.endpoint", "agent.router", "agent.server_id")

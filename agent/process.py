@@ -13,9 +13,8 @@ import signal
 import sys
 import time
 import uuid
-from dataclasses import dataclass
 
-from tidee.agent.config import AgentConfig
+from tidee.agent.config import AgentProcessConfig
 from tidee.agent.runner import EpisodeResult, EpisodeRunner, format_summary
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.protocol.client import RemoteError, SimClient
@@ -25,28 +24,6 @@ from tidee.protocol.zenoh_config import ZenohOpenError, open_session
 log = logging.getLogger("tidee.agent")
 
 MAX_RECONNECTS = 3  # re-runs of one episode after its server went away
-
-
-@dataclass
-class AgentProcessConfig:
-    agent: AgentConfig
-    spec: EpisodeSpec
-    endpoint: str | None = None
-    router: str | None = None
-    server_id: str = "sim0"
-    session: str | None = None
-    episodes: int = 1  # consecutive mess indices from spec.mess_index
-    serve: bool = False  # after them, wait for viewers' new_episode commands
-    log_dir: str | None = "runs"
-    connect_timeout: float = 60.0
-    score: bool = True  # score each episode at its end (the summary's moved / found / plausible)
-    reconnect_timeout: float = 60.0  # s to wait for a vanished server to come back (0: give up at once)
-
-    def __post_init__(self) -> None:
-        if not self.reconnect_timeout >= 0:
-            raise ValueError(
-                f"reconnect_timeout must be a number of seconds >= 0, got {self.reconnect_timeout}"
-            )
 
 
 def run_agent_process(cfg: AgentProcessConfig) -> int:

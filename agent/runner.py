@@ -131,7 +131,7 @@ class AgentModels:
         perception = make_perception(config.perception, config.detection_threshold)
         depth_net = None
         if config.depth == "estimated":
-            from tidee.agent.perception.depth_net import DepthEstimator
+            from tidee.agent.perception.depth.model import DepthEstimator
 
             depth_net = DepthEstimator.load()
         oop = make_oop(config.oop)
@@ -176,7 +176,7 @@ class EpisodeRunner:
                 f"noted preference {text!r}; only the language / fused OOP classifiers learn from "
                 f"instructions (this agent runs --oop {self.cfg.oop})"
             )
-        from tidee.agent.reasoning.language_oop import apply_instruction
+        from tidee.agent.reasoning.language_oop.instructions import apply_instruction
 
         try:
             report = apply_instruction(classifier, text)

@@ -31,7 +31,7 @@ env.action_space.seed(0)  # the random actions below are reproducible too
 print(f"reset: rgb {obs['rgb'].shape}, depth {obs['depth'].shape}, pose {obs['pose']}")
 # Random actions, all but Done (which would end the episode at once).
 not_done = np.array([a.value != "Done" for a in ACTIONS], np.int8)
-for t in range(8):
+for _ in range(8):
     action = env.action_space.sample(mask={"action": not_done, "point": None})
     obs, reward, terminated, truncated, info = env.step(action)
     name = ACTIONS[action["action"]].value

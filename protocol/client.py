@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 import threading
 import uuid
-from typing import Any
+from typing import Any, cast
 
 import zenoh
 
@@ -136,7 +136,8 @@ class SimClient:
             ) from None
         if reply.ok is not None:
             return self._decode(reply.ok.payload.to_bytes(), (reply_type, ErrorReply), op)
-        payload = reply.err.payload.to_bytes()
+        # A zenoh reply holds exactly one of ok and err; its stubs type each as optional.
+        payload = cast("zenoh.ReplyError", reply.err).payload.to_bytes()
         if payload == _ZENOH_TIMEOUT:
             raise TimeoutError(f"no reply to {op} on {key} within {timeout} s")
         return self._decode(payload, ErrorReply, op)

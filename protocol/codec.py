@@ -36,7 +36,6 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 
 from tidee.protocol import messages
@@ -203,18 +202,23 @@ def _encode_array(
         raise TypeError(f"field '{path}' must be {spec.describe()}, got {arr.dtype} {arr.shape}")
     if encoding != "raw" and spec is not None and spec.image == "color":
         ext = ".jpg" if encoding == "jpeg" else ".png"
+        import cv2  # OpenCV loads with the first compressed image, not with the protocol
+
         params = [cv2.IMWRITE_JPEG_QUALITY, quality] if encoding == "jpeg" else []
         ok, buf = cv2.imencode(ext, cv2.cvtColor(arr, cv2.COLOR_RGB2BGR), params)
         if not ok:
             raise ValueError(f"opencv could not {encoding}-encode field '{path}'")
         return buffers.add(buf.reshape(-1).data, dtype, arr.shape, encoding)
     if encoding != "raw" and spec is not None and spec.image == "depth":
+        import cv2
+
         mm = np.nan_to_num(arr * 1000.0, nan=0.0, posinf=0.0, neginf=0.0)
         ok, buf = cv2.imencode(".png", np.clip(np.rint(mm), 0, 65535).astype(np.uint16))
         if not ok:
             raise ValueError(f"opencv could not png-encode field '{path}'")
         return buffers.add(buf.reshape(-1).data, dtype, arr.shape, "png-depth-mm")
-    return buffers.add(memoryview(arr).cast("B"), dtype, arr.shape, "raw")
+    # numpy's stubs declare ndarray's buffer protocol (__buffer__) for Python >= 3.12 only.
+    return buffers.add(memoryview(arr).cast("B"), dtype, arr.shape, "raw")  # type: ignore[arg-type]
 
 
 # --- decode -----------------------------------------------------------------------------
@@ -315,6 +319,10 @@ class _Decoder:
             raise _invalid(path, f"{_describe(hint)}, not null", value)
         if hint is np.ndarray:
             return self.array(value, path, array_spec)
+        if origin is typing.Literal:  # one of a vocabulary (protocol/vocab.py), e.g. a room type
+            if value in args and type(value) is type(args[0]):
+                return value
+            raise _invalid(path, f"one of {list(args)}", value)
         if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             if not isinstance(value, dict):
                 raise _invalid(path, f"an object ({hint.__name__})", value)
@@ -439,6 +447,8 @@ def _decode_image(buf: memoryview, shape: tuple[int, ...], image: str | None, pa
             ErrorCode.invalid_field,
             f"field '{path}': the compressed image is {dims[0]}x{dims[1]}, declared {shape[:2]}",
         )
+    import cv2  # OpenCV loads with the first compressed image, not with the protocol
+
     raw = np.frombuffer(buf, np.uint8)
     if image == "color":
         bgr = cv2.imdecode(raw, cv2.IMREAD_COLOR)

@@ -59,7 +59,9 @@ class TidyEnv(gym.Env[dict[str, np.ndarray], dict[str, Any]]):
                 "point": spaces.Box(0.0, 1.0, (2,), np.float32),
             }
         )
-        self.observation_space = spaces.Dict(
+        # gymnasium types spaces.Dict as Space[dict[str, Space]] (its subspaces), not as the
+        # space of the dicts of samples it holds.
+        self.observation_space = spaces.Dict(  # type: ignore[assignment]
             {
                 "rgb": spaces.Box(0, 255, (r, r, 3), np.uint8),
                 "depth": spaces.Box(0.0, MAX_DEPTH_M, (r, r), np.float32),

@@ -22,7 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from tidee.protocol.vocab import ROOM_TYPES
+from tidee import argtypes
+from tidee.options import option
+from tidee.protocol.vocab import ROOM_TYPES, RoomType
 
 PROTOCOL_VERSION = 1
 
@@ -81,7 +83,6 @@ class ErrorCode(str, Enum):
 
 
 IMAGE_ENCODINGS = ("raw", "jpeg", "png")  # how observation images travel (protocol/README.md)
-SPLITS = ("train", "val", "test")
 
 
 @dataclass
@@ -105,15 +106,17 @@ class Action:
 class EpisodeSpec:
     """What a reset asks for: which room, which mess, which camera."""
 
-    room_type: str = "LivingRoom"
-    seed: int = 0
-    mess_index: int | None = None  # None: the tidy room; else messy configuration #i
-    resolution: int = 256  # square images
-    camera_height: float = 0.9015  # metres, the paper's
-    max_steps: int = 1000
-    pose_noise: bool = False  # LoCoBot-like: 0.005 m per move, 0.5 deg per turn
-    depth_noise: bool = False
-    start_seed: int | None = None  # spawn pose; None: near the room centre, from seed
+    room_type: RoomType = option("LivingRoom", "the room type")
+    seed: int = option(0, "room seed (200-204 are test rooms)", type=argtypes.non_negative_int)
+    mess_index: int | None = option(
+        None, "messy configuration index (default: the tidy room)", type=argtypes.non_negative_int
+    )
+    resolution: int = option(256, "square images, pixels a side", type=argtypes.resolution)
+    camera_height: float = option(0.9015, "camera height, metres (the paper's)", cli=False)
+    max_steps: int = option(1000, "the episode's step budget", type=argtypes.max_steps)
+    pose_noise: bool = option(False, "LoCoBot-like pose noise: 0.005 m per move, 0.5 deg per turn")
+    depth_noise: bool = option(False, "noisy depth")
+    start_seed: int | None = option(None, "spawn pose; None: near the room centre, from seed", cli=False)
 
     def __post_init__(self) -> None:
         if self.room_type not in ROOM_TYPES:

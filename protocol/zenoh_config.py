@@ -74,7 +74,8 @@ class ZenohOpenError(ConnectionError):
 
 
 def open_session(listen: bool, endpoint: str | None = None, router: str | None = None) -> zenoh.Session:
-    """``zenoh.open(make_config(...))``, with Zenoh's refusal turned into a ``ZenohOpenError`` naming the endpoint."""
+    """``zenoh.open(make_config(...))``, with Zenoh's refusal turned into a ``ZenohOpenError``
+    naming the endpoint."""
     try:
         return zenoh.open(make_config(listen, endpoint, router))
     except zenoh.ZError as e:

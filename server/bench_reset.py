@@ -69,8 +69,8 @@ def fill_cache(split: str, workers: int = 1, directory: str | None = None, limit
     before = sum(1 for c in configs if cache.path(*c).exists())
     t0 = time.perf_counter()
     if workers <= 1:
-        for c in chunks:
-            _fill_chunk(c)
+        for chunk_args in chunks:
+            _fill_chunk(chunk_args)
     else:
         with ProcessPoolExecutor(max_workers=workers) as pool:
             list(pool.map(_fill_chunk, chunks))

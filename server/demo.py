@@ -1,8 +1,9 @@
 """``tidee scene tour``: the server as its own process, a client over Zenoh.
 
-It starts ``tidee server`` on embedded Zenoh (peer mode, loopback), connects a client, resets a messy room, looks around (one full turn, looking
-down at each heading), and saves what it saw plus a top-down render with the moved
-objects circled. It prints every file it wrote.
+It starts ``tidee server`` on embedded Zenoh (peer mode, loopback), connects a client,
+resets a messy room, looks around (one full turn, looking down at each heading), and saves
+what it saw plus a top-down render with the moved objects circled. It prints every file it
+wrote.
 """
 
 from __future__ import annotations

@@ -142,7 +142,9 @@ class Mesh:
 
 
 def _box(half: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    verts, norms, tris = [], [], []
+    verts: list[np.ndarray] = []
+    norms: list[np.ndarray] = []
+    tris: list[np.ndarray] = []
     for ax in range(3):
         a, b = [i for i in range(3) if i != ax]
         for s in (-1.0, 1.0):
@@ -167,7 +169,9 @@ def _revolve(profile: np.ndarray, segments: int = 20) -> tuple[np.ndarray, np.nd
     """Surface of revolution of (r, z) points about z, with caps where r > 0 at the ends."""
     th = np.linspace(0, 2 * np.pi, segments, endpoint=False)
     ring = np.stack([np.cos(th), np.sin(th)], axis=1)
-    verts, norms, tris = [], [], []
+    verts: list[list[float]] = []
+    norms: list[list[float]] = []
+    tris: list[list[int]] = []
     n_prof = len(profile)
     for i in range(n_prof - 1):
         (r0, z0), (r1, z1) = profile[i], profile[i + 1]

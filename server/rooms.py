@@ -15,7 +15,6 @@ Everything random comes from one numpy Generator seeded by (room type, seed).
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -627,16 +626,12 @@ def _floor_spot(
 
 
 def rooms_version(version: int | None = None) -> int:
-    """The room generator's version: ``version``, else $TIDEE_ROOMS, else 1.
+    """The room generator's version: ``version``, else 1.
 
     1 is the generator every shipped model and report so far used. 2 keeps the rooms' small objects
     closer to the placement prior (:func:`populate`); its rooms differ from 1's in every small object."""
     if version is None:
-        raw = os.environ.get("TIDEE_ROOMS", "1").strip()
-        try:
-            version = int(raw.lstrip("v"))
-        except ValueError:
-            raise ValueError(f"TIDEE_ROOMS must be one of {ROOMS_VERSIONS}, got {raw!r}") from None
+        version = 1
     if version not in ROOMS_VERSIONS:
         raise ValueError(f"the room generator version must be one of {ROOMS_VERSIONS}, got {version!r}")
     return int(version)
@@ -729,7 +724,7 @@ def generate_scene(
 ) -> Scene:
     """The tidy room for (room_type, seed), settled by physics. Deterministic.
 
-    ``version``: the generator's version (:func:`rooms_version`; None: $TIDEE_ROOMS, else 1)."""
+    ``version``: the generator's version (:func:`rooms_version`; None: 1)."""
     version = rooms_version(version)
     if room_type not in ROOM_TEMPLATES:
         raise ValueError(f"room_type must be one of {sorted(ROOM_TEMPLATES)}, got {room_type!r}")

@@ -70,10 +70,10 @@ from tidee.protocol.messages import (
     StepRequest,
 )
 from tidee.protocol.transport import EpisodeLike
-from tidee.protocol.vocab import RENDERERS
 from tidee.protocol.zenoh_config import make_config
+from tidee.server.config import ServerConfig
 from tidee.server.splits import check_mess_index
-from tidee.server.workers import EpisodeProcesses, available_cores
+from tidee.server.workers import EpisodeProcesses
 
 log = logging.getLogger("tidee.server")
 
@@ -86,36 +86,6 @@ REQUEST_TYPES: dict[str, type] = {
 INBOX_CAPACITY = 1024  # queries or liveliness events waiting for a dispatcher
 DEPARTED_MEMORY = 4096  # how many vanished or reclaimed session ids are remembered
 REAPER_PERIOD_S = 5.0  # the idle reaper looks this often (at timeout/4 for short timeouts)
-
-
-@dataclass
-class ServerConfig:
-    endpoint: str | None = None  # listen here (default: TIDEE_ZENOH_ENDPOINT, else loopback:7447)
-    router: str | None = None  # or: client mode through this Zenoh router (TIDEE_ZENOH_ROUTER)
-    max_sessions: int = 16
-    renderer: str = "tiny"  # auto | egl | tiny; tiny: the frames the shipped detector was trained on
-    server_id: str = "sim0"
-    processes: int = 0  # child processes running episodes; 0: one per available core
-    workers: int = 1  # threads running episodes when a factory is given (module docstring)
-    max_request_bytes: int = 1 << 20  # requests carry no arrays
-    max_sessions_per_client: int = 4  # sessions one client (``client_of``) may hold at once
-    idle_timeout_s: float = 300.0  # free a session after this long without a request; 0: never
-
-    def __post_init__(self) -> None:
-        keys.check_id("server_id", self.server_id)
-        if self.renderer not in RENDERERS:
-            raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
-        for name in ("max_sessions", "workers", "max_request_bytes", "max_sessions_per_client"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if int(self.processes) < 0:
-            raise ValueError(f"processes must be >= 0 (0: one per available core), got {self.processes}")
-        if not float(self.idle_timeout_s) >= 0:
-            raise ValueError(f"idle_timeout_s must be >= 0 seconds (0: never), got {self.idle_timeout_s}")
-
-    def process_count(self) -> int:
-        """How many child processes the default episodes run in."""
-        return min(self.processes or available_cores(), self.max_sessions)
 
 
 def client_of(query: zenoh.Query, session: str) -> str:
@@ -203,7 +173,7 @@ class SimServer:
         self._inbound: list[Any] = []  # queryable + liveliness subscriber
         self._dispatchers: list[threading.Thread] = []
         self._server_token: Any = None
-        self._handlers: dict[str, Callable[[Any], Any]] = {
+        self._handlers: dict[str, Callable[[Any, str], Any]] = {
             "reset": self._reset,
             "step": self._step,
             "state": self._state,

@@ -5,11 +5,11 @@ forked Zenoh or GL state) that hosts any number of episodes, each under an integ
 executes ``open`` / ``reset`` / ``step`` / ``state`` / ``close`` sent over a Pipe, one
 request at a time. Its episodes share one ``SceneLibrary`` (and so its in-memory LRU; the
 on-disk scene cache is shared by every process), and a closed real episode is kept for the
-next ``open`` (PyBullet does not give back all of a disconnected client's memory). A :class:`RemoteEpisode` is the parent's
-handle on one of them: it implements ``EpisodeLike``, so the server holds it exactly as it
-would hold an ``Episode``. :class:`EpisodeProcesses` is the server's set of them, one per
-worker thread; the thread with index *i* is the only one that talks to process *i*, so a
-pipe is never shared between threads and needs no lock.
+next ``open`` (PyBullet does not give back all of a disconnected client's memory). A
+:class:`RemoteEpisode` is the parent's handle on one of them: it implements ``EpisodeLike``,
+so the server holds it exactly as it would hold an ``Episode``. :class:`EpisodeProcesses` is
+the server's set of them, one per worker thread; the thread with index *i* is the only one
+that talks to process *i*, so a pipe is never shared between threads and needs no lock.
 
 Errors: an exception raised in the child is pickled and raised again in the parent with its
 type and message (the child's traceback rides along as its ``__cause__``, as in

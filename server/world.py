@@ -141,7 +141,7 @@ class World:
         self._gl: EGLContext | None = None
         # "auto" takes EGL (faster than TinyRenderer, even on llvmpipe) when the plugin
         # loads, and falls back to TinyRenderer otherwise.
-        if renderer in ("auto", "egl"):
+        if renderer != "tiny":
             self._load_egl()
             if self._gl is not None:
                 self.renderer = "egl"

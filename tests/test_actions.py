@@ -173,7 +173,7 @@ def test_done_and_step_cap(ep):
     s = spec()
     s.max_steps = 3
     ep.load(table_room(), s, (1.0, 1.0), yaw_deg=0)
-    for k in range(3):
+    for _ in range(3):
         obs = ep.step(Action(A.RotateLeft))
     assert obs.done and obs.steps_left == 0
 

@@ -17,6 +17,7 @@ from tidee.agent.reasoning.stats import PlacementStats, build_stats
 from tidee.agent.telemetry import RateLimiter
 from tidee.protocol.episode_log import LogReader, LogWriter
 from tidee.protocol.messages import AgentStatus, ReceptaclePrediction
+from tidee.protocol.vocab import ROOM_TYPES
 
 
 def _memory_with(*entries: tuple[str, tuple, tuple, tuple]) -> ObjectMemory:
@@ -115,7 +116,7 @@ def test_common_memory_ranks_by_training_frequency_whatever_the_room() -> None:
 def test_select_configs_spreads_over_room_types() -> None:
     configs = select_configs("test", 8)
     assert len(configs) == 8
-    assert {c.room_type for c in configs} == {"Kitchen", "LivingRoom", "Bedroom", "Bathroom"}
+    assert {c.room_type for c in configs} == set(ROOM_TYPES)
     assert all(c.seed in range(200, 205) for c in configs)
     assert len(select_configs("test", None)) == 100
 

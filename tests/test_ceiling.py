@@ -18,6 +18,8 @@ from tidee.agent.evaluation.ceiling import (
     survey,
 )
 from tidee.agent.evaluation.judge import judge_score
+from tidee.agent.reasoning.rgcn.config import CeilingConfig
+from tidee.protocol.vocab import ROOM_TYPES
 from tidee.server.catalog import receptacle_weights
 from tidee.server.rooms import generate_scene, rooms_version
 from tidee.server.world import World
@@ -81,7 +83,8 @@ def test_rooms_learner_follows_the_counts_and_common_memory_pools_them():
 
 
 def test_ceilings_on_hand_built_episodes():
-    # The agents put the watch and the phone on the side table (TIDEE) and on the dresser / bed (CommonMemory).
+    # The agents put the watch and the phone on the side table (TIDEE) and on the dresser / bed
+    # (CommonMemory).
     records = _records(
         {"Watch_1": "SideTable", "CellPhone_1": "SideTable"}, {"Watch_1": "Dresser", "CellPhone_1": "Bed"}
     )
@@ -132,26 +135,21 @@ def test_a_report_without_common_memory_is_refused(tmp_path):
     path = tmp_path / "report.json"
     path.write_text(json.dumps({"episodes": [records[0]]}))
     with pytest.raises(ValueError, match="CommonMemory"):
-        run_ceiling([str(tmp_path)], tmp_path / "out", rooms_per_type=1, progress=False)
+        run_ceiling(CeilingConfig((str(tmp_path),), str(tmp_path / "out"), rooms_per_type=1), progress=False)
     with pytest.raises(FileNotFoundError, match="no tidy report"):
-        run_ceiling([str(tmp_path / "missing")], tmp_path / "out", rooms_per_type=1, progress=False)
+        run_ceiling(
+            CeilingConfig((str(tmp_path / "missing"),), str(tmp_path / "out"), rooms_per_type=1),
+            progress=False,
+        )
 
 
-def test_rooms_version_from_the_environment(monkeypatch):
-    monkeypatch.delenv("TIDEE_ROOMS", raising=False)
-    assert rooms_version() == 1
-    monkeypatch.setenv("TIDEE_ROOMS", "v2")
-    assert rooms_version() == 2
-    assert rooms_version(1) == 1
-    monkeypatch.setenv("TIDEE_ROOMS", "newest")
-    with pytest.raises(ValueError, match="TIDEE_ROOMS must be one of"):
-        rooms_version()
+def test_rooms_version_is_an_explicit_choice():
+    assert rooms_version() == 1 and rooms_version(1) == 1 and rooms_version(2) == 2
     with pytest.raises(ValueError, match="version must be one of"):
         rooms_version(3)
 
 
-def test_version_2_rooms_are_deterministic_and_keep_the_furniture(monkeypatch):
-    monkeypatch.delenv("TIDEE_ROOMS", raising=False)
+def test_version_2_rooms_are_deterministic_and_keep_the_furniture():
     world = World(renderer="tiny")
     try:
         v1 = generate_scene("Bedroom", 10190, world=world)
@@ -176,9 +174,4 @@ def test_survey_counts_every_object_once():
     s = survey(1, version=1, progress=False)
     assert s["rooms"] == 4 and s["seeds"] == [10185, 10185]
     assert sum(sum(c.values()) for c in s["counts"].values()) == s["objects"] > 0
-    assert 0.0 <= s["tv"] <= 1.0 and set(s["tv_by_room_type"]) <= {
-        "Kitchen",
-        "LivingRoom",
-        "Bedroom",
-        "Bathroom",
-    }
+    assert 0.0 <= s["tv"] <= 1.0 and set(s["tv_by_room_type"]) <= set(ROOM_TYPES)

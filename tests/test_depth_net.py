@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 import numpy as np
 import pytest
@@ -13,17 +14,12 @@ torch = pytest.importorskip("torch")
 
 from tidee.agent.classes import CLASSES  # noqa: E402
 from tidee.agent.learning import write_manifest  # noqa: E402
-from tidee.agent.perception import depth_net  # noqa: E402
-from tidee.agent.perception.dataset import pack  # noqa: E402
-from tidee.agent.perception.depth_net import (  # noqa: E402
-    DepthEstimator,
-    DepthNet,
-    evaluate_depth,
-    save_examples,
-    to_tensors,
-    train_depth,
-    train_step,
-)
+from tidee.agent.perception.depth import train as depth_train  # noqa: E402
+from tidee.agent.perception.depth.config import DepthTrainConfig  # noqa: E402
+from tidee.agent.perception.depth.eval import evaluate_depth, save_examples  # noqa: E402
+from tidee.agent.perception.depth.model import DepthEstimator, DepthNet  # noqa: E402
+from tidee.agent.perception.depth.train import to_tensors, train_depth, train_step  # noqa: E402
+from tidee.agent.perception.detector.data import pack  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -59,7 +55,7 @@ def synthetic_frames(n: int = 8, size: int = 64, seed: int = 0) -> dict[str, np.
     return pack(frames)
 
 
-def write_shards(root, frames: dict[str, np.ndarray]) -> None:
+def write_shards(root, frames: dict[str, Any]) -> None:
     root.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(root / "shard_p0_0000.npz", **frames)
     (root / "manifest.json").write_text(
@@ -128,17 +124,20 @@ def test_a_few_steps_reduce_the_loss():
 def test_training_is_reproducible_and_resumable(tmp_path, monkeypatch):
     data = tmp_path / "data"
     write_shards(data, synthetic_frames(n=8))
-    kw = dict(
-        steps=4, batch_size=2, lr=2e-3, seed=3, progress=False, eval_set=None, checkpoint_every=1, log_every=1
-    )
 
-    straight = train_depth(data, tmp_path / "a.pt", work_dir=tmp_path / "run_a", **kw)
+    def config(out: str, work_dir: str, **changes) -> DepthTrainConfig:
+        kw = dict(steps=4, batch_size=2, lr=2e-3, seed=3, eval_set=None, checkpoint_every=1, log_every=1)
+        return DepthTrainConfig(
+            data=str(data), out=str(tmp_path / out), work_dir=str(tmp_path / work_dir), **{**kw, **changes}
+        )
+
+    straight = train_depth(config("a.pt", "run_a"), progress=False)
     manifest = json.loads((tmp_path / "a.json").read_text())
     assert manifest["data"] == {"dir": str(data), "command": "synthetic", "rooms": 2, "frames": 8}
     assert (tmp_path / "run_a" / "depth_loss.png").exists()
 
     # Interrupt a second run after two steps, then resume it: it must end where the first did.
-    real_step, calls = depth_net.train_step, []
+    real_step, calls = depth_train.train_step, []
 
     def interrupted(*args, **kwargs):
         if len(calls) == 2:
@@ -146,11 +145,11 @@ def test_training_is_reproducible_and_resumable(tmp_path, monkeypatch):
         calls.append(1)
         return real_step(*args, **kwargs)
 
-    monkeypatch.setattr(depth_net, "train_step", interrupted)
+    monkeypatch.setattr(depth_train, "train_step", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        train_depth(data, tmp_path / "b.pt", work_dir=tmp_path / "run_b", **kw)
-    monkeypatch.setattr(depth_net, "train_step", real_step)
-    resumed = train_depth(data, tmp_path / "b.pt", work_dir=tmp_path / "run_b", resume=True, **kw)
+        train_depth(config("b.pt", "run_b"), progress=False)
+    monkeypatch.setattr(depth_train, "train_step", real_step)
+    resumed = train_depth(config("b.pt", "run_b", resume=True), progress=False)
 
     assert resumed["final_loss"] == straight["final_loss"]
     a = torch.load(tmp_path / "a.pt", weights_only=True)["state_dict"]
@@ -158,7 +157,7 @@ def test_training_is_reproducible_and_resumable(tmp_path, monkeypatch):
     assert all(torch.equal(a[k], b[k]) for k in a)
 
     with pytest.raises(ValueError, match="different run"):
-        train_depth(data, tmp_path / "c.pt", work_dir=tmp_path / "run_b", resume=True, **{**kw, "seed": 4})
+        train_depth(config("c.pt", "run_b", resume=True, seed=4), progress=False)
 
 
 def test_metrics_perfect_and_constant(tmp_path):
@@ -193,20 +192,35 @@ def test_load_checks_the_manifest(tmp_path):
 def test_eval_refuses_training_rooms(tmp_path):
     parser = argparse.ArgumentParser()
     groups = parser.add_subparsers(dest="cmd")
+    gen_sub = groups.add_parser("gen").add_subparsers()
     train_sub = groups.add_parser("train").add_subparsers()
     eval_sub = groups.add_parser("eval").add_subparsers()
-    from tidee.agent.perception.commands import register
+    from tidee.agent.perception.commands import register, run_eval_depth
+    from tidee.agent.perception.depth.config import DEFAULT_WEIGHTS, DepthEvalConfig, EvalSet
+    from tidee.options import from_args
 
-    register(train_sub, eval_sub)
-    args = parser.parse_args(["eval", "depth", "--split", "train", "--out", str(tmp_path)])
+    register(gen_sub, train_sub, eval_sub)
+    with pytest.raises(SystemExit):  # a held-out split or nothing
+        parser.parse_args(["eval", "depth", "--split", "train", "--out", str(tmp_path)])
     with pytest.raises(ValueError, match="test or val"):
-        args.func(args)
+        run_eval_depth(DepthEvalConfig(split="train", out=str(tmp_path)))  # type: ignore[arg-type]
+    args = parser.parse_args(["eval", "depth", "--split", "val", "--messes", "0", "--out", str(tmp_path)])
+    cfg = from_args(DepthEvalConfig, args)
+    assert cfg == DepthEvalConfig(split="val", eval_set=EvalSet(messes=0), out=str(tmp_path))
+    assert cfg.weights_path == DEFAULT_WEIGHTS
     args = parser.parse_args(["train", "depth", "--steps", "5"])
-    assert args.steps == 5 and args.batch_size >= 1 and not args.resume
+    cfg = from_args(DepthTrainConfig, args)
+    assert cfg.steps == 5 and cfg.batch_size >= 1 and not cfg.resume
+    assert cfg == DepthTrainConfig(steps=5)
+    # the shipped weights came from 1200 steps (agent/weights/depth.json): the default reproduces them
+    assert (
+        DepthTrainConfig().steps
+        == json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())["train"]["steps"]
+    )
 
 
 def test_shipped_weights_on_test_rooms():
-    from tidee.agent.perception.dataset import held_out_frames
+    from tidee.agent.perception.detector.data import held_out_frames
 
     frames = held_out_frames("test", rooms_per_type=1, messes=0, frames_per_walk=1, progress=False)
     metrics = evaluate_depth(DepthEstimator.load(), frames)

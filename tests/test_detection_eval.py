@@ -13,8 +13,12 @@ import numpy as np
 import pytest
 
 from tidee.agent.classes import CLASS_INDEX, PICKUPABLE
-from tidee.agent.evaluation import detection as de
+from tidee.agent.evaluation.detection import commands, report
+from tidee.agent.evaluation.detection import eval as ev
+from tidee.agent.evaluation.detection import metrics as de
+from tidee.agent.evaluation.detection.config import EvalDetectorConfig, EvalFusionConfig, EvalOopConfig
 from tidee.agent.perception.base import Detection
+from tidee.options import from_args
 
 PICK = sorted(PICKUPABLE)
 NON_PICK = sorted(set(CLASS_INDEX) - PICKUPABLE)
@@ -187,7 +191,7 @@ def test_boxes_per_class_and_size():
 
 def oop_frames() -> dict:
     rng = np.random.default_rng(3)
-    objs = []
+    objs: list[tuple[int, str, tuple[float, float, float, float], int]] = []
     for f in range(6):
         for k in range(5):
             x, y = 12 * k, int(rng.integers(0, 40))
@@ -253,10 +257,10 @@ def test_oop_table_lists_unbuilt_rows():
     r = de.evaluate_oop(
         {de.VISUAL_ROW: [[d.oop_prob for d in ds] for ds in dets], "BERT-OOP (language)": None}, dets, frames
     )
-    table = de.oop_table_markdown(r)
+    table = report.oop_table_markdown(r)
     for name in de.OOP_ROWS:
         assert name in table
-    assert table.count(de.NOT_BUILT) == 3  # language (given as None), fused, oracle (absent)
+    assert table.count(report.NOT_BUILT) == 3  # language (given as None), fused, oracle (absent)
     assert "| dDETR-OOP (visual) | 100.00 | 100.00 | 100.00 | 100.00 | 100.00 | 100.00 |" in table
     assert "paper (AI2THOR)" in table and "90.70" in table
 
@@ -274,7 +278,7 @@ def test_paper_figures_match_the_tex():
         line = re.search(r"^\$\\" + macro + r"\$ &(.*)\\\\", tex, re.MULTILINE)
         assert line is not None, macro
         cells = [c.strip().replace(r"\textbf{", "").rstrip("}") for c in line.group(1).split("&")]
-        assert [None if c == "--" else float(c) for c in cells] == list(de.PAPER_TABLE3[row])
+        assert [None if c == "--" else float(c) for c in cells] == list(report.PAPER_TABLE3[row])
 
 
 # ------------------------------------------------------------------------- runners and CLI
@@ -282,9 +286,9 @@ def test_paper_figures_match_the_tex():
 
 def test_run_evals_write_reports(tmp_path, monkeypatch):
     frames = oop_frames()
-    monkeypatch.setattr(de, "held_out_frames", lambda *a, **k: frames)
+    monkeypatch.setattr(ev, "held_out_frames", lambda *a, **k: frames)
     det = GTDetector(frames, jitter=0.5, fp_rate=0.3, oop_noise=0.3, seed=1)
-    r = de.run_detector_eval(det, tmp_path, progress=False)
+    r = ev.run_detector_eval(det, EvalDetectorConfig(out=str(tmp_path)), progress=False)
     assert 0.5 < r["map50"] <= 1.0
     md = (tmp_path / "detector.md").read_text()
     assert "gt-fake" in md and "mAP@0.5" in md and "ms/frame" in md and "Kitchen:200" in md
@@ -292,25 +296,22 @@ def test_run_evals_write_reports(tmp_path, monkeypatch):
     assert (tmp_path / "detector_examples.png").stat().st_size > 1000
 
     calls = []
-    r = de.run_oop_eval(
+    r = ev.run_oop_eval(
         det,
-        tmp_path,
-        views_per_config=4,
-        rooms_per_type=1,
-        messes=1,
+        EvalOopConfig(out=str(tmp_path), views=4, rooms_per_type=1, messes=1),
         progress=False,
         extra_rows={"Oracle-language": lambda fr, ds: (calls.append(1), [[0.5] * len(d) for d in ds])[1]},
     )
     assert calls and r["rows"]["Oracle-language"]["built"] and not r["rows"]["BERT-OOP (language)"]["built"]
     md = (tmp_path / "oop.md").read_text()
-    assert md.count(de.NOT_BUILT) == 2 and "paper (AI2THOR)" in md
+    assert md.count(report.NOT_BUILT) == 2 and "paper (AI2THOR)" in md
     assert r["data"]["configurations_expected"] == 4 and r["data"]["views_max"] == 3  # honest counts
 
 
 def test_register_parses_and_rejects_train():
     parser = argparse.ArgumentParser(prog="tidee")
-    ev = parser.add_subparsers(dest="command").add_parser("eval").add_subparsers(dest="eval_cmd")
-    de.register(ev)
+    evs = parser.add_subparsers(dest="command").add_parser("eval").add_subparsers(dest="eval_cmd")
+    commands.register(evs)
     a = parser.parse_args(
         [
             "eval",
@@ -327,21 +328,34 @@ def test_register_parses_and_rejects_train():
             "w.pt",
         ]
     )
-    assert (a.split, a.rooms_per_type, a.frames_per_walk, a.weights) == ("test", 2, 3, "w.pt")
+    assert from_args(EvalDetectorConfig, a) == EvalDetectorConfig(
+        split="test", out="x", rooms_per_type=2, frames_per_walk=3, weights="w.pt"
+    )
     a = parser.parse_args(["eval", "oop", "--split", "val", "--out", "x", "--views", "4"])
-    assert (a.split, a.views, a.func) == ("val", 4, de._cmd_eval_oop)
-    with pytest.raises(SystemExit):
-        parser.parse_args(["eval", "oop", "--split", "train", "--out", "x"])
+    assert from_args(EvalOopConfig, a) == EvalOopConfig(split="val", out="x", views=4)
+    a = parser.parse_args(["eval", "reclassifier", "--out", "x", "--alphas", "0.5,1", "--betas", "0"])
+    cfg = from_args(EvalFusionConfig, a)
+    assert (cfg.split, cfg.alphas, cfg.betas) == ("val", (0.5, 1.0), (0.0,))
+    for bad in (
+        ["eval", "oop", "--split", "train", "--out", "x"],
+        ["eval", "reclassifier", "--alphas", "1,x", "--out", "x"],  # comma-separated numbers
+        ["eval", "detector", "--out", "x", "--peaks", "nms"],
+    ):
+        with pytest.raises(SystemExit):
+            parser.parse_args(bad)
 
 
 def test_cli_handlers_run_and_return_zero(tmp_path, monkeypatch, capsys):
     frames = oop_frames()
-    monkeypatch.setattr(de, "held_out_frames", lambda *a, **k: frames)
+    monkeypatch.setattr(ev, "held_out_frames", lambda *a, **k: frames)
+    from tidee.agent.evaluation.detection import fusion
+
+    monkeypatch.setattr(fusion, "held_out_frames", lambda *a, **k: frames)
     monkeypatch.setattr(
-        de, "_load_detector", lambda weights, reclassifier="default": GTDetector(frames, jitter=0.5, seed=5)
+        ev, "_load_detector", lambda weights, reclassifier="default": GTDetector(frames, jitter=0.5, seed=5)
     )
     parser = argparse.ArgumentParser(prog="tidee")
-    de.register(parser.add_subparsers(dest="eval_cmd"))
+    commands.register(parser.add_subparsers(dest="eval_cmd"))
     for argv in (
         ["detector", "--out", str(tmp_path / "d")],
         ["oop", "--out", str(tmp_path / "o"), "--views", "3", "--visual-only"],
@@ -359,12 +373,8 @@ def test_cli_handlers_run_and_return_zero(tmp_path, monkeypatch, capsys):
             ["reclassifier", "--split", "test", "--record", "--out", str(tmp_path / "f")]
         )
         args.func(args)
-    with pytest.raises(SystemExit, match="comma-separated numbers"):
-        args = parser.parse_args(["reclassifier", "--alphas", "1,x", "--out", str(tmp_path / "f")])
-        args.func(args)
 
 
 def test_eval_detector_on_egl_frames_does_not_record_into_the_manifest():
-    args = argparse.Namespace(record=True, renderer="egl", weights=None)
     with pytest.raises(SystemExit, match="drop --record with --renderer egl"):
-        de._cmd_eval_detector(args)
+        commands.run_eval_detector(EvalDetectorConfig(out="x", record=True, renderer="egl"))

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 import torch
 
 from tidee.agent.classes import CLASSES
-from tidee.agent.perception.dataset import GenConfig, configs, frame_targets, iter_frames, pack
-from tidee.agent.perception.detector import CenterDetector, DetectorConfig, decode, encode_targets
+from tidee.agent.perception.detector.config import DetectorConfig, GenConfig
+from tidee.agent.perception.detector.data import configs, frame_targets, iter_frames, pack
+from tidee.agent.perception.detector.model import CenterDetector, decode, encode_targets
 
 torch.set_num_threads(2)
 # the shipped perception (detector + crop reclassifier) scores 0.81 on these 24 frames, the detector
@@ -23,7 +26,7 @@ def test_generator_refuses_held_out_rooms_and_lists_training_rooms() -> None:
     assert len(jobs) == 22 * 4 * 2
     with pytest.raises(ValueError, match="training rooms"):
         list(iter_frames(GenConfig(), jobs=[("Kitchen", 200, 0)], progress=False))
-    from tidee.agent.perception.dataset import generate
+    from tidee.agent.perception.detector.data import generate
 
     with pytest.raises(ValueError, match="training data only"):
         generate(GenConfig(split="test"), "/nonexistent")
@@ -147,7 +150,7 @@ def tiny_train_frames() -> dict[str, np.ndarray]:
     return pack(list(iter_frames(cfg, progress=False)))
 
 
-def _write_shard_dir(root, frames: dict[str, np.ndarray], rooms: list[str]) -> None:
+def _write_shard_dir(root, frames: dict[str, Any], rooms: list[str]) -> None:
     import json
 
     root.mkdir()
@@ -165,12 +168,13 @@ def _write_shard_dir(root, frames: dict[str, np.ndarray], rooms: list[str]) -> N
 
 
 def test_several_data_directories_load_as_one_and_refuse_a_shared_room(tiny_train_frames, tmp_path) -> None:
-    from tidee.agent.perception.dataset import load_datasets
+    from tidee.agent.perception.detector.data import load_datasets
 
     f = tiny_train_frames
     n = len(f["rgb"])
     assert n >= 2 and len(f["obj_frame"]) > 0
-    # the same frames, written twice as if from two sets of rooms; the second copy's objects must point at its frames
+    # the same frames, written twice as if from two sets of rooms; the second copy's objects must
+    # point at its frames
     _write_shard_dir(tmp_path / "a", f, ["LivingRoom:0"])
     _write_shard_dir(tmp_path / "b", f, ["LivingRoom:80"])
     data, manifests = load_datasets(f"{tmp_path / 'a'},{tmp_path / 'b'}")
@@ -189,7 +193,8 @@ def test_several_data_directories_load_as_one_and_refuse_a_shared_room(tiny_trai
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_a_few_training_steps_reduce_the_loss(tiny_train_frames, tmp_path, precision) -> None:
     from tidee.agent.learning import bf16_supported
-    from tidee.agent.perception.train_detector import TrainConfig, train_detector
+    from tidee.agent.perception.detector.config import TrainConfig
+    from tidee.agent.perception.detector.train import train_detector
 
     if precision == "bf16" and not bf16_supported("cpu"):
         pytest.skip("this CPU has no native bf16")
@@ -216,7 +221,7 @@ def test_a_few_training_steps_reduce_the_loss(tiny_train_frames, tmp_path, preci
 
 
 def test_parallel_batches_are_reproducible_and_resume_from_their_step(tiny_train_frames) -> None:
-    from tidee.agent.perception.train_detector import Batches, ParallelBatches
+    from tidee.agent.perception.detector.train import Batches, ParallelBatches
 
     cfg = DetectorConfig(input_size=128)
 
@@ -247,13 +252,14 @@ def test_parallel_batches_are_reproducible_and_resume_from_their_step(tiny_train
 def test_a_grown_model_starts_as_the_weights_it_grew_from(tmp_path) -> None:
     """--init with extra blocks and a head conv: same outputs before any step; foreign weights refused."""
     from tidee.agent.learning import save_checkpoint
-    from tidee.agent.perception.train_detector import init_from
+    from tidee.agent.perception.detector.train import init_from
 
     torch.manual_seed(0)
     small = CenterDetector(DetectorConfig(input_size=128))
     with torch.no_grad():  # BN statistics and scales off their defaults, like trained weights
         for mod in small.modules():
             if isinstance(mod, torch.nn.BatchNorm2d):
+                assert mod.running_mean is not None and mod.running_var is not None
                 mod.weight.uniform_(0.5, 1.5)
                 mod.bias.uniform_(-0.2, 0.2)
                 mod.running_mean.uniform_(-0.5, 0.5)
@@ -318,7 +324,7 @@ def shipped():
 
 @pytest.fixture(scope="module")
 def test_room_frames() -> dict[str, np.ndarray]:
-    from tidee.agent.perception.dataset import held_out_frames
+    from tidee.agent.perception.detector.data import held_out_frames
 
     # one test room per type, its tidy and first messy configuration, 3 frames each: 24 frames
     return held_out_frames("test", rooms_per_type=1, messes=1, frames_per_walk=3, seed=7, progress=False)
@@ -333,7 +339,7 @@ def test_shipped_detector_manifest_is_complete(shipped) -> None:
 
 
 def test_shipped_detector_clears_an_accuracy_floor_on_test_rooms(shipped, test_room_frames) -> None:
-    from tidee.agent.evaluation.detection import evaluate_boxes
+    from tidee.agent.evaluation.detection.metrics import evaluate_boxes
 
     dets = shipped.detect_batch(test_room_frames["rgb"], test_room_frames["depth"].astype(np.float32))
     r = evaluate_boxes(dets, test_room_frames)

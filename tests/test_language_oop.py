@@ -7,45 +7,59 @@ import math
 import numpy as np
 import pytest
 
-torch = pytest.importorskip("torch")
-pytest.importorskip("transformers")
-
+from tidee.agent.classes import CLASSES, PICKUPABLE
 from tidee.agent.learning import WEIGHTS_DIR
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.perception.base import Detection
-from tidee.agent.reasoning import language_oop as lo
+from tidee.agent.perception.detector.config import room_seeds
+from tidee.agent.reasoning.language_oop import config, data, frames
+from tidee.agent.reasoning.language_oop.paragraphs import object_paragraph, paragraph_support, size_word
+from tidee.agent.reasoning.relations import words
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("transformers")
+
+# the modules that import torch, once it is known to be there
+from tidee.agent.reasoning.language_oop import eval as lo_eval  # noqa: E402
+from tidee.agent.reasoning.language_oop import instructions, model, train  # noqa: E402
 
 torch.set_num_threads(1)
 
 # Hand-written paragraphs in the paper's form: where things belong, and where they do not.
 SAMPLES = [
     (
-        "The mug is next to the counter top. The mug is supported by the counter top. The mug is closest to the bowl.",
+        "The mug is next to the counter top. The mug is supported by the counter top. "
+        "The mug is closest to the bowl.",
         0,
     ),
     ("The mug is supported by the floor. The mug is closest to the pillow.", 1),
     (
-        "The bowl is next to the counter top. The bowl is supported by the counter top. The bowl is closest to the mug.",
+        "The bowl is next to the counter top. The bowl is supported by the counter top. "
+        "The bowl is closest to the mug.",
         0,
     ),
     ("The bowl is next to the bed. The bowl is supported by the bed. The bowl is closest to the pillow.", 1),
     (
-        "The pillow is next to the bed. The pillow is supported by the bed. The pillow is closest to the cell phone.",
+        "The pillow is next to the bed. The pillow is supported by the bed. "
+        "The pillow is closest to the cell phone.",
         0,
     ),
     (
-        "The pillow is next to the sink. The pillow is supported by the counter top. The pillow is closest to the mug.",
+        "The pillow is next to the sink. The pillow is supported by the counter top. "
+        "The pillow is closest to the mug.",
         1,
     ),
     ("The alarm clock is next to the side table. The alarm clock is supported by the side table.", 0),
     ("The alarm clock is next to the toilet. The alarm clock is supported by the floor.", 1),
     (
-        "The soap bar is next to the sink. The soap bar is supported by the sink. The soap bar is closest to the cloth.",
+        "The soap bar is next to the sink. The soap bar is supported by the sink. "
+        "The soap bar is closest to the cloth.",
         0,
     ),
     ("The soap bar is next to the sofa. The soap bar is supported by the sofa.", 1),
     (
-        "The laptop is next to the desk. The laptop is supported by the desk. The laptop is closest to the pen.",
+        "The laptop is next to the desk. The laptop is supported by the desk. "
+        "The laptop is closest to the pen.",
         0,
     ),
     ("The laptop is next to the stove burner. The laptop is supported by the counter top.", 1),
@@ -54,23 +68,23 @@ SAMPLES = [
 
 def _category(paragraph: str) -> str:
     name = paragraph.split(" is ")[0].removeprefix("The ")
-    return {lo.words(c): c for c in lo.PICKUPABLE}[name]
+    return {words(c): c for c in PICKUPABLE}[name]
 
 
 @pytest.fixture(scope="module")
-def encoder() -> lo.TextEncoder:
-    return lo.TextEncoder()
+def encoder() -> model.TextEncoder:
+    return model.TextEncoder()
 
 
 @pytest.fixture(scope="module")
-def trained(encoder: lo.TextEncoder) -> lo.LanguageOOPClassifier:
+def trained(encoder: model.TextEncoder) -> model.LanguageOOPClassifier:
     """A head trained briefly on SAMPLES (not the shipped weights)."""
-    samples = [lo.OOPSample(p, y, "Kitchen", _category(p)) for p, y in SAMPLES]
+    samples = [data.OOPSample(p, y, "Kitchen", _category(p)) for p, y in SAMPLES]
     emb = encoder.encode([s.paragraph for s in samples])
     y = np.array([s.label for s in samples], np.float32)
     torch.manual_seed(0)
-    head = lo.LanguageOOPHead()
-    lo.fit_head(
+    head = model.LanguageOOPHead()
+    model.fit_head(
         head,
         emb,
         y,
@@ -82,33 +96,35 @@ def trained(encoder: lo.TextEncoder) -> lo.LanguageOOPClassifier:
         device="cpu",
         progress=False,
     )
-    return lo.LanguageOOPClassifier(head, encoder, lo.replay_set(samples, emb, 8, np.random.default_rng(0)))
+    return model.LanguageOOPClassifier(
+        head, encoder, train.replay_set(samples, emb, 8, np.random.default_rng(0))
+    )
 
 
 # ----------------------------------------------------------------------------- encoder and head
-def test_embedding_shape_norm_and_determinism(encoder: lo.TextEncoder) -> None:
+def test_embedding_shape_norm_and_determinism(encoder: model.TextEncoder) -> None:
     texts = [SAMPLES[0][0], SAMPLES[1][0], SAMPLES[0][0]]
     a = encoder.encode(texts)
-    assert a.shape == (3, lo.EMBED_DIM) and a.dtype == np.float32
+    assert a.shape == (3, config.EMBED_DIM) and a.dtype == np.float32
     np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-5)  # sentence-transformers' Normalize
     np.testing.assert_array_equal(a[0], a[2])
-    fresh = lo.TextEncoder(encoder.path)
+    fresh = model.TextEncoder(encoder.path)
     fresh._model, fresh._tokenizer = encoder._model, encoder._tokenizer  # same weights, empty cache
     np.testing.assert_allclose(fresh.encode(texts[:2]), a[:2], atol=1e-5)
-    assert encoder.encode([]).shape == (0, lo.EMBED_DIM)
+    assert encoder.encode([]).shape == (0, config.EMBED_DIM)
 
 
 def test_encoder_path_must_be_a_model_folder(tmp_path) -> None:
     with pytest.raises(FileNotFoundError, match="config.json"):
-        lo.TextEncoder(tmp_path)
+        model.TextEncoder(tmp_path)
 
 
-def test_training_steps_reduce_the_loss(encoder: lo.TextEncoder) -> None:
+def test_training_steps_reduce_the_loss(encoder: model.TextEncoder) -> None:
     emb = encoder.encode([p for p, _ in SAMPLES])
     y = np.array([label for _, label in SAMPLES], np.float32)
     torch.manual_seed(0)
-    head = lo.LanguageOOPHead()
-    hist = lo.fit_head(
+    head = model.LanguageOOPHead()
+    hist = model.fit_head(
         head,
         emb,
         y,
@@ -126,13 +142,13 @@ def test_training_steps_reduce_the_loss(encoder: lo.TextEncoder) -> None:
 
 def test_fused_head_starts_blind_to_the_visual_feature() -> None:
     torch.manual_seed(0)
-    head = lo.FusedOOPHead().eval()
-    text = torch.randn(4, lo.EMBED_DIM)
+    head = model.FusedOOPHead().eval()
+    text = torch.randn(4, config.EMBED_DIM)
     with torch.no_grad():
-        a = head(text, torch.randn(4, lo.VISUAL_DIM))
+        a = head(text, torch.randn(4, config.VISUAL_DIM))
         b = head(text, None)
     torch.testing.assert_close(a, b)
-    assert lo.make_head(head.config()).config() == head.config()
+    assert model.make_head(head.config()).config() == head.config()
 
 
 # ----------------------------------------------------------------------------- instructions
@@ -148,24 +164,24 @@ def test_fused_head_starts_blind_to_the_visual_feature() -> None:
     ],
 )
 def test_parse_instruction(text: str, expected: tuple[str, str, str]) -> None:
-    assert tuple(lo.parse_instruction(text)) == expected
+    assert tuple(instructions.parse_instruction(text)) == expected
 
 
 def test_parse_instruction_says_what_is_missing() -> None:
     with pytest.raises(ValueError, match="no object category"):
-        lo.parse_instruction("put it on the desk")
+        instructions.parse_instruction("put it on the desk")
     with pytest.raises(ValueError, match="no receptacle"):
-        lo.parse_instruction("I like my alarm clock")
+        instructions.parse_instruction("I like my alarm clock")
 
 
-def test_instruction_moves_probability_the_asked_way(trained: lo.LanguageOOPClassifier) -> None:
+def test_instruction_moves_probability_the_asked_way(trained: model.LanguageOOPClassifier) -> None:
     para = (
         "The mug is next to the counter top. The mug is supported by the counter top. "
         "The mug is closest to the bowl."
     )
     clf = trained.copy()
     before = float(clf.predict([para])[0])
-    report = lo.apply_instruction(clf, "the mug on the counter top is out of place", steps=50)
+    report = instructions.apply_instruction(clf, "the mug on the counter top is out of place", steps=50)
     after = float(clf.predict([para])[0])
     assert report["instruction"]["polarity"] == "out_of_place"
     assert after > before + 0.2 and after > 0.5
@@ -174,7 +190,7 @@ def test_instruction_moves_probability_the_asked_way(trained: lo.LanguageOOPClas
     floor = "The alarm clock is next to the toilet. The alarm clock is supported by the floor."
     clf = trained.copy()
     before = float(clf.predict([floor])[0])
-    lo.apply_instruction(clf, "I want my alarm clock on the floor", steps=50)
+    instructions.apply_instruction(clf, "I want my alarm clock on the floor", steps=50)
     assert float(clf.predict([floor])[0]) < before - 0.2
 
 
@@ -183,7 +199,7 @@ def test_an_instruction_leaves_other_objects_on_the_receptacle_alone() -> None:
     the bed along (MiniLM puts the two paragraphs close). Replay samples of other categories
     on the bed, held to the head's own probabilities, are what keep it; without them the
     cell phone follows the laptop."""
-    base = lo.LanguageOOPClassifier.load()
+    base = model.LanguageOOPClassifier.load()
     phone = [
         "The cell phone is supported by the bed. The cell phone is next to the pillow.",
         "The cell phone is next to the pillow. The cell phone is supported by the bed. "
@@ -193,14 +209,16 @@ def test_an_instruction_leaves_other_objects_on_the_receptacle_alone() -> None:
     before = base.predict(phone)
     assert before.max() < 0.1
     kept = base.copy()
-    lo.apply_instruction(kept, "the laptop on the bed is out of place")
+    instructions.apply_instruction(kept, "the laptop on the bed is out of place")
     assert kept.predict(laptop)[0] > 0.7
     assert np.abs(kept.predict(phone) - before).max() < 0.3
     again = base.copy()
-    lo.apply_instruction(again, "the laptop on the bed is out of place")  # same seed, same head
+    instructions.apply_instruction(again, "the laptop on the bed is out of place")  # same seed, same head
     np.testing.assert_array_equal(again.predict(phone + laptop), kept.predict(phone + laptop))
     dragged = base.copy()
-    lo.apply_instruction(dragged, "the laptop on the bed is out of place", distill=False, neighbour_share=0.0)
+    instructions.apply_instruction(
+        dragged, "the laptop on the bed is out of place", distill=False, neighbour_share=0.0
+    )
     assert np.abs(dragged.predict(phone) - before).max() > 0.5
 
 
@@ -225,22 +243,21 @@ def _records() -> list[dict]:
 
 
 def test_config_paragraphs_from_ground_truth_boxes() -> None:
-    paras = lo.config_paragraphs(_records())
+    paras = data.config_paragraphs(_records())
     assert set(paras) == {"Mug_0", "Mug_1"}
     assert "The mug is supported by the counter top." in paras["Mug_0"][0] and paras["Mug_0"][1] == 0
     assert "The mug is supported by the floor." in paras["Mug_1"][0] and paras["Mug_1"][1] == 1
-    assert lo.paragraph_support(paras["Mug_1"][0]) == "Floor"
+    assert paragraph_support(paras["Mug_1"][0]) == "Floor"
 
 
 def test_training_and_evaluation_refuse_the_wrong_rooms() -> None:
     with pytest.raises(ValueError, match="held-out"):
-        lo.evaluate_language_oop(None, split="train")  # type: ignore[arg-type]
+        lo_eval.evaluate_language_oop(None, split="train")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="held-out"):
-        lo.run_instruct_eval(
-            "unused", split="train"
-        )  # the instruct eval picks settings on val, reports on test
+        # the instruct eval picks settings on val, reports on test
+        config.InstructEvalConfig(out="unused", split="train")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="val or test|train, val or test"):
-        lo.room_seeds("pool", 1)
+        room_seeds("pool", 1)
 
 
 class _FloorStub:
@@ -272,7 +289,7 @@ def test_oracle_language_row_matches_detections_to_ground_truth() -> None:
         [],
     ]
     stub = _FloorStub()
-    row = lo.oracle_language_row(stub, scenes={"Kitchen:200:0": _records()}, cache_dir=None)  # type: ignore[arg-type]
+    row = lo_eval.oracle_language_row(stub, scenes={"Kitchen:200:0": _records()}, cache_dir=None)  # type: ignore[arg-type]
     assert row(frames, dets) == [[0.1, 0.9, 0.5], []]
 
 
@@ -286,7 +303,7 @@ def test_language_oop_scores_tracked_objects() -> None:
         obj(1, "Mug", (0.5, 0.2, 0.9), (0.6, 0.3, 1.0)),
         obj(2, "Mug", (3, 2, 0), (3.1, 2.1, 0.1)),
     ]
-    oop = lo.LanguageOOP(classifier=_FloorStub())  # type: ignore[arg-type]
+    oop = model.LanguageOOP(classifier=_FloorStub())  # type: ignore[arg-type]
     probs = oop.score_all(objects[1:], objects, "Kitchen")
     assert probs == {1: 0.1, 2: 0.9}
     assert objects[2].meta["paragraph"].startswith("The mug")
@@ -298,19 +315,19 @@ def _floor_depth(pitch_deg: float, n: int = 64) -> np.ndarray:
     v = (np.arange(n) - c) / f
     th = math.radians(pitch_deg)
     down = v * math.cos(th) + math.sin(th)  # downward component of the ray (z = 1)
-    d = np.where(down > 1e-3, lo.CAMERA_HEIGHT_M / np.maximum(down, 1e-3), 0.0)
+    d = np.where(down > 1e-3, frames.CAMERA_HEIGHT_M / np.maximum(down, 1e-3), 0.0)
     return np.repeat(np.minimum(d, 20.0)[:, None], n, 1).astype(np.float32)
 
 
 @pytest.mark.parametrize("pitch", [0.0, 30.0, 60.0])
 def test_pitch_is_recovered_from_a_floor(pitch: float) -> None:
-    assert lo.estimate_pitch(_floor_depth(pitch)) == pitch
+    assert frames.estimate_pitch(_floor_depth(pitch)) == pitch
 
 
 # ----------------------------------------------------------------------------- shipped weights
 def test_shipped_weights_oracle_language_ap() -> None:
-    clf = lo.LanguageOOPClassifier.load(WEIGHTS_DIR / "language_oop.pt")
-    res = lo.evaluate_language_oop(clf, "test", rooms_per_type=1, messes_per_room=1, progress=False)
+    clf = model.LanguageOOPClassifier.load(WEIGHTS_DIR / "language_oop.pt")
+    res = lo_eval.evaluate_language_oop(clf, "test", rooms_per_type=1, messes_per_room=1, progress=False)
     assert res["samples"] > 50 and res["n_out_of_place"] >= 10
     assert res["map"] >= 0.8, res
 
@@ -321,13 +338,13 @@ def test_size_sentence_only_for_categories_with_variants() -> None:
     floor_vase = ObjectRef("v", "Vase", (0, 0, 0.4), (-0.15, -0.15, 0.0), (0.15, 0.15, 0.85))
     small_vase = ObjectRef("w", "Vase", (0, 0, 0.1), (-0.05, -0.05, 0.0), (0.05, 0.05, 0.2))
     mug = ObjectRef("m", "Mug", (1, 0, 0.05), (0.95, -0.05, 0.0), (1.05, 0.05, 0.1))
-    assert lo.size_word(floor_vase) == "large" and lo.size_word(small_vase) == "small"
-    assert lo.size_word(ObjectRef("x", "Vase", (0, 0, 0))) is None  # no box: no size
-    assert lo.object_paragraph(floor_vase, [mug]).startswith(
+    assert size_word(floor_vase) == "large" and size_word(small_vase) == "small"
+    assert size_word(ObjectRef("x", "Vase", (0, 0, 0))) is None  # no box: no size
+    assert object_paragraph(floor_vase, [mug]).startswith(
         "The vase is large. The vase is supported by the floor."
     )
-    assert lo.object_paragraph(small_vase, [mug]).startswith("The vase is small. ")
-    assert lo.object_paragraph(mug, [floor_vase]) == relation_paragraph(
+    assert object_paragraph(small_vase, [mug]).startswith("The vase is small. ")
+    assert object_paragraph(mug, [floor_vase]) == relation_paragraph(
         mug, [floor_vase]
     )  # no variants: no size
 
@@ -335,7 +352,7 @@ def test_size_sentence_only_for_categories_with_variants() -> None:
 def test_shipped_head_reads_the_size_of_a_vase_on_the_floor() -> None:
     """The catalog's large vase stands on the floor, a small one does not: the shipped head
     tells them apart from the size sentence alone."""
-    clf = lo.LanguageOOPClassifier.load()
+    clf = model.LanguageOOPClassifier.load()
     large, small = clf.predict(
         [
             "The vase is large. The vase is supported by the floor.",
@@ -346,9 +363,9 @@ def test_shipped_head_reads_the_size_of_a_vase_on_the_floor() -> None:
 
 
 def test_fused_samples_are_matched_pickupable_detections_with_their_features() -> None:
-    from tidee.agent.reasoning.fused_oop import detection_samples, held_out_room
+    from tidee.agent.reasoning.language_oop.fused_train import detection_samples, held_out_room
 
-    cls = {n: i for i, n in enumerate(lo.CLASSES)}
+    cls = {n: i for i, n in enumerate(CLASSES)}
     frames = {
         "depth": np.full((1, 128, 128), 2.0, np.float16),
         "frame_room": np.array(["Bedroom:19:0"]),
@@ -387,4 +404,4 @@ def test_only_shipped_oop_heads_draw_their_loss_curve_in_the_docs(tmp_path) -> N
         == "x/curve.png"
     )
     # the training commands resolve it this way: neither default names the docs any more
-    assert lo.TrainConfig().loss_png is None
+    assert config.TrainConfig().loss_png is None

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import numpy as np
 import pytest
 
 from tidee.agent.mapping.memory import TrackedObject
-from tidee.agent.reasoning import memory_oop_data as mem
+from tidee.agent.reasoning.language_oop import memory_data as mem
+from tidee.agent.reasoning.language_oop.config import MemoryGenConfig
 
 
 def _track(i: int, label: str, xyz: tuple[float, float, float]) -> TrackedObject:
@@ -67,12 +69,12 @@ def test_loading_refuses_the_wrong_split_and_names_a_bad_line(tmp_path) -> None:
 
 def test_generation_refuses_messes_the_split_does_not_have(tmp_path) -> None:
     with pytest.raises(ValueError, match="test rooms have messes 0-4"):
-        mem.gen_memory_samples(tmp_path, split="test", rooms_per_type=1, messes=6, progress=False)
+        MemoryGenConfig(out=str(tmp_path), split="test", rooms_per_type=1, messes=6)
 
 
 def test_the_fused_head_refuses_memory_samples_without_detector_features(tmp_path) -> None:
     pytest.importorskip("torch")
-    from tidee.agent.reasoning.fused_oop import add_memory_samples
+    from tidee.agent.reasoning.language_oop.fused_train import add_memory_samples
 
     (tmp_path / "meta.json").write_text(json.dumps({"split": "train", "perception": "oracle"}))
     (tmp_path / "samples.jsonl").write_text("")
@@ -97,7 +99,7 @@ def test_the_fused_head_refuses_memory_samples_without_detector_features(tmp_pat
         )
         + "\n"
     )
-    samples = {
+    samples: dict[str, Any] = {
         "paragraphs": ["p"],
         "features": np.zeros((1, 64), np.float32),
         "labels": [0],

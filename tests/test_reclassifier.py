@@ -9,14 +9,8 @@ import pytest
 import torch
 
 from tidee.agent.classes import CLASSES
-from tidee.agent.perception.reclassifier import (
-    DEFAULT_RECLASSIFIER,
-    CropClassifier,
-    ReclassifierConfig,
-    crop_inputs,
-    frame_tensor,
-    fuse,
-)
+from tidee.agent.perception.reclassifier.config import DEFAULT_RECLASSIFIER, ReclassifierConfig
+from tidee.agent.perception.reclassifier.model import CropClassifier, crop_inputs, frame_tensor, fuse
 
 torch.set_num_threads(2)
 # the shipped detector + reclassifier on the 24 test-room frames of test_detector's floor test
@@ -75,8 +69,10 @@ def test_fusion_weighs_the_crop_against_the_detector_and_background_lowers_the_s
 
 
 def test_a_few_training_steps_reduce_the_loss(tmp_path) -> None:
-    from tidee.agent.perception.dataset import GenConfig, iter_frames, pack
-    from tidee.agent.perception.reclassifier import ReclassifierTrainConfig, train_reclassifier
+    from tidee.agent.perception.detector.config import GenConfig
+    from tidee.agent.perception.detector.data import iter_frames, pack
+    from tidee.agent.perception.reclassifier.config import ReclassifierTrainConfig
+    from tidee.agent.perception.reclassifier.train import train_reclassifier
 
     cfg = GenConfig(
         rooms_per_type=1,
@@ -115,7 +111,8 @@ def test_a_few_training_steps_reduce_the_loss(tmp_path) -> None:
 
 
 def test_shapes_and_a_mismatched_reclassifier_is_refused() -> None:
-    from tidee.agent.perception.detector import CenterDetector, DetectorConfig
+    from tidee.agent.perception.detector.config import DetectorConfig
+    from tidee.agent.perception.detector.model import CenterDetector
     from tidee.agent.perception.learned import LearnedPerception
 
     m = CropClassifier(ReclassifierConfig()).eval()
@@ -131,7 +128,7 @@ def test_shapes_and_a_mismatched_reclassifier_is_refused() -> None:
 # ------------------------------------------------------------------ the shipped weights
 @pytest.fixture(scope="module")
 def test_room_frames() -> dict[str, np.ndarray]:
-    from tidee.agent.perception.dataset import held_out_frames
+    from tidee.agent.perception.detector.data import held_out_frames
 
     return held_out_frames("test", rooms_per_type=1, messes=1, frames_per_walk=3, seed=7, progress=False)
 
@@ -149,7 +146,7 @@ def test_shipped_reclassifier_manifest_is_complete() -> None:
 
 
 def test_shipped_reclassifier_renames_detections_on_test_rooms(test_room_frames) -> None:
-    from tidee.agent.evaluation.detection import evaluate_boxes
+    from tidee.agent.evaluation.detection.metrics import evaluate_boxes
     from tidee.agent.perception.learned import LearnedPerception
 
     both = LearnedPerception.load(threshold=0.05)
@@ -172,11 +169,12 @@ def test_detector_boxes_train_a_learned_fusion(tmp_path) -> None:
     """--boxes detector: the shipped detector's own detections, labelled by the ground truth they
     overlap, train a reclassifier that also reads the detector's logits; it starts as the model
     it is warm-started from, and a few steps reduce the loss."""
-    from tidee.agent.perception.dataset import GenConfig, iter_frames, pack
-    from tidee.agent.perception.reclassifier import (
+    from tidee.agent.perception.detector.config import GenConfig
+    from tidee.agent.perception.detector.data import iter_frames, pack
+    from tidee.agent.perception.reclassifier.config import ReclassifierTrainConfig
+    from tidee.agent.perception.reclassifier.model import det_features
+    from tidee.agent.perception.reclassifier.train import (
         DetectorBoxBatches,
-        ReclassifierTrainConfig,
-        det_features,
         detector_boxes,
         train_reclassifier,
         warm_start,
@@ -194,7 +192,7 @@ def test_detector_boxes_train_a_learned_fusion(tmp_path) -> None:
     assert ((lab >= 0) & (lab < n_cls)).sum() > 5 and (lab == n_cls).any()  # objects and background
     assert set(np.unique(lab)) <= set(range(n_cls + 1)) | {-100}
     # a labelled detection overlaps a ground-truth box of its class by IoU >= 0.5
-    from tidee.agent.evaluation.detection import box_iou
+    from tidee.agent.evaluation.detection.metrics import box_iou
 
     i = int(np.flatnonzero((lab >= 0) & (lab < n_cls))[0])
     f = boxes["det_frame"][i]

@@ -11,30 +11,27 @@ torch = pytest.importorskip("torch")
 
 from tidee.agent.classes import CLASS_INDEX  # noqa: E402
 from tidee.agent.mapping.memory import ObjectMemory  # noqa: E402
-from tidee.agent.reasoning.memex import (
+from tidee.agent.reasoning.rgcn.config import RGCNConfig, RGCNTrainConfig  # noqa: E402
+from tidee.agent.reasoning.rgcn.data import check_seeds, heldout_rooms, placement_data  # noqa: E402
+from tidee.agent.reasoning.rgcn.eval import evaluate_placement  # noqa: E402
+from tidee.agent.reasoning.rgcn.memex import (  # noqa: E402
     PLACE_CLASSES,
     REL_INDEX,
     GraphNode,
-    aabb_relations,  # noqa: E402
-    check_seeds,
+    aabb_relations,
     make_graph,
     oriented_relations,
 )
-from tidee.agent.reasoning.rgcn import (
+from tidee.agent.reasoning.rgcn.model import (  # noqa: E402
     DEFAULT_WEIGHTS,
     DEFAULT_WITHOUT_MEMEX,
-    PlacementRGCN,  # noqa: E402
-    RGCNConfig,
+    PlacementRGCN,
     RGCNPlacement,
-    RGCNTrainConfig,
     collate,
-    evaluate_placement,
-    heldout_rooms,
     load_rgcn,
-    placement_data,
     relational_mean,
-    train_rgcn,
 )
+from tidee.agent.reasoning.rgcn.train import train_rgcn  # noqa: E402
 
 
 def _random_nodes(rng: np.random.Generator, n: int) -> list[GraphNode]:
@@ -185,3 +182,49 @@ def test_placement_model_ranks_from_an_object_memory(shipped):
     assert names.index("CounterTop") < names.index("Toilet")
     with pytest.raises(ValueError, match="room_type"):
         RGCNPlacement(shipped[0]).predict(mug, mem, "Garage")
+
+
+def _parser():
+    import argparse
+
+    from tidee.agent.reasoning.rgcn.commands import register
+
+    p = argparse.ArgumentParser(prog="tidee")
+    sub = p.add_subparsers(dest="group", required=True)
+    register(
+        *(sub.add_parser(g).add_subparsers(dest="what", required=True) for g in ("gen", "train", "eval"))
+    )
+    return p
+
+
+def test_commands_build_their_configs_from_the_flags():
+    from tidee.agent.reasoning.rgcn.config import CeilingConfig, PlacementEvalConfig, RGCNTrainCommand
+    from tidee.options import from_args, to_argv
+
+    args = _parser().parse_args(["train", "rgcn", "--without-memex", "--rooms-per-type", "3", "--steps", "5"])
+    cfg = from_args(RGCNTrainCommand, args)
+    assert cfg.without_memex and cfg.train == RGCNTrainConfig(steps=5, train_rooms_per_type=3)
+    assert to_argv(cfg) == ["--steps", "5", "--rooms-per-type", "3", "--without-memex"]
+    assert from_args(RGCNTrainCommand, _parser().parse_args(["train", "rgcn"])) == RGCNTrainCommand()
+
+    args = _parser().parse_args(["eval", "placement", "--out", "x", "--split", "val", "--record"])
+    assert from_args(PlacementEvalConfig, args) == PlacementEvalConfig(out="x", split="val", record=True)
+
+    args = _parser().parse_args(["eval", "ceiling", "--report", "a", "--report", "b", "--out", "x"])
+    assert from_args(CeilingConfig, args) == CeilingConfig(report=("a", "b"), out="x")
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "rgcn", "--steps", "0"],
+        ["eval", "placement", "--out", "x", "--split", "train"],  # training rooms would measure memorisation
+        ["eval", "placement"],  # --out is required
+        ["eval", "ceiling", "--out", "x"],  # --report is required
+        ["eval", "ceiling", "--report", "a", "--out", "x", "--rooms-per-type", "0"],
+    ],
+)
+def test_commands_refuse_bad_flags(argv, capsys):
+    with pytest.raises(SystemExit):
+        _parser().parse_args(argv)
+    assert "error" in capsys.readouterr().err

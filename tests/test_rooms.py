@@ -6,13 +6,12 @@ import json
 
 import pytest
 
+from tidee.protocol.vocab import ROOM_TYPES
 from tidee.server.catalog import ROOM_TEMPLATES, receptacle_weights
 from tidee.server.rooms import NAV_CELL, generate_scene, main_component, nav_grid
 from tidee.server.scene import FLOOR_ID, Scene
 from tidee.server.splits import SPLIT_SEEDS, mess_config, num_configs, rooms
 from tidee.server.world import World
-
-ROOM_TYPES = ("Kitchen", "LivingRoom", "Bedroom", "Bathroom")
 
 
 @pytest.fixture(scope="module")

@@ -7,14 +7,23 @@ import argparse
 import numpy as np
 import pytest
 
-from tidee.agent.evaluation import search_eval as se
+from tidee.agent.reasoning.search import eval as se
+from tidee.agent.reasoning.search.commands import register
+from tidee.agent.reasoning.search.config import SearchEvalConfig
+from tidee.options import from_args
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="tidee")
     sub = p.add_subparsers(dest="group", required=True)
-    se.register(sub.add_parser("eval").add_subparsers(dest="what", required=True))
+    register(
+        *(sub.add_parser(g).add_subparsers(dest="what", required=True) for g in ("gen", "train", "eval"))
+    )
     return p
+
+
+def config_from_args(args: argparse.Namespace) -> SearchEvalConfig:
+    return from_args(SearchEvalConfig, args)
 
 
 def test_cli_parses_the_table_2_run():
@@ -34,15 +43,30 @@ def test_cli_parses_the_table_2_run():
             "2",
         ]
     )
-    cfg = se.config_from_args(args)
+    cfg = config_from_args(args)
     assert cfg.split == "test" and cfg.methods == ("frontier", "network") and cfg.categories_per_room == 3
     assert cfg.max_steps == 200 and cfg.radius == 1.5 and cfg.perception == "learned"
     assert (
-        se.config_from_args(
+        config_from_args(
             _parser().parse_args(["eval", "search", "--out", "x", "--categories-per-room", "0"])
         ).categories_per_room
         is None
     )
+
+
+def test_gen_and_train_commands_build_their_configs_from_the_flags():
+    from tidee.agent.reasoning.search.config import SearchGenConfig, SearchTrainCommand, SearchTrainConfig
+    from tidee.options import to_argv
+
+    argv = ["--perception", "learned", "--rooms-per-type", "13", "--messes", "1", "--out", "d"]
+    cfg = from_args(SearchGenConfig, _parser().parse_args(["gen", "search", *argv]))
+    assert cfg == SearchGenConfig(out="d", rooms_per_type=13, messes_per_room=1, perception="learned")
+    assert (cfg.snapshots, cfg.workers, cfg.split) == (6, 2, "train")
+    assert from_args(SearchGenConfig, _parser().parse_args(["gen", "search", *to_argv(cfg)])) == cfg
+    args = _parser().parse_args(["train", "search", "--data", "d", "--steps", "3", "--no-resume"])
+    cmd = from_args(SearchTrainCommand, args)
+    assert cmd == SearchTrainCommand(SearchTrainConfig(data="d", steps=3), resume=False)
+    assert to_argv(cmd) == ["--data", "d", "--steps", "3", "--no-resume"]
 
 
 @pytest.mark.parametrize(
@@ -65,11 +89,11 @@ def test_cli_refuses_bad_input(argv, capsys):
 
 def test_config_validation_says_what_is_wrong():
     with pytest.raises(ValueError, match="held-out"):
-        se.SearchEvalConfig(out="x", split="train")
+        SearchEvalConfig(out="x", split="train")
     with pytest.raises(ValueError, match="radius"):
-        se.SearchEvalConfig(out="x", radius=0)
+        SearchEvalConfig(out="x", radius=0)
     with pytest.raises(ValueError, match="methods"):
-        se.SearchEvalConfig(out="x", methods=("bogus",))
+        SearchEvalConfig(out="x", methods=("bogus",))
 
 
 def test_summary_counts_failures_as_max_steps():
@@ -93,7 +117,7 @@ def test_summary_counts_failures_as_max_steps():
 
 
 def test_jobs_sample_categories_present_in_test_rooms():
-    cfg = se.SearchEvalConfig(out="x", rooms=2, categories_per_room=2, methods=("frontier",))
+    cfg = SearchEvalConfig(out="x", rooms=2, categories_per_room=2, methods=("frontier",))
     jobs = se.episodes(cfg)
     assert len(jobs) == 4 and {(j["room_type"], j["seed"]) for j in jobs} == {
         ("Kitchen", 200),
@@ -104,7 +128,7 @@ def test_jobs_sample_categories_present_in_test_rooms():
 
 @pytest.mark.slow
 def test_one_short_search_episode(tmp_path):
-    cfg = se.SearchEvalConfig(
+    cfg = SearchEvalConfig(
         out=str(tmp_path),
         rooms=1,
         categories_per_room=1,
@@ -409,9 +433,9 @@ def test_goal_sources_are_shares_of_the_goals_walked_to():
         "random": 20.0,
     }
     with pytest.raises(ValueError, match="network-fallback"):
-        se.SearchEvalConfig(out="x", network_fallback="nearest")
+        SearchEvalConfig(out="x", network_fallback="nearest")
     args = _parser().parse_args(["eval", "search", "--out", "x", "--network-fallback", "frontier"])
-    assert se.config_from_args(args).network_fallback == "frontier"
+    assert config_from_args(args).network_fallback == "frontier"
 
 
 def test_search_walks_to_the_fallback_once_the_proposer_has_nothing(monkeypatch):

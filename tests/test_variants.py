@@ -101,8 +101,8 @@ def test_receptacles_near_a_proposal_are_placeable_and_sorted_by_distance():
 
 
 def test_every_variant_is_built_from_shipped_models():
-    from tidee.agent.reasoning.rgcn import RGCNPlacement
-    from tidee.agent.reasoning.search_net import VisualSearch
+    from tidee.agent.reasoning.rgcn.model import RGCNPlacement
+    from tidee.agent.reasoning.search.model import VisualSearch
 
     parts = {v: make_placement(v) for v in AGENT_VARIANTS}
     assert isinstance(parts["TIDEE"][0], RGCNPlacement) and parts["TIDEE"][0].model.cfg.use_memex

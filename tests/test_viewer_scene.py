@@ -561,7 +561,8 @@ def test_cli_registers_the_viewer_without_importing_viser():
     code = (
         "import sys, argparse; from tidee.viewer.cli import register; p = argparse.ArgumentParser(); "
         "register(p.add_subparsers()); a = p.parse_args(['viewer', '--port', '0', '--session', 's1']); "
-        "assert a.port == 0 and a.session == 's1' and a.host == '127.0.0.1'; assert 'viser' not in sys.modules"
+        "assert a.port == 0 and a.session == 's1' and a.host == '127.0.0.1'; "
+        "assert 'viser' not in sys.modules"
     )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO, timeout=60)
     from tidee.viewer.app import ViewerConfig

@@ -1,4 +1,4 @@
-"""``type=`` validators for the command line: a bad value is refused while parsing, in one line.
+"""Validators for option values (``option(type=...)``): a bad value is refused while parsing, in one line.
 
 argparse prefixes each message with the flag (``argument --port: ...``), so a message here
 says what was wrong and what would be right, without repeating the flag. Nothing here
@@ -7,7 +7,6 @@ binds, connects or creates anything.
 
 from __future__ import annotations
 
-import argparse
 import ipaddress
 import os
 import re
@@ -37,9 +36,9 @@ def int_range(lo: int | None, hi: int | None, what: str = "an integer") -> Calla
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {want}, got {text!r}") from None
+            raise ValueError(f"expected {want}, got {text!r}") from None
         if (lo is not None and value < lo) or (hi is not None and value > hi):
-            raise argparse.ArgumentTypeError(f"expected {want}, got {value}")
+            raise ValueError(f"expected {want}, got {value}")
         return value
 
     parse.__name__ = what.replace(" ", "_")
@@ -58,9 +57,9 @@ def non_negative_float(text: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+        raise ValueError(f"expected a number >= 0, got {text!r}") from None
     if not value >= 0:  # also refuses nan
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text}")
+        raise ValueError(f"expected a number >= 0, got {text}")
     return value
 
 
@@ -72,13 +71,11 @@ def host(text: str) -> str:
     except ValueError:
         pass
     if re.fullmatch(r"[0-9.]+", text):  # looks like IPv4 but is not one (e.g. 256.1.1.1): no DNS lookup
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not an IPv4 address (four numbers 0-255, e.g. 127.0.0.1)"
-        )
+        raise ValueError(f"{text!r} is not an IPv4 address (four numbers 0-255, e.g. 127.0.0.1)")
     try:
         socket.getaddrinfo(text, None)
     except (socket.gaierror, UnicodeError) as e:
-        raise argparse.ArgumentTypeError(
+        raise ValueError(
             f"{text!r} is not an IP address or a host name this machine resolves "
             f"({getattr(e, 'strerror', None) or e}); e.g. 127.0.0.1 or 0.0.0.0"
         ) from None
@@ -86,41 +83,39 @@ def host(text: str) -> str:
 
 
 def endpoint(text: str) -> str:
-    """A Zenoh endpoint: ``tcp/HOST:PORT`` (or udp, tls, quic, ws), or a unix socket ``unixsock-stream/PATH``."""
+    """A Zenoh endpoint: ``tcp/HOST:PORT`` (or udp, tls, quic, ws), or a unix socket
+    ``unixsock-stream/PATH``."""
     proto, sep, address = text.partition("/")
     address = address.split("?", 1)[0].split("#", 1)[0]  # Zenoh's ?metadata and #config suffixes
     example = "e.g. tcp/127.0.0.1:7447"
     if not sep or not address:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not a Zenoh endpoint: expected PROTOCOL/ADDRESS, {example}"
-        )
+        raise ValueError(f"{text!r} is not a Zenoh endpoint: expected PROTOCOL/ADDRESS, {example}")
     if proto in _OTHER_PROTOCOLS:
         return text
     if proto not in _IP_PROTOCOLS:
-        raise argparse.ArgumentTypeError(
+        raise ValueError(
             f"{text!r}: unknown protocol {proto!r}; expected one of "
             f"{', '.join(_IP_PROTOCOLS + _OTHER_PROTOCOLS)}, {example}"
         )
     m = _HOST_PORT.match(address)
     if not m:
-        raise argparse.ArgumentTypeError(f"{text!r}: the address must be HOST:PORT, {example}")
+        raise ValueError(f"{text!r}: the address must be HOST:PORT, {example}")
     if not 1 <= int(m["port"]) <= 65535:
-        raise argparse.ArgumentTypeError(f"{text!r}: port {m['port']} is not in 1-65535, {example}")
+        raise ValueError(f"{text!r}: port {m['port']} is not in 1-65535, {example}")
     name = m["host"].strip("[]")
     if re.fullmatch(r"[0-9.]+", name):
         try:
             ipaddress.ip_address(name)
         except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"{text!r}: {name!r} is not an IPv4 address, {example}"
-            ) from None
+            raise ValueError(f"{text!r}: {name!r} is not an IPv4 address, {example}") from None
     return text
 
 
 def output_path(text: str) -> str:
-    """A file or directory this process could create: its nearest existing ancestor is a writable directory."""
+    """A file or directory this process could create: its nearest existing ancestor is a writable
+    directory."""
     if not text:
-        raise argparse.ArgumentTypeError("expected a path, got an empty string")
+        raise ValueError("expected a path, got an empty string")
     path = os.path.abspath(text)
     if os.path.exists(path):
         return text
@@ -128,7 +123,7 @@ def output_path(text: str) -> str:
     while not os.path.exists(parent):
         parent = os.path.dirname(parent)
     if not os.path.isdir(parent):
-        raise argparse.ArgumentTypeError(f"cannot create {text!r}: {parent} is a file, not a directory")
+        raise ValueError(f"cannot create {text!r}: {parent} is a file, not a directory")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise argparse.ArgumentTypeError(f"cannot create {text!r}: directory {parent} is not writable")
+        raise ValueError(f"cannot create {text!r}: directory {parent} is not writable")
     return text

@@ -19,7 +19,12 @@ import time
 import urllib.error
 import urllib.request
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+
+from tidee import argtypes
+from tidee.options import option
+from tidee.protocol.vocab import Renderer
+from tidee.server.config import RENDERER_HELP, TRAINED_RENDERER
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -58,15 +63,20 @@ def check_bindable(host: str, port: int, what: str, hint: str = "") -> None:
 
 @dataclass
 class RunConfig:
-    agent_args: list[str] = field(default_factory=list)  # passed through to `tidee agent`
-    viewer: bool = True
-    viewer_read_only: bool = False  # `tidee viewer --read-only`: no controls that send commands
-    host: str = "127.0.0.1"
-    port: int = 8080
-    linger: float = 30.0
-    renderer: str = "tiny"  # = agent.perception.TRAINED_RENDERER (the viewer imports this module,
-    # never the agent): what the shipped detector was trained on
-    endpoint: str | None = None
+    """The processes ``tidee run`` starts: a server, an agent (``agent_args``) and a viewer."""
+
+    agent_args: list[str] = option(default_factory=list, help="passed through to `tidee agent`", cli=False)
+    viewer: bool = option(True, "start the web viewer")
+    viewer_read_only: bool = option(
+        False, "the viewer shows the agent but has no controls that send it commands"
+    )
+    host: str = option("127.0.0.1", "viewer host (loopback by default)", type=argtypes.host)
+    port: int = option(8080, "viewer port", type=argtypes.port)
+    linger: float = option(
+        30.0, "seconds to keep the viewer up after the episodes", type=argtypes.non_negative_float
+    )
+    renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
+    endpoint: str | None = option(None, "Zenoh endpoint (default: a free loopback port)", cli=False)
 
 
 def wait_for_signal() -> None:
@@ -85,7 +95,7 @@ def _tidee(*args: str) -> list[str]:
     return [sys.executable, "-m", "tidee.cli", *args]
 
 
-def _interrupt_on_sigterm() -> Callable[[], None]:
+def _interrupt_on_sigterm() -> Callable[[], object]:
     """Make SIGTERM (``kill``) end this process like Ctrl-C; returns a function that undoes it."""
 
     def _raise(*_: object) -> None:

@@ -32,7 +32,7 @@ import dataclasses
 import enum
 import types
 import typing
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -48,9 +48,10 @@ class OptionSpec:
     help: str = ""
     flag: str | None = None  # default: --field-name
     type: Callable[[str], Any] | None = None  # parse one value (default: from the annotation)
-    choices: Sequence[Any] | None = None  # default: a Literal's or an Enum's values
+    choices: Collection[Any] | None = None  # default: a Literal's or an Enum's values; live views work
     metavar: str | None = None
     nargs: str | None = None  # "+": several values after one flag (tuple fields)
+    repeat: bool = False  # tuple fields: the flag once per value (--report a --report b); required
     cli: bool = True  # False: a config field the command line does not set
 
 
@@ -60,14 +61,17 @@ def option(
     *,
     flag: str | None = None,
     type: Callable[[str], Any] | None = None,
-    choices: Sequence[Any] | None = None,
+    choices: Collection[Any] | None = None,
     metavar: str | None = None,
     nargs: str | None = None,
+    repeat: bool = False,
     default_factory: Callable[[], Any] | Any = dataclasses.MISSING,
     cli: bool = True,
 ) -> Any:
     """A dataclass field that is also a command-line option (see the module docstring)."""
-    spec = OptionSpec(help=help, flag=flag, type=type, choices=choices, metavar=metavar, nargs=nargs, cli=cli)
+    spec = OptionSpec(
+        help=help, flag=flag, type=type, choices=choices, metavar=metavar, nargs=nargs, repeat=repeat, cli=cli
+    )
     if default_factory is not dataclasses.MISSING:
         return dataclasses.field(default_factory=default_factory, metadata={_KEY: spec})
     if isinstance(default, list | dict | set):
@@ -164,7 +168,7 @@ def _scalar(hint: Any) -> tuple[Callable[[str], Any], Sequence[Any] | None]:
     raise TypeError(f"no command-line parser for {hint!r}: give the option type=")
 
 
-def _comma_list(parse: Callable[[str], Any], choices: Sequence[Any] | None) -> Callable[[str], tuple]:
+def _comma_list(parse: Callable[[str], Any], choices: Collection[Any] | None) -> Callable[[str], tuple]:
     def parse_list(text: str) -> tuple:
         items = tuple(parse(item.strip()) for item in text.split(",") if item.strip())
         if choices is not None:
@@ -187,19 +191,46 @@ def _show(value: Any) -> str:
     return str(value)
 
 
-def add_options(parser: argparse.ArgumentParser, cls: type, *, skip: Sequence[str] = ()) -> None:
-    """Add a flag for every command-line field of ``cls`` (``skip``: field names to leave out).
+def add_options(
+    parser: argparse.ArgumentParser,
+    cls: type,
+    *,
+    skip: Sequence[str] = (),
+    exclusive: Sequence[Sequence[str]] = (),
+) -> None:
+    """Add a flag for every command-line field of ``cls``.
 
-    The parser remembers which config its flags came from (``configs_of``), so
-    ``from_args`` and the tests can find it again.
+    ``skip``: fields to leave out (a name, or a dotted path into nested configs). ``exclusive``:
+    groups of field names at most one of which a command line may give (argparse refuses the
+    line in one sentence). The parser remembers which config its flags came from
+    (``configs_of``), so ``from_args`` and the tests can find it again.
     """
     registered: list[tuple[type, tuple[str, ...]]] = getattr(parser, "_tidee_configs", [])
     registered.append((cls, tuple(skip)))
     parser._tidee_configs = registered  # type: ignore[attr-defined]
+    groups: dict[str, Any] = {}
+    for names in exclusive:
+        group = parser.add_mutually_exclusive_group()
+        groups.update(dict.fromkeys(names, group))
     for leaf in leaves(cls):
         if leaf.path[-1] in skip or ".".join(leaf.path) in skip:
             continue
-        parser.add_argument(leaf.flag, **_argument(leaf))
+        target = groups.get(".".join(leaf.path)) or groups.get(leaf.path[-1]) or parser
+        target.add_argument(leaf.flag, **_argument(leaf))
+
+
+def _validator(parse: Callable[[str], Any]) -> Callable[[str], Any]:
+    """``parse`` with its ValueError turned into argparse's refusal, message kept (argparse would
+    otherwise print only "invalid value"). Validators stay free of argparse."""
+
+    def checked(text: str) -> Any:
+        try:
+            return parse(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+
+    checked.__name__ = getattr(parse, "__name__", "value")
+    return checked
 
 
 def _argument(leaf: Leaf) -> dict[str, Any]:
@@ -222,9 +253,13 @@ def _argument(leaf: Leaf) -> dict[str, Any]:
     if origin is tuple:
         args = typing.get_args(hint)
         inner = args[0]
-        parse, choices = (spec.type, spec.choices) if spec.type else _scalar(inner)
+        parse, choices = (_validator(spec.type), spec.choices) if spec.type else _scalar(inner)
         choices = spec.choices or choices
-        if spec.nargs:
+        if spec.repeat:
+            if leaf.default is not dataclasses.MISSING:
+                raise TypeError(f"{leaf.flag}: a repeated flag must be required (no default)")
+            kw.update(action="append", type=parse)
+        elif spec.nargs:
             kw.update(nargs=spec.nargs, type=parse)
             if choices:
                 kw["choices"] = choices
@@ -234,7 +269,7 @@ def _argument(leaf: Leaf) -> dict[str, Any]:
                 "metavar", "A,B,..." if not choices else "{" + ",".join(map(_show, choices)) + "},..."
             )
     else:
-        parse, choices = (spec.type, spec.choices) if spec.type else _scalar(hint)
+        parse, choices = (_validator(spec.type), spec.choices) if spec.type else _scalar(hint)
         kw["type"] = parse
         if spec.choices or choices:
             kw["choices"] = spec.choices or choices
@@ -295,6 +330,8 @@ def to_argv(config: Any, *, skip: Sequence[str] = ()) -> list[str]:
             out.append(leaf.flag if value else "--no-" + leaf.flag[2:])
         elif value is None:
             continue
+        elif isinstance(value, tuple | list) and spec_of(leaf.field).repeat:
+            out += [item for v in value for item in (leaf.flag, _show(v))]
         elif isinstance(value, tuple | list) and spec_of(leaf.field).nargs:
             out += [leaf.flag, *(_show(v) for v in value)]
         else:
@@ -319,12 +356,13 @@ def add_command(
     help: str,
     *,
     skip: Sequence[str] = (),
+    exclusive: Sequence[Sequence[str]] = (),
 ) -> argparse.ArgumentParser:
     """A subcommand whose flags are ``cls``'s fields and which calls ``run(config)``.
 
     ``run`` should import what it needs inside itself: building the parser then stays cheap.
     """
     parser = group.add_parser(name, help=help, description=help)
-    add_options(parser, cls, skip=skip)
+    add_options(parser, cls, skip=skip, exclusive=exclusive)
     parser.set_defaults(func=lambda args: run(from_args(cls, args)))
     return parser

@@ -50,13 +50,13 @@ def annotate(
     # the key: one line per panel, in two columns under the picture
     line = int(round(30 * key_scale / 0.55))
     rows = (len(shown) + 1) // 2
-    key = np.full((rows * line + 16, w, 3), 255, np.uint8)
+    legend = np.full((rows * line + 16, w, 3), 255, np.uint8)
     for i, (n, _, caption) in enumerate(shown):
         col, row = divmod(i, rows)
         x, y = 12 + col * (w // 2), 10 + row * line
-        _badge(key, n, (x, y), scale=key_scale)
+        _badge(legend, n, (x, y), scale=key_scale)
         cv2.putText(
-            key,
+            legend,
             caption,
             (x + int(34 * key_scale / 0.55), y + int(19 * key_scale / 0.55)),
             FONT,
@@ -65,8 +65,8 @@ def annotate(
             1,
             cv2.LINE_AA,
         )
-    cv2.line(key, (0, 0), (w, 0), (200, 200, 200), 1)
-    return np.vstack([img, key])
+    cv2.line(legend, (0, 0), (w, 0), (200, 200, 200), 1)
+    return np.vstack([img, legend])
 
 
 def _badge_radius(scale: float) -> int:

@@ -43,6 +43,7 @@ from tidee.protocol.messages import (
     SearchHeatmap,
 )
 from tidee.viewer import access, geometry, images, palette
+from tidee.viewer.config import RATE_HZ
 from tidee.viewer.feed import OBSERVATION, LiveFeed
 from tidee.viewer.panels import Panels
 from tidee.viewer.replay import REPLAYED_KINDS, ReplayLog
@@ -65,7 +66,7 @@ class ViewerConfig:
     port: int = 8080  # 0: any free port (the handle's url says which)
     session: str | None = None  # pin one session; None follows the newest
     replay: str | None = None  # a log directory to play back instead of live telemetry
-    rate_hz: float = 10.0  # scene/panel updates per second, at most (per kind)
+    rate_hz: float = RATE_HZ  # scene/panel updates per second, at most (per kind)
     max_points: int = 200_000  # voxel points sent to the browser, at most
     oracle_period_s: float = 1.0  # ground-truth layer: how often to ask the server
     read_only: bool = False  # no controls that send commands; every command refused

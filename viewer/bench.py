@@ -191,25 +191,23 @@ def run_viewer_bench(
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
+    from tidee.options import add_options, from_args
+    from tidee.paths import bench_out
+    from tidee.viewer.config import ViewerBenchConfig
+
     p = argparse.ArgumentParser(
         prog="python -m tidee.viewer.bench",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--steps", type=int, default=1000)
-    p.add_argument("--work-ms", type=float, default=30.0, help="the synthetic agent's CPU time per step")
-    p.add_argument("--no-browser", action="store_true", help="skip the run with headless Chromium")
-    p.add_argument(
-        "--rate", type=float, default=ViewerConfig.rate_hz, help="the viewer's updates per second, at most"
-    )
-    p.add_argument("--out", default="bench/viewer.json")
-    args = p.parse_args(argv)
+    add_options(p, ViewerBenchConfig)
+    cfg = from_args(ViewerBenchConfig, p.parse_args(argv))
     result = run_viewer_bench(
-        args.steps,
-        args.out,
-        work_ms=args.work_ms,
-        browser=False if args.no_browser else None,
-        rate_hz=args.rate,
+        cfg.steps,
+        str(bench_out(cfg.out, "viewer.json")),
+        work_ms=cfg.work_ms,
+        browser=False if cfg.no_browser else None,
+        rate_hz=cfg.rate_hz,
     )
     print(json.dumps(result, indent=1))
     return 0

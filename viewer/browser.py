@@ -49,20 +49,26 @@ FLAGS = (
 WIDTH, HEIGHT = 1280, 800
 CANVAS = (slice(40, HEIGHT - 40), slice(360, WIDTH - 360))
 # Chromium without a GPU shows a "Software WebGL" notification over the canvas: close it.
-DISMISS_SOFTWARE_GL_NOTE = """(() => { let n = 0;
+# (The scripts here are split into adjacent literals only to keep source lines short.)
+DISMISS_SOFTWARE_GL_NOTE = (
+    """(() => { let n = 0;
   document.querySelectorAll('[class*="Notification-root"]').forEach(el => {
-    if (el.textContent.includes('Software WebGL')) { const b = el.querySelector('button'); if (b) { b.click(); n++; } }
+    if (el.textContent.includes('Software WebGL')) { """
+    """const b = el.querySelector('button'); if (b) { b.click(); n++; } }
   }); return n; })()"""
+)
 
 
 # Where each panel of the viewer's page is (viewport pixels: x0, y0, x1, y1), found in the DOM:
 # images by their label (the 2D map's has none), HTML panels by id, folders by their title.
-PANEL_BOXES = """(() => {
+PANEL_BOXES = (
+    """(() => {
   const box = el => { if (!el) return null; const b = el.getBoundingClientRect();
     return b.width > 4 && b.height > 4 ? [b.left, b.top, b.right, b.bottom].map(Math.round) : null; };
   const out = {};
   document.querySelectorAll('img').forEach(img => {
-    const p = img.parentElement && img.parentElement.parentElement && img.parentElement.parentElement.querySelector('p');
+    const p = img.parentElement && img.parentElement.parentElement && """
+    """img.parentElement.parentElement.querySelector('p');
     const label = p ? p.textContent : '';
     const b = box(img);
     if (!b || b[2] - b[0] < 40) return;                       // hidden tabs, icons
@@ -78,11 +84,13 @@ PANEL_BOXES = """(() => {
   const folders = {Episode: 'episode', Agent: 'controls', Replay: 'controls', Layers: 'layers'};
   while (walker.nextNode()) {
     const name = folders[walker.currentNode.textContent.trim()];
-    const label = name && walker.currentNode.parentElement.closest('.mantine-Paper-root');   // the folder's title bar
+    const label = name && walker.currentNode.parentElement.closest('.mantine-Paper-root');   """
+    """// the folder's title bar
     const folder = label && label.parentElement && label.parentElement.closest('.mantine-Paper-root');
     if (folder && !out[name]) { const b = box(folder); if (b) out[name] = b; }
   }
   return out; })()"""
+)
 
 
 def find_chromium() -> str | None:

@@ -14,7 +14,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import zenoh
 
@@ -268,7 +268,8 @@ class LiveFeed:
         for reply in replies:
             if reply.ok is not None:
                 return decode(reply.ok.payload.to_bytes(), expected=StateReply).scene
-            payload = reply.err.payload.to_bytes()
+            # A zenoh reply holds exactly one of ok and err; its stubs type each as optional.
+            payload = cast("zenoh.ReplyError", reply.err).payload.to_bytes()
             try:
                 err = decode(payload, expected=ErrorReply)
                 raise RuntimeError(

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -147,7 +148,8 @@ def start_from_world(start_x: float, start_y: float, start_yaw_deg: float) -> np
     yaw = math.radians(start_yaw_deg)
     c, s = math.cos(yaw), math.sin(yaw)
     t = np.eye(4)
-    t[:3, :3] = [[c, s, 0], [-s, c, 0], [0, 0, 1]]  # R(-yaw)
+    rot: list[list[float]] = [[c, s, 0], [-s, c, 0], [0, 0, 1]]  # R(-yaw)
+    t[:3, :3] = rot
     t[:3, 3] = t[:3, :3] @ np.array([-start_x, -start_y, 0.0])
     return t
 
@@ -234,8 +236,8 @@ def screen_view(
     w, x, y, z = (float(v) for v in wxyz)
     rot = quat_xyzw_to_matrix((x, y, z, w))
     return ScreenView(
-        tuple(float(v) for v in position),
-        tuple(tuple(float(v) for v in row) for row in rot),
+        cast("tuple[float, float, float]", tuple(float(v) for v in position)),
+        tuple(cast("tuple[float, float, float]", tuple(float(v) for v in row)) for row in rot),
         image_height / (2.0 * math.tan(fov_y / 2.0)),
     )
 

@@ -123,7 +123,11 @@ class Panels:
                 box = gui.add_checkbox(
                     LAYER_LABELS[layer], initial_value=layer != "oracle", hint=LAYER_HINTS.get(layer)
                 )
-                box.on_update(lambda e, layer=layer: actions.set_layer(layer, bool(e.target.value)))
+
+                def _toggle_layer(e: viser.GuiEvent[viser.GuiCheckboxHandle], layer: str = layer) -> None:
+                    actions.set_layer(layer, bool(e.target.value))
+
+                box.on_update(_toggle_layer)
                 self.layer_boxes[layer] = box
             self.colour_mode = gui.add_dropdown(
                 "3D map colours",
@@ -316,7 +320,9 @@ class Panels:
 
     def show_replay_step(self, step: int, info: str) -> None:
         if int(self.slider.value) != step:
-            self.slider.value = step
+            # viser declares value's setter apart from its getter (another method between), so
+            # mypy drops the setter and sees the property read-only
+            self.slider.value = step  # type: ignore[misc]
         if self.replay_info.content != info:
             self.replay_info.content = info
 
@@ -387,7 +393,8 @@ def summary_html(s: EpisodeSummary) -> str:
         f"<div id='{SUMMARY_ID}' style='border:2px solid #2e7d32;background:#eef7ee;border-radius:6px;"
         f"padding:5px 8px;margin:2px 8px 6px;font-size:0.85em;line-height:1.4'>"
         f"<div style='font-size:1.15em;font-weight:700;color:#1b5e20'>&#10004; Episode finished</div>"
-        f"<div>{html.escape(room)} · {html.escape(who)} · <b>{s.steps}</b> steps · <b>{s.wall_s:.0f}</b> s</div>"
+        f"<div>{html.escape(room)} · {html.escape(who)} · <b>{s.steps}</b> steps · "
+        f"<b>{s.wall_s:.0f}</b> s</div>"
         f"<div style='color:#555'>ended: {html.escape(s.end_reason or '–')}</div>"
         f"<div title='found and plausible are out of the objects the mess-up moved; plausible by the "
         f"simulated judge'>{chips}</div>{unscored}{replay}</div>"

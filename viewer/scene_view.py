@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -70,7 +70,7 @@ def oracle_objects(scene: dict[str, Any]) -> list[OracleObject]:
     for obj in scene.get("objects", []):
         if not (obj.get("pickupable") or obj.get("id") in moved):
             continue
-        size = tuple(float(v) for v in obj["size"])
+        size = cast("tuple[float, float, float]", tuple(float(v) for v in obj["size"]))
         rot_world = geometry.quat_xyzw_to_matrix(obj["orientation"])
         bottom = np.append(np.asarray(obj["position"], np.float64), 1.0)  # bottom-centre, world
         center_world = bottom[:3] + rot_world @ np.array([0.0, 0.0, size[2] / 2.0])
@@ -83,7 +83,7 @@ def oracle_objects(scene: dict[str, Any]) -> list[OracleObject]:
                 t[:3, :3] @ rot_world,
                 obj.get("id") in moved,
             )
-        )  # type: ignore[arg-type]
+        )
     return out
 
 
@@ -432,7 +432,7 @@ class SceneView:
             x, y, yaw, pitch = (float(v) for v in msg.pose)
             pose = geometry.camera_pose_from_agent(x, y, yaw, pitch, STATUS_CAMERA_HEIGHT)
             self.frustum.wxyz = geometry.rotation_to_wxyz(pose[:3, :3])
-            self.frustum.position = tuple(float(v) for v in pose[:3, 3])
+            self.frustum.position = cast("tuple[float, float, float]", tuple(float(v) for v in pose[:3, 3]))
             self._set_has("frustum", True)
         self.counts["trajectory"] = int(len(traj))
 

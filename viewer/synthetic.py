@@ -495,7 +495,8 @@ class SyntheticAgent:
     def wait_for_subscriber(self, timeout: float) -> bool:
         """Wait until someone (a viewer) subscribes to this session's status; False on timeout."""
         deadline = time.monotonic() + timeout
-        while not self._pubs["status"].matching_status.matching:
+        # zenoh's stubs type matching_status as bool; it is a MatchingStatus with .matching
+        while not self._pubs["status"].matching_status.matching:  # type: ignore[attr-defined]
             if time.monotonic() > deadline:
                 return False
             time.sleep(0.05)
@@ -560,41 +561,29 @@ def main(argv: list[str] | None = None) -> int:
     import json
     import signal
 
+    from tidee.options import add_options, from_args
+    from tidee.viewer.config import SyntheticConfig
+
     p = argparse.ArgumentParser(prog="python -m tidee.viewer.synthetic", description=main.__doc__)
-    p.add_argument("--endpoint", default=None, help="peer-mode rendezvous (default: loopback:7447)")
-    p.add_argument("--router", default=None)
-    p.add_argument(
-        "--connect",
-        action="store_true",
-        help="connect to the rendezvous instead of listening on it (when a server already listens)",
-    )
-    p.add_argument("--session", default="synthetic")
-    p.add_argument("--server-id", default="sim0")
-    p.add_argument("--steps", type=int, default=0, help="stop after this many steps (0: run until Ctrl-C)")
-    p.add_argument("--rate", type=float, default=10.0, help="steps per second (0: as fast as possible)")
-    p.add_argument("--work-ms", type=float, default=0.0, help="CPU time burnt per step (an agent's compute)")
-    p.add_argument(
-        "--wait-viewer", type=float, default=0.0, help="wait up to this many seconds for a subscriber"
-    )
-    p.add_argument("--resolution", type=int, default=128)
-    args = p.parse_args(argv)
+    add_options(p, SyntheticConfig)
+    cfg = from_args(SyntheticConfig, p.parse_args(argv))
     with SyntheticAgent(
-        session=args.session,
-        server_id=args.server_id,
-        endpoint=args.endpoint,
-        router=args.router,
-        listen=not args.connect,
-        resolution=args.resolution,
-        rate_hz=args.rate,
-        work_ms=args.work_ms,
+        session=cfg.session,
+        server_id=cfg.server_id,
+        endpoint=cfg.endpoint,
+        router=cfg.router,
+        listen=not cfg.connect,
+        resolution=cfg.resolution,
+        rate_hz=cfg.rate_hz,
+        work_ms=cfg.work_ms,
     ) as agent:
         for sig in (
             signal.SIGINT,
             signal.SIGTERM,
         ):  # explicit: a background job may start with SIGINT ignored
             signal.signal(sig, lambda *_: agent.stop())
-        matched = agent.wait_for_subscriber(args.wait_viewer) if args.wait_viewer > 0 else False
-        rate = agent.run(args.steps or None)
+        matched = agent.wait_for_subscriber(cfg.wait_viewer) if cfg.wait_viewer > 0 else False
+        rate = agent.run(cfg.steps or None)
         print(
             json.dumps(
                 {"steps": agent.steps_published, "steps_per_s": round(rate, 3), "viewer_matched": matched}

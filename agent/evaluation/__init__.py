@@ -8,42 +8,32 @@
 
 from __future__ import annotations
 
-from .judge import (
-    AI2THOR_PLACEMENT,
-    MESSY_PLACEMENT,
-    REFERENCE_VARIANTS,
-    judge_score,
-    plausible,
-    prefer,
-    reference_records,
-)
-from .report import (
-    OBJECT_KEYS,
-    RECORD_KEYS,
-    config_key,
-    format_markdown,
-    pairwise_table,
-    validate_records,
-    variant_metrics,
-    with_references,
-    write_report,
-)
+import importlib
+from typing import Any
 
-__all__ = [
-    "AI2THOR_PLACEMENT",
-    "MESSY_PLACEMENT",
-    "REFERENCE_VARIANTS",
-    "judge_score",
-    "plausible",
-    "prefer",
-    "reference_records",
-    "OBJECT_KEYS",
-    "RECORD_KEYS",
-    "config_key",
-    "format_markdown",
-    "pairwise_table",
-    "validate_records",
-    "variant_metrics",
-    "with_references",
-    "write_report",
-]
+_HOME = {
+    "AI2THOR_PLACEMENT": "judge",
+    "MESSY_PLACEMENT": "judge",
+    "REFERENCE_VARIANTS": "judge",
+    "judge_score": "judge",
+    "plausible": "judge",
+    "prefer": "judge",
+    "reference_records": "judge",
+    "OBJECT_KEYS": "report",
+    "RECORD_KEYS": "report",
+    "config_key": "report",
+    "format_markdown": "report",
+    "pairwise_table": "report",
+    "validate_records": "report",
+    "variant_metrics": "report",
+    "with_references": "report",
+    "write_report": "report",
+}
+__all__ = sorted(_HOME)
+
+
+def __getattr__(name: str) -> Any:
+    """The names above load their module on first use (the report needs SciPy; configs do not)."""
+    if name in _HOME:
+        return getattr(importlib.import_module(f"{__name__}.{_HOME[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

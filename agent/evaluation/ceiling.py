@@ -22,11 +22,11 @@ population of the report's preference, :func:`tidee.agent.evaluation.report.pair
    the most frequent receptacle present) instead of by the prior.
 
 Evaluation only: it reads the catalog prior and the episodes' ground truth. JSON + Markdown in ``--out``.
+The command and its options: :mod:`tidee.agent.reasoning.rgcn.commands`, ``CeilingConfig``.
 """
 
 from __future__ import annotations
 
-import argparse
 import copy
 import gzip
 import json
@@ -36,7 +36,8 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-SURVEY_FIRST_SEED = 10185  # the shipped rGCN trains on training-pool seeds 10000-10184
+from tidee.agent.reasoning.rgcn.config import SURVEY_FIRST_SEED, CeilingConfig
+
 A, B = "TIDEE", "CommonMemory"
 
 Key = tuple[str, str, Any]  # (room type, category, variant)
@@ -118,7 +119,8 @@ def survey(
     dist: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0])
     for key, c in observed.items():
         e = expected[key]
-        d = 0.5 * sum(abs(c.get(r, 0) - e.get(r, 0.0)) for r in set(c) | set(e))
+        # sorted: a set's order changes with the hash seed, and with it the float sum's last bits
+        d = 0.5 * sum(abs(c.get(r, 0) - e.get(r, 0.0)) for r in sorted(set(c) | set(e)))
         dist[key[0]][0] += d
         dist[key[0]][1] += sum(c.values())
     total = sum(n for _, n in dist.values())
@@ -220,13 +222,13 @@ def counterfactual(
     for rec in records:
         if rec["variant"] != variant:
             continue
-        rec = copy.deepcopy(dict(rec))
-        for obj in rec["objects"]:
+        copied = copy.deepcopy(dict(rec))
+        for obj in copied["objects"]:
             if obj["picked"]:
                 obj["final_parent_type"] = choose(
-                    rec["room_type"], obj["type"], obj["variant"], rec["present_receptacles"]
+                    copied["room_type"], obj["type"], obj["variant"], copied["present_receptacles"]
                 )
-        out.append(rec)
+        out.append(copied)
     return out
 
 
@@ -273,18 +275,13 @@ def ceilings(report: Mapping[str, Any], counts: Mapping[Key, Counter]) -> dict[s
 
 # ------------------------------------------------------------------------ command
 def run_ceiling(
-    reports: Sequence[str],
-    out: str | Path,
-    rooms_per_type: int = 200,
-    version: int = 1,
-    command: str = "tidee eval ceiling",
-    progress: bool = True,
-    first_seed: int = SURVEY_FIRST_SEED,
+    cfg: CeilingConfig, command: str = "tidee eval ceiling", progress: bool = True
 ) -> dict[str, Any]:
+    """Survey, then the ceilings of every report of ``cfg``; ceiling.json and ceiling.md in ``cfg.out``."""
     from tidee.protocol.episode_log import write_json_atomic
 
-    loaded = [(str(p), _load_report(p)) for p in reports]  # fail on a bad report before the survey
-    s = survey(rooms_per_type, version, first_seed=first_seed, progress=progress)
+    loaded = [(str(p), _load_report(p)) for p in cfg.report]  # fail on a bad report before the survey
+    s = survey(cfg.rooms_per_type, cfg.rooms_version, first_seed=cfg.first_seed, progress=progress)
     result = {
         "command": command,
         "judge": "catalog placement priors (receptacle_weights)",
@@ -298,7 +295,7 @@ def run_ceiling(
             for p, r in loaded
         ],
     }
-    out = Path(out)
+    out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "ceiling.json", result)
     (out / "ceiling.md").write_text(markdown(result))
@@ -334,7 +331,8 @@ def markdown(result: Mapping[str, Any]) -> str:
             "",
             "TIDEE against CommonMemory on the objects both picked (ties count half).",
             "",
-            "| placements | n | won / tied / lost | preference | mean judge TIDEE | mean judge CommonMemory |",
+            "| placements | n | won / tied / lost | preference | mean judge TIDEE "
+            "| mean judge CommonMemory |",
             "|---|---|---|---|---|---|",
         ]
         for key, name in ROW_NAMES.items():
@@ -356,57 +354,12 @@ def markdown(result: Mapping[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _cmd(args: argparse.Namespace) -> int:
-    command = (
-        "tidee eval ceiling "
-        + " ".join(f"--report {r}" for r in args.report)
-        + f" --rooms-per-type {args.rooms_per_type} --rooms-version {args.rooms_version}"
-        + (f" --first-seed {args.first_seed}" if args.first_seed != SURVEY_FIRST_SEED else "")
-        + f" --out {args.out}"
-    )
-    result = run_ceiling(
-        args.report,
-        args.out,
-        args.rooms_per_type,
-        args.rooms_version,
-        command=command,
-        first_seed=args.first_seed,
-    )
-    print(markdown(result))
-    return 0
-
-
-def register(eval_sub: argparse._SubParsersAction) -> None:
-    """``tidee eval ceiling``."""
-    p = eval_sub.add_parser(
-        "ceiling", help="the judge preference a perfect learner of the tidy rooms could reach"
-    )
-    p.add_argument(
-        "--report",
-        action="append",
-        required=True,
-        help="a tidy report with TIDEE and CommonMemory episodes (report.json[.gz] or its folder); "
-        "repeat for several",
-    )
-    p.add_argument("--rooms-per-type", type=int, default=200, help="survey rooms per room type")
-    p.add_argument("--rooms-version", type=int, default=1, help="room generator version of the survey")
-    p.add_argument(
-        "--first-seed",
-        type=int,
-        default=SURVEY_FIRST_SEED,
-        help="first training-pool seed of the survey (another seed gives an independent survey)",
-    )
-    p.add_argument("--out", required=True)
-    p.set_defaults(func=_cmd)
-
-
 __all__ = [
     "SURVEY_FIRST_SEED",
     "ceilings",
     "counterfactual",
     "observed_judge",
     "prior_choosers",
-    "register",
     "rooms_choosers",
     "run_ceiling",
     "survey",

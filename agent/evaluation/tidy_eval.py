@@ -12,19 +12,15 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing as mp
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from tidee.agent.config import (
-    BUILT_VARIANTS,
-    REFERENCE_VARIANTS,
-    AgentConfig,
-    PolicyConfig,
-    check_variant_built,
-)
-from tidee.agent.perception import TRAINED_RENDERER
+from tidee.agent.config import REFERENCE_VARIANTS, AgentConfig, check_variant_built
+from tidee.agent.evaluation.config import TidyEvalConfig
+from tidee.protocol.messages import EpisodeSpec
 from tidee.threads import threads_per_process
 
 
@@ -42,44 +38,38 @@ def select_configs(split: str, episodes: int | None) -> list[Any]:
     return [mess_config(split, i) for i in idx]
 
 
-def _run_one(job: dict[str, Any]) -> dict[str, Any]:
+@dataclass(frozen=True)
+class TidyJob:
+    """One episode of the eval: the agent and the episode, as the config objects themselves."""
+
+    agent: AgentConfig
+    spec: EpisodeSpec
+    split: str
+    renderer: str
+    log_dir: Path | None = None
+
+
+def _run_one(job: TidyJob) -> dict[str, Any]:
     """One episode in this worker's own simulator (module-level so it pickles)."""
     from tidee.agent.runner import AgentModels, EpisodeRunner
-    from tidee.protocol.messages import EpisodeSpec
     from tidee.protocol.transport import InProcessTransport
 
     transport = _WORKER.get("transport")
     if transport is None:  # a caller that did not run _init_worker: make this process's simulator now
-        transport = _WORKER["transport"] = InProcessTransport(renderer=job["renderer"])
-    cfg = AgentConfig(
-        variant=job["variant"],
-        perception=job["perception"],
-        oop=job["oop"],
-        depth=job["depth"],
-        explorer=job["explorer"],
-        seed=job["agent_seed"],
-        detection_threshold=job.get("detection_threshold"),
-        policy=PolicyConfig(missing_top=job["missing_top"]),
-    )
-    spec = EpisodeSpec(
-        room_type=job["room_type"],
-        seed=job["seed"],
-        mess_index=job["mess_index"],
-        resolution=job["resolution"],
-        max_steps=job["max_steps"],
-    )
+        transport = _WORKER["transport"] = InProcessTransport(renderer=job.renderer)
+    cfg, spec = job.agent, job.spec
     models = _WORKER.setdefault("models", {})
     key = AgentModels.key_of(cfg)
     if key not in models:
         models[key] = AgentModels.load(cfg)
-    runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.get("log_dir"), models=models[key])
+    runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.log_dir, models=models[key])
     res = runner.run(
         spec,
         evaluate=True,
-        episode_name=f"{job['variant']}_{spec.room_type}_{spec.seed}_mess{spec.mess_index}",
+        episode_name=f"{cfg.variant}_{spec.room_type}_{spec.seed}_mess{spec.mess_index}",
     )
     assert res.record is not None
-    record = dict(res.record, split=job["split"])
+    record = dict(res.record, split=job.split)
     record["timing_ms"] = {k: float(np.median(v)) if v else None for k, v in res.timings.items()}
     return record
 
@@ -96,63 +86,38 @@ def _init_worker(renderer: str, threads: int) -> None:
     _WORKER["transport"] = InProcessTransport(renderer=renderer)
 
 
-def run_tidy_eval(
-    out: str | Path,
-    split: str = "test",
-    episodes: int | None = None,
-    variants: list[str] | None = None,
-    perception: str = "learned",
-    oop: str = "auto",
-    explorer: str = "random",
-    resolution: int = 256,
-    max_steps: int = 1000,
-    workers: int = 1,
-    renderer: str = TRAINED_RENDERER,
-    keep_logs: bool = False,
-    progress: bool = True,
-    depth: str = "sensor",
-    detection_threshold: float | None = None,
-    missing_top: str = "skip",
-) -> dict[str, Any]:
+def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
     from tqdm import tqdm
 
     from tidee.agent.evaluation.report import with_references, write_report
 
-    # "auto" resolved as the agent does; a bad threshold or missing_top is refused here, before any episode
-    oop = AgentConfig(
-        perception=perception,
-        oop=oop,
-        detection_threshold=detection_threshold,
-        policy=PolicyConfig(missing_top=missing_top),
-    ).oop
-    variants = variants or list(BUILT_VARIANTS)
+    agent = cfg.agent  # "auto" OOP resolved, a bad threshold or missing_top refused: before any episode
+    split, variants, workers, renderer = cfg.split, list(cfg.variants), cfg.workers, cfg.renderer
+    perception, oop, depth, explorer = agent.perception, agent.oop, agent.depth, agent.explorer
+    missing_top, detection_threshold = agent.policy.missing_top, agent.detection_threshold
+    resolution, max_steps, progress = cfg.resolution, cfg.max_steps, cfg.progress
     agents = [v for v in variants if v not in REFERENCE_VARIANTS]
     for v in agents:
         check_variant_built(v)  # reads the placement registry: a registered variant of yours is an agent
     if not agents:
         raise ValueError("give at least one agent variant (the reference rows need an agent's episodes)")
-    out = Path(out)
+    out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    configs = select_configs(split, episodes)
+    configs = select_configs(split, cfg.episodes)
     jobs = [
-        {
-            "variant": v,
-            "perception": perception,
-            "oop": oop,
-            "depth": depth,
-            "explorer": explorer,
-            "agent_seed": c.index,
-            "detection_threshold": detection_threshold,
-            "missing_top": missing_top,
-            "room_type": c.room_type,
-            "seed": c.seed,
-            "mess_index": c.mess_index,
-            "split": split,
-            "resolution": resolution,
-            "max_steps": max_steps,
-            "renderer": renderer,
-            "log_dir": str(out / "logs") if keep_logs else None,
-        }
+        TidyJob(
+            agent=replace(agent, variant=v, seed=c.index),
+            spec=EpisodeSpec(
+                room_type=c.room_type,
+                seed=c.seed,
+                mess_index=c.mess_index,
+                resolution=resolution,
+                max_steps=max_steps,
+            ),
+            split=split,
+            renderer=renderer,
+            log_dir=out / "logs" if cfg.keep_logs else None,
+        )
         for c in configs
         for v in agents
     ]
@@ -200,7 +165,8 @@ def run_tidy_eval(
         + (f", detection threshold {detection_threshold}" if detection_threshold is not None else ""),
         "median per-step agent time (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in timing.items()),
         f"command: tidee eval tidy --split {split} --episodes {len(configs)} --variants {','.join(variants)} "
-        f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} --missing-top {missing_top} "
+        f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} "
+        f"--missing-top {missing_top} "
         + (f"--detection-threshold {detection_threshold} " if detection_threshold is not None else "")
         + f"--max-steps {max_steps} --resolution {resolution} --workers {workers} --out {out}",
         f"total wall time {time.time() - t0:.0f} s with {workers} worker(s)",

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from enum import Enum
+from typing import cast
 
 import numpy as np
 import skfmm
@@ -504,7 +505,8 @@ class FMMPlanner:
 
         gx = free(xs[:-1, None, None] + s * t[None, None, :], ys[None, :, None])
         gy = free(xs[:, None, None], ys[None, :-1, None] + s * t[None, None, :])
-        edge_x, edge_y = gx.all(axis=2), gy.all(axis=2)
+        # 2D arrays: numpy's stubs type a reduction along one axis as maybe a scalar
+        edge_x, edge_y = cast("np.ndarray", gx.all(axis=2)), cast("np.ndarray", gy.all(axis=2))
         # moves off the start may cross a non-traversible start cell (segment_free skips it)
         si, sj = start
         if si + 1 < xs.size:

@@ -1,18 +1,34 @@
-"""Perception: RGB-D observation -> 2D detections. Choose an implementation by name."""
+"""Perception: RGB-D observation -> 2D detections. Choose an implementation by name.
+
+A light package (no torch): the agent's configuration and every command line import these
+names. The model families live in subpackages, one module per role (``config`` light,
+``model`` the runtime, ``data``, ``train``, ``eval``):
+
+* :mod:`.detector`: the RGB-D detector with its OOP head, and ``tidee gen detection`` data.
+* :mod:`.reclassifier`: the crop classifier that renames the detector's detections.
+* :mod:`.depth`: the depth-from-RGB network (the paper's "+est. depth").
+* :mod:`.learned`: the agent's learned perception (detector + reclassifier); :mod:`.oracle`:
+  the simulator's segmentation. :mod:`.commands`: their ``tidee`` commands.
+"""
 
 from __future__ import annotations
 
-from tidee.agent.perception.base import Detection, Perception
+from typing import Literal, get_args
 
-PERCEPTIONS = ("oracle", "learned")
-# The renderer the shipped vision models (detector, depth network) were trained on. The
-# simulator's own default is EGL when it loads (faster); its frames are lit differently and
-# the detector scores lower on them (`tidee eval detector --split test --renderer egl`:
-# docs/eval/detector_egl), so the
-# agent's commands ask for this one until the models are retrained on EGL frames.
-TRAINED_RENDERER = "tiny"
-# How the detector's heatmap peaks become detections (``detector.decode``); the agent's is the first.
-PEAK_MODES = ("class-max", "per-class", "per-class-single")
+from tidee.agent.perception.base import Detection, Perception
+from tidee.server.config import TRAINED_RENDERER
+
+# The renderer the shipped vision models (detector, depth network) were trained on
+# (TRAINED_RENDERER, declared with the server's options). The simulator's own default is EGL
+# when it loads (faster); its frames are lit differently and the detector scores lower on them
+# (`tidee eval detector --split test --renderer egl`: docs/eval/detector_egl), so the agent's
+# commands ask for this one until the models are retrained on EGL frames.
+
+PerceptionMode = Literal["learned", "oracle"]
+PERCEPTIONS: tuple[PerceptionMode, ...] = get_args(PerceptionMode)
+# How the detector's heatmap peaks become detections (``detector.model.decode``); the agent's is the first.
+PeakMode = Literal["class-max", "per-class", "per-class-single"]
+PEAK_MODES: tuple[PeakMode, ...] = get_args(PeakMode)
 AGENT_THRESHOLD = 0.3  # the learned detector's score below which the agent drops a detection
 
 
@@ -37,7 +53,9 @@ def make_perception(name: str, threshold: float | None = None) -> Perception:
 __all__ = [
     "Detection",
     "Perception",
+    "PerceptionMode",
     "PERCEPTIONS",
+    "PeakMode",
     "PEAK_MODES",
     "AGENT_THRESHOLD",
     "TRAINED_RENDERER",

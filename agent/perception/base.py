@@ -37,7 +37,7 @@ class Detection:
 
 
 class Perception(Protocol):
-    name: str  # "oracle", "learned", ...
+    name: str  # one of PERCEPTIONS, or a name of your own
     needs_ground_truth: bool  # True only for oracle modes
 
     def detect(self, obs: Observation) -> list[Detection]: ...

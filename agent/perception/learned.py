@@ -22,15 +22,23 @@ from tidee.agent.classes import CLASSES
 from tidee.agent.learning import read_manifest, resolve_precision
 from tidee.agent.perception import AGENT_THRESHOLD
 from tidee.agent.perception.base import Detection
-from tidee.agent.perception.detector import (
+from tidee.agent.perception.detector.config import DEFAULT_WEIGHTS, DetectorConfig
+from tidee.agent.perception.detector.model import (
     CenterDetector,
-    DetectorConfig,
     RawDetection,
     check_peaks,
     decode,
     preprocess,
 )
-from tidee.agent.perception.reclassifier import CropClassifier, crop_inputs, det_features, frame_tensor, fuse
+from tidee.agent.perception.reclassifier.config import DEFAULT_RECLASSIFIER
+from tidee.agent.perception.reclassifier.model import (
+    CropClassifier,
+    crop_inputs,
+    det_features,
+    frame_tensor,
+    fuse,
+    load_reclassifier,
+)
 from tidee.protocol.messages import Observation
 
 
@@ -87,8 +95,8 @@ class LearnedPerception:
 
     ``precision``: "auto" runs the network under bf16 autocast, channels-last, where the CPU
     has native bf16 (AVX512-BF16/AMX; about 1.6x faster per frame), fp32 elsewhere.
-    ``classes_per_peak``, ``peaks``: see ``detector.decode`` (1 and "class-max" for the agent).
-    ``reclassifier``: the crop classifier that renames detections (``reclassifier.fuse`` with
+    ``classes_per_peak``, ``peaks``: see ``detector.model.decode`` (1 and "class-max" for the agent).
+    ``reclassifier``: the crop classifier that renames detections (``reclassifier.model.fuse`` with
     ``alpha``, ``beta``), or None for the detector's own classes and scores.
     """
 
@@ -144,9 +152,6 @@ class LearnedPerception:
         """``reclassifier``: "default" loads the shipped crop classifier when it is there, a path
         loads that one (it must exist), None runs the detector alone. Its fusion weights
         (``alpha``, ``beta``) come from its manifest's ``fusion`` (``tidee eval reclassifier --record``)."""
-        from tidee.agent.perception.reclassifier import DEFAULT_RECLASSIFIER, load_reclassifier
-        from tidee.agent.perception.train_detector import DEFAULT_WEIGHTS
-
         path = Path(path) if path else DEFAULT_WEIGHTS
         manifest = read_manifest(path, verify=verify)
         blob = torch.load(path, map_location="cpu", weights_only=False)
@@ -184,18 +189,20 @@ class LearnedPerception:
         heat: torch.Tensor,
         threshold: float,
     ) -> list[list[RawDetection]]:
-        """Each detection renamed and rescored by the crop classifier (``reclassifier.fuse``);
+        """Each detection renamed and rescored by the crop classifier (``reclassifier.model.fuse``);
         those whose score falls under ``threshold`` are dropped, the rest sorted best first."""
+        rc = self.reclassifier
+        assert rc is not None  # detect_batch asks for this only when there is a second stage
         flat = [(i, d) for i, dets in enumerate(raw) for d in dets]
         fidx = torch.tensor([i for i, _ in flat])
         boxes = torch.tensor([d.box for _, d in flat], dtype=torch.float32)
-        crops, side = crop_inputs(frame_tensor(rgb, depth), fidx, boxes, self.reclassifier.cfg)
+        crops, side = crop_inputs(frame_tensor(rgb, depth), fidx, boxes, rc.cfg)
         rows = torch.tensor([d.cell[0] for _, d in flat])
         cols = torch.tensor([d.cell[1] for _, d in flat])
         cell_heat, peak = heat[fidx, :, rows, cols], torch.tensor([d.score for _, d in flat])
-        det = det_features(cell_heat, peak) if self.reclassifier.cfg.det_inputs else None
+        det = det_features(cell_heat, peak) if rc.cfg.det_inputs else None
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
-            logits = self.reclassifier(crops.contiguous(memory_format=torch.channels_last), side, det)
+            logits = rc(crops.contiguous(memory_format=torch.channels_last), side, det)
         cls, score = fuse(logits, cell_heat, peak, self.alpha, self.beta)
         out: list[list[RawDetection]] = [[] for _ in raw]
         for (i, d), c, s in zip(flat, cls.tolist(), score.tolist()):

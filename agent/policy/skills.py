@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Generator
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -378,7 +379,7 @@ def raised_sighting(
 
 def _other_pickupable_at(body: Body, label: str, u: int, v: int) -> bool:
     """A detection of a pickupable class other than ``label`` covers pixel (u, v) of the frame."""
-    shape = body.obs.depth.shape
+    shape = cast("Observation", body.obs).depth.shape  # called while acting on the latest frame
     return any(d.label != label and d.label in PICKUPABLE and d.region(shape)[v, u] for d in body.detections)
 
 

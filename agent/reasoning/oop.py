@@ -158,7 +158,7 @@ class VisualOOP:
 @register_oop_detector("language")
 def _language() -> OOPDetector:
     """BERT-OOP: the language classifier (loads torch and the sentence encoder, so only when chosen)."""
-    from tidee.agent.reasoning.language_oop import LanguageOOP
+    from tidee.agent.reasoning.language_oop.model import LanguageOOP
 
     return LanguageOOP()
 
@@ -166,6 +166,6 @@ def _language() -> OOPDetector:
 @register_oop_detector("fused")
 def _fused() -> OOPDetector:
     """dDETR+BERT-OOP: the language paragraph and the detector's feature."""
-    from tidee.agent.reasoning.language_oop import FusedLanguageOOP
+    from tidee.agent.reasoning.language_oop.model import FusedLanguageOOP
 
     return FusedLanguageOOP()

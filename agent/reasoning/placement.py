@@ -2,7 +2,7 @@
 
 ``PlacementModel.predict`` returns receptacle types with probabilities, best first; the
 policy tries them in order (first the ones already in its object memory). Learned twins
-(Memex + rGCN, ``rgcn.RGCNPlacement``) implement the same protocol. RandomReceptacle is not a ranking:
+(Memex + rGCN, ``rgcn.model.RGCNPlacement``) implement the same protocol. RandomReceptacle is not a ranking:
 the policy handles it by putting the object on the first receptacle it comes across.
 
 Each agent variant (``AgentConfig.variant``) is one entry of ``PLACEMENT_MODELS``: a
@@ -89,7 +89,7 @@ def make_placement(variant: str) -> tuple[PlacementModel | None, object | None]:
     entry = check_variant(variant)
     searcher = None
     if entry.search:
-        from tidee.agent.reasoning.search_net import VisualSearch
+        from tidee.agent.reasoning.search.model import VisualSearch
 
         searcher = VisualSearch.load()
     return entry.factory(), searcher
@@ -99,7 +99,7 @@ def make_placement(variant: str) -> tuple[PlacementModel | None, object | None]:
 @register_placement("TIDEE", search=True)
 def _tidee() -> PlacementModel:
     """Memex + rGCN."""
-    from tidee.agent.reasoning.rgcn import DEFAULT_WEIGHTS, RGCNPlacement
+    from tidee.agent.reasoning.rgcn.model import DEFAULT_WEIGHTS, RGCNPlacement
 
     return RGCNPlacement.load(DEFAULT_WEIGHTS)
 
@@ -107,7 +107,7 @@ def _tidee() -> PlacementModel:
 @register_placement("WithoutMemex", search=True)
 def _without_memex() -> PlacementModel:
     """rGCN on the scene graph only."""
-    from tidee.agent.reasoning.rgcn import DEFAULT_WITHOUT_MEMEX, RGCNPlacement
+    from tidee.agent.reasoning.rgcn.model import DEFAULT_WITHOUT_MEMEX, RGCNPlacement
 
     return RGCNPlacement.load(DEFAULT_WITHOUT_MEMEX)
 

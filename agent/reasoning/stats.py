@@ -19,8 +19,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from tidee.protocol.episode_log import write_json_atomic
-
 DEFAULT_PATH = Path(__file__).resolve().parent.parent / "data" / "placement_stats.json"
 ALL_ROOMS = "*"
 
@@ -114,6 +112,8 @@ def build_stats(
         },
         "counts": plain,
     }
+    from tidee.protocol.episode_log import write_json_atomic  # OpenCV: only when writing
+
     write_json_atomic(out, data)
     return data
 

@@ -30,11 +30,56 @@ z in [0, 1], +y is the object's front). Conventions used throughout:
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+from typing import Literal, TypedDict, Unpack
 
-from .schema import Category, ColorRole, Part, Surface, Variant
+from .schema import Category, ColorRole, Hinge, Part, Placement, Surface, Variant
 
 V3 = tuple[float, float, float]
 Profile = Sequence[tuple[float, float]]
+Kind = Literal["small", "furniture", "structure"]
+
+
+class PartOptions(TypedDict, total=False):
+    """The optional ``Part`` fields the part helpers pass through (``lathe`` sets ``profile``)."""
+
+    door: Hinge | None
+    collide: bool
+
+
+class Aspect(TypedDict):
+    """A round part's nominal sx / sy and sx / sz (``sph``'s ``ay`` and ``az``)."""
+
+    ay: float
+    az: float
+
+
+class _CommonOptions(TypedDict, total=False):
+    """Optional ``Category`` fields every helper below passes through unchanged."""
+
+    receptacle: bool
+    openable: bool
+    surfaces: tuple[Surface, ...]
+    variants: tuple[Variant, ...]
+    mount_height: float
+    tags: frozenset[str]
+
+
+class SmallOptions(_CommonOptions, total=False):
+    """What ``small`` passes on: it sets ``pickupable`` and ``mass`` itself."""
+
+    placement: Placement
+
+
+class FurnitureOptions(_CommonOptions, total=False):
+    """What ``furn`` passes on: it takes ``placement`` by name."""
+
+    pickupable: bool
+    mass: float
+
+
+class CategoryOptions(SmallOptions, FurnitureOptions, total=False):
+    """Every optional ``Category`` field, as ``cat`` passes them to ``Category``."""
+
 
 # Roles every palette has unless it overrides them; recipes use these for fittings.
 DEFAULT_ROLES: dict[str, str] = {
@@ -47,27 +92,39 @@ DEFAULT_ROLES: dict[str, str] = {
 # --------------------------------------------------------------------------- helpers
 
 
-def box(c: V3, e: V3, color: ColorRole = "primary", **kw: object) -> Part:
-    return Part("box", c, e, color, **kw)  # type: ignore[arg-type]
+def box(c: V3, e: V3, color: ColorRole = "primary", **kw: Unpack[PartOptions]) -> Part:
+    return Part("box", c, e, color, **kw)
 
 
-def cyl(c: V3, d: float, h: float, color: ColorRole = "primary", ay: float = 1.0, **kw: object) -> Part:
+def cyl(
+    c: V3, d: float, h: float, color: ColorRole = "primary", ay: float = 1.0, **kw: Unpack[PartOptions]
+) -> Part:
     """Vertical cylinder of diameter ``d`` (fraction of sx) and height ``h``.
 
     ``ay`` is the object's nominal sx / sy, so extent[1] documents the y footprint.
     """
-    return Part("cylinder", c, (d, d * ay, h), color, **kw)  # type: ignore[arg-type]
+    return Part("cylinder", c, (d, d * ay, h), color, **kw)
 
 
 def sph(
-    c: V3, d: float, color: ColorRole = "primary", ay: float = 1.0, az: float = 1.0, **kw: object
+    c: V3,
+    d: float,
+    color: ColorRole = "primary",
+    ay: float = 1.0,
+    az: float = 1.0,
+    **kw: Unpack[PartOptions],
 ) -> Part:
     """Sphere of diameter ``d`` (fraction of sx); ay, az are nominal sx/sy and sx/sz."""
-    return Part("sphere", c, (d, d * ay, d * az), color, **kw)  # type: ignore[arg-type]
+    return Part("sphere", c, (d, d * ay, d * az), color, **kw)
 
 
 def lathe(
-    c: V3, h: float, profile: Profile, color: ColorRole = "primary", ay: float = 1.0, **kw: object
+    c: V3,
+    h: float,
+    profile: Profile,
+    color: ColorRole = "primary",
+    ay: float = 1.0,
+    **kw: Unpack[PartOptions],
 ) -> Part:
     """Surface of revolution; ``profile`` is (r, z) bottom to top, r a fraction of sx/2.
 
@@ -75,7 +132,7 @@ def lathe(
     """
     d = max(p[0] for p in profile)
     norm = tuple((round(float(a) / d, 6), float(b)) for a, b in profile)
-    return Part("lathe", c, (d, d * ay, h), color, profile=norm, **kw)  # type: ignore[arg-type]
+    return Part("lathe", c, (d, d * ay, h), color, profile=norm, **kw)
 
 
 def surf(c: tuple[float, float], e: tuple[float, float], z: float, inside: bool = False) -> Surface:
@@ -101,22 +158,22 @@ def legs4(
 
 def cat(
     name: str,
-    kind: str,
+    kind: Kind,
     smin: V3,
     smax: V3,
     parts: Iterable[Part],
     palettes: Iterable[dict[str, str]],
-    **kw: object,
+    **kw: Unpack[CategoryOptions],
 ) -> Category:
     return Category(
         name=name,
         kind=kind,
         size_min=smin,
-        size_max=smax,  # type: ignore[arg-type]
+        size_max=smax,
         parts=tuple(parts),
         palettes=tuple(palettes),
         **kw,
-    )  # type: ignore[arg-type]
+    )
 
 
 def small(
@@ -126,7 +183,7 @@ def small(
     parts: Iterable[Part],
     palettes: Iterable[dict[str, str]],
     mass: float,
-    **kw: object,
+    **kw: Unpack[SmallOptions],
 ) -> Category:
     return cat(name, "small", smin, smax, parts, palettes, pickupable=True, mass=mass, **kw)
 
@@ -137,8 +194,8 @@ def furn(
     smax: V3,
     parts: Iterable[Part],
     palettes: Iterable[dict[str, str]],
-    placement: str,
-    **kw: object,
+    placement: Placement,
+    **kw: Unpack[FurnitureOptions],
 ) -> Category:
     return cat(name, "furniture", smin, smax, parts, palettes, placement=placement, **kw)
 
@@ -1045,7 +1102,7 @@ def _small_objects() -> list[Category]:
         )
     )
 
-    tb = dict(ay=1.25, az=0.833)  # teddy bear sx/sy and sx/sz
+    tb = Aspect(ay=1.25, az=0.833)  # teddy bear sx/sy and sx/sz
     add(
         small(
             "TeddyBear",

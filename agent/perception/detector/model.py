@@ -15,7 +15,7 @@ the training code, the evaluation and the agent all use the same ones.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -23,37 +23,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from tidee.agent.perception import PEAK_MODES
+from tidee.agent.perception.detector.config import DetectorConfig
 
 DEPTH_SCALE = 5.0
 RGB_MEAN = (0.5, 0.5, 0.5)
 RGB_STD = (0.25, 0.25, 0.25)
-
-
-@dataclass
-class DetectorConfig:
-    num_classes: int = 92
-    widths: tuple[int, ...] = (16, 32, 64, 96, 128)  # stride 2, 4, 8, 16, 32
-    neck: int = 64
-    stride: int = 4
-    input_size: int = 256
-    use_depth: bool = True
-    # grown capacity (``tidee train detector --init``): extra residual blocks at stride 8, 16,
-    # 32 (``extra_blocks``) and 4 (``extra_s4``), and a depthwise-separable conv before the
-    # heads. Each starts as the identity, so a grown model computes exactly what the weights it
-    # was initialised from computed.
-    extra_blocks: tuple[int, int, int] = (0, 0, 0)
-    head_conv: bool = False
-    extra_s4: int = 0
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @staticmethod
-    def from_dict(d: dict) -> DetectorConfig:
-        d = dict(d)
-        d["widths"] = tuple(d["widths"])
-        d["extra_blocks"] = tuple(d.get("extra_blocks", (0, 0, 0)))
-        return DetectorConfig(**d)
 
 
 def cbr(cin: int, cout: int, stride: int = 1, k: int = 3) -> nn.Sequential:
@@ -66,9 +40,10 @@ class Residual(nn.Module):
     def __init__(self, c: int, identity: bool = False) -> None:
         super().__init__()
         self.a = cbr(c, c)
-        self.b = nn.Sequential(nn.Conv2d(c, c, 3, 1, 1, bias=False), nn.BatchNorm2d(c))
+        conv, bn = nn.Conv2d(c, c, 3, 1, 1, bias=False), nn.BatchNorm2d(c)
+        self.b = nn.Sequential(conv, bn)
         if identity:  # the branch's last BN scale at 0: x is post-ReLU, so relu(x + 0) == x
-            nn.init.zeros_(self.b[1].weight)
+            nn.init.zeros_(bn.weight)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return F.relu(x + self.b(self.a(x)), inplace=True)
@@ -79,6 +54,7 @@ def identity_dw_block(c: int) -> nn.Sequential:
     on non-negative input: a head layer that can be added to trained weights without changing them."""
     dw = nn.Conv2d(c, c, 3, 1, 1, groups=c)
     pw = nn.Conv2d(c, c, 1)
+    assert dw.bias is not None and pw.bias is not None  # Conv2d has a bias unless told otherwise
     with torch.no_grad():
         dw.weight.zero_()
         dw.weight[:, 0, 1, 1] = 1.0
@@ -131,6 +107,7 @@ class CenterDetector(nn.Module):
         self.head_conv = identity_dw_block(n) if cfg.head_conv else nn.Identity()
         self.heat = nn.Conv2d(n, cfg.num_classes, 1)
         self.box = nn.Conv2d(n, 5, 1)  # size (2), offset (2), oop (1)
+        assert self.heat.bias is not None
         nn.init.constant_(self.heat.bias, -4.6)  # prior 0.01, as CenterNet / RetinaNet
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -202,7 +179,7 @@ def encode_targets(
     reg = np.zeros((max_objs, 4), np.float32)  # log w, log h, off x, off y
     oopt = np.zeros(max_objs, np.float32)
     msk = np.zeros(max_objs, np.float32)
-    order = (
+    order: np.ndarray | list[int] = (
         np.argsort(-(boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1]))[:max_objs]
         if len(boxes)
         else []
@@ -351,7 +328,6 @@ def decode(
 
 
 __all__ = [
-    "DetectorConfig",
     "CenterDetector",
     "preprocess",
     "encode_targets",

@@ -1,13 +1,13 @@
-"""dDETR+BERT-OOP (paper §3.2, Table 3 "fused"): the language paragraph and the detector's
-feature, trained on real detector features.
+"""``tidee train fused-oop``: dDETR+BERT-OOP (paper §3.2, Table 3 "fused"), the language
+paragraph and the detector's feature, trained on real detector features.
 
-``tidee train fused-oop`` runs the shipped detector over frames of training rooms it never
-trained on (``data/detection_unseen``: ``tidee gen detection --skip-rooms 60``; on its own
-training frames its features are near-perfect and the head learns to over-trust them). Each
+The command runs the shipped detector over frames of training rooms it never trained on
+(``data/detection_unseen``: ``tidee gen detection --skip-rooms 60``; on its own training
+frames its features are near-perfect and the head learns to over-trust them). Each
 pickupable detection that matches a ground-truth instance (IoU >= 0.5, class-agnostic as in
-the Table 3 protocol) becomes one sample: the paragraph :func:`language_row` writes for it
-(single-view relations from the frame's depth, :func:`frame_paragraphs`) and its 64-d
-detector feature, labelled by whether the mess-up moved that instance. The
+the Table 3 protocol) becomes one sample: the paragraph :func:`.eval.language_row` writes for
+it (single-view relations from the frame's depth, :func:`.frames.frame_paragraphs`) and its
+64-d detector feature, labelled by whether the mess-up moved that instance. The
 ``FusedOOPHead`` learns from [text embedding, feature]. A tenth of the rooms (seed % 10 == 9)
 is held out from the head for the manifest's validation AP (the manifest counts how many
 of the data's rooms the detector trained on). The held-out figures are ``tidee eval oop``
@@ -18,60 +18,20 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from tidee.agent.reasoning.language_oop import (
-    DEFAULT_CACHE_DIR,
-    DEFAULT_FUSED_WEIGHTS,
-    DEFAULT_WEIGHTS,
-    VISUAL_DIM,
+from tidee.agent.reasoning.language_oop.config import VISUAL_DIM, FusedTrainConfig
+from tidee.agent.reasoning.language_oop.eval import object_ap, show_path
+from tidee.agent.reasoning.language_oop.frames import frame_paragraphs
+from tidee.agent.reasoning.language_oop.model import (
+    FusedOOPHead,
     LanguageOOPClassifier,
-    _features,
-    _head_classes,
+    feature_matrix,
     fit_head,
-    frame_paragraphs,
-    object_ap,
 )
-
-# Frames of training rooms the shipped detector never saw: `tidee gen detection --out
-# data/detection_unseen --rooms-per-type 20 --skip-rooms 60 --messes 2 --walks 2`.
-UNSEEN_DATA = Path("data/detection_unseen")
-
-
-@dataclass
-class FusedTrainConfig:
-    """``tidee train fused-oop``: data, optimisation and outputs."""
-
-    data: str = str(UNSEEN_DATA)
-    max_frames: int | None = None  # the first N frames of the shards (None: all)
-    detection_threshold: float = 0.05  # as the Table 3 evaluation: low-score detections kept
-    context_score: float = 0.3  # as language_row
-    match_iou: float = 0.5
-    steps: int = 3000
-    batch_size: int = 256
-    lr: float = 1e-3
-    weight_decay: float = 0.01
-    seed: int = 0
-    out: str = str(DEFAULT_FUSED_WEIGHTS)
-    language_weights: str = str(DEFAULT_WEIGHTS)  # its encoder and replay set are reused
-    cache_dir: str | None = str(DEFAULT_CACHE_DIR)
-    loss_png: str | None = None  # None: docs/models/ for shipped weights, beside --out otherwise
-    log_every: int = 50
-    memory_data: str | None = None  # `tidee gen oop-memory --perception learned` samples added
-    eval_memory_data: str | None = None  # held-out memory samples (test rooms) scored in the manifest
-
-    def __post_init__(self) -> None:
-        for name in ("steps", "batch_size", "log_every"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
-        if self.max_frames is not None and self.max_frames < 1:
-            raise ValueError(f"max_frames must be >= 1, got {self.max_frames}")
-        if not 0 < self.match_iou <= 1:
-            raise ValueError(f"match_iou must be in (0, 1], got {self.match_iou}")
 
 
 def held_out_room(room: str) -> bool:
@@ -82,7 +42,7 @@ def held_out_room(room: str) -> bool:
 def detector_rooms(detector: Any) -> set[str]:
     """The "Type:seed" rooms of the frames the detector was trained on (from its manifest's
     data directories, comma-separated; a directory that is not here adds nothing)."""
-    from tidee.agent.perception.dataset import split_data_spec
+    from tidee.agent.perception.detector.data import split_data_spec
 
     rooms: set[str] = set()
     for d in split_data_spec(detector.manifest.get("data", {}).get("dir", "")):
@@ -101,7 +61,7 @@ def detection_samples(
 ) -> dict[str, Any]:
     """One sample per pickupable detection matched to a pickupable ground-truth instance:
     paragraphs, features (N x 64, zero where missing), labels, categories, rooms."""
-    from tidee.agent.evaluation.detection import matched_oop_labels
+    from tidee.agent.evaluation.detection.metrics import matched_oop_labels
 
     rooms = frames.get("frame_room")
     out: dict[str, list] = {"paragraphs": [], "features": [], "labels": [], "categories": [], "rooms": []}
@@ -117,15 +77,20 @@ def detection_samples(
             out["labels"].append(label)
             out["categories"].append(dets[k].label)
             out["rooms"].append(str(rooms[i]) if rooms is not None else "")
-    out["features"] = _features(out["features"], VISUAL_DIM)
-    return out
+    samples: dict[str, Any] = dict(out)
+    samples["features"] = feature_matrix(out["features"], VISUAL_DIM)
+    return samples
 
 
 def add_memory_samples(samples: dict[str, Any], path: str | Path) -> dict[str, Any]:
     """Append `tidee gen oop-memory` samples (paragraphs of tracked objects, their detector
     features) to ``samples`` in place; their meta. Needs learned-perception samples: with
     oracle perception the tracks have no features and the head would learn zeros."""
-    from tidee.agent.reasoning.memory_oop_data import load_memory_samples, memory_features, memory_meta
+    from tidee.agent.reasoning.language_oop.memory_data import (
+        load_memory_samples,
+        memory_features,
+        memory_meta,
+    )
 
     meta = memory_meta(path)
     if meta.get("perception") != "learned":
@@ -148,9 +113,9 @@ def train_fused_oop(
     """Detect, build samples, train the fused head, write weights + manifest."""
     import torch
 
-    from tidee.agent.evaluation.detection import _detect_all
+    from tidee.agent.evaluation.detection.eval import _detect_all
     from tidee.agent.learning import loss_curve_path, save_loss_curve, write_manifest
-    from tidee.agent.perception.dataset import load_shards
+    from tidee.agent.perception.detector.data import load_shards
     from tidee.agent.perception.learned import LearnedPerception
 
     t0 = time.time()
@@ -184,7 +149,7 @@ def train_fused_oop(
     y = np.asarray(samples["labels"], np.float32)
     val = np.asarray([held_out_room(r) for r in samples["rooms"]], bool)
     torch.manual_seed(cfg.seed)
-    head = _head_classes()["FusedOOPHead"]()
+    head = FusedOOPHead()
     history = fit_head(
         head,
         x[~val],
@@ -230,7 +195,7 @@ def train_fused_oop(
         ),
     }
     if cfg.eval_memory_data:
-        from tidee.agent.reasoning.memory_oop_data import evaluate_memory
+        from tidee.agent.reasoning.language_oop.eval import evaluate_memory
 
         metrics["test_agent_memory"] = evaluate_memory(clf, cfg.eval_memory_data)
     out = Path(cfg.out)
@@ -240,7 +205,8 @@ def train_fused_oop(
     rooms = sorted({r.rsplit(":", 1)[0] if r.count(":") > 1 else r for r in samples["rooms"]})
     data = {
         "split": "train",
-        "source": f"{data_dir} ({manifest.get('command', 'tidee gen detection')})",
+        # relative to the working directory where it lies under it (the default is absolute)
+        "source": f"{show_path(data_dir)} ({manifest.get('command', 'tidee gen detection')})",
         "frames": int(len(frames["rgb"])),
         "samples": int(len(y)),
         "out_of_place": int(y.sum()),
@@ -275,50 +241,3 @@ def train_fused_oop(
         table3="tidee eval oop --split test --views 5 --rooms-per-type 5 --messes 5 --walks 2 --seed 11",
     )
     return {"weights": str(out), "metrics": metrics, "data": data, "timing": timing}
-
-
-def register(train_sub: Any) -> None:
-    p = train_sub.add_parser(
-        "fused-oop", help="the fused OOP head (dDETR+BERT-OOP) on real detector features"
-    )
-    p.add_argument(
-        "--data",
-        default=str(UNSEEN_DATA),
-        help="frames of training rooms (tidee gen detection; best: rooms the detector did not train on)",
-    )
-    p.add_argument("--max-frames", type=int, default=None)
-    p.add_argument("--steps", type=int, default=3000)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=str(DEFAULT_FUSED_WEIGHTS))
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    p.add_argument(
-        "--memory-data",
-        default=None,
-        help="add the agent's own tracked objects: `tidee gen oop-memory --perception learned` output",
-    )
-    p.add_argument(
-        "--eval-memory-data",
-        default=None,
-        help="held-out memory samples (`tidee gen oop-memory --split test --perception learned`)",
-    )
-    p.set_defaults(func=_cmd_train)
-
-
-def _cmd_train(args: Any) -> int:
-    import sys
-
-    import torch
-
-    torch.set_num_threads(max(1, args.threads))
-    cfg = FusedTrainConfig(
-        data=args.data,
-        max_frames=args.max_frames,
-        steps=args.steps,
-        seed=args.seed,
-        out=args.out,
-        memory_data=args.memory_data,
-        eval_memory_data=args.eval_memory_data,
-    )
-    r = train_fused_oop(cfg, command="tidee " + " ".join(sys.argv[1:]))
-    print(json.dumps({k: r[k] for k in ("weights", "metrics", "data", "timing")}, indent=1, default=str))
-    return 0

@@ -1,21 +1,9 @@
-"""The second stage of the detector: a crop classifier that renames what the detector boxed.
+"""``tidee train reclassifier`` (options: ``config.TrainReclassifierConfig``): the crop
+reclassifier (:mod:`.model`), on frames of ``tidee gen detection``.
 
-The CenterNet-style detector finds and boxes most objects and then names some of them wrongly
-(docs/limitations.md, "Perception"): on the validation frames, giving every detection of an
-earlier detector the class of the ground-truth box it overlaps lifted box mAP@0.5 from 54.8
-to 70.1. This network looks at each detection again, at a fixed scale: the RGB-D crop around its box
-(resampled to ``crop`` x ``crop`` pixels, depth relative to the object's own), with the box's
-size in the image and in metres as side inputs, and outputs a distribution over the catalog's
-classes plus "background" (the box holds no object).
-
-``LearnedPerception`` combines it with the detector's own class scores at the detection's
-centre cell (``fuse``): the class is the argmax of log p_crop + ``alpha`` log sigmoid(heat),
-and the score is the detector's peak score times p_crop(class)^``beta`` (with ``beta`` the
-background, too, pulls a box's score down).
-
-Trained by ``tidee train reclassifier`` on frames of ``tidee gen detection``: crops of the
-ground-truth boxes, jittered as the detector's boxes are, and background crops (boxes that
-overlap no object by IoU 0.3). Reproducible from a seed, resumable, progress bar, loss curve.
+``--boxes jitter``: crops of the ground-truth boxes, jittered as the detector's boxes are, and
+background crops (boxes that overlap no object by IoU 0.3). Reproducible from a seed,
+resumable, progress bar, loss curve.
 
 ``--boxes detector`` (how the shipped weights were trained) trains on the detector's own
 boxes instead: the shipped detector runs over the training frames (rooms it was not trained
@@ -30,17 +18,15 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import nn
 
 from tidee.agent.learning import (
-    WEIGHTS_DIR,
     dataset_record,
     load_checkpoint,
     pick_device,
@@ -51,77 +37,14 @@ from tidee.agent.learning import (
     ship_weights,
     write_manifest,
 )
-from tidee.agent.perception.detector import DEPTH_SCALE, RGB_MEAN, RGB_STD, cbr
+from tidee.agent.perception.reclassifier.config import (
+    BOX_SOURCES,
+    ReclassifierConfig,
+    ReclassifierTrainConfig,
+)
+from tidee.agent.perception.reclassifier.model import CropClassifier, crop_inputs, det_features, frame_tensor
 
-DEFAULT_RECLASSIFIER = WEIGHTS_DIR / "reclassifier.pt"
-IGNORE = -100
-N_SIDE = 5  # side inputs: log box w, h (fraction of the image), log depth, log metric w, h
-
-
-@dataclass
-class ReclassifierConfig:
-    num_classes: int = 92  # + 1 output: background
-    crop: int = 40  # crop side in pixels
-    context: float = 1.2  # the crop covers the box grown by this factor
-    widths: tuple[int, int, int] = (32, 64, 128)
-    hidden: int = 128
-    det_inputs: bool = False  # also read the detector's class logits and score (det_features)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @staticmethod
-    def from_dict(d: dict) -> ReclassifierConfig:
-        d = dict(d)
-        d["widths"] = tuple(d["widths"])
-        return ReclassifierConfig(**d)
-
-
-class CropClassifier(nn.Module):
-    def __init__(self, cfg: ReclassifierConfig) -> None:
-        super().__init__()
-        self.cfg = cfg
-        a, b, c = cfg.widths
-        self.conv = nn.Sequential(cbr(4, a, 2), cbr(a, a), cbr(a, b, 2), cbr(b, b), cbr(b, c, 2), cbr(c, c))
-        n_det = cfg.num_classes + 1 if cfg.det_inputs else 0
-        self.mlp = nn.Sequential(
-            nn.Linear(c + N_SIDE + n_det, cfg.hidden),
-            nn.ReLU(inplace=True),
-            nn.Linear(cfg.hidden, cfg.num_classes + 1),
-        )
-
-    def forward(
-        self, crops: torch.Tensor, side: torch.Tensor, det: torch.Tensor | None = None
-    ) -> torch.Tensor:
-        """N x 4 x crop x crop, N x N_SIDE (, N x classes + 1 from ``det_features`` when the
-        config has ``det_inputs``) -> N x (classes + 1) logits (the last: background)."""
-        f = self.conv(crops).mean((2, 3))
-        parts = [f, side]
-        if self.cfg.det_inputs:
-            if det is None or det.shape != (len(f), self.cfg.num_classes + 1):
-                raise ValueError(
-                    f"this reclassifier reads the detector's outputs: det must be N x "
-                    f"{self.cfg.num_classes + 1} (det_features), got "
-                    f"{None if det is None else tuple(det.shape)}"
-                )
-            parts.append(det.to(f.dtype))
-        return self.mlp(torch.cat(parts, 1))
-
-
-def det_features(heat: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
-    """The detector's side of a detection for a ``det_inputs`` reclassifier: its class logits at
-    the detection's cell (N x C) as log-sigmoid, and the log of its peak score (N), scaled to
-    about [-3, 0] -> N x (C + 1)."""
-    return (
-        torch.cat(
-            [
-                F.logsigmoid(heat.float()).clamp(min=-12.0),
-                score.float().clamp(min=1e-6).log().clamp(min=-12.0).view(-1, 1),
-            ],
-            1,
-        )
-        / 4.0
-    )
+IGNORE = -100  # a training label the loss skips (a box between object and background)
 
 
 def warm_start(model: CropClassifier, path: str | Path) -> None:
@@ -143,99 +66,6 @@ def warm_start(model: CropClassifier, path: str | Path) -> None:
         grown[:, : w.shape[1]] = w
         state["mlp.0.weight"] = grown
     model.load_state_dict(state)
-
-
-def frame_tensor(rgb: np.ndarray, depth: np.ndarray) -> torch.Tensor:
-    """uint8 BxHxWx3 + metres BxHxW -> B x 4 x H x W (normalised RGB, depth in metres)."""
-    x = torch.from_numpy(np.array(rgb, dtype=np.uint8)).permute(0, 3, 1, 2).float().div_(255.0)
-    x = (x - torch.tensor(RGB_MEAN).view(1, 3, 1, 1)) / torch.tensor(RGB_STD).view(1, 3, 1, 1)
-    d = torch.from_numpy(np.array(depth, dtype=np.float32)).unsqueeze(1)
-    return torch.cat([x, d], 1)
-
-
-def crop_inputs(
-    frames: torch.Tensor,
-    frame_idx: torch.Tensor,
-    boxes: torch.Tensor,
-    cfg: ReclassifierConfig,
-    flip: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Crops and side inputs for boxes (N x 4, x0 y0 x1 y1 in pixels) of ``frames`` (B x 4 x H x W
-    from ``frame_tensor``). The depth channel becomes the depth relative to the median of the
-    crop's centre, in units of DEPTH_SCALE, clamped; the median itself is a side input.
-    ``flip`` (bool N) mirrors crops left-right (training augmentation)."""
-    n = len(boxes)
-    _, _, h, w = frames.shape
-    boxes = boxes.float()
-    cx, cy = (boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2
-    bw = (boxes[:, 2] - boxes[:, 0]).clamp(min=1.0)
-    bh = (boxes[:, 3] - boxes[:, 1]).clamp(min=1.0)
-    # affine grid in normalised coordinates (align_corners=False: pixel edges at -1 and 1)
-    sx, sy = bw * cfg.context / w, bh * cfg.context / h
-    tx, ty = 2 * cx / w - 1, 2 * cy / h - 1
-    theta = torch.zeros(n, 2, 3)
-    theta[:, 0, 0] = sx if flip is None else torch.where(flip, -sx, sx)
-    theta[:, 0, 2] = tx
-    theta[:, 1, 1] = sy
-    theta[:, 1, 2] = ty
-    grid = F.affine_grid(theta, [n, 4, cfg.crop, cfg.crop], align_corners=False)
-    src = frames[frame_idx.long()]
-    crops = F.grid_sample(src, grid, mode="bilinear", padding_mode="border", align_corners=False)
-    k = max(cfg.crop // 4, 1)
-    c0 = (cfg.crop - k) // 2
-    core = crops[:, 3, c0 : c0 + k, c0 : c0 + k].reshape(n, -1)
-    core = torch.where(core > 0.05, core, torch.full_like(core, float("nan")))
-    med = core.nanmedian(1).values
-    med = torch.where(torch.isnan(med), crops[:, 3].reshape(n, -1).median(1).values, med).clamp(min=0.05)
-    crops = torch.cat(
-        [crops[:, :3], ((crops[:, 3:] - med.view(n, 1, 1, 1)) / DEPTH_SCALE * 4).clamp(-2, 2)], 1
-    )
-    fw, fh = bw / w, bh / h
-    # a 90-degree field of view: an object spanning fraction f of the image at depth d is 2 f d metres wide
-    side = torch.stack([fw.log(), fh.log(), med.log(), (2 * fw * med).log(), (2 * fh * med).log()], 1)
-    return crops, side
-
-
-def fuse(
-    crop_logits: torch.Tensor, det_heat: torch.Tensor, det_score: torch.Tensor, alpha: float, beta: float
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """(class index N, score N) from the crop classifier's logits (N x C+1), the detector's class
-    logits at each detection's cell (N x C) and its peak scores (N)."""
-    logp = F.log_softmax(crop_logits.float(), 1)
-    joint = logp[:, :-1] + alpha * F.logsigmoid(det_heat.float())
-    cls = joint.argmax(1)
-    p = logp.gather(1, cls.view(-1, 1))[:, 0].exp()
-    return cls, det_score * p.pow(beta)
-
-
-# ------------------------------------------------------------------------- training
-
-
-@dataclass
-class ReclassifierTrainConfig:
-    data: str = "data/detection_d"
-    out: str = str(DEFAULT_RECLASSIFIER)
-    work_dir: str = "runs/reclassifier"
-    steps: int = 3000
-    batch_size: int = 256
-    frames_per_batch: int = 32
-    background: float = 0.2  # share of each batch drawn as background boxes
-    lr: float = 2e-3
-    weight_decay: float = 1e-4
-    warmup: int = 100
-    seed: int = 0
-    device: str = "auto"
-    threads: int = 0
-    ckpt_every: int = 200
-    log_every: int = 20
-    limit_frames: int | None = None
-    precision: str = "auto"
-    boxes: str = "jitter"  # jitter: ground-truth boxes, jittered | detector: the detector's own
-    detector: str | None = None  # boxes=detector: its weights (None: the shipped detector)
-    init: str | None = None  # start from these reclassifier weights (warm_start)
-
-
-BOX_SOURCES = ("jitter", "detector")
 
 
 def rows_by_frame(frame_of_row: np.ndarray, n_frames: int) -> list[np.ndarray]:
@@ -262,7 +92,7 @@ def detector_boxes(
     (class logits at its cell, float16), det_score, det_label (class, background = C, IGNORE)."""
     from tqdm import tqdm
 
-    from tidee.agent.evaluation.detection import box_iou
+    from tidee.agent.evaluation.detection.metrics import box_iou
     from tidee.agent.perception.learned import LearnedPerception
 
     perc = LearnedPerception.load(detector, threshold=threshold, reclassifier=None)
@@ -322,7 +152,7 @@ class _FrameBatches:
         self.rng = np.random.default_rng(tc.seed)
 
     def state(self) -> dict:
-        return self.rng.bit_generator.state
+        return dict(self.rng.bit_generator.state)
 
     def set_state(self, s: dict) -> None:
         self.rng.bit_generator.state = s
@@ -407,7 +237,7 @@ class CropBatches(_FrameBatches):
             raise ValueError("no frame has an object to crop")
 
     def __call__(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, None]:
-        from tidee.agent.evaluation.detection import box_iou
+        from tidee.agent.evaluation.detection.metrics import box_iou
 
         d, rng, tc = self.data, self.rng, self.tc
         fids = self._pick_frames()
@@ -472,11 +302,12 @@ def train_reclassifier(
     """Train; returns {"history": [...], "out": path, ...}. ``data`` overrides loading shards (tests)."""
     from tqdm import tqdm
 
-    from tidee.agent.perception.dataset import load_datasets
-    from tidee.agent.perception.train_detector import lr_at
+    from tidee.agent.perception.detector.data import load_datasets
+    from tidee.agent.perception.detector.train import lr_at
 
     if tc.boxes not in BOX_SOURCES:
         raise ValueError(f"boxes must be one of {BOX_SOURCES}, got {tc.boxes!r}")
+    tc = tc.resolved()  # default paths filled in, as the checkpoint and manifest record them
     if tc.threads:
         torch.set_num_threads(tc.threads)
     device = pick_device(tc.device)
@@ -486,7 +317,7 @@ def train_reclassifier(
         cfg = ReclassifierConfig.from_dict({**cfg.to_dict(), "det_inputs": True})
     manifests: list[dict[str, Any]] = []
     if data is None:
-        data, manifests = load_datasets(tc.data, limit=tc.limit_frames)
+        data, manifests = load_datasets(tc.data_spec, limit=tc.limit_frames)
     model = CropClassifier(cfg)
     init_sha = None
     if tc.init:
@@ -497,7 +328,7 @@ def train_reclassifier(
     model = model.to(device, memory_format=torch.channels_last)
     precision = resolve_precision(tc.precision, device)
     opt = torch.optim.AdamW(model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
-    work = Path(tc.work_dir)
+    work = tc.work_path
     det_boxes: dict[str, np.ndarray] | None = None
     if tc.boxes == "detector":
         det_boxes = cached_detector_boxes(data, tc, work / "detector_boxes.npz", progress)
@@ -565,12 +396,12 @@ def train_reclassifier(
         "work_dir": str(work),
     }
     if ship:
-        curve = ship_weights(tc.out, model, cfg.to_dict(), work / "loss.png", "reclassifier_loss.png")
+        curve = ship_weights(tc.out_path, model, cfg.to_dict(), work / "loss.png", "reclassifier_loss.png")
         result["manifest"] = write_manifest(
-            tc.out,
+            tc.out_path,
             command=command,
             data=dataset_record(
-                tc.data,
+                tc.data_spec,
                 data,
                 manifests,
                 "train rooms only, never val/test",
@@ -591,7 +422,7 @@ def train_reclassifier(
             parameters=int(sum(p.numel() for p in model.parameters())),
             loss_curve=curve,
         )
-        result["out"] = str(tc.out)
+        result["out"] = tc.out_path
     return result
 
 
@@ -601,7 +432,7 @@ def cached_detector_boxes(
     """``detector_boxes`` of ``data``, kept in ``path`` (work dir) and reused while the detector's
     weights and the frames are the same (a resumed run does not detect again)."""
     from tidee.agent.learning import read_manifest
-    from tidee.agent.perception.train_detector import DEFAULT_WEIGHTS
+    from tidee.agent.perception.detector.config import DEFAULT_WEIGHTS
 
     sha = read_manifest(Path(tc.detector) if tc.detector else DEFAULT_WEIGHTS).get("sha256", "")
     key = f"{sha}:{len(data['rgb'])}:{int(data['obj_cls'].sum())}"
@@ -612,38 +443,19 @@ def cached_detector_boxes(
     boxes = detector_boxes(data, tc.detector, progress=progress)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, key=np.array(key), **boxes)
+    arrays: dict[str, Any] = {"key": np.array(key), **boxes}
+    np.savez(tmp, **arrays)
     tmp.replace(path)
     return boxes
 
 
-def load_reclassifier(
-    path: str | Path | None = None, verify: bool = True
-) -> tuple[CropClassifier, dict[str, Any]]:
-    from tidee.agent.learning import read_manifest
-
-    path = Path(path) if path else DEFAULT_RECLASSIFIER
-    manifest = read_manifest(path, verify=verify)
-    blob = torch.load(path, map_location="cpu", weights_only=False)
-    model = CropClassifier(ReclassifierConfig.from_dict(blob["config"]))
-    model.load_state_dict(blob["state_dict"])
-    return model.eval(), {**manifest, "path": str(path)}
-
-
 __all__ = [
-    "ReclassifierConfig",
-    "CropClassifier",
-    "crop_inputs",
-    "frame_tensor",
-    "fuse",
-    "det_features",
-    "warm_start",
-    "rows_by_frame",
-    "ReclassifierTrainConfig",
     "CropBatches",
     "DetectorBoxBatches",
     "detector_boxes",
+    "cached_detector_boxes",
+    "rows_by_frame",
     "train_reclassifier",
-    "load_reclassifier",
-    "DEFAULT_RECLASSIFIER",
+    "warm_start",
+    "IGNORE",
 ]

@@ -1,4 +1,5 @@
-"""``tidee eval search``: object search on held-out rooms, the paper's Table 2.
+"""``tidee eval search``: object search on held-out rooms, the paper's Table 2; and the network's
+held-out map metrics (cell AP, hit@k), which training reports on its validation rooms.
 
 Protocol (paper §4.4 and supplement "Exploration with visual search network evaluation"):
 each test room in its tidy configuration, each category present (or a seeded sample of
@@ -16,72 +17,35 @@ at least ``MIN_VISIBLE_PIXELS`` pixels at 256^2). The agent's decisions never re
 
 from __future__ import annotations
 
-import argparse
 import concurrent.futures as cf
 import multiprocessing as mp
 import time
-from dataclasses import asdict, dataclass
+from collections.abc import Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
+from tidee.agent.classes import CLASSES, PICKUPABLE
 from tidee.agent.perception import TRAINED_RENDERER
-from tidee.agent.reasoning.search_commands import int_at_least
+from tidee.agent.reasoning.search.config import SearchEvalConfig
+from tidee.agent.reasoning.search.data import footprint_distance, room_instances, target_heat
+from tidee.agent.reasoning.search.model import (
+    DEFAULT_WEIGHTS,
+    OUT_SIZE,
+    Z_BINS,
+    VisualSearch,
+    out_grid,
+    search_points,
+)
 
-METHODS = ("network", "frontier")
 PAPER = {
     "network": {"success_pct": 72.4, "mean_steps": 88.8},
     "frontier": {"success_pct": 64.8, "mean_steps": 100.9},
 }
-NETWORK_FALLBACKS = ("random", "frontier")
 MIN_VISIBLE_PIXELS = 12  # at 256 x 256 (scaled with the resolution)
-
-
-@dataclass
-class SearchEvalConfig:
-    out: str
-    split: str = "test"
-    methods: tuple[str, ...] = METHODS
-    categories_per_room: int | None = 8  # None: every category present
-    max_steps: int = 200
-    radius: float = 1.5
-    perception: str = "learned"
-    resolution: int = 256
-    workers: int = 2
-    seed: int = 0
-    weights: str | None = None
-    rooms: int | None = None  # first N rooms of the split (smoke runs)
-    examples: int = 4  # heatmap examples in the PNG
-    explored_discount: float = 0.0  # VisualSearch.points: down-weight heat where the map is explored
-    network_fallback: str = "random"  # network: where to go when no search point is left (random | frontier)
-
-    def __post_init__(self) -> None:
-        if self.split not in ("test", "val"):
-            raise ValueError(
-                f"tidee eval search scores held-out rooms: --split must be test or val, got {self.split!r}"
-            )
-        bad = [m for m in self.methods if m not in METHODS]
-        if bad or not self.methods:
-            raise ValueError(f"--methods must be a comma list of {METHODS}, got {list(self.methods)}")
-        if self.categories_per_room is not None and self.categories_per_room < 1:
-            raise ValueError(
-                f"--categories-per-room must be >= 1 (or 0 for all), got {self.categories_per_room}"
-            )
-        if not 1 <= self.max_steps <= 1000:
-            raise ValueError(f"--max-steps must be in [1, 1000], got {self.max_steps}")
-        if not self.radius > 0:
-            raise ValueError(f"--radius must be > 0 metres, got {self.radius}")
-        if self.perception not in ("learned", "oracle"):
-            raise ValueError(f"--perception must be learned or oracle, got {self.perception!r}")
-        if not 0 <= self.explored_discount <= 1:
-            raise ValueError(f"--explored-discount must be in [0, 1], got {self.explored_discount}")
-        if self.network_fallback not in NETWORK_FALLBACKS:
-            raise ValueError(
-                f"--network-fallback must be one of {NETWORK_FALLBACKS}, got {self.network_fallback!r}"
-            )
-        if not 1 <= self.workers <= 2:
-            raise ValueError(f"--workers must be 1 or 2, got {self.workers}")
 
 
 def episodes(cfg: SearchEvalConfig) -> list[dict[str, Any]]:
@@ -89,7 +53,8 @@ def episodes(cfg: SearchEvalConfig) -> list[dict[str, Any]]:
     from tidee.agent.classes import CLASS_INDEX
     from tidee.protocol.messages import EpisodeSpec
     from tidee.protocol.transport import InProcessTransport
-    from tidee.server.splits import ROOM_TYPES, rooms
+    from tidee.protocol.vocab import ROOM_TYPES
+    from tidee.server.splits import rooms
 
     room_list = rooms(cfg.split)[: cfg.rooms]
     jobs = []
@@ -110,32 +75,46 @@ def episodes(cfg: SearchEvalConfig) -> list[dict[str, Any]]:
     return jobs
 
 
-def _one_episode(job: dict[str, Any], cfg: SearchEvalConfig) -> dict[str, Any]:
-    from tidee.agent.classes import CLASS_INDEX
-    from tidee.agent.navigation.explore import FrontierExplorer
+def _worker_state(cfg: SearchEvalConfig) -> dict[str, Any]:
+    """What one process reuses for every episode it runs: a simulator, the perception and, when
+    the network is among the methods, the search network."""
     from tidee.agent.perception import make_perception
-    from tidee.agent.policy.search import SkillDriver, frontier_proposer, search_object
-    from tidee.agent.reasoning.search_net import (
-        DEFAULT_WEIGHTS,
-        VisualSearch,
-        footprint_distance,
-        room_instances,
-    )
-    from tidee.protocol.messages import EpisodeSpec
     from tidee.protocol.transport import InProcessTransport
 
-    global _WORKER
-    try:
-        w = _WORKER
-    except NameError:
-        w = _WORKER = {
-            "transport": InProcessTransport(renderer=TRAINED_RENDERER),
-            "perception": make_perception(cfg.perception),
-        }
-    if job["method"] == "network" and "search" not in w:
-        w["search"] = VisualSearch.load(
+    state: dict[str, Any] = {
+        "transport": InProcessTransport(renderer=TRAINED_RENDERER),
+        "perception": make_perception(cfg.perception),
+    }
+    if "network" in cfg.methods:
+        state["search"] = VisualSearch.load(
             cfg.weights or DEFAULT_WEIGHTS, explored_discount=cfg.explored_discount
         )
+    return state
+
+
+_WORKER: dict[str, Any] = {}  # a pool worker's state (_worker_state), set by _init_worker
+
+
+def _init_worker(cfg: SearchEvalConfig, threads: int) -> None:
+    """Set up a worker process: its share of the cores and its state."""
+    from tidee.threads import use_threads
+
+    use_threads(threads)
+    _WORKER.update(_worker_state(cfg))
+
+
+def _worker(args: tuple[dict[str, Any], SearchEvalConfig]) -> dict[str, Any]:
+    if not _WORKER:
+        raise RuntimeError("a search-eval worker needs _init_worker (the pool's initializer) first")
+    return _one_episode(*args, _WORKER)
+
+
+def _one_episode(job: dict[str, Any], cfg: SearchEvalConfig, w: dict[str, Any]) -> dict[str, Any]:
+    from tidee.agent.classes import CLASS_INDEX
+    from tidee.agent.navigation.explore import FrontierExplorer
+    from tidee.agent.policy.search import SkillDriver, frontier_proposer, search_object
+    from tidee.protocol.messages import EpisodeSpec
+
     transport = w["transport"]
     driver = SkillDriver(transport, w["perception"], ground_truth=True)  # ground truth: scoring only
     spec = EpisodeSpec(
@@ -184,10 +163,6 @@ def _one_episode(job: dict[str, Any], cfg: SearchEvalConfig) -> dict[str, Any]:
         "goals": goals,
         "wall_s": round(time.perf_counter() - t0, 2),
     }
-
-
-def _worker(args: tuple[dict[str, Any], SearchEvalConfig]) -> dict[str, Any]:
-    return _one_episode(*args)
 
 
 def summarize(records: list[dict[str, Any]], methods: tuple[str, ...]) -> dict[str, Any]:
@@ -255,8 +230,9 @@ def markdown(result: dict[str, Any]) -> str:
         }
         lines += [
             "",
-            f"Paired outcomes over {len(pairs)} (room, category) searches: both succeed {n[(True, True)]}, "
-            f"network only {n[(True, False)]}, frontier only {n[(False, True)]}, neither {n[(False, False)]}. "
+            f"Paired outcomes over {len(pairs)} (room, category) searches: "
+            f"both succeed {n[(True, True)]}, network only {n[(True, False)]}, "
+            f"frontier only {n[(False, True)]}, neither {n[(False, False)]}. "
             "Detector reported the category at some point: "
             + ", ".join(f"{m} {v['detected_pct']} %" for m, v in s.items())
             + ".",
@@ -275,10 +251,11 @@ def markdown(result: dict[str, Any]) -> str:
     lines += [
         "",
         f"Success: the agent says Stop within {c['radius']} m of an instance's footprint with an instance "
-        f"of the category in the final frame (ground-truth segmentation, >= {MIN_VISIBLE_PIXELS} px at 256^2), "
-        f"within {c['max_steps']} steps. Perception: {c['perception']}. "
+        f"of the category in the final frame (ground-truth segmentation, >= {MIN_VISIBLE_PIXELS} px "
+        f"at 256^2), within {c['max_steps']} steps. Perception: {c['perception']}. "
         f"Categories per room: {c['categories_per_room'] or 'all'} (seed {c['seed']}). "
-        f"Rooms: {result['rooms']} tidy {c['split']} rooms; the paper has 20 AI2-THOR test rooms, 591 episodes.",
+        f"Rooms: {result['rooms']} tidy {c['split']} rooms; the paper has 20 AI2-THOR test rooms, "
+        "591 episodes.",
         f"Wall time {result['wall_s']} s with {c['workers']} worker(s).",
         "",
         "![heatmaps](search_examples.png)",
@@ -298,7 +275,6 @@ def save_examples(cfg: SearchEvalConfig, jobs: list[dict[str, Any]], path: Path)
     from tidee.agent.perception import make_perception
     from tidee.agent.policy.search import SkillDriver
     from tidee.agent.policy.skills import look_around
-    from tidee.agent.reasoning.search_net import DEFAULT_WEIGHTS, VisualSearch, room_instances, search_points
     from tidee.protocol.messages import EpisodeSpec
     from tidee.protocol.transport import InProcessTransport
 
@@ -362,17 +338,21 @@ def run_search_eval(cfg: SearchEvalConfig, command: str = "", progress: bool = T
         with cf.ProcessPoolExecutor(
             cfg.workers,
             mp_context=mp.get_context("spawn"),
-            initializer=use_threads,
-            initargs=(threads_per_process(cfg.workers),),
+            initializer=_init_worker,
+            initargs=(cfg, threads_per_process(cfg.workers)),
         ) as pool:
             for rec in pool.map(_worker, [(j, cfg) for j in jobs]):
                 records.append(rec)
                 bar.update()
     else:
         use_threads(1)  # measured with one thread in process
-        for j in jobs:
-            records.append(_one_episode(j, cfg))
-            bar.update()
+        state = _worker_state(cfg)
+        try:
+            for j in jobs:
+                records.append(_one_episode(j, cfg, state))
+                bar.update()
+        finally:
+            state["transport"].close()
     bar.close()
     result = {
         "command": command,
@@ -390,93 +370,107 @@ def run_search_eval(cfg: SearchEvalConfig, command: str = "", progress: bool = T
     return result
 
 
-# --------------------------------------------------------------------------- CLI
-def _methods(text: str) -> tuple[str, ...]:
-    ms = tuple(m.strip() for m in text.split(",") if m.strip())
-    bad = [m for m in ms if m not in METHODS]
-    if bad or not ms:
-        raise argparse.ArgumentTypeError(
-            f"methods must be a comma list of {', '.join(METHODS)}; got {text!r}"
-        )
-    return ms
+# --------------------------------------------------------------------------- held-out metrics
+def _as_eval_set(data: dict[str, Any], idx: Sequence[int]) -> list[dict[str, Any]]:
+    return [{"x": data["x"][i], "inst": data["inst"][data["owner"][i]], "seen": data["seen"][i]} for i in idx]
 
 
-_count_from_0 = int_at_least(0)
+def occupancy_heat(x: np.ndarray) -> np.ndarray:
+    """The trivial baseline's [64, 64] heat: class-agnostic clutter (occupancy above the floor band,
+    Gaussian-blurred): "objects are where stuff is"."""
+    n = len(CLASSES)
+    occ = np.asarray(x[n : n + Z_BINS], np.float32)
+    if occ.max() > 1:
+        occ = occ / 255.0
+    clutter = occ.max(axis=0)
+    small = clutter.reshape(OUT_SIZE, 2, OUT_SIZE, 2).mean(axis=(1, 3))
+    return ndimage.gaussian_filter(small, 1.5)
 
 
-def add_eval_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--split", default="test", choices=("test", "val"), help="held-out rooms only")
-    p.add_argument("--out", required=True, help="directory for search.json, search.md, search_examples.png")
-    p.add_argument("--methods", type=_methods, default=METHODS, help="comma list of network, frontier")
-    p.add_argument(
-        "--categories-per-room",
-        type=_count_from_0,
-        default=8,
-        help="categories sampled per room (seeded); 0: every category present",
-    )
-    p.add_argument("--max-steps", type=_count_from_0, default=200)
-    p.add_argument("--radius", type=float, default=1.5, help="success radius, metres")
-    p.add_argument("--perception", default="learned", choices=("learned", "oracle"))
-    p.add_argument("--workers", type=int, default=2, choices=(1, 2))
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--weights", default=None, help="default: agent/weights/search_net.pt")
-    p.add_argument("--rooms", type=_count_from_0, default=0, help="first N rooms of the split (0: all)")
-    p.add_argument(
-        "--explored-discount",
-        type=float,
-        default=0.0,
-        help="network: scale heat by (1 - d * explored) before choosing search points (0: paper)",
-    )
-    p.add_argument(
-        "--network-fallback",
-        default="random",
-        choices=NETWORK_FALLBACKS,
-        help="network: where to go once no search point is left: a random reachable point, or the "
-        "nearest frontier",
-    )
-    p.set_defaults(func=_cmd_eval_search)
+def _average_precision(score: np.ndarray, positive: np.ndarray) -> float:
+    order = np.argsort(-score, kind="stable")
+    pos = positive[order]
+    if not pos.any():
+        return float("nan")
+    hits = np.cumsum(pos)
+    precision = hits / np.arange(1, len(pos) + 1)
+    return float(precision[pos].mean())
 
 
-def config_from_args(args: argparse.Namespace) -> SearchEvalConfig:
-    return SearchEvalConfig(
-        out=args.out,
-        split=args.split,
-        methods=tuple(args.methods),
-        categories_per_room=args.categories_per_room or None,
-        max_steps=args.max_steps,
-        radius=args.radius,
-        perception=args.perception,
-        workers=args.workers,
-        seed=args.seed,
-        weights=args.weights,
-        rooms=args.rooms or None,
-        explored_discount=args.explored_discount,
-        network_fallback=args.network_fallback,
-    )
+def heldout_metrics(
+    search: VisualSearch | None, samples: list[dict[str, Any]], k: int = 3, hit_radius: float = 1.0
+) -> dict[str, Any]:
+    """Per (map, present category): cell AP (targets >= 0.5 positive) and hit@k (one of the top-k
+    search points within ``hit_radius`` of an instance footprint), for the network and the
+    occupancy baseline; also over the categories not yet in the agent's memory ("unseen")."""
+    import torch
+
+    grid = out_grid()
+    res: dict[str, dict[str, list[float]]] = {
+        m: {"ap": [], "hit": [], "ap_unseen": [], "hit_unseen": []} for m in ("network", "occupancy")
+    }
+    for s in samples:
+        x = np.asarray(s["x"], np.float32)
+        if x.max() > 1.0:
+            x = x / 255.0
+        inst = s["inst"]
+        present = np.unique(inst[:, 0]).astype(np.int64)
+        targets = target_heat(inst, present)
+        heats = {"occupancy": np.repeat(occupancy_heat(x)[None], len(present), 0)}
+        if search is not None:
+            logits = search.logits_for(x, [CLASSES[c] for c in present])
+            heats["network"] = torch.sigmoid(torch.from_numpy(logits)).numpy()
+        for j, c in enumerate(present):
+            unseen = int(c) not in set(s["seen"])
+            rows = inst[inst[:, 0] == c]
+            for name, h in heats.items():
+                ap = _average_precision(h[j].ravel(), targets[j].ravel() >= 0.5)
+                pts, _ = search_points(h[j], grid, threshold=0.5 if name == "network" else np.inf, k=k)
+                hit = float(len(pts) > 0 and footprint_distance(rows, pts).min() <= hit_radius)
+                res[name]["ap"].append(ap)
+                res[name]["hit"].append(hit)
+                if unseen:
+                    res[name]["ap_unseen"].append(ap)
+                    res[name]["hit_unseen"].append(hit)
+    out: dict[str, Any] = {"maps": len(samples)}
+    for name, r in res.items():
+        if search is None and name == "network":
+            continue
+        out[name] = {f"{m}": round(float(np.nanmean(v)), 4) if v else None for m, v in r.items()}
+        out[name]["n"] = len(r["ap"])
+        out[name]["n_unseen"] = len(r["ap_unseen"])
+    return out
 
 
-def _cmd_eval_search(args: argparse.Namespace) -> int:
-    cfg = config_from_args(args)
-    command = (
-        f"tidee eval search --split {cfg.split} --methods {','.join(cfg.methods)} "
-        f"--categories-per-room {args.categories_per_room} --max-steps {cfg.max_steps} --radius {cfg.radius} "
-        f"--perception {cfg.perception} --workers {cfg.workers} --seed {cfg.seed} --out {cfg.out}"
-        + (f" --weights {cfg.weights}" if cfg.weights else "")
-        + (f" --rooms {cfg.rooms}" if cfg.rooms else "")
-        + (f" --explored-discount {cfg.explored_discount}" if cfg.explored_discount else "")
-        + (f" --network-fallback {cfg.network_fallback}" if cfg.network_fallback != "random" else "")
-    )
-    result = run_search_eval(cfg, command=command)
-    print(markdown(result))
-    return 0
+def time_inference(search: VisualSearch, repeats: int = 20) -> dict[str, float]:
+    """Median ms of ``heatmap`` on one thread for a fresh (empty) map, input building included."""
+    import torch
+
+    from tidee.agent.mapping.maps import SemanticMapper
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        mapper = SemanticMapper(classes=CLASSES, passable=PICKUPABLE)
+        search.heatmap(mapper, CLASSES[0])
+        ts = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            search.heatmap(mapper, CLASSES[0])
+            ts.append((time.perf_counter() - t0) * 1e3)
+    finally:
+        torch.set_num_threads(threads)
+    return {"heatmap_ms_median": round(float(np.median(ts)), 1), "threads": 1}
 
 
-def register(eval_sub: argparse._SubParsersAction) -> None:
-    """``tidee eval search`` (Table 2)."""
-    p = eval_sub.add_parser(
-        "search", help="object search on held-out rooms: search network vs frontier (Table 2)"
-    )
-    add_eval_arguments(p)
-
-
-__all__ = ["METHODS", "PAPER", "SearchEvalConfig", "episodes", "register", "run_search_eval", "summarize"]
+__all__ = [
+    "MIN_VISIBLE_PIXELS",
+    "PAPER",
+    "episodes",
+    "heldout_metrics",
+    "markdown",
+    "occupancy_heat",
+    "run_search_eval",
+    "summarize",
+    "time_inference",
+]

@@ -1,4 +1,4 @@
-"""Object graphs for placement reasoning: scene graphs, the Memex, and their training samples.
+"""Object graphs for placement reasoning: scene graphs and the Memex (the runtime half).
 
 The paper's rGCN (§3.3, supplement "Relational graph convolutional network", "Memex
 graph") infers where a picked-up object belongs from two graphs:
@@ -14,7 +14,7 @@ A node is a category plus a small appearance vector. We describe appearance by t
 object's 3D box (``GEOM_FEATURES``): the box is what separates the sub-category
 variants whose home differs (a tall floor lamp from a desk lamp, a large vase from a
 small one). The detector's 64-d features are not used: training graphs come from
-simulator boxes, which have no rendered features (see ``rgcn`` for the consequence).
+simulator boxes, which have no rendered features (see ``model`` for the consequence).
 
 Edges: the relations of :func:`tidee.agent.reasoning.relations.box_relations` —
 above, below, supported_by, next_to, aligned_with, facing. Memex boxes come from the
@@ -22,27 +22,24 @@ simulator (oriented: all six relations). Scene boxes come from the agent's objec
 memory, which keeps axis-aligned boxes without a front, so scene graphs use
 :func:`aabb_relations` (the first five, vectorised; equal to ``box_relations`` on
 yaw-0 boxes, which a test checks). Training scene graphs are built the same way from
-the simulator's boxes made axis-aligned, so the model sees at test time what it saw in
-training.
+the simulator's boxes made axis-aligned (:mod:`.data`), so the model sees at test time
+what it saw in training.
 
-Training samples (``room_samples``): in a tidy training room, each pickupable object in
-turn is taken out of the scene graph; its receptacle type is the label. Memory rooms
-and training rooms never overlap (``check_seeds``), and val/test rooms are refused.
-This module reads no torch.
+This module reads no torch and no simulator.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from tidee.agent.classes import CLASS_INDEX, CLASSES, PICKUPABLE, PLACEABLE_RECEPTACLES
+from tidee.agent.classes import CLASS_INDEX, CLASSES, PLACEABLE_RECEPTACLES
 from tidee.agent.reasoning.relations import Box3D, box_relations
-from tidee.server.scene import quat_yaw
-from tidee.server.splits import ROOM_TYPES
+from tidee.protocol.vocab import ROOM_TYPES
 
 RELATIONS = ("above", "below", "supported_by", "next_to", "aligned_with", "facing")
 REL_INDEX = {r: i for i, r in enumerate(RELATIONS)}
@@ -51,7 +48,6 @@ FLOOR = "Floor"
 PLACE_CLASSES: tuple[str, ...] = tuple(sorted(PLACEABLE_RECEPTACLES)) + (FLOOR,)
 PLACE_INDEX = {c: i for i, c in enumerate(PLACE_CLASSES)}
 GEOM_FEATURES = ("log_long_side", "log_short_side", "log_height", "z_bottom", "z_top")
-MEMORY_SEEDS = range(0, 5)  # per room type: the Memex rooms (train split)
 
 
 @dataclass(frozen=True)
@@ -192,123 +188,15 @@ def make_graph(nodes: Sequence[GraphNode], edges: np.ndarray, room_type: str | N
     )
 
 
-# --------------------------------------------------------------------- from the simulator (training)
-def scene_nodes(scene) -> tuple[list[GraphNode], list]:
-    """GraphNodes of a ``server.scene.Scene``'s objects (privileged: training and evaluation only),
-    with the scene objects they came from. Boxes are world-frame, floor at z = 0."""
-    nodes, objs = [], []
-    for o in scene.objects:
-        if o.type not in CLASS_INDEX:
-            continue
-        yaw = quat_yaw(o.orientation)
-        sx, sy, sz = (float(v) for v in o.size)
-        c, s = abs(math.cos(yaw)), abs(math.sin(yaw))
-        hx, hy = (c * sx + s * sy) / 2, (s * sx + c * sy) / 2
-        x, y, z = (float(v) for v in o.position)
-        nodes.append(
-            GraphNode(o.type, (x - hx, y - hy, z), (x + hx, y + hy, z + sz), yaw=yaw, size=(sx, sy, sz))
-        )
-        objs.append(o)
-    return nodes, objs
-
-
-def axis_aligned(nodes: Iterable[GraphNode]) -> list[GraphNode]:
-    """The same boxes as the agent would keep them: axis-aligned, no yaw."""
-    return [GraphNode(n.label, n.box_min, n.box_max) for n in nodes]
+def corner(v: Any) -> tuple[float, float, float]:
+    """A box corner (any 3-sequence) as three floats."""
+    return float(v[0]), float(v[1]), float(v[2])
 
 
 def memory_nodes(memory, exclude_id: int | None = None) -> list[GraphNode]:
     """GraphNodes of the agent's ``ObjectMemory`` (start frame; heights are world heights)."""
     return [
-        GraphNode(o.label, tuple(float(v) for v in o.box_min), tuple(float(v) for v in o.box_max))
+        GraphNode(o.label, corner(o.box_min), corner(o.box_max))
         for o in memory
         if o.id != exclude_id and o.label in CLASS_INDEX
     ]
-
-
-def check_seeds(memory_seeds: Iterable[int], train_seeds: Iterable[int]) -> None:
-    """Memory rooms and training rooms are training seeds and never overlap."""
-    from tidee.server.splits import SPLIT_SEEDS, split_of
-
-    mem, train = set(memory_seeds), set(train_seeds)
-    for name, seeds in (("memory", mem), ("training", train)):
-        bad = sorted(s for s in seeds if split_of(s) not in ("train", "train_pool"))
-        if bad:
-            raise ValueError(
-                f"{name} rooms must be training seeds ({SPLIT_SEEDS['train']} or the pool), got {bad[:5]}"
-            )
-    both = sorted(mem & train)
-    if both:
-        raise ValueError(
-            f"seeds {both[:5]} are both Memex memory rooms and rGCN training rooms; they must differ"
-        )
-
-
-@dataclass
-class RoomSamples:
-    """One tidy room as the rGCN's training data: the full scene graph and, per sample, the
-    object taken out and the receptacle it was on (PLACE_INDEX)."""
-
-    room_type: str
-    seed: int
-    graph: Graph  # the whole room, axis-aligned boxes, five relations
-    targets: np.ndarray  # int64 S: node index of the object taken out
-    labels: np.ndarray  # int64 S: PLACE_INDEX of its receptacle
-    variants: list[str | None]  # S: catalog variant (evaluation only: the judge needs it)
-    present: list[str]  # receptacle types in the room (evaluation only)
-
-
-def room_samples(scene) -> RoomSamples:
-    nodes, objs = scene_nodes(scene)
-    aa = axis_aligned(nodes)
-    graph = make_graph(aa, aabb_relations(aa), scene.room_type)
-    targets, labels, variants = [], [], []
-    for i, o in enumerate(objs):
-        if o.type in PICKUPABLE and o.pickupable and o.parent_type in PLACE_INDEX:
-            targets.append(i)
-            labels.append(PLACE_INDEX[o.parent_type])
-            variants.append(o.variant)
-    present = sorted({o.type for o in scene.objects if o.receptacle and not o.pickupable})
-    return RoomSamples(
-        scene.room_type,
-        int(scene.seed),
-        graph,
-        np.array(targets, np.int64),
-        np.array(labels, np.int64),
-        variants,
-        present,
-    )
-
-
-def build_memex(scenes: Iterable) -> Graph:
-    """The Memex: the memory rooms' objects with oriented boxes and all six relations, one graph."""
-    labels, geom, edges, room = [], [], [], []
-    offset = 0
-    for scene in scenes:
-        nodes, _ = scene_nodes(scene)
-        g = make_graph(nodes, oriented_relations(nodes), scene.room_type)
-        labels.append(g.labels)
-        geom.append(g.geom)
-        room.append(g.room)
-        e = g.edges.copy()
-        e[:, [0, 2]] += offset
-        edges.append(e)
-        offset += len(g)
-    return Graph(np.concatenate(labels), np.concatenate(geom), np.concatenate(edges), np.concatenate(room))
-
-
-def generate_rooms(room_types: Sequence[str], seeds: Sequence[int], progress: bool = True) -> list:
-    """Tidy training rooms (``server.rooms.generate_scene``) in one simulator."""
-    from tqdm import tqdm
-
-    from tidee.server.rooms import generate_scene
-    from tidee.server.world import World
-
-    world = World(renderer="tiny")
-    try:
-        jobs = [(rt, s) for s in seeds for rt in room_types]
-        return [
-            generate_scene(rt, s, world=world) for rt, s in tqdm(jobs, desc="rooms", disable=not progress)
-        ]
-    finally:
-        world.close()

@@ -1,4 +1,5 @@
-"""``tidee train detector``: the CenterNet-style RGB-D detector with its OOP head, from scratch.
+"""``tidee train detector`` (options: ``config.TrainDetectorConfig``): the CenterNet-style RGB-D
+detector with its OOP head, from scratch.
 
 Reproducible from a seed (the sampling order and augmentation draw from one generator),
 resumable (a checkpoint every ``ckpt_every`` steps in the work directory holds the model,
@@ -10,15 +11,15 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from collections.abc import Iterator
+from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 
 from tidee.agent.learning import (
-    WEIGHTS_DIR,
     dataset_record,
     load_checkpoint,
     pick_device,
@@ -30,37 +31,9 @@ from tidee.agent.learning import (
     ship_weights,
     write_manifest,
 )
-from tidee.agent.perception.dataset import load_datasets
-from tidee.agent.perception.detector import (
-    CenterDetector,
-    DetectorConfig,
-    detector_loss,
-    encode_targets,
-    preprocess,
-)
-
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
-
-
-@dataclass
-class TrainConfig:
-    data: str = "data/detection"
-    out: str = str(DEFAULT_WEIGHTS)
-    work_dir: str = "runs/detector"
-    steps: int = 5500
-    batch_size: int = 16
-    lr: float = 2e-3
-    weight_decay: float = 1e-4
-    warmup: int = 200
-    seed: int = 0
-    device: str = "auto"
-    threads: int = 0  # torch CPU threads (0: torch's default)
-    ckpt_every: int = 200
-    log_every: int = 20
-    limit_frames: int | None = None  # use only the first N frames (tests, smoke runs)
-    init: str | None = None  # start from these detector weights (a grown model: see init_from)
-    precision: str = "auto"  # auto | fp32 | bf16 (autocast; weights, optimiser and losses stay fp32)
-    loader_workers: int = 0  # >0: batches built in that many processes (see ParallelBatches)
+from tidee.agent.perception.detector.config import DetectorConfig, TrainConfig
+from tidee.agent.perception.detector.data import load_datasets
+from tidee.agent.perception.detector.model import CenterDetector, detector_loss, encode_targets, preprocess
 
 
 class Batches:
@@ -78,7 +51,7 @@ class Batches:
         self.rows = [order[starts[i] : starts[i + 1]] for i in range(n)]
 
     def state(self) -> dict:
-        return self.rng.bit_generator.state
+        return dict(self.rng.bit_generator.state)
 
     def set_state(self, s: dict) -> None:
         if "parallel_workers" in s:
@@ -152,7 +125,8 @@ class ParallelBatches:
         if workers < 1:
             raise ValueError(f"ParallelBatches needs at least one worker, not {workers}")
         self.data, self.cfg, self.batch_size, self.seed, self.workers = data, cfg, batch_size, seed, workers
-        self.start, self.drawn, self._it = 0, 0, None
+        self.start, self.drawn = 0, 0
+        self._it: Iterator[Any] | None = None
 
     def state(self) -> dict:
         return {"parallel_workers": self.workers, "start": self.start + self.drawn}
@@ -230,7 +204,16 @@ def init_from(model: CenterDetector, weights: str | Path) -> dict[str, Any]:
     return lineage
 
 
-def lr_at(step: int, cfg: TrainConfig) -> float:
+class Schedule(Protocol):
+    """What the learning-rate schedule reads from a training config (the detector's, the reclassifier's)."""
+
+    lr: float
+    warmup: int
+    steps: int
+
+
+def lr_at(step: int, cfg: Schedule) -> float:
+    """Linear warm-up over ``cfg.warmup`` steps, then cosine decay to 2% of ``cfg.lr``."""
     if step < cfg.warmup:
         return cfg.lr * (step + 1) / cfg.warmup
     t = (step - cfg.warmup) / max(cfg.steps - cfg.warmup, 1)
@@ -249,6 +232,7 @@ def train_detector(
     """Train; returns {"history": [...], "out": path, ...}. ``data`` overrides loading shards (tests)."""
     from tqdm import tqdm
 
+    cfg = cfg.resolved()  # default paths filled in, as the checkpoint and manifest record them
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     device = pick_device(cfg.device)
@@ -256,7 +240,7 @@ def train_detector(
     model_cfg = model_cfg or DetectorConfig()
     data_manifests: list[dict[str, Any]] = []
     if data is None:
-        data, data_manifests = load_datasets(cfg.data, limit=cfg.limit_frames)
+        data, data_manifests = load_datasets(cfg.data_spec, limit=cfg.limit_frames)
     if cfg.limit_frames is not None:
         keep = data["obj_frame"] < cfg.limit_frames
         data = {
@@ -273,7 +257,7 @@ def train_detector(
         if cfg.loader_workers
         else Batches(data, model_cfg, cfg.batch_size, cfg.seed)
     )
-    work = Path(cfg.work_dir)
+    work = cfg.work_path
     ckpt_path = work / "checkpoint.pt"
     step, history = (
         resume_training(ckpt_path, cfg.seed, model_cfg.to_dict(), model, opt, batches) if resume else (0, [])
@@ -329,12 +313,12 @@ def train_detector(
         "work_dir": str(work),
     }
     if ship:
-        curve = ship_weights(cfg.out, model, model_cfg.to_dict(), work / "loss.png", "detector_loss.png")
+        curve = ship_weights(cfg.out_path, model, model_cfg.to_dict(), work / "loss.png", "detector_loss.png")
         result["manifest"] = write_manifest(
-            cfg.out,
+            cfg.out_path,
             command=command,
             data=dataset_record(
-                cfg.data, data, data_manifests, "train (seeds 0-19 + pool 10000...), never val/test"
+                cfg.data_spec, data, data_manifests, "train (seeds 0-19 + pool 10000...), never val/test"
             ),
             metrics={"train_loss_final": history[-1] if history else None},
             train_config={**asdict(cfg), "precision_used": precision, "device_used": device},
@@ -343,16 +327,14 @@ def train_detector(
             **({"init": lineage} if lineage else {}),
             loss_curve=curve,
         )
-        result["out"] = str(cfg.out)
+        result["out"] = cfg.out_path
     return result
 
 
 __all__ = [
-    "TrainConfig",
     "Batches",
     "ParallelBatches",
     "train_detector",
-    "DEFAULT_WEIGHTS",
     "lr_at",
     "init_from",
 ]

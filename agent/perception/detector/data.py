@@ -1,8 +1,9 @@
 """Detector data: RGB-D frames from random walks through rooms, with instance targets.
 
-``tidee gen detection`` walks an agent at random through tidy and messy configurations of
-*training* rooms (seeds 0-19 and the training pool; never val or test) and writes shards of
-frames with the simulator's instance masks, classes and in/out-of-place labels. The same
+``tidee gen detection`` (options: ``config.GenDetectionConfig``) walks an agent at random
+through tidy and messy configurations of *training* rooms (seeds 0-19 and the training pool;
+never val or test) and writes shards of frames with the simulator's instance masks, classes
+and in/out-of-place labels. The same
 generator, called by the evaluation commands with ``split="test"``, builds held-out frames
 from the test rooms on the fly; those are never written next to training data.
 
@@ -22,7 +23,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +31,9 @@ import numpy as np
 
 from tidee.agent.classes import CLASS_INDEX, CLASSES
 from tidee.agent.perception import TRAINED_RENDERER
-from tidee.server.splits import MESSES_PER_ROOM, ROOM_TYPES, SPLIT_SEEDS, TRAIN_POOL, split_of
+from tidee.agent.perception.detector.config import GenConfig, room_seeds
+from tidee.protocol.vocab import HELD_OUT_SPLITS, ROOM_TYPES, HeldOutSplit, Renderer
+from tidee.server.splits import MESSES_PER_ROOM, split_of
 
 # A random walk: mostly forward, with turns and looks, like an exploring agent.
 WALK_ACTIONS = (
@@ -45,40 +48,6 @@ WALK_ACTIONS = (
     "LookUp",
 )
 MIN_PIXELS = 12  # at 256^2 (scaled with resolution): smaller instances are not targets
-
-
-@dataclass
-class GenConfig:
-    split: str = "train"  # "train" (train seeds + pool) or "test" (evaluation only)
-    rooms_per_type: int = 60  # train: seeds 0-19 first, then the pool 10000...
-    skip_rooms: int = 0  # start after this many rooms of that order (unseen rooms)
-    messes_per_room: int = 2  # messy configurations per room (plus the tidy one)
-    walks_per_config: int = 2
-    frames_per_walk: int = 6  # frames kept per walk (every ``stride``-th step)
-    stride: int = 3
-    resolution: int = 256
-    seed: int = 0
-    shard_size: int = 256
-    room_types: tuple[str, ...] = ROOM_TYPES
-    oop_views_only: bool = False  # keep only messy frames with an out-of-place object in view
-    per_config: int | None = None  # stop a configuration once it has this many frames
-    tidy: bool = True  # include the tidy configuration of each room
-    renderer: str = TRAINED_RENDERER  # auto | egl | tiny
-    extra: dict[str, Any] = field(default_factory=dict)
-
-
-def room_seeds(split: str, rooms_per_type: int, skip: int = 0) -> list[int]:
-    if split == "train":
-        seeds = list(SPLIT_SEEDS["train"]) + list(TRAIN_POOL)
-    elif split in ("val", "test"):
-        seeds = list(SPLIT_SEEDS[split])
-    else:
-        raise ValueError(f"split must be train, val or test, got {split!r}")
-    if skip < 0 or not 1 <= rooms_per_type <= len(seeds) - skip:
-        raise ValueError(
-            f"{split} has {len(seeds)} rooms per type; asked for {rooms_per_type} after skipping {skip}"
-        )
-    return seeds[skip : skip + rooms_per_type]
 
 
 def configs(cfg: GenConfig) -> list[tuple[str, int, int | None]]:
@@ -106,7 +75,7 @@ def frame_targets(
     inst = np.full(inst_seg.shape, -1, np.int16)
     valid = (inst_seg >= 0) & (depth > 0.05)
     ids, counts = np.unique(inst_seg[valid], return_counts=True)
-    rows = []
+    rows: list[dict] = []
     for k, n in zip(ids.tolist(), counts.tolist()):
         o = objects[k]
         if o["type"] not in CLASS_INDEX or n < min_px:
@@ -226,8 +195,9 @@ def _generate_part(cfg: GenConfig, jobs: list, out: Path, prefix: str, progress:
     def flush() -> None:
         name = f"shard_{prefix}{len(shards):04d}.npz"
         tmp = out / (name + ".tmp")
+        arrays: dict[str, Any] = pack(buf)
         with open(tmp, "wb") as f:
-            np.savez_compressed(f, **pack(buf))
+            np.savez_compressed(f, **arrays)
         tmp.replace(out / name)
         shards.append(name)
         buf.clear()
@@ -362,7 +332,7 @@ def load_datasets(
 
 
 def held_out_frames(
-    split: str = "test",
+    split: HeldOutSplit = "test",
     rooms_per_type: int = 5,
     messes: int = 2,
     walks: int = 1,
@@ -372,12 +342,12 @@ def held_out_frames(
     tidy: bool = True,
     per_config: int | None = None,
     resolution: int = 256,
-    renderer: str = TRAINED_RENDERER,
+    renderer: Renderer = TRAINED_RENDERER,
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
     """Frames of the val or test rooms, rendered now and packed like a shard (evaluation only;
     never written next to training data). ``per_config`` caps the frames of a configuration."""
-    if split not in ("val", "test"):
+    if split not in HELD_OUT_SPLITS:
         raise ValueError(f"evaluation frames come from the val or test rooms, not {split!r}")
     cfg = GenConfig(
         split=split,
@@ -407,7 +377,6 @@ def describe(cfg: GenConfig) -> str:
 
 
 __all__ = [
-    "GenConfig",
     "configs",
     "frame_targets",
     "iter_frames",
@@ -416,7 +385,6 @@ __all__ = [
     "held_out_frames",
     "pack",
     "describe",
-    "room_seeds",
     "MIN_PIXELS",
     "split_data_spec",
     "data_dirs",

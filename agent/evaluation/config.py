@@ -1,0 +1,108 @@
+"""What ``tidee eval tidy`` takes, each option declared once (a light module: no torch)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from tidee import argtypes
+from tidee.agent.config import (
+    PAPER_VARIANTS,
+    PLACEMENT_MODELS,
+    REFERENCE_VARIANTS,
+    AgentConfig,
+    PerceptionMode,
+)
+from tidee.options import option
+from tidee.protocol.vocab import HeldOutSplit, Renderer, RoomType
+from tidee.server.config import RENDERER_HELP, TRAINED_RENDERER
+
+
+@dataclass
+class TidyEvalConfig:
+    """``tidee eval tidy``: the agents on held-out rooms, scored by the simulated judge (Table 1).
+
+    ``agent`` holds every agent option (perception, OOP detector, policy thresholds ...) except
+    ``variant`` and ``seed``: each episode runs each of ``variants`` with the agent seed set to
+    the configuration's index.
+    """
+
+    out: Path = option(help="directory for report.json, report.md and the plots", type=argtypes.output_path)
+    split: HeldOutSplit = option("test", "held-out rooms only")
+    episodes: int | None = option(
+        None, "configurations (default: all; test has 100)", type=argtypes.positive_int
+    )
+    variants: tuple[str, ...] = option(
+        (*PAPER_VARIANTS, *REFERENCE_VARIANTS), "comma list of agents and reference rows"
+    )
+    agent: AgentConfig = option(default_factory=AgentConfig)
+    resolution: int = option(256, "square images, pixels a side", type=argtypes.resolution)
+    max_steps: int = option(1000, "each episode's step budget", type=argtypes.max_steps)
+    workers: int = option(1, "parallel simulator processes", type=argtypes.positive_int)
+    renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
+    keep_logs: bool = option(False, "write every episode's log under OUT/logs")
+    progress: bool = option(True, "a progress bar", cli=False)
+
+
+# Flags of AgentConfig that eval tidy sets per episode rather than from the command line.
+TIDY_EVAL_SKIP = ("agent.variant", "agent.seed")
+
+
+@dataclass
+class TidyMergeConfig:
+    """``tidee eval tidy-merge``: one Table 1 report from the episodes of several tidy runs."""
+
+    sources: str = option(
+        flag="--from",
+        help="comma list of report directories (report.json or report.json.gz) or report files, each "
+        "optionally =VARIANT+VARIANT to take only those variants from it",
+    )
+    out: Path = option(help="directory for the merged report", type=argtypes.output_path)
+    variants: tuple[str, ...] = option((), "comma list of agent variants to take (default: all)")
+
+
+@dataclass
+class AgentBenchConfig:
+    """``tidee bench agent``: mapping, planning and step time, and episode wall time."""
+
+    episodes: int = option(3, "episodes (test configurations)", type=argtypes.positive_int)
+    resolution: int = option(256, "square images, pixels a side", type=argtypes.resolution)
+    variant: str = option("TIDEE", "the agent", choices=PLACEMENT_MODELS)
+    perception: PerceptionMode = option("learned", "where detections come from")
+    max_steps: int = option(1000, "each episode's step budget", type=argtypes.max_steps)
+    out: Path | None = option(None, "report path (default: bench/agent.json)", type=argtypes.output_path)
+
+
+@dataclass
+class EpisodeBenchConfig:
+    """``tidee bench episode``: one episode in process vs live (server + agent + viewer)."""
+
+    repeats: int = option(3, "runs of each", type=argtypes.positive_int)
+    room_type: RoomType = option("LivingRoom", "the room type")
+    seed: int = option(200, "room seed", type=argtypes.non_negative_int)
+    mess_index: int = option(0, "messy configuration index", type=argtypes.non_negative_int)
+    variant: str = option("TIDEE", "the agent", choices=PLACEMENT_MODELS)
+    max_steps: int = option(1000, "the episode's step budget", type=argtypes.max_steps)
+    browser: bool = option(False, "a headless Chromium shows the viewer during live runs")
+    out: Path | None = option(None, "report path (default: bench/episode.json)", type=argtypes.output_path)
+
+
+@dataclass
+class ScaleBenchConfig:
+    """``tidee bench scale``: tidy episodes per minute with 1 vs 2 worker processes."""
+
+    configs: int = option(4, "test configurations (spread over the room types)", type=argtypes.positive_int)
+    variants: tuple[str, ...] = option(("TIDEE",), "comma list of agents")
+    repeats: int = option(1, "runs of each", type=argtypes.positive_int)
+    split: HeldOutSplit = option("test", "held-out rooms only")
+    out: Path | None = option(None, "report path (default: bench/scale.json)", type=argtypes.output_path)
+
+
+@dataclass
+class StatsGenConfig:
+    """``tidee gen stats``: placement statistics of the training rooms."""
+
+    seeds: str = option("0-19,10000-10179", "training seeds, e.g. 0-19,10000-10179")
+    out: Path | None = option(
+        None, "default: agent/data/placement_stats.json (the shipped file)", type=argtypes.output_path
+    )
