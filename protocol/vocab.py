@@ -2,7 +2,7 @@
 
 Each is a ``Literal`` type (for annotations, and so ``tidee.options`` makes it a CLI choice)
 and the tuple of its values (for validation and loops). Nothing else in the tree spells these
-lists out; ``tests/test_vocab.py`` checks that.
+lists out; ``tests/test_layout.py`` checks that.
 """
 
 from __future__ import annotations

@@ -587,7 +587,7 @@ class World:
         renderer draws there what the ray through image point (u, v + 1) meets, half a pixel
         left of and below the centre (u + 1/2, v + 1/2); the EGL renderer draws the centre.
         Measured on a knife on the floor seen from 1 m at eight headings
-        (``tests/test_actions.py``): rays through the centres hit the knife on 79 % of its
+        (``tests/server/test_actions.py``): rays through the centres hit the knife on 79 % of its
         tiny-renderer pixels, through these points on 100 %."""
         return (-0.5, 0.5) if self.renderer == "tiny" else (0.0, 0.0)
 

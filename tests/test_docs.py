@@ -14,9 +14,10 @@ from pathlib import Path
 
 import pytest
 
+from tests.support import REPO as SUPPORT_REPO
 from tidee.cli import build_parser
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = SUPPORT_REPO
 README = ROOT / "README.md"
 DOCS = ROOT / "docs"
 EVAL = DOCS / "eval"

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from tests.support import REPO as SUPPORT_REPO
+
+REPO = SUPPORT_REPO
 EXAMPLES = sorted((REPO / "examples").glob("*.py"))
 
 # Per example: patterns its output must contain (numbers the simulator or the agent produced).

@@ -9,16 +9,13 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 import zenoh
 
-from tests.fakes import FakeEpisode
-from tidee.launch import free_port
+from tests.support.fakes import FakeEpisode
+from tests.support.net import REPO, SPEC, client, free_endpoint, raw_request, start_server, wait_until
 from tidee.protocol import keys
 from tidee.protocol.client import RemoteError, SimClient
 from tidee.protocol.codec import decode, encode
@@ -33,58 +30,7 @@ from tidee.protocol.messages import (
     StepRequest,
 )
 from tidee.protocol.zenoh_config import make_config
-from tidee.server.service import ServerConfig, SimServer
-
-REPO = Path(__file__).resolve().parents[1]
-SPEC = EpisodeSpec(resolution=32, max_steps=50)
-
-
-def free_endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
-
-
-def start_server(factory: Callable[[], Any] | None = FakeEpisode, **config: Any) -> SimServer:
-    cfg = ServerConfig(endpoint=free_endpoint(), server_id=f"t{uuid.uuid4().hex[:8]}", **config)
-    return SimServer(cfg, factory).start()
-
-
-@pytest.fixture
-def server() -> Iterator[SimServer]:
-    srv = start_server(max_sessions=3)
-    yield srv
-    srv.stop()
-
-
-@pytest.fixture
-def raw_zenoh(server: SimServer) -> Iterator[zenoh.Session]:
-    """A bare Zenoh session on the server's network, for hand-made requests and viewers."""
-    z = zenoh.open(make_config(False, server.config.endpoint))
-    server_token = keys.alive_server(server.config.server_id)
-    assert wait_until(lambda: any(r.ok is not None for r in z.liveliness().get(server_token, timeout=1.0)))
-    yield z
-    z.close()
-
-
-def client(server: SimServer, **kwargs: Any) -> SimClient:
-    return SimClient(
-        endpoint=server.config.endpoint, server_id=server.config.server_id, timeout=10.0, **kwargs
-    )
-
-
-def raw_request(z: zenoh.Session, key: str, payload: bytes) -> Any:
-    """Send ``payload`` to ``key``; the decoded reply (ok or err)."""
-    reply = z.get(key, payload=payload, timeout=10.0).recv()
-    sample = reply.ok if reply.ok is not None else reply.err
-    return decode(sample.payload.to_bytes())
+from tidee.server.service import SimServer
 
 
 def test_episode_end_to_end(server: SimServer, raw_zenoh: zenoh.Session) -> None:
@@ -288,7 +234,7 @@ def test_no_server_is_a_timeout() -> None:
 def test_serve_shuts_down_cleanly_on_sigterm() -> None:
     endpoint, sid = free_endpoint(), f"t{uuid.uuid4().hex[:8]}"
     code = (
-        "from tidee.server.service import ServerConfig, serve; from tests.fakes import FakeEpisode; "
+        "from tidee.server.service import ServerConfig, serve; from tests.support.fakes import FakeEpisode; "
         f"serve(ServerConfig(endpoint={endpoint!r}, server_id={sid!r}), FakeEpisode)"
     )
     env = {**os.environ, "PYTHONPATH": str(REPO)}

@@ -1,14 +1,21 @@
-"""Each vocabulary is declared once: room types, renderers and splits in protocol/vocab.py; the
-agent's explorers, depth sources and missing-top choices in agent/config.py, perception modes
-in agent/perception/__init__.py;
-variants and OOP detectors in their registries. Nothing else spells those lists out."""
+"""The layout keeps its promises.
+
+* Each vocabulary is declared once: room types, renderers and splits in protocol/vocab.py; the
+  agent's explorers, depth sources and missing-top choices in agent/config.py; perception modes
+  in agent/perception/__init__.py; variants and OOP detectors in their registries. Nothing else
+  spells those lists out.
+* Every package of the tree is installed (pyproject's packages).
+* The tests mirror the source tree, and no test module imports another.
+"""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.support import REPO as SUPPORT_REPO
+
+ROOT = SUPPORT_REPO
 PARTS = ("agent", "server", "protocol", "viewer", "tidee", "examples", "tests")
 
 # A copy: two or more of a vocabulary's words in a row, quoted, as a literal list would have them.
@@ -35,7 +42,10 @@ HOMES = {
     "OOP detectors": set(),  # registered one by one in agent/reasoning/oop.py
 }
 # Where a list is the point of the test: the registry order the paper's tables follow.
-ALLOWED = {("tests/test_registries.py", "agent variants"), ("tests/test_registries.py", "OOP detectors")}
+ALLOWED = {
+    ("tests/agent/test_registries.py", "agent variants"),
+    ("tests/agent/test_registries.py", "OOP detectors"),
+}
 # Tests may name a few members as data ("Kitchen", "Bedroom"); a whole list there is still a copy.
 WHOLE = {
     "room types": r'"Kitchen",\s*"LivingRoom",\s*"Bedroom",\s*"Bathroom"',
@@ -48,7 +58,7 @@ def test_no_vocabulary_is_spelled_out_twice() -> None:
     for part in PARTS:
         for path in sorted((ROOT / part).rglob("*.py")):
             rel = path.relative_to(ROOT).as_posix()
-            if rel == "tests/test_vocab.py":
+            if rel == "tests/test_layout.py":
                 continue
             text = path.read_text()
             for name, pattern in COPIES.items():
@@ -87,3 +97,17 @@ def test_every_package_of_the_tree_is_installed() -> None:
             rel = init.parent.relative_to(ROOT / folder).parts
             found.add(".".join((package, *rel)))
     assert found - listed == set(), f"not in pyproject's packages: {sorted(found - listed)}"
+
+
+def test_the_tests_mirror_the_tree_and_no_test_module_imports_another() -> None:
+    """tests/<part>/... follows the source tree; shared helpers live in tests/support and
+    fixtures in tests/conftest.py, so no test module imports another."""
+    tests = ROOT / "tests"
+    for path in tests.rglob("test_*.py"):
+        rel = path.relative_to(tests).parent
+        if rel.parts:  # a test of a part sits in that part's folder, which exists in the source
+            source = ROOT / ("tidee" if rel.parts[0] == "tidee" else rel.parts[0]) / Path(*rel.parts[1:])
+            assert source.is_dir(), f"{path.relative_to(ROOT)}: no source folder {source.relative_to(ROOT)}"
+        imports = re.findall(r"^\s*(?:from|import) (tests\.[\w.]+)", path.read_text(), re.M)
+        bad = [m for m in imports if not m.startswith("tests.support")]
+        assert not bad, f"{path.relative_to(ROOT)} imports another test module: {bad}"

@@ -16,13 +16,14 @@ from pathlib import Path
 
 import pytest
 
+from tests.support import REPO as SUPPORT_REPO
 from tidee.agent.config import AgentConfig
 from tidee.agent.process import AgentProcessConfig, _run_until_done
 from tidee.launch import free_port
 from tidee.protocol.client import RemoteError
 from tidee.protocol.messages import EpisodeSpec, ErrorCode
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = SUPPORT_REPO
 
 
 def _start(*args: str, **kw: object) -> subprocess.Popen:

@@ -13,14 +13,14 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 
 import pytest
 
+from tests.support import REPO as SUPPORT_REPO
 from tidee import launch
 from tidee.launch import free_port
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = SUPPORT_REPO
 ROOM = ["--room-type", "Kitchen", "--seed", "1"]
 
 # (argv, a substring the message must contain)

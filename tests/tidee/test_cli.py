@@ -7,15 +7,15 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
+from tests.support import REPO as SUPPORT_REPO
 from tidee import cli
 from tidee.launch import free_port
 from tidee.server.splits import check_mess_index, messes_per_room
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = SUPPORT_REPO
 
 
 def _tidee(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:

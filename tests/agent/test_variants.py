@@ -308,12 +308,17 @@ def test_the_top_receptacle_not_in_memory_is_searched_for_first_only_with_missin
 
 def test_the_missing_top_flag_reaches_the_agent_config():
     from tidee import cli
-    from tidee.agent.config import MISSING_TOP
+    from tidee.agent.config import MISSING_TOP, AgentProcessConfig
+    from tidee.options import from_args
 
-    assert cli.MISSING_TOP_CHOICES == MISSING_TOP
-    args = cli.build_parser().parse_args(["agent", "--missing-top", "search"])
-    assert cli._agent_config(args).policy.missing_top == "search"
-    assert cli._agent_config(cli.build_parser().parse_args(["agent"])).policy.missing_top == "skip"
+    parser = cli.build_parser()
+    flag = next(
+        a for a in parser._subparsers._group_actions[0].choices["agent"]._actions if a.dest == "missing_top"
+    )
+    assert tuple(flag.choices) == MISSING_TOP
+    args = parser.parse_args(["agent", "--missing-top", "search"])
+    assert from_args(AgentProcessConfig, args).agent.policy.missing_top == "search"
+    assert from_args(AgentProcessConfig, parser.parse_args(["agent"])).agent.policy.missing_top == "skip"
 
 
 # ----------------------------------------------------------------------------- putting on a receptacle

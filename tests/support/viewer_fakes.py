@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-from tests.test_service import free_endpoint
+from tests.support.net import free_endpoint
 from tidee.viewer.synthetic import SyntheticAgent
 
 

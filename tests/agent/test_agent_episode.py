@@ -8,7 +8,7 @@ import uuid
 import pytest
 import zenoh
 
-from tests.test_service import free_endpoint, wait_until
+from tests.support.net import free_endpoint, wait_until
 from tidee.agent.config import AgentConfig, PolicyConfig
 from tidee.agent.runner import EpisodeRunner, format_summary
 from tidee.agent.telemetry import TelemetryPublisher

@@ -41,10 +41,12 @@ def test_tidee_run_gives_the_agent_the_cores_the_server_leaves(monkeypatch) -> N
     monkeypatch.setattr("tidee.threads.available_cores", lambda: 2)
     seen = {}
     monkeypatch.setattr(tidee.launch, "run_all", lambda cfg: seen.setdefault("cfg", cfg) and 0)
-    cli._cmd_run(cli.build_parser().parse_args(["run"]))
+    args = cli.build_parser().parse_args(["run"])
+    args.func(args)
     fwd = seen["cfg"].agent_args
     assert fwd[fwd.index("--threads") + 1] == "1"
     seen.clear()
-    cli._cmd_run(cli.build_parser().parse_args(["run", "--threads", "2"]))
+    args = cli.build_parser().parse_args(["run", "--threads", "2"])
+    args.func(args)
     fwd = seen["cfg"].agent_args
     assert fwd[fwd.index("--threads") + 1] == "2"

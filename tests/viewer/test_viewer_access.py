@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from tests.test_service import wait_until
-from tests.viewer_fakes import synthetic_source
+from tests.support.net import wait_until
+from tests.support.viewer_fakes import synthetic_source
 from tidee.viewer import access
 from tidee.viewer.synthetic import write_synthetic_log
 

@@ -14,8 +14,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from tests.fakes import FakeEpisode
-from tests.test_service import REPO, SPEC, client, free_endpoint, start_server, wait_until
+from tests.support.fakes import FakeEpisode
+from tests.support.net import REPO, SPEC, client, free_endpoint, start_server, wait_until
 from tidee.protocol.client import RemoteError, SimClient
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec, ErrorCode, Observation
 from tidee.server.service import ServerConfig, SimServer

@@ -7,18 +7,18 @@ import math
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.test_service import wait_until
-from tests.viewer_fakes import synthetic_source
+from tests.support import REPO as SUPPORT_REPO
+from tests.support.net import wait_until
+from tests.support.viewer_fakes import synthetic_source
 from tidee.protocol.messages import AgentCommand, Detection2D, EpisodeSummary, TrackedObjectMsg
 from tidee.viewer import geometry, images, palette
 from tidee.viewer.synthetic import CLASSES, SyntheticEpisode, write_synthetic_log
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = SUPPORT_REPO
 
 
 # --- colours ------------------------------------------------------------------------------

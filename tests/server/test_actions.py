@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.fixtures import project, spec, table_room, table_top
+from tests.support.fixtures import project, spec, table_room, table_top
 from tidee.protocol.messages import Action
 from tidee.protocol.messages import ActionName as A
 from tidee.server.episode import Episode

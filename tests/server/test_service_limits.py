@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 import zenoh
 
-from tests.test_service import SPEC, client, raw_request, start_server, wait_until
+from tests.support.net import SPEC, client, raw_request, start_server, wait_until
 from tidee.protocol import keys
 from tidee.protocol.client import RemoteError
 from tidee.protocol.codec import encode

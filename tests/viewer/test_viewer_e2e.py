@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.test_service import free_endpoint
+from tests.support.net import free_endpoint
 from tidee.agent.classes import CLASSES  # the agent's class list (plain data, no torch)
 from tidee.viewer.browser import (
     CANVAS,

@@ -12,7 +12,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import tidee.protocol  # noqa: F401  (registers tidee/Tidy-v0)
-from tests.fakes import FakeEpisode
+from tests.support.fakes import FakeEpisode
 from tidee.protocol.gym_env import ACTIONS, TidyEnv, to_action
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
 from tidee.protocol.transport import InProcessTransport, SimTransport

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.fixtures import spec, table_room
+from tests.support.fixtures import spec, table_room
 from tidee.agent.classes import CLASSES, PICKUPABLE, RECEPTACLES
 from tidee.agent.config import AgentConfig, PolicyConfig
 from tidee.agent.evaluation.tidy_eval import select_configs
@@ -173,6 +173,8 @@ def test_a_rerun_into_the_same_log_directory_never_shows_the_earlier_runs_summar
 def test_tidee_run_forwards_agent_options(monkeypatch) -> None:
     import tidee.launch
     from tidee import cli
+    from tidee.agent.config import AgentProcessConfig
+    from tidee.options import from_args
 
     seen = {}
     monkeypatch.setattr(tidee.launch, "run_all", lambda cfg: seen.setdefault("cfg", cfg) and 0)
@@ -190,13 +192,14 @@ def test_tidee_run_forwards_agent_options(monkeypatch) -> None:
             "0.2",
         ]
     )
-    cli._cmd_run(args)
+    args.func(args)
     fwd = seen["cfg"].agent_args
     assert fwd[fwd.index("--variant") + 1] == "RandomReceptacle" and "--pose-noise" in fwd
     assert fwd[fwd.index("--seed") + 1] == "201" and "--server-id" not in fwd and "--depth-noise" not in fwd
     assert fwd[fwd.index("--detection-threshold") + 1] == "0.2"
-    agent_args = cli.build_parser().parse_args(["agent"] + fwd)
-    assert cli._agent_config(agent_args).detection_threshold == 0.2
+    agent = from_args(AgentProcessConfig, cli.build_parser().parse_args(["agent", *fwd]))
+    assert agent.agent.detection_threshold == 0.2 and agent.agent.variant == "RandomReceptacle"
+    assert agent.spec.seed == 201 and agent.spec.pose_noise
     assert (
         cli.build_parser()
         .parse_args(["eval", "tidy", "--out", "x", "--detection-threshold", "0.25"])
