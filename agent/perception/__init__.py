@@ -13,6 +13,7 @@ names. The model families live in subpackages, one module per role (``config`` l
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Literal, get_args
 
 from tidee.agent.perception.base import Detection, Perception
@@ -32,22 +33,33 @@ PEAK_MODES: tuple[PeakMode, ...] = get_args(PeakMode)
 AGENT_THRESHOLD = 0.3  # the learned detector's score below which the agent drops a detection
 
 
+def _oracle(threshold: float | None) -> Perception:
+    from tidee.agent.perception.oracle import OraclePerception
+
+    if threshold is not None:
+        raise ValueError("a detection threshold applies to learned perception only")
+    return OraclePerception()
+
+
+def _learned(threshold: float | None) -> Perception:
+    from tidee.agent.perception.learned import LearnedPerception
+
+    return LearnedPerception.load(threshold=AGENT_THRESHOLD if threshold is None else threshold)
+
+
+# Perception modes by name (the keys are PERCEPTIONS): each builds its Perception from the
+# detection threshold it is given (None: the default).
+PERCEPTION_MODES: dict[str, Callable[[float | None], Perception]] = {"learned": _learned, "oracle": _oracle}
+
+
 def make_perception(name: str, threshold: float | None = None) -> Perception:
     """``threshold``: the learned detector's score threshold (None: ``AGENT_THRESHOLD``); oracle
     perception has no scores to threshold and refuses one."""
     if threshold is not None and not 0.0 < threshold < 1.0:
         raise ValueError(f"the detection threshold must be in (0, 1), got {threshold}")
-    if name == "oracle":
-        from tidee.agent.perception.oracle import OraclePerception
-
-        if threshold is not None:
-            raise ValueError("a detection threshold applies to learned perception only")
-        return OraclePerception()
-    if name == "learned":
-        from tidee.agent.perception.learned import LearnedPerception
-
-        return LearnedPerception.load(threshold=AGENT_THRESHOLD if threshold is None else threshold)
-    raise ValueError(f"unknown perception {name!r}; choose one of {PERCEPTIONS}")
+    if name not in PERCEPTION_MODES:
+        raise ValueError(f"unknown perception {name!r}; choose one of {PERCEPTIONS}")
+    return PERCEPTION_MODES[name](threshold)
 
 
 __all__ = [
@@ -55,6 +67,7 @@ __all__ = [
     "Perception",
     "PerceptionMode",
     "PERCEPTIONS",
+    "PERCEPTION_MODES",
     "PeakMode",
     "PEAK_MODES",
     "AGENT_THRESHOLD",

@@ -212,6 +212,15 @@ class TidyPolicy:
         self.event("done", reason=self.state.end_reason, fixed=self.state.objects_fixed)
         yield Action(ActionName.Done)
 
+    def explore_randomly(self, planner: Any, reachable: np.ndarray) -> tuple[float, float] | None:
+        """--explorer random: a random reachable cell not yet explored."""
+        mapper = self.body.mapper
+        return sample_unexplored_goal(mapper.explored, reachable, mapper.grid, self.rng, tuple(self.body.xy))
+
+    def explore_frontiers(self, planner: Any, reachable: np.ndarray) -> tuple[float, float] | None:
+        """--explorer frontier: the nearest frontier between explored and unknown space."""
+        return frontier_goal(self.body, self.frontier, planner)
+
     def map_room(self) -> Gen:
         start = self.body.obs.step
         while self.body.obs.step - start < self.p.mapping_step_budget and self.body.steps_left() > 1:
@@ -219,12 +228,7 @@ class TidyPolicy:
             mapper = self.body.mapper
             if unexplored_fraction(mapper.explored, reachable) < self.p.explore_unexplored_stop:
                 break
-            if self.cfg.explorer == "frontier":
-                goal = frontier_goal(self.body, self.frontier, planner)
-            else:
-                goal = sample_unexplored_goal(
-                    mapper.explored, reachable, mapper.grid, self.rng, tuple(self.body.xy)
-                )
+            goal = EXPLORER_GOALS[self.cfg.explorer](self, planner, reachable)
             if goal is None:
                 break
             yield from pitch_to(self.body, 30.0)
@@ -619,3 +623,10 @@ class TidyPolicy:
                     return False
             yield Action(ActionName.RotateLeft)
         return False
+
+
+# Explorers by name (the keys are agent.config.EXPLORERS): the next mapping goal, or None.
+EXPLORER_GOALS: dict[str, Callable[[TidyPolicy, Any, np.ndarray], tuple[float, float] | None]] = {
+    "random": TidyPolicy.explore_randomly,
+    "frontier": TidyPolicy.explore_frontiers,
+}

@@ -120,3 +120,17 @@ def test_import_tidee_registers_the_gym_env_without_torch_or_pybullet() -> None:
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr
+
+
+def test_each_choice_of_a_set_is_one_table_that_also_builds_it() -> None:
+    """The explorers and perception modes the CLI offers are exactly the ones with a factory."""
+    from tidee.agent.config import EXPLORERS
+    from tidee.agent.perception import PERCEPTION_MODES, PERCEPTIONS
+    from tidee.agent.policy.tidy import EXPLORER_GOALS
+
+    assert tuple(EXPLORER_GOALS) == EXPLORERS
+    assert tuple(PERCEPTION_MODES) == PERCEPTIONS
+    with pytest.raises(ValueError, match="unknown perception 'sonar'; choose one of"):
+        from tidee.agent.perception import make_perception
+
+        make_perception("sonar")
