@@ -29,6 +29,7 @@ AI2THORPlacement and MessyPlacement are reference rows built from the episode re
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -198,7 +199,7 @@ class AgentProcessConfig:
     """``tidee agent``: one agent process, its episodes and its connection to a server."""
 
     agent: AgentConfig = option(default_factory=AgentConfig)
-    spec: EpisodeSpec = option(default_factory=lambda: EpisodeSpec(seed=200, mess_index=0))
+    spec: EpisodeSpec = option(default_factory=functools.partial(EpisodeSpec, seed=200, mess_index=0))
     endpoint: str | None = option(
         None,
         "Zenoh rendezvous endpoint (default: loopback, see protocol/README.md)",

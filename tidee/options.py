@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import enum
+import functools
 import types
 import typing
 from collections.abc import Callable, Collection, Iterator, Sequence
@@ -125,24 +126,39 @@ def _field_default(f: dataclasses.Field) -> Any:
     return dataclasses.MISSING
 
 
-def leaves(cls: type, default: Any = None, path: tuple[str, ...] = ()) -> Iterator[Leaf]:
+def nested_defaults(f: dataclasses.Field) -> dict[str, Any]:
+    """The defaults a parent gives a nested config field beyond its class's own.
+
+    ``option(default_factory=Cls)``: none. ``option(default_factory=functools.partial(Cls, seed=200))``:
+    ``{"seed": 200}``. Declared this way, not read from a built instance, so that what a config
+    computes in ``__post_init__`` (e.g. an "auto" resolved) never becomes a command-line default.
+    """
+    factory = f.default_factory
+    if isinstance(factory, functools.partial):
+        return dict(factory.keywords)
+    if factory is dataclasses.MISSING or isinstance(factory, type):
+        return {}
+    raise TypeError(
+        f"nested config field {f.name!r}: give default_factory=Cls or functools.partial(Cls, **defaults)"
+    )
+
+
+def leaves(cls: type, overrides: dict[str, Any] | None = None, path: tuple[str, ...] = ()) -> Iterator[Leaf]:
     """Every command-line field of ``cls``, nested configs flattened, in declaration order.
 
-    ``default``: an instance whose values are the defaults (a nested config's parent may give
-    it other defaults than the class does, e.g. ``spec: EpisodeSpec = option(default_factory=
-    lambda: EpisodeSpec(seed=200))``).
+    ``overrides``: defaults that differ from the class's (see :func:`nested_defaults`).
     """
     hints = _hints(cls)
+    overrides = overrides or {}
     for f in dataclasses.fields(cls):
         spec = spec_of(f)
         if not spec.cli or not f.init:
             continue
-        value = getattr(default, f.name) if default is not None else _field_default(f)
         hint = hints[f.name]
         if _is_config(hint):
-            yield from leaves(hint, value if value is not dataclasses.MISSING else None, (*path, f.name))
+            yield from leaves(hint, nested_defaults(f), (*path, f.name))
         else:
-            yield Leaf((*path, f.name), f, hint, value)
+            yield Leaf((*path, f.name), f, hint, overrides.get(f.name, _field_default(f)))
 
 
 def _strip_optional(hint: Any) -> tuple[Any, bool]:
@@ -288,10 +304,10 @@ def from_args(cls: type[T], args: argparse.Namespace, **overrides: Any) -> T:
 
     ``overrides`` (field names of ``cls``) win over the flags.
     """
-    return _build(cls, args, None, overrides)
+    return _build(cls, args, {}, overrides)
 
 
-def _build(cls: type, args: argparse.Namespace, default: Any, overrides: dict[str, Any]) -> Any:
+def _build(cls: type, args: argparse.Namespace, defaults: dict[str, Any], overrides: dict[str, Any]) -> Any:
     hints = _hints(cls)
     kwargs: dict[str, Any] = {}
     for f in dataclasses.fields(cls):
@@ -301,16 +317,19 @@ def _build(cls: type, args: argparse.Namespace, default: Any, overrides: dict[st
             kwargs[f.name] = overrides[f.name]
             continue
         spec = spec_of(f)
-        value = getattr(default, f.name) if default is not None else _field_default(f)
         if _is_config(hints[f.name]) and spec.cli:
-            kwargs[f.name] = _build(
-                hints[f.name], args, value if value is not dataclasses.MISSING else None, {}
-            )
+            kwargs[f.name] = _build(hints[f.name], args, nested_defaults(f), {})
         elif spec.cli and hasattr(args, dest_of(f)):
             got = getattr(args, dest_of(f))
-            kwargs[f.name] = tuple(got) if isinstance(got, list) else got  # nargs="+" gives a list
-        elif value is not dataclasses.MISSING:
-            kwargs[f.name] = value
+            if isinstance(got, list):  # nargs="+" and repeated flags give a list
+                got = tuple(got)
+            elif isinstance(got, str) and _strip_optional(hints[f.name])[0] is Path:
+                got = Path(got)  # a validator (argtypes.output_path) checked the text
+            kwargs[f.name] = got
+        elif f.name in defaults:
+            kwargs[f.name] = defaults[f.name]
+        elif _field_default(f) is not dataclasses.MISSING:
+            kwargs[f.name] = _field_default(f)
     return cls(**kwargs)
 
 

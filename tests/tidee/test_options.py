@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Literal
@@ -72,7 +73,7 @@ class _Outer:
     sizes: tuple[int, ...] = option((1, 2), "several values", nargs="+")
     maybe: float | None = option(None, "optional")
     hidden: int = option(9, "not on the command line", cli=False)
-    inner: _Inner = option(default_factory=lambda: _Inner(k=7))
+    inner: _Inner = option(default_factory=functools.partial(_Inner, k=7))
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -129,3 +130,16 @@ def test_the_agent_flags_reach_the_policy_thresholds() -> None:
     cfg = from_args(AgentProcessConfig, args)
     assert cfg.agent.policy.oop_threshold == 0.6 and cfg.agent.policy.k_empty_goals == 5
     assert cfg.spec.seed == 201 and cfg.spec.mess_index == 0 and cfg.agent.seed == 0
+
+
+def test_what_a_config_computes_never_becomes_a_default() -> None:
+    """AgentConfig resolves oop "auto" in __post_init__; the flag's default stays "auto", so
+    --perception oracle alone still picks the language detector."""
+    from tidee.agent.config import AgentProcessConfig
+
+    parser = build_parser()
+    cfg = from_args(AgentProcessConfig, parser.parse_args(["agent", "--perception", "oracle"]))
+    assert cfg.agent.oop == "language"
+    run = from_args(AgentProcessConfig, parser.parse_args(["agent"]))
+    assert run.agent.oop == "visual"
+    assert from_args(AgentProcessConfig, parser.parse_args(["agent", *to_argv(run)])) == run
