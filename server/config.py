@@ -109,7 +109,9 @@ class SceneExportConfig:
 class SceneTourConfig:
     """``tidee scene tour``."""
 
-    out: Path = option(Path("demo_out"), "output directory", type=argtypes.output_path)
+    out: Path | None = option(
+        None, "output directory (default: demo_out/ in the checkout)", type=argtypes.output_path
+    )
     room_type: RoomType = option("LivingRoom", "the room type")
     seed: int = option(200, "room seed (200-204 are test rooms)", type=argtypes.non_negative_int)
     mess_index: int = option(0, "messy configuration index", type=argtypes.non_negative_int)

@@ -21,7 +21,7 @@ from typing import NoReturn
 from tidee.agent.config import LIVE_RUN_SKIP, AgentProcessConfig, LiveRunConfig
 from tidee.agent.evaluation import config as ec
 from tidee.options import add_command, to_argv
-from tidee.paths import bench_out
+from tidee.paths import PROJECT_DIR, bench_out
 from tidee.protocol.messages import EpisodeSpec
 from tidee.server import config as sc
 from tidee.server.config import ServerConfig
@@ -92,7 +92,8 @@ def _cmd_scene_export(cfg: sc.SceneExportConfig) -> int:
 def _cmd_scene_tour(cfg: sc.SceneTourConfig) -> int:
     from tidee.server.demo import run_demo
 
-    return run_demo(str(cfg.out), room_type=cfg.room_type, seed=cfg.seed, mess=cfg.mess_index)
+    out = cfg.out if cfg.out is not None else PROJECT_DIR / "demo_out"
+    return run_demo(str(out), room_type=cfg.room_type, seed=cfg.seed, mess=cfg.mess_index)
 
 
 def _print_json(result: object) -> int:
