@@ -111,3 +111,23 @@ def test_the_tests_mirror_the_tree_and_no_test_module_imports_another() -> None:
         imports = re.findall(r"^\s*(?:from|import) (tests\.[\w.]+)", path.read_text(), re.M)
         bad = [m for m in imports if not m.startswith("tests.support")]
         assert not bad, f"{path.relative_to(ROOT)} imports another test module: {bad}"
+
+
+def test_only_evaluation_reads_the_human_annotations() -> None:
+    """The Housekeep votes judge; nothing that generates data, trains, tunes or acts may read them."""
+    allowed = {
+        "agent/evaluation/human_judge.py",  # the judge
+        "agent/evaluation/report.py",  # its columns in tidy reports
+        "agent/evaluation/config.py",  # `tidee eval human`'s options
+        "tidee/cli.py",  # `tidee eval housekeep`
+        "tests/agent/evaluation/test_human_judge.py",
+        "tests/test_layout.py",
+    }
+    readers = []
+    for part in PARTS:
+        for path in sorted((ROOT / part).rglob("*.py")):
+            rel = path.relative_to(ROOT).as_posix()
+            text = path.read_text().lower()
+            if ("housekeep" in text or "human_judge" in text) and rel not in allowed:
+                readers.append(rel)
+    assert not readers, f"modules that mention the human annotations outside evaluation: {readers}"

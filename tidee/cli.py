@@ -270,6 +270,15 @@ def _cmd_eval_tidy_merge(cfg: ec.TidyMergeConfig) -> int:
     return 0
 
 
+def _cmd_eval_human(cfg: ec.HumanEvalConfig) -> int:
+    from tidee.agent.evaluation.human_judge import run_human_eval
+
+    command = "tidee eval human " + " ".join(f"--report {r}" for r in cfg.report) + f" --out {cfg.out}"
+    run_human_eval(list(cfg.report), Path(cfg.out), command=command)
+    print((Path(cfg.out) / "human.md").read_text())
+    return 0
+
+
 def _cmd_gen_stats(cfg: ec.StatsGenConfig) -> int:
     from tidee.agent.reasoning.stats import DEFAULT_PATH, build_stats
 
@@ -409,6 +418,14 @@ def build_parser() -> argparse.ArgumentParser:
         _cmd_eval_tidy_merge,
         "one Table 1 report from the episodes of several tidy runs "
         "(compare a new agent with earlier records without rerunning them)",
+    )
+
+    add_command(
+        ev,
+        "human",
+        ec.HumanEvalConfig,
+        _cmd_eval_human,
+        "tidy reports' placements judged by people (Housekeep annotations): correct, plausible, pairwise",
     )
 
     gen = _group(sub, "gen", "generate data from training rooms")

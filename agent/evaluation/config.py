@@ -106,3 +106,15 @@ class StatsGenConfig:
     out: Path | None = option(
         None, "default: agent/data/placement_stats.json (the shipped file)", type=argtypes.output_path
     )
+
+
+@dataclass
+class HumanEvalConfig:
+    """``tidee eval human``: tidy reports' episodes judged by people (the Housekeep annotations)."""
+
+    report: tuple[str, ...] = option(
+        help="a tidy report (its folder or report.json[.gz]); repeat for several with other variants",
+        metavar="REPORT",
+        repeat=True,
+    )
+    out: Path = option(help="directory for human.json, human.md and human.png", type=argtypes.output_path)

@@ -518,8 +518,54 @@ def format_markdown(report: Mapping[str, Any]) -> str:
     else:
         lines.append("(no variants)")
     lines += _decided_section(table, [n for n in names if n not in REFERENCE_VARIANTS])
+    if report.get("human"):
+        lines += _human_section(report["human"])
     lines += ["", "## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
     return "\n".join(lines)
+
+
+def _human_section(human: Mapping[str, Any]) -> list[str]:
+    """The human judge's columns (``human_judge.py``) and its pairwise preferences."""
+    m = human["metrics"]
+    lines = [
+        "",
+        "## Human judge (Housekeep annotations)",
+        "",
+        "10 annotators per object and room type said where it belongs (Kant et al., ECCV 2022); "
+        "tidee's names map onto theirs with a tier (`agent/data/housekeep/mapping.json`). Correct: "
+        ">= 5 of 10 said correct; plausible: >= 5 of 10 said correct or misplaced; relative: correct "
+        "votes for the chosen receptacle / the best present receptacle's. Shares are of the judged "
+        "placements; coverage is judged / all.",
+        "",
+        "| Placements of moved objects | Judged (coverage) | exact / close / approximate | Correct "
+        "| Plausible | Relative votes |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    rows = [*m["variants"].items(), ("tidy rooms (every object where the room had it)", m["tidy_rooms"])]
+    for name, r in rows:
+        t = r["by_tier"]
+        lines.append(
+            f"| {name} | {r['judged']} / {r['placements']} ({_pct(r['coverage'])}) "
+            f"| {t['exact']} / {t['close']} / {t['approximate']} | {_pct(r['correct'])} "
+            f"| {_pct(r['plausible'])} | {_num(r['relative_mean'], 3)} |"
+        )
+    for key, what in (("pairwise", "one vote"), ("pairwise_margin2", "two votes")):
+        table = human.get(key) or {}
+        names = list(table)
+        if len(names) < 2:
+            continue
+        lines += [
+            "",
+            f"Pairwise by human votes (a win needs {what} more for the row agent's receptacle; objects "
+            "picked by both whose placements can both be judged):",
+            "",
+            "| A \\ B | " + " | ".join(names) + " |",
+            "|---|" + "---:|" * len(names),
+        ]
+        for a in names:
+            cells = ["—" if b == a else _cell(table[a][b]) for b in names]
+            lines.append(f"| {a} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def _decided_section(
@@ -690,6 +736,15 @@ def write_report(
             obj["judge_score"] = s
             obj["plausible"] = ok
         episodes.append(ep)
+    from .human_judge import human_metrics, human_pairwise
+
+    agents = list(table)
+    human = {
+        "source": "Housekeep human annotations (MIT), agent/data/housekeep",
+        "metrics": human_metrics(recs),
+        "pairwise": human_pairwise(recs, agents),
+        "pairwise_margin2": human_pairwise(recs, agents, margin=2),
+    }
     report: dict[str, Any] = {
         "title": title,
         "config": {
@@ -712,6 +767,7 @@ def write_report(
         "notes": _auto_notes(recs, order) + [str(n) for n in notes],
         "metrics": metrics,
         "pairwise": table,
+        "human": human,
         "episodes": episodes,
         "files": ["report.json", "report.md", "metrics.png", "pairwise.png"],
     }

@@ -271,7 +271,7 @@ def _placing_policy(missing_top, ranked, puts_succeed):
     def put_on(rec):
         tried.append(f"put:{rec.label}")
         return puts_succeed
-        yield  # noqa: unreachable: makes this a generator like the real put_on
+        yield  # unreachable: makes this a generator like the real put_on
 
     def search_and_put(held, label):
         tried.append(f"search:{label}")
