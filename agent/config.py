@@ -167,6 +167,13 @@ class AgentConfig:
         flag="--agent-seed",
         type=argtypes.non_negative_int,
     )
+    preferences: str | None = option(
+        None,
+        'a household\'s preferences, a JSON (or YAML) file {"household": ..., "preferences": [sentences]}: '
+        "they decide whether an object is out of place and where it goes (agent/reasoning/preferences.py); "
+        "sentences typed in the viewer are added to it",
+        metavar="FILE",
+    )
     policy: PolicyConfig = option(default_factory=PolicyConfig)
     map: MapConfig = option(default_factory=MapConfig, cli=False)
 

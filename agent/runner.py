@@ -121,10 +121,18 @@ class AgentModels:
     oop: Any
     placement: Any
     searcher: Any
+    preferences: Any = None  # a PreferenceProfile (--preferences) or None
 
     @staticmethod
     def key_of(config: AgentConfig) -> tuple[Any, ...]:
-        return (config.perception, config.detection_threshold, config.depth, config.oop, config.variant)
+        return (
+            config.perception,
+            config.detection_threshold,
+            config.depth,
+            config.oop,
+            config.variant,
+            config.preferences,
+        )
 
     @staticmethod
     def load(config: AgentConfig) -> AgentModels:
@@ -136,7 +144,14 @@ class AgentModels:
             depth_net = DepthEstimator.load()
         oop = make_oop(config.oop)
         placement, searcher = make_placement(config.variant)
-        return AgentModels(AgentModels.key_of(config), perception, depth_net, oop, placement, searcher)
+        preferences = None
+        if config.preferences is not None:
+            from tidee.agent.reasoning.preferences import PreferenceProfile
+
+            preferences = PreferenceProfile.load(config.preferences)
+        return AgentModels(
+            AgentModels.key_of(config), perception, depth_net, oop, placement, searcher, preferences
+        )
 
 
 class EpisodeRunner:
@@ -165,17 +180,27 @@ class EpisodeRunner:
         self.perception, self.depth_net, self.oop = m.perception, m.depth_net, m.oop
         self.placement, self.searcher = m.placement, m.searcher
         self._search_sent: tuple[str, int] | None = None
+        self._policy: Any = None  # the episode under way's TidyPolicy
         self.paused = False
         self._single_steps = 0
 
     def _apply_preference(self, text: str) -> tuple[bool, str]:
-        """A placement preference in plain language: the language OOP head learns it (seconds)."""
+        """A placement preference in plain language: it joins the household's profile, which
+        decides OOP and placement for what it names (every OOP mode and placement model); the
+        language / fused OOP head also learns it (seconds)."""
+        from tidee.agent.reasoning.preferences import PreferenceProfile
+
+        if self.models.preferences is None:
+            self.models.preferences = PreferenceProfile()
+        try:
+            pref = self.models.preferences.add(text)
+        except ValueError as e:
+            return False, f"could not use {text!r}: {e}"
+        if self._policy is not None:  # the episode under way follows it from its next decision
+            self._policy.preferences = self.models.preferences
         classifier = getattr(self.oop, "classifier", None)
-        if classifier is None:
-            return True, (
-                f"noted preference {text!r}; only the language / fused OOP classifiers learn from "
-                f"instructions (this agent runs --oop {self.cfg.oop})"
-            )
+        if classifier is None or pref.group is not None:
+            return True, f"will follow {text!r}: {pref.describe()}"
         from tidee.agent.reasoning.language_oop.instructions import apply_instruction
 
         try:
@@ -213,7 +238,9 @@ class EpisodeRunner:
             spec.room_type,
             on_event=on_event,
             searcher=self.searcher,
+            preferences=self.models.preferences,
         )
+        self._policy = policy
         gen = policy.run()
         info = {
             "room_type": spec.room_type,

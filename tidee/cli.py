@@ -279,6 +279,15 @@ def _cmd_eval_human(cfg: ec.HumanEvalConfig) -> int:
     return 0
 
 
+def _cmd_eval_preferences(cfg: ec.PreferenceEvalConfig) -> int:
+    from tidee.agent.evaluation.preference_eval import run_preference_eval
+
+    command = "tidee eval preferences " + " ".join(to_argv(cfg))
+    run_preference_eval(cfg, command=command)
+    print((Path(cfg.out) / "preferences.md").read_text())
+    return 0
+
+
 def _cmd_gen_stats(cfg: ec.StatsGenConfig) -> int:
     from tidee.agent.reasoning.stats import DEFAULT_PATH, build_stats
 
@@ -426,6 +435,15 @@ def build_parser() -> argparse.ArgumentParser:
         ec.HumanEvalConfig,
         _cmd_eval_human,
         "tidy reports' placements judged by people (Housekeep annotations): correct, plausible, pairwise",
+    )
+
+    add_command(
+        ev,
+        "preferences",
+        ec.PreferenceEvalConfig,
+        _cmd_eval_preferences,
+        "scripted household preferences: obeyed, generalised to a group, and side effects",
+        skip=ec.PREFERENCE_EVAL_SKIP,
     )
 
     gen = _group(sub, "gen", "generate data from training rooms")

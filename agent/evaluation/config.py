@@ -118,3 +118,26 @@ class HumanEvalConfig:
         repeat=True,
     )
     out: Path = option(help="directory for human.json, human.md and human.png", type=argtypes.output_path)
+
+
+@dataclass
+class PreferenceEvalConfig:
+    """``tidee eval preferences``: scripted household preferences, each episode without and with them."""
+
+    out: Path = option(
+        help="directory for preferences.json, .md, .png and the profiles", type=argtypes.output_path
+    )
+    split: HeldOutSplit = option("test", "held-out rooms only")
+    episodes: int = option(12, "configurations, spread over the split", type=argtypes.positive_int)
+    variants: tuple[str, ...] = option(("TIDEE", "CommonMemory"), "comma list of agents")
+    agent: AgentConfig = option(default_factory=AgentConfig)
+    resolution: int = option(256, "square images, pixels a side", type=argtypes.resolution)
+    max_steps: int = option(1000, "each episode's step budget", type=argtypes.max_steps)
+    workers: int = option(1, "parallel simulator processes", type=argtypes.positive_int)
+    renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
+    seed: int = option(0, "the scripted preferences' random choices", type=argtypes.non_negative_int)
+    progress: bool = option(True, "a progress bar", cli=False)
+
+
+# Flags of AgentConfig that eval preferences sets per episode.
+PREFERENCE_EVAL_SKIP = ("agent.variant", "agent.seed", "agent.preferences")

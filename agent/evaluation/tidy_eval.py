@@ -86,8 +86,35 @@ def _init_worker(renderer: str, threads: int) -> None:
     _WORKER["transport"] = InProcessTransport(renderer=renderer)
 
 
-def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
+def run_jobs(jobs: list[TidyJob], workers: int, renderer: str, progress: bool = True) -> list[dict[str, Any]]:
+    """Every job's episode record, in job order: in this process (``workers`` 1) or in a pool of
+    worker processes, each with its own simulator and its loaded models."""
     from tqdm import tqdm
+
+    records: list[dict[str, Any]] = []
+    bar = tqdm(total=len(jobs), desc="tidy episodes", disable=not progress)
+    threads = threads_per_process(max(1, workers))
+    if workers <= 1:
+        if "transport" not in _WORKER:
+            _init_worker(renderer, threads)
+        for job in jobs:
+            records.append(_run_one(job))
+            bar.update()
+    else:
+        with cf.ProcessPoolExecutor(
+            workers,
+            mp_context=mp.get_context("spawn"),
+            initializer=_init_worker,
+            initargs=(renderer, threads),
+        ) as pool:
+            for rec in pool.map(_run_one, jobs):
+                records.append(rec)
+                bar.update()
+    bar.close()
+    return records
+
+
+def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
 
     from tidee.agent.evaluation.report import with_references, write_report
 
@@ -122,26 +149,7 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
         for v in agents
     ]
     t0 = time.time()
-    records: list[dict[str, Any]] = []
-    bar = tqdm(total=len(jobs), desc="tidy episodes", disable=not progress)
-    threads = threads_per_process(max(1, workers))
-    if workers <= 1:
-        if "transport" not in _WORKER:
-            _init_worker(renderer, threads)
-        for job in jobs:
-            records.append(_run_one(job))
-            bar.update()
-    else:
-        with cf.ProcessPoolExecutor(
-            workers,
-            mp_context=mp.get_context("spawn"),
-            initializer=_init_worker,
-            initargs=(renderer, threads),
-        ) as pool:
-            for rec in pool.map(_run_one, jobs):
-                records.append(rec)
-                bar.update()
-    bar.close()
+    records = run_jobs(jobs, workers, renderer, progress)
     all_records = with_references(records)
     keep = set(variants) | set(agents)
     if not any(v in REFERENCE_VARIANTS for v in variants):

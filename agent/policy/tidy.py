@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -55,6 +55,9 @@ from tidee.agent.policy.skills import (
 from tidee.agent.reasoning.oop import OOPDetector
 from tidee.agent.reasoning.placement import PlacementModel
 from tidee.protocol.messages import Action, ActionName
+
+if TYPE_CHECKING:  # the profile module loads the text encoder; the policy only calls it
+    from tidee.agent.reasoning.preferences import PreferenceProfile
 
 Gen = Generator[Action, None, Any]
 FLOOR = "Floor"
@@ -110,8 +113,10 @@ class TidyPolicy:
         room_type: str,
         on_event: Callable[..., None] = lambda **kw: None,
         searcher: Searcher | None = None,
+        preferences: PreferenceProfile | None = None,
     ) -> None:
         self.cfg, self.p = config, config.policy
+        self.preferences = preferences  # a household's: they decide OOP and placement for what they name
         self.body, self.oop, self.placement = body, oop, placement
         self.searcher = searcher
         self.search_view: SearchView | None = None  # the latest heatmap, for telemetry
@@ -146,6 +151,8 @@ class TidyPolicy:
         objs = list(self.body.mapper.memory)
         targets = [o for o in objs if o.label in PICKUPABLE]
         probs = self.oop.score_all(targets, objs, self.room_type)
+        if self.preferences is not None:
+            probs = self.preferences.adjust_oop(probs, targets, objs)
         for o in targets:
             o.oop_prob = float(probs[o.id])
             o.out_of_place = o.oop_prob >= self.p.oop_threshold and not self._is_placed(o)
@@ -286,7 +293,10 @@ class TidyPolicy:
         box and the receptacles around it, and a paragraph that now reads "in place" spares
         an object the mess-up never moved. Cleared twice: never flagged again."""
         objs = list(self.body.mapper.memory)
-        prob = float(self.oop.score_all([obj], objs, self.room_type)[obj.id])
+        probs = self.oop.score_all([obj], objs, self.room_type)
+        if self.preferences is not None:
+            probs = self.preferences.adjust_oop(probs, [obj], objs)
+        prob = float(probs[obj.id])
         obj.oop_prob = prob
         if prob >= self.p.oop_threshold:
             return True
@@ -358,13 +368,18 @@ class TidyPolicy:
     # ------------------------------------------------------------------ placing
     def put_away(self, obj: TrackedObject) -> Gen:
         st = self.state
-        if self.cfg.variant == "3DSmntMap2Place":
+        preferred = self.preferences is not None and bool(self.preferences.about(obj.label))
+        if self.cfg.variant == "3DSmntMap2Place" and not preferred:
             st.predictions = []
             return (yield from self.put_near_proposals(obj.label))
-        if self.placement is None:  # RandomReceptacle
+        if self.placement is None and not preferred:  # RandomReceptacle
             st.predictions = []
             return (yield from self.put_on_first_found(obj.label))
-        ranked = self.placement.predict(obj, self.body.mapper.memory, self.room_type)
+        ranked = (
+            self.placement.predict(obj, self.body.mapper.memory, self.room_type) if self.placement else []
+        )
+        if self.preferences is not None:
+            ranked = self.preferences.rank(obj.label, ranked)
         st.predictions = ranked[:5]
         self.event("predicted", label=obj.label, top=[[r, round(p, 3)] for r, p in ranked[:5]])
         searched = None  # the class already searched for (Algorithm S1), not tried again

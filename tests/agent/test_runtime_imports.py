@@ -12,7 +12,7 @@ import pytest
 
 # Role modules the runtime must not import (see docs/architecture.md, "role files").
 FORBIDDEN = re.compile(
-    r"^tidee\..*\.(train|train_\w+|data|dataset|eval|commands|instructions|cli)$|^tidee\.cli$"
+    r"^tidee\..*\.(train|train_\w+|data|dataset|eval|instruct_eval|commands|cli)$|^tidee\.cli$"
 )
 
 PROBE = """

@@ -1,0 +1,254 @@
+"""``tidee eval preferences``: does the agent do what a household asks, and nothing else?
+
+For each test configuration the agents first run without preferences. From that run (the
+evaluation may read it; the agent never does) a scripted profile of three sentences is written:
+
+* **asked**: a category the mess-up moved goes on another receptacle the room has than where the
+  tidy room kept it ("the mug goes on the dining table");
+* **never**: a moved category may not go where the agent put it without preferences ("never put
+  the apple on the counter top");
+* **group**: a group phrase whose MiniLM members include a moved category the sentence does not
+  name goes on a receptacle the room has ("dishes go on the shelf").
+
+Then the same episodes run with the profile (``--preferences``). Reported per agent: the share of
+the asked and never objects placed as asked; the share of the group's unnamed members placed as
+asked; and the side effects: the share of the other objects (named by no preference) whose final
+receptacle differs between the two runs. JSON, Markdown and PNG.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tidee.agent.classes import PLACEABLE_RECEPTACLES
+from tidee.agent.evaluation.config import PreferenceEvalConfig
+from tidee.agent.evaluation.tidy_eval import TidyJob, run_jobs, select_configs
+from tidee.agent.reasoning.relations import words
+from tidee.protocol.messages import EpisodeSpec
+
+# Group phrases a household might use; each configuration takes the first whose members include
+# one of its moved categories.
+GROUP_PHRASES = (
+    "dishes",
+    "food",
+    "fruit and vegetables",
+    "kitchen utensils",
+    "toys",
+    "electronics",
+    "writing things",
+    "bathroom things",
+    "sports equipment",
+)
+SURFACES = sorted(PLACEABLE_RECEPTACLES - {"GarbageCan", "Toilet", "ToiletPaperHanger", "TowelHolder"})
+
+
+def _key(rec: Mapping[str, Any]) -> tuple[Any, ...]:
+    return (rec["room_type"], rec["seed"], rec["mess_index"])
+
+
+def script_profile(rec: Mapping[str, Any], members: Mapping[str, Sequence[str]], seed: int) -> dict[str, Any]:
+    """The three scripted preferences for one configuration, from an agent's run without them."""
+    rng = np.random.default_rng([seed, rec["seed"], 0 if rec["mess_index"] is None else rec["mess_index"]])
+    moved = [o for o in rec["objects"] if o["moved"]]
+    cats = sorted({o["type"] for o in moved})
+    present = sorted(set(rec["present_receptacles"]) & set(SURFACES))
+    out: dict[str, Any] = {"asked": None, "never": None, "group": None}
+    used: set[str] = set()
+    for c in rng.permutation(cats).tolist():
+        origin = {o["original_parent_type"] for o in moved if o["type"] == c}
+        options = [r for r in present if r not in origin]
+        if options:
+            r = options[int(rng.integers(len(options)))]
+            out["asked"] = {"text": f"the {words(c)} goes on the {words(r)}", "category": c, "receptacle": r}
+            used.add(c)
+            break
+    for c in rng.permutation(cats).tolist():
+        finals = sorted({o["final_parent_type"] for o in moved if o["type"] == c and o["final_parent_type"]})
+        if c not in used and finals:
+            r = finals[0]
+            out["never"] = {
+                "text": f"never put the {words(c)} on the {words(r)}",
+                "category": c,
+                "receptacle": r,
+            }
+            used.add(c)
+            break
+    for phrase in GROUP_PHRASES:
+        unnamed = [c for c in members[phrase] if c in cats and c not in used]
+        if unnamed and present:
+            r = present[int(rng.integers(len(present)))]
+            verb = "go" if phrase.endswith("s") else "goes"
+            out["group"] = {
+                "text": f"{phrase} {verb} on the {words(r)}",
+                "categories": list(members[phrase]),
+                "unnamed": unnamed,
+                "receptacle": r,
+            }
+            break
+    return out
+
+
+def _placed(objs: Sequence[Mapping[str, Any]], category: str, receptacle: str, asked: bool) -> list[bool]:
+    return [
+        (o["final_parent_type"] == receptacle) == asked for o in objs if o["moved"] and o["type"] == category
+    ]
+
+
+def score(
+    without: Sequence[Mapping[str, Any]], with_: Sequence[Mapping[str, Any]], profiles: Mapping[Any, Any]
+) -> dict[str, Any]:
+    """Per variant: asked / never / group obeyed, side effects (see the module docstring)."""
+    base = {(r["variant"], _key(r)): r for r in without}
+    per: dict[str, dict[str, list[bool]]] = {}
+    for rec in with_:
+        acc = per.setdefault(rec["variant"], {"asked": [], "never": [], "group": [], "side": [], "found": []})
+        prof = profiles[_key(rec)]
+        named: set[str] = set()
+        if prof["asked"]:
+            a = prof["asked"]
+            acc["asked"] += _placed(rec["objects"], a["category"], a["receptacle"], True)
+            acc["found"] += [o["found"] for o in rec["objects"] if o["moved"] and o["type"] == a["category"]]
+            named.add(a["category"])
+        if prof["never"]:
+            n = prof["never"]
+            acc["never"] += _placed(rec["objects"], n["category"], n["receptacle"], False)
+            named.add(n["category"])
+        if prof["group"]:
+            g = prof["group"]
+            for c in g["unnamed"]:
+                acc["group"] += _placed(rec["objects"], c, g["receptacle"], True)
+            named |= set(g["categories"])
+        before = {o["id"]: o for o in base[(rec["variant"], _key(rec))]["objects"]}
+        acc["side"] += [
+            o["final_parent_type"] != before[o["id"]]["final_parent_type"]
+            for o in rec["objects"]
+            if o["type"] not in named and o["id"] in before
+        ]
+    return {
+        v: {k: {"n": len(xs), "share": float(np.mean(xs)) if xs else None} for k, xs in acc.items()}
+        for v, acc in per.items()
+    }
+
+
+def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[str, Any]:
+    from tidee.agent.reasoning.preferences import group_members
+    from tidee.protocol.episode_log import write_atomic
+
+    out = Path(cfg.out)
+    (out / "profiles").mkdir(parents=True, exist_ok=True)
+    configs = select_configs(cfg.split, cfg.episodes)
+    agent = cfg.agent
+    spec = {"resolution": cfg.resolution, "max_steps": cfg.max_steps}
+
+    def jobs(preferences: Mapping[Any, str | None]) -> list[TidyJob]:
+        return [
+            TidyJob(
+                agent=replace(
+                    agent,
+                    variant=v,
+                    seed=c.index,
+                    preferences=preferences.get((c.room_type, c.seed, c.mess_index)),
+                ),
+                spec=EpisodeSpec(room_type=c.room_type, seed=c.seed, mess_index=c.mess_index, **spec),
+                split=cfg.split,
+                renderer=cfg.renderer,
+            )
+            for c in configs
+            for v in cfg.variants
+        ]
+
+    without = run_jobs(jobs({}), cfg.workers, cfg.renderer, cfg.progress)
+    members = {p: group_members(p) for p in GROUP_PHRASES}
+    profiles: dict[Any, Any] = {}
+    files: dict[Any, str] = {}
+    first = cfg.variants[0]
+    for rec in without:  # one profile per configuration, scripted from the first agent's run
+        if rec["variant"] != first:
+            continue
+        prof = script_profile(rec, members, cfg.seed)
+        profiles[_key(rec)] = prof
+        path = out / "profiles" / "{}_{}_mess{}.json".format(*_key(rec))
+        sentences = [p["text"] for p in prof.values() if p]
+        path.write_text(json.dumps({"household": path.stem, "preferences": sentences}, indent=1))
+        files[_key(rec)] = str(path)
+    with_ = run_jobs(jobs(files), cfg.workers, cfg.renderer, cfg.progress)
+    result: dict[str, Any] = {
+        "command": command,
+        "config": {
+            "split": cfg.split,
+            "configurations": len(configs),
+            "variants": list(cfg.variants),
+            "perception": agent.perception,
+            "oop": agent.oop,
+            "seed": cfg.seed,
+        },
+        "groups": {p: list(m) for p, m in members.items()},
+        "metrics": score(without, with_, profiles),
+        "profiles": {"{}_{}_mess{}".format(*k): v for k, v in profiles.items()},
+    }
+    write_atomic(out / "preferences.json", json.dumps(result, indent=1).encode())
+    write_atomic(out / "preferences.md", _markdown(result).encode())
+    write_atomic(out / "preferences.png", _plot(result["metrics"]))
+    return result
+
+
+def _pct(m: Mapping[str, Any]) -> str:
+    return "–" if m["share"] is None else f"{100 * m['share']:.1f} % (n={m['n']})"
+
+
+def _markdown(r: Mapping[str, Any]) -> str:
+    c = r["config"]
+    lines = [
+        "# Preferences: does the agent do what a household asks, and nothing else?",
+        "",
+        f"{c['configurations']} {c['split']} configurations, each run without and with a scripted profile "
+        f"of three sentences (perception {c['perception']}, OOP detector {c['oop']}). Asked: a moved "
+        "category goes on another receptacle the room has; never: a moved category may not go where "
+        "the agent put it without preferences; group: a phrase whose MiniLM members include a moved "
+        "category it does not name. Side effects: other objects whose final receptacle changed.",
+        "",
+        "| Agent | Asked, placed as asked | Never, obeyed | Group, unnamed members placed as asked "
+        "| Side effects | Asked objects found |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for v, m in r["metrics"].items():
+        lines.append(
+            f"| {v} | {_pct(m['asked'])} | {_pct(m['never'])} | {_pct(m['group'])} | {_pct(m['side'])} "
+            f"| {_pct(m['found'])} |"
+        )
+    lines += ["", "Group phrases and the categories MiniLM carried them to:", ""]
+    lines += [f"- {p}: {', '.join(m)}" for p, m in r["groups"].items()]
+    lines += ["", f"Command: `{r['command']}`", ""]
+    return "\n".join(lines)
+
+
+def _plot(metrics: Mapping[str, Any]) -> bytes:
+    import io
+
+    from matplotlib.figure import Figure
+
+    keys = [("asked", "asked"), ("never", "never"), ("group", "group (unnamed)"), ("side", "side effects")]
+    names = list(metrics)
+    fig = Figure(figsize=(max(6.0, 2.2 * len(names) + 2), 4.0))
+    ax = fig.add_subplot(1, 1, 1)
+    x = np.arange(len(names))
+    w = 0.8 / len(keys)
+    for k, (key, label) in enumerate(keys):
+        vals = [np.nan if metrics[n][key]["share"] is None else 100 * metrics[n][key]["share"] for n in names]
+        ax.bar(x + (k - (len(keys) - 1) / 2) * w, vals, w, label=label)
+    ax.set_xticks(x)
+    ax.set_xticklabels(names)
+    ax.set_ylim(0, 100)
+    ax.set_ylabel("%")
+    ax.set_title("Preferences obeyed, and side effects")
+    ax.legend(frameon=False, fontsize="small", ncol=len(keys))
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, metadata={"Software": None})
+    return buf.getvalue()

@@ -1,0 +1,228 @@
+"""A household's preferences: where things go, and where they never go.
+
+A preference is one sentence, as a person would type it in the viewer or keep in a profile:
+
+* a category: "the alarm clock goes on the desk" (that category, that receptacle);
+* a negative: "never put the mug on the floor", "food is out of place on the floor";
+* a group: "toys go in the box", "food never goes on the floor": the words before the
+  receptacle name no category, so the MiniLM text encoder carries them to the categories whose
+  names are nearest (``GROUP_SIMILARITY``, ``GROUP_MARGIN``).
+
+A profile (``--preferences FILE``: JSON ``{"household": ..., "preferences": [sentences]}``, or
+the same in YAML when PyYAML is installed) acts on both of the agent's questions, whatever its
+OOP detector and placement model:
+
+* **is it out of place?** an object a preference names is out of place (P = 1) when it rests
+  on a receptacle the preference forbids, or on another receptacle than the one it asks for, and
+  in place (P = 0) when it rests where it asks; other objects keep their detector's score;
+* **where does it go?** the receptacle a preference asks for is ranked first, the ones it
+  forbids are dropped, the rest keep the placement model's order (a variant without a
+  placement model ranks only what preferences ask for).
+
+Sentences a person types in the viewer join the profile and, when it came from a file, are
+written back to it, so a household's preferences persist from one run to the next.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tidee.agent.classes import PICKUPABLE
+from tidee.agent.mapping.memory import TrackedObject
+from tidee.agent.reasoning.language_oop.instructions import (
+    _NEGATIVE_PHRASES,
+    FLOOR,
+    IN_PLACE,
+    OUT_OF_PLACE,
+    RECEPTACLES,
+    _mentions,
+    _tokens,
+    parse_instruction,
+)
+from tidee.agent.reasoning.relations import words
+
+GROUP_SIMILARITY = 0.4  # a category joins a group at least this similar to the group's words...
+GROUP_MARGIN = 0.08  # ...and within this of the most similar category
+_FILLER = {
+    "the",
+    "a",
+    "an",
+    "my",
+    "our",
+    "all",
+    "any",
+    "every",
+    "i",
+    "we",
+    "want",
+    "like",
+    "please",
+    "put",
+    "keep",
+}
+_VERBS = {"go", "goes", "belong", "belongs", "is", "are", "be", "stay", "stays", "live", "lives", "put"}
+
+
+@dataclass(frozen=True)
+class Preference:
+    text: str
+    categories: tuple[str, ...]  # the categories it applies to
+    receptacle: str  # a receptacle class or "Floor"
+    polarity: str  # "in_place": goes there; "out_of_place": never there
+    group: str | None = None  # the words a group preference used ("toys"), None for a category
+
+    def describe(self) -> str:
+        who = f"{self.group!r} ({', '.join(self.categories)})" if self.group else self.categories[0]
+        where = "goes on" if self.polarity == IN_PLACE else "never on"
+        return f"{who} {where} {self.receptacle}"
+
+
+def parse_preference(text: str, encoder: Any | None = None) -> Preference:
+    """A :class:`Preference` from a sentence; ValueError in one line when it names no receptacle,
+    or no category and no group the encoder can carry to one."""
+    text = str(text).strip()
+    if not text:
+        raise ValueError("an empty preference: say what goes where, e.g. 'the alarm clock goes on the desk'")
+    try:
+        ins = parse_instruction(text)
+        return Preference(text, (ins.category,), ins.receptacle, ins.polarity)
+    except ValueError as e:
+        # no category named, or the only one is also a receptacle ("toys go in the box"): a group
+        only_receptacle = all(c in RECEPTACLES for _, c in _mentions(_tokens(text)))
+        if "no object category" not in str(e) and not ("no receptacle" in str(e) and only_receptacle):
+            raise
+    tokens = _tokens(text)
+    mentions = _mentions(tokens)
+    recs = [(i, c) for i, c in mentions if c in RECEPTACLES or c == FLOOR]
+    if not recs:
+        raise ValueError(
+            f"no receptacle in {text!r}: say where it belongs (or never belongs), e.g. 'toys go in the box'"
+        )
+    at, receptacle = recs[0]
+    negations = {w for p in _NEGATIVE_PHRASES for w in p}
+    phrase = [t for t in tokens[:at] if t not in _FILLER | _VERBS | negations | {"on", "in", "of", "to"}]
+    if not phrase:
+        raise ValueError(
+            f"no object or group in {text!r}: name a category ('the mug') or a group ('toys') before "
+            "the receptacle"
+        )
+    group = " ".join(phrase)
+    members = group_members(group, encoder)
+    joined = f" {' '.join(tokens)} "
+    negative = any(f" {' '.join(p)} " in joined for p in _NEGATIVE_PHRASES)
+    return Preference(text, members, receptacle, OUT_OF_PLACE if negative else IN_PLACE, group)
+
+
+def group_members(group: str, encoder: Any | None = None) -> tuple[str, ...]:
+    """The pickupable categories MiniLM puts nearest ``group``'s words, best first."""
+    import numpy as np
+
+    if encoder is None:
+        from tidee.agent.reasoning.language_oop.model import TextEncoder
+
+        encoder = TextEncoder()
+    cats = sorted(PICKUPABLE)
+    vecs = np.asarray(encoder.encode([words(c) for c in cats] + [group]), dtype=np.float64)
+    vecs /= np.linalg.norm(vecs, axis=1, keepdims=True)
+    sims = vecs[:-1] @ vecs[-1]
+    best = float(sims.max())
+    if best < GROUP_SIMILARITY:
+        raise ValueError(f"{group!r} is near no object category (best similarity {best:.2f}); name one")
+    keep = [i for i in np.argsort(-sims) if sims[i] >= max(GROUP_SIMILARITY, best - GROUP_MARGIN)]
+    return tuple(cats[i] for i in keep)
+
+
+@dataclass
+class PreferenceProfile:
+    """A household's preferences (see the module docstring)."""
+
+    preferences: list[Preference] = field(default_factory=list)
+    household: str = "home"
+    path: Path | None = None  # where it was loaded from; typed preferences are written back there
+
+    @classmethod
+    def load(cls, path: str | Path, encoder: Any | None = None) -> PreferenceProfile:
+        path = Path(path)
+        try:
+            raw = path.read_text()
+        except OSError as e:
+            raise ValueError(f"--preferences {path}: cannot read it ({e.strerror or e})") from None
+        data = _parse_file(path, raw)
+        if not isinstance(data, Mapping) or not isinstance(data.get("preferences"), list):
+            raise ValueError(
+                f"--preferences {path}: expected an object with a 'preferences' list of sentences, "
+                'e.g. {"household": "home", "preferences": ["the alarm clock goes on the desk"]}'
+            )
+        prefs = []
+        for k, text in enumerate(data["preferences"]):
+            try:
+                prefs.append(parse_preference(str(text), encoder))
+            except ValueError as e:
+                raise ValueError(f"--preferences {path}: preference {k + 1}: {e}") from None
+        return cls(prefs, str(data.get("household", "home")), path)
+
+    def add(self, text: str, encoder: Any | None = None) -> Preference:
+        """Parse and keep a typed preference (written back to the profile's file, if any)."""
+        pref = parse_preference(text, encoder)
+        self.preferences.append(pref)
+        if self.path is not None:
+            from tidee.protocol.episode_log import write_json_atomic
+
+            write_json_atomic(
+                self.path, {"household": self.household, "preferences": [p.text for p in self.preferences]}
+            )
+        return pref
+
+    def about(self, category: str) -> list[Preference]:
+        return [p for p in self.preferences if category in p.categories]
+
+    # ------------------------------------------------------------------ the two questions
+    def adjust_oop(
+        self, probs: Mapping[int, float], targets: Sequence[TrackedObject], objects: Sequence[TrackedObject]
+    ) -> dict[int, float]:
+        """P(out of place) after the preferences (see the module docstring)."""
+        out = dict(probs)
+        named = [t for t in targets if self.about(t.label)]
+        if not named:
+            return out
+        from tidee.agent.reasoning.oop import support_labels
+
+        support = support_labels(list(named), list(objects))
+        for t in named:
+            on = support.get(t.id)
+            for p in self.about(t.label):
+                if p.polarity == OUT_OF_PLACE and on == p.receptacle:
+                    out[t.id] = 1.0
+                elif p.polarity == IN_PLACE:
+                    out[t.id] = 0.0 if on == p.receptacle else 1.0
+        return out
+
+    def rank(self, category: str, ranked: Iterable[tuple[str, float]]) -> list[tuple[str, float]]:
+        """The placement model's ranking after the preferences."""
+        prefs = self.about(category)
+        wanted = list(dict.fromkeys(p.receptacle for p in prefs if p.polarity == IN_PLACE))
+        never = {p.receptacle for p in prefs if p.polarity == OUT_OF_PLACE}
+        head = [(r, 1.0) for r in wanted if r not in never]
+        return head + [(r, s) for r, s in ranked if r not in never and r not in wanted]
+
+
+def _parse_file(path: Path, raw: str) -> Any:
+    if path.suffix in (".yaml", ".yml"):
+        try:
+            import yaml
+        except ImportError:
+            raise ValueError(
+                f"--preferences {path}: YAML needs PyYAML (pip install pyyaml); or use JSON"
+            ) from None
+        try:
+            return yaml.safe_load(raw)
+        except yaml.YAMLError as e:
+            raise ValueError(f"--preferences {path}: not YAML ({str(e).splitlines()[0]})") from None
+    try:
+        return json.loads(raw)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"--preferences {path}: not JSON ({e.msg}, line {e.lineno})") from None
