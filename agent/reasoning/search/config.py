@@ -63,9 +63,10 @@ class SearchGenConfig:
     def __post_init__(self) -> None:
         if self.split not in SPLITS:
             raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {self.split!r}")
-        if self.snapshots < 1 or self.max_steps < 20:
+        if self.snapshots < 1 or self.max_steps <= 60:  # half the snapshots come after step 60
             raise ValueError(
-                f"need snapshots >= 1 and max_steps >= 20, got {self.snapshots}, {self.max_steps}"
+                f"need snapshots >= 1 and max_steps > 60 (half the snapshots are taken after step 60), "
+                f"got {self.snapshots}, {self.max_steps}"
             )
         if self.workers not in WORKERS:
             raise ValueError(f"workers must be 1 or 2 (this machine's budget), got {self.workers}")

@@ -217,3 +217,8 @@ def test_shipped_weights_load_and_beat_the_occupancy_baseline(held_out_maps):
     assert m["network"]["n"] >= 20
     assert m["network"]["ap"] > m["occupancy"]["ap"] + 0.05, m
     assert m["network"]["hit"] > m["occupancy"]["hit"], m
+
+
+def test_search_data_refuses_too_few_steps_for_its_late_snapshots() -> None:
+    with pytest.raises(ValueError, match="max_steps > 60"):
+        search_config.SearchGenConfig(out="d", max_steps=40)
