@@ -4,7 +4,8 @@ For each test configuration the agents first run without preferences. From that 
 evaluation may read it; the agent never does) a scripted profile of three sentences is written:
 
 * **asked**: a category the mess-up moved goes on another receptacle the room has than where the
-  tidy room kept it ("the mug goes on the dining table");
+  tidy room kept it, one the catalog finds plausible for it ("the mug goes on the dining table",
+  never "the plate goes on the coffee machine");
 * **never**: a moved category may not go where the agent put it without preferences ("never put
   the apple on the counter top");
 * **group**: a group phrase whose MiniLM members include a moved category the sentence does not
@@ -28,6 +29,7 @@ import numpy as np
 
 from tidee.agent.classes import PLACEABLE_RECEPTACLES
 from tidee.agent.evaluation.config import PreferenceEvalConfig
+from tidee.agent.evaluation.judge import plausible
 from tidee.agent.evaluation.tidy_eval import TidyJob, run_jobs, select_configs
 from tidee.agent.reasoning.relations import words
 from tidee.protocol.messages import EpisodeSpec
@@ -62,7 +64,13 @@ def script_profile(rec: Mapping[str, Any], members: Mapping[str, Sequence[str]],
     used: set[str] = set()
     for c in rng.permutation(cats).tolist():
         origin = {o["original_parent_type"] for o in moved if o["type"] == c}
-        options = [r for r in present if r not in origin]
+        variant = next(o["variant"] for o in moved if o["type"] == c)
+        # somewhere else a household might keep it: a receptacle the catalog finds plausible for it
+        options = [
+            r
+            for r in present
+            if r not in origin and plausible(c, variant, rec["room_type"], r, rec["present_receptacles"])
+        ]
         if options:
             r = options[int(rng.integers(len(options)))]
             out["asked"] = {"text": f"the {words(c)} goes on the {words(r)}", "category": c, "receptacle": r}
@@ -207,11 +215,12 @@ def _markdown(r: Mapping[str, Any]) -> str:
     lines = [
         "# Preferences: does the agent do what a household asks, and nothing else?",
         "",
-        f"{c['configurations']} {c['split']} configurations, each run without and with a scripted profile "
-        f"of three sentences (perception {c['perception']}, OOP detector {c['oop']}). Asked: a moved "
-        "category goes on another receptacle the room has; never: a moved category may not go where "
-        "the agent put it without preferences; group: a phrase whose MiniLM members include a moved "
-        "category it does not name. Side effects: other objects whose final receptacle changed.",
+        f"{c['configurations']} {c['split']} configurations, each run without and with a scripted "
+        f"profile of three sentences (perception {c['perception']}, OOP detector {c['oop']}). "
+        "Asked: a moved category goes on another receptacle the room has, one the catalog finds "
+        "plausible for it. Never: a moved category may not go where the agent put it without "
+        "preferences. Group: a phrase whose MiniLM members include a moved category it does not "
+        "name. Side effects: other objects whose final receptacle changed.",
         "",
         "| Agent | Asked, placed as asked | Never, obeyed | Group, unnamed members placed as asked "
         "| Side effects | Asked objects found |",
