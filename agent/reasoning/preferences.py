@@ -93,6 +93,8 @@ def parse_preference(text: str, encoder: Any | None = None) -> Preference:
     except ValueError as e:
         # no category named, or the only one is also a receptacle ("toys go in the box"): a group
         only_receptacle = all(c in RECEPTACLES for _, c in _mentions(_tokens(text)))
+        if "no receptacle" in str(e) and not only_receptacle:
+            raise ValueError(str(e) + _near_receptacles(_tokens(text))) from None
         if "no object category" not in str(e) and not ("no receptacle" in str(e) and only_receptacle):
             raise
     tokens = _tokens(text)
@@ -101,6 +103,7 @@ def parse_preference(text: str, encoder: Any | None = None) -> Preference:
     if not recs:
         raise ValueError(
             f"no receptacle in {text!r}: say where it belongs (or never belongs), e.g. 'toys go in the box'"
+            + _near_receptacles(tokens)
         )
     at, receptacle = recs[0]
     negations = {w for p in _NEGATIVE_PHRASES for w in p}
@@ -117,6 +120,19 @@ def parse_preference(text: str, encoder: Any | None = None) -> Preference:
     return Preference(text, members, receptacle, OUT_OF_PLACE if negative else IN_PLACE, group)
 
 
+def _near_receptacles(tokens: Sequence[str]) -> str:
+    """ "; did you mean ...?" for the words after the last "on" / "in", if any name is close."""
+    import difflib
+
+    at = max((i for i, t in enumerate(tokens) if t in ("on", "in", "into", "onto")), default=-1)
+    said = " ".join(t for t in tokens[at + 1 :] if t not in _FILLER)
+    if not said:
+        return ""
+    names = {words(r): r for r in sorted(RECEPTACLES)} | {"floor": FLOOR}
+    near = difflib.get_close_matches(said, list(names), n=3, cutoff=0.5)
+    return f"; did you mean {' or '.join(repr(n) for n in near)}?" if near else ""
+
+
 def group_members(group: str, encoder: Any | None = None) -> tuple[str, ...]:
     """The pickupable categories MiniLM puts nearest ``group``'s words, best first."""
     import numpy as np
@@ -131,7 +147,8 @@ def group_members(group: str, encoder: Any | None = None) -> tuple[str, ...]:
     sims = vecs[:-1] @ vecs[-1]
     best = float(sims.max())
     if best < GROUP_SIMILARITY:
-        raise ValueError(f"{group!r} is near no object category (best similarity {best:.2f}); name one")
+        near = ", ".join(words(cats[i]) for i in np.argsort(-sims)[:3])
+        raise ValueError(f"{group!r} is near no object category (nearest: {near}); name one")
     keep = [i for i in np.argsort(-sims) if sims[i] >= max(GROUP_SIMILARITY, best - GROUP_MARGIN)]
     return tuple(cats[i] for i in keep)
 

@@ -44,6 +44,7 @@ def test_minilm_carries_a_group_to_the_categories_it_names_loosely() -> None:
         ("the mug", "no receptacle in 'the mug'"),
         ("put it somewhere", "no receptacle"),
         ("qwzx goes on the shelf", "near no object category"),
+        ("the mug goes on the shelff", "did you mean 'shelf'"),
     ],
 )
 def test_a_preference_it_cannot_read_is_refused_in_one_line(text: str, message: str) -> None:
