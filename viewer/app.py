@@ -33,7 +33,6 @@ import numpy as np
 import viser
 
 from tidee.launch import check_bindable, free_port, wait_for_signal
-from tidee.protocol import keys
 from tidee.protocol.messages import (
     AgentCommand,
     AgentFrame,
@@ -43,7 +42,7 @@ from tidee.protocol.messages import (
     SearchHeatmap,
 )
 from tidee.viewer import access, geometry, images, palette
-from tidee.viewer.config import RATE_HZ
+from tidee.viewer.config import ViewerConfig
 from tidee.viewer.feed import OBSERVATION, LiveFeed
 from tidee.viewer.panels import Panels
 from tidee.viewer.replay import REPLAYED_KINDS, ReplayLog
@@ -56,40 +55,6 @@ SESSION_REFRESH_S = 1.0
 DRAW_ORDER = ("maps", "memory", "search", "frame", OBSERVATION, "status", "ack", "summary")
 REPLAY_FUSE_MAX = 150  # replay: frames fused into the coloured cloud when jumping ahead, at most
 STOP_NOTE_S = 0.3  # on stop: time for the "viewer stopped" note to reach the browsers
-
-
-@dataclass
-class ViewerConfig:
-    endpoint: str | None = None  # peer mode: the rendezvous to connect to (default loopback:7447)
-    router: str | None = None  # or client mode through this Zenoh router
-    host: str = "127.0.0.1"  # loopback by default: the viewer can send commands to agents
-    port: int = 8080  # 0: any free port (the handle's url says which)
-    session: str | None = None  # pin one session; None follows the newest
-    replay: str | None = None  # a log directory to play back instead of live telemetry
-    rate_hz: float = RATE_HZ  # scene/panel updates per second, at most (per kind)
-    max_points: int = 200_000  # voxel points sent to the browser, at most
-    oracle_period_s: float = 1.0  # ground-truth layer: how often to ask the server
-    read_only: bool = False  # no controls that send commands; every command refused
-    token: str | None = None  # the controls' access token (default: random unless host is loopback)
-
-    def __post_init__(self) -> None:
-        if not 0 <= int(self.port) <= 65535:
-            raise ValueError(f"port must be in [0, 65535], got {self.port}")
-        if not 0 < float(self.rate_hz) <= 60:
-            raise ValueError(f"rate_hz must be in (0, 60], got {self.rate_hz}")
-        if int(self.max_points) < 1:
-            raise ValueError(f"max_points must be >= 1, got {self.max_points}")
-        if self.session is not None:
-            keys.check_id("session", self.session)
-        if self.replay is not None and not os.path.isdir(self.replay):
-            raise FileNotFoundError(
-                f"--replay {self.replay!r} is not a directory (expected an episode log "
-                f"directory holding telemetry.tlog)"
-            )
-        if self.token is not None and not self.token.strip():
-            raise ValueError("token must not be empty (leave it out for a random one off loopback)")
-        if self.endpoint and self.router:
-            raise ValueError("give either endpoint (peer mode) or router (client mode), not both")
 
 
 @dataclass

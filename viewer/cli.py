@@ -23,39 +23,27 @@ def run(config: ViewerCommandConfig) -> int:
     if config.annotated and not config.screenshot:
         raise SystemExit("tidee viewer: --annotated needs --screenshot PNG (and --replay LOGDIR)")
     if config.screenshot:
-        if not config.replay:
+        if not config.viewer.replay:
             raise SystemExit("tidee viewer: --screenshot needs --replay LOGDIR")
         from tidee.viewer.screenshot import screenshot_replay
 
         step = screenshot_replay(
-            config.replay,
+            config.viewer.replay,
             config.screenshot,
             at=config.at,
             annotated_png=config.annotated,
             size=config.window,
         )
         also = f" and {config.annotated}" if config.annotated else ""
-        print(f"viewer: {config.screenshot}{also} (step {step} of {config.replay})")
+        print(f"viewer: {config.screenshot}{also} (step {step} of {config.viewer.replay})")
         return 0
     import zenoh
 
     from tidee.protocol.zenoh_config import open_error
-    from tidee.viewer.app import ViewerConfig as AppConfig
     from tidee.viewer.app import serve
 
-    app_config = AppConfig(
-        endpoint=config.endpoint,
-        router=config.router,
-        host=config.host,
-        port=config.port,
-        session=config.session,
-        replay=config.replay,
-        rate_hz=config.rate_hz,
-        read_only=config.read_only,
-        token=config.token,
-    )
     try:
-        serve(app_config)
+        serve(config.viewer)
     except zenoh.ZError as e:  # opening the live feed's session: an unreachable router
-        raise open_error(e, False, config.endpoint, config.router) from None
+        raise open_error(e, False, config.viewer.endpoint, config.viewer.router) from None
     return 0

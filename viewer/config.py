@@ -4,17 +4,20 @@
 A light module: no viser, no Zenoh. Output paths default to None, meaning a file under the
 checkout's ``bench/`` (``tidee.paths``), never the working directory.
 
-``ViewerCommandConfig`` here is the ``tidee viewer`` command line; ``tidee.viewer.app.ViewerConfig`` is
-what a running viewer takes, built from it when the command runs (``tidee.viewer.cli``).
+``ViewerConfig`` is what a running viewer takes (``tidee.viewer.app.run_viewer``);
+``ViewerCommandConfig`` is the ``tidee viewer`` command line: a ``ViewerConfig`` and the
+screenshot options.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import ClassVar, NamedTuple
 
 from tidee import argtypes
 from tidee.options import option
+from tidee.protocol import keys
 
 RATE_HZ = 10.0  # scene updates per second, at most (the app's default too)
 MAX_RATE_HZ = 60.0
@@ -63,11 +66,11 @@ def _replay_step(text: str) -> str:
 
 
 @dataclass
-class ViewerCommandConfig:
-    """``tidee viewer``: the live web viewer, or a replay of a saved episode log, or a screenshot of one.
+class ViewerConfig:
+    """A running viewer: where its telemetry comes from, where it serves the page, who may steer.
 
     ``endpoint``/``router`` and ``read_only``/``token`` are two pairs of which at most one may
-    be given (the command line refuses both; see ``EXCLUSIVE``).
+    be given (the command line refuses both; see ``ViewerCommandConfig.EXCLUSIVE``).
     """
 
     endpoint: str | None = option(
@@ -102,6 +105,34 @@ class ViewerCommandConfig:
     rate_hz: float = option(
         RATE_HZ, "scene updates per second, at most (default 10)", flag="--rate", type=_rate, metavar="RATE"
     )
+    max_points: int = option(200_000, "voxel points sent to the browser, at most", cli=False)
+    oracle_period_s: float = option(1.0, "ground-truth layer: how often to ask the server", cli=False)
+
+    def __post_init__(self) -> None:
+        if not 0 <= int(self.port) <= 65535:
+            raise ValueError(f"port must be in [0, 65535], got {self.port}")
+        if not 0 < float(self.rate_hz) <= MAX_RATE_HZ:
+            raise ValueError(f"rate_hz must be in (0, 60], got {self.rate_hz}")
+        if int(self.max_points) < 1:
+            raise ValueError(f"max_points must be >= 1, got {self.max_points}")
+        if self.session is not None:
+            keys.check_id("session", self.session)
+        if self.replay is not None and not os.path.isdir(self.replay):
+            raise FileNotFoundError(
+                f"--replay {self.replay!r} is not a directory (expected an episode log "
+                f"directory holding telemetry.tlog)"
+            )
+        if self.token is not None and not self.token.strip():
+            raise ValueError("token must not be empty (leave it out for a random one off loopback)")
+        if self.endpoint and self.router:
+            raise ValueError("give either endpoint (peer mode) or router (client mode), not both")
+
+
+@dataclass
+class ViewerCommandConfig:
+    """``tidee viewer``: the live web viewer, or a replay of a saved episode log, or a screenshot of one."""
+
+    viewer: ViewerConfig = option(default_factory=ViewerConfig)
     screenshot: str | None = option(
         None,
         "with --replay: write the page as headless Chromium draws it at --at, then exit",
