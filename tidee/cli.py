@@ -236,7 +236,7 @@ def _cmd_run(cfg: LiveRunConfig) -> int:
     agent = cfg.agent
     if not agent.threads:  # the server renders on one core while the agent thinks: never oversubscribe
         agent = replace(agent, threads=threads_per_process(2))
-    argv = to_argv(agent, skip=("endpoint", "router", "server_id"))  # tidee run gives the agent its own
+    argv = to_argv(agent, skip=[s.removeprefix("agent.") for s in LIVE_RUN_SKIP])  # tidee run gives its own
     return run_all(replace(cfg.launch, agent_args=argv))
 
 
