@@ -215,6 +215,12 @@ class AgentProcessConfig:
     router: str | None = option(
         None, "connect to this Zenoh router instead of peer mode", type=argtypes.endpoint
     )
+    zenoh_config: str | None = option(
+        None,
+        "a Zenoh config file (JSON5) merged over tidee's settings, its keys winning: TLS, access "
+        "control (default: $TIDEE_ZENOH_CONFIG; see deploy/secure/README.md)",
+        metavar="FILE",
+    )
     server_id: str = option("sim0", "the simulation server to use")
     session: str | None = option(None, "session id (default: agent-<random>)")
     episodes: int = option(

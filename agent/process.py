@@ -36,7 +36,7 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
 
     signal.signal(signal.SIGTERM, _sigterm)
     try:
-        z = open_session(False, cfg.endpoint, cfg.router)
+        z = open_session(False, cfg.endpoint, cfg.router, cfg.zenoh_config)
     except ZenohOpenError as e:  # a bad endpoint, an unreachable router
         print(f"agent: error: {e}", file=sys.stderr, flush=True)
         return 1
@@ -50,6 +50,7 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
             timeout=120.0,
             zsession=z,
             connect_timeout=cfg.connect_timeout,
+            zenoh_config=cfg.zenoh_config,
         )
         publisher = TelemetryPublisher(z, session)
         step = {"last": 0}  # the episode's last step, for the "went away" line

@@ -36,6 +36,12 @@ class ServerConfig:
     router: str | None = option(
         None, "connect to this Zenoh router instead of peer mode", type=argtypes.endpoint
     )
+    zenoh_config: str | None = option(
+        None,
+        "a Zenoh config file (JSON5) merged over tidee's settings, its keys winning: TLS, access "
+        "control (default: $TIDEE_ZENOH_CONFIG; see deploy/secure/README.md)",
+        metavar="FILE",
+    )
     max_sessions: int = option(16, "sessions open at once", type=argtypes.positive_int)
     renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
     server_id: str = option("sim0", "this server's id in the Zenoh key space")

@@ -1,9 +1,11 @@
-"""``tidee run``: server, agent and viewer as separate processes on embedded Zenoh.
+"""``tidee run``: server, agent and viewer as separate processes on embedded Zenoh; and
+``tidee router``, a Zenoh router for processes on several machines.
 
 The server listens on a free loopback port (the rendezvous endpoint); the agent and the
 viewer connect to it. Prints the viewer's URL, waits for the agent's episodes to end,
 keeps everything up for ``linger`` seconds so a person can look around, then stops the
-processes in reverse order. Nothing here imports torch or pybullet.
+processes in reverse order. A ``--zenoh-config`` file given to ``tidee run`` goes to all
+three. Nothing here imports torch or pybullet (nor Zenoh, until a command runs).
 """
 
 from __future__ import annotations
@@ -77,6 +79,55 @@ class RunConfig:
     )
     renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
     endpoint: str | None = option(None, "Zenoh endpoint (default: a free loopback port)", cli=False)
+    zenoh_config: str | None = option(None, "Zenoh config file for the server and viewer", cli=False)
+
+
+# = tidee.protocol.zenoh_config.DEFAULT_ENDPOINT (this module imports no Zenoh)
+ROUTER_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+@dataclass
+class RouterConfig:
+    """``tidee router``: a Zenoh router (the Python API's router mode; no zenohd needed)."""
+
+    listen: tuple[str, ...] = option(
+        (ROUTER_ENDPOINT,),
+        f"endpoints to listen on (default: {ROUTER_ENDPOINT}, loopback only; tls/HOST:PORT needs a "
+        "--zenoh-config that holds the router's certificate)",
+        type=argtypes.endpoint,
+        nargs="+",
+        metavar="ENDPOINT",
+    )
+    zenoh_config: str | None = option(
+        None,
+        "a Zenoh config file (JSON5) merged over tidee's settings, its keys winning: TLS, access "
+        "control (default: $TIDEE_ZENOH_CONFIG; see deploy/secure/README.md)",
+        metavar="FILE",
+    )
+
+
+def run_router(cfg: RouterConfig) -> int:
+    """Run a Zenoh router until SIGINT or SIGTERM; one line when it is ready, one when it stops."""
+    from tidee.protocol.zenoh_config import open_router, resolve_config_file, router_config
+
+    for endpoint in router_config(cfg.listen, cfg.zenoh_config)[1]:  # a port in use, named
+        proto, _, address = endpoint.partition("/")
+        host, _, port = address.split("?", 1)[0].rpartition(":")
+        if proto in ("tcp", "tls") and port.isdigit() and int(port) > 0:
+            check_bindable(host.strip("[]"), int(port), f"--listen {endpoint}", " (another router?)")
+    z, endpoints = open_router(cfg.listen, cfg.zenoh_config)
+    try:
+        config = resolve_config_file(cfg.zenoh_config)
+        print(
+            f"router: ready, listening on {', '.join(endpoints)}"
+            f"{f' with {config}' if config else ''} (zenoh id {z.zid()}); Ctrl-C to stop",
+            flush=True,
+        )
+        wait_for_signal()
+    finally:
+        z.close()
+    print("router: stopped", flush=True)
+    return 0
 
 
 def wait_for_signal() -> None:
@@ -175,6 +226,7 @@ def run_all(cfg: RunConfig) -> int:
     if cfg.viewer:  # refused before anything starts (the viewer would refuse it too, in its own process)
         check_bindable(cfg.host, cfg.port, f"--host {cfg.host} --port {cfg.port}", " (choose another --port)")
     endpoint = cfg.endpoint or f"tcp/127.0.0.1:{free_port()}"
+    zenoh_config = ["--zenoh-config", cfg.zenoh_config] if cfg.zenoh_config else []
     procs: list[tuple[str, subprocess.Popen]] = []
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     restore = _interrupt_on_sigterm()
@@ -183,7 +235,8 @@ def run_all(cfg: RunConfig) -> int:
             (
                 "server",
                 subprocess.Popen(
-                    _tidee("server", "--endpoint", endpoint, "--renderer", cfg.renderer), env=env
+                    _tidee("server", "--endpoint", endpoint, "--renderer", cfg.renderer, *zenoh_config),
+                    env=env,
                 ),
             )
         )
@@ -202,6 +255,7 @@ def run_all(cfg: RunConfig) -> int:
                             "--port",
                             str(cfg.port),
                             *(["--read-only"] if cfg.viewer_read_only else []),
+                            *zenoh_config,
                         ),
                         env=env,
                     ),

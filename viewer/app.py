@@ -118,7 +118,7 @@ class ViewerApp:
                 self.server, self, steps, initial_session=config.session, read_only=config.read_only
             )
             if self.replay is None:
-                self.feed = LiveFeed(config.endpoint, config.router, config.session)
+                self.feed = LiveFeed(config.endpoint, config.router, config.session, config.zenoh_config)
         except BaseException:
             self.server.stop()
             raise

@@ -81,6 +81,12 @@ class ViewerConfig:
     router: str | None = option(
         None, "connect through this Zenoh router instead (client mode)", type=argtypes.endpoint
     )
+    zenoh_config: str | None = option(
+        None,
+        "a Zenoh config file (JSON5) merged over tidee's settings, its keys winning: TLS, access "
+        "control (default: $TIDEE_ZENOH_CONFIG; see deploy/secure/README.md)",
+        metavar="FILE",
+    )
     read_only: bool = option(
         False, "no controls that send commands to agents (pause, new episode, preference)"
     )

@@ -35,7 +35,7 @@ from tidee.protocol.messages import (
     StateReply,
     StateRequest,
 )
-from tidee.protocol.zenoh_config import make_config, resolve_endpoint, resolve_router
+from tidee.protocol.zenoh_config import open_session, resolve_endpoint, resolve_router
 
 log = logging.getLogger("tidee.viewer.feed")
 
@@ -83,7 +83,11 @@ class LiveFeed:
     """
 
     def __init__(
-        self, endpoint: str | None = None, router: str | None = None, session: str | None = None
+        self,
+        endpoint: str | None = None,
+        router: str | None = None,
+        session: str | None = None,
+        zenoh_config: str | None = None,
     ) -> None:
         if session is not None:
             keys.check_id("session", session)
@@ -95,9 +99,7 @@ class LiveFeed:
         self._lock = threading.Lock()
         self.decode_errors = 0
         self.last_error = ""
-        self._z: zenoh.Session | None = zenoh.open(
-            make_config(listen=False, endpoint=endpoint, router=router)
-        )
+        self._z: zenoh.Session | None = open_session(False, endpoint, router, zenoh_config)
         try:
             self._subs: dict[str, Any] = {
                 kind: self._z.declare_subscriber(

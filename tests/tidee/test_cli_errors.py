@@ -7,6 +7,7 @@ already listens on, ``{free}`` one nothing listens on, ``{tmp}`` a scratch direc
 from __future__ import annotations
 
 import json
+import os
 import socket
 import struct
 import subprocess
@@ -103,6 +104,32 @@ CASES: list[tuple[list[str], str]] = [
     (["viewer", "--replay", "{tmp}/no_such_log"], "--replay"),
     (["viewer", "--screenshot", "/dev/null/x.png", "--replay", "{tmp}"], "argument --screenshot"),
     (["eval", "tidy-merge", "--from", "{tmp}/no_such_report", "--out", "{tmp}/m"], "no_such_report"),
+    # Zenoh config files: missing, unparsable, refused by Zenoh when read or when used
+    (["server", "--zenoh-config", "{tmp}/no_such.json5"], "--zenoh-config {tmp}/no_such.json5: no such file"),
+    (
+        ["agent", "--zenoh-config", "{tmp}/bad.json5"],
+        "--zenoh-config {tmp}/bad.json5: Zenoh cannot read it: line 1",
+    ),
+    (["viewer", "--port", "0", "--zenoh-config", "{tmp}/unknown_key.json5"], "unknown field `nosuchkey`"),
+    (["router", "--zenoh-config", "{tmp}/a_file"], "--zenoh-config {tmp}/a_file: Zenoh cannot read it"),
+    (["run", "--no-viewer", "--zenoh-config", "{tmp}/no_such.json5"], "{tmp}/no_such.json5: no such file"),
+    (
+        ["server", "--router", "tls/127.0.0.1:{free}", "--zenoh-config", "{tmp}/not_pem.json5"],
+        "transport/link/tls/root_ca_certificate: '{tmp}/a_file' is not a PEM file",
+    ),
+    (
+        ["router", "--listen", "tcp/127.0.0.1:{free}", "--zenoh-config", "{tmp}/tls_only.json5"],
+        "Zenoh could not start the router: Unsupported protocol: tcp",
+    ),
+    (
+        ["agent", "--router", "tls/127.0.0.1:{free}", "--zenoh-config", "{tmp}/tls_only.json5"],
+        "--router tls/127.0.0.1:{free} with --zenoh-config {tmp}/tls_only.json5: Zenoh could not connect",
+    ),
+    (["router", "--listen", "tcp/127.0.0.1:{busy}"], "--listen tcp/127.0.0.1:{busy}: port {busy}"),
+    (
+        ["router", "--listen", "tcp/127.0.0.1"],
+        "argument --listen: 'tcp/127.0.0.1': the address must be HOST:PORT",
+    ),
 ]
 
 
@@ -113,6 +140,10 @@ CONCURRENT = 3  # invocations at a time: most of each is Python start-up
 def places(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, str]]:
     tmp = tmp_path_factory.mktemp("cli_errors")
     (tmp / "a_file").write_text("not a directory")
+    (tmp / "bad.json5").write_text('{ mode: "client" scouting: }')
+    (tmp / "unknown_key.json5").write_text("{ nosuchkey: 1 }")
+    (tmp / "not_pem.json5").write_text('{ transport: { link: { tls: { root_ca_certificate: "a_file" } } } }')
+    (tmp / "tls_only.json5").write_text('{ transport: { link: { protocols: ["tls"] } } }')
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
@@ -156,6 +187,21 @@ def test_a_bad_invocation_is_refused_in_one_line(
 
 def test_the_table_covers_at_least_thirty_cases() -> None:
     assert len(CASES) >= 30
+
+
+def test_a_bad_zenoh_config_from_the_environment_names_the_variable(places: dict[str, str]) -> None:
+    env = {**os.environ, "TIDEE_ZENOH_CONFIG": f"{places['tmp']}/no_such.json5"}
+    r = subprocess.run(
+        [sys.executable, "-m", "tidee.cli", "agent"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        stdin=subprocess.DEVNULL,
+        env=env,
+    )
+    assert r.returncode != 0 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip() == f"tidee: error: TIDEE_ZENOH_CONFIG={places['tmp']}/no_such.json5: no such file"
 
 
 def test_tidee_run_stops_when_the_server_dies_at_start_up(monkeypatch: pytest.MonkeyPatch, capsys) -> None:
