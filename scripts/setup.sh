@@ -28,5 +28,5 @@ fi
 # torch first and pinned: an unpinned torch would pull GBs of CUDA wheels.
 echo "setup: installing torch 2.13.0 (CPU) and tidee's dependencies into $VENV"
 "$VENV/bin/python" -m pip install -qq "torch==2.13.0"
-"$VENV/bin/python" -m pip install -qq -e ".[agent,viewer,dev]"
+"$VENV/bin/python" -m pip install -qq -e ".[agent,viewer,dev,cluster]"
 echo "setup: $VENV ready"

@@ -1,7 +1,9 @@
 """``tidee eval tidy``: tidy episodes on held-out rooms, scored by the simulated judge.
 
 Runs each requested agent variant on the same messy configurations of a split (test by
-default: 20 rooms x 5 messes), in-process (one simulator per worker process), and writes
+default: 20 rooms x 5 messes) on worker processes or Ray actors (``backends``: one simulator
+and one set of loaded models per worker), streams each episode's record to
+``OUT/episodes.jsonl`` (``--resume`` skips the episodes already there), and writes
 ``report.json``, ``report.md`` and PNG plots through ``tidee.agent.evaluation.report``.
 Ground truth is read only here, after each episode, to score it (and by the agent itself
 only when perception is "oracle", which every report names).
@@ -9,19 +11,22 @@ only when perception is "oracle", which every report names).
 
 from __future__ import annotations
 
-import concurrent.futures as cf
-import multiprocessing as mp
+import hashlib
+import json
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from tidee.agent.config import REFERENCE_VARIANTS, AgentConfig, check_variant_built
+from tidee.agent.evaluation import backends
+from tidee.agent.evaluation.backends import Backend, worker_models, worker_transport
 from tidee.agent.evaluation.config import TidyEvalConfig
 from tidee.protocol.messages import EpisodeSpec
-from tidee.threads import threads_per_process
+
+EPISODES_FILE = "episodes.jsonl"  # in OUT: every episode's record as it finishes (--resume reads it)
 
 
 def select_configs(split: str, episodes: int | None) -> list[Any]:
@@ -48,21 +53,27 @@ class TidyJob:
     renderer: str
     log_dir: Path | None = None
 
+    def key(self) -> str:
+        """The episode's key in ``episodes.jsonl``: agent, room, seed, mess and a digest of every
+        option that shapes the episode (a resumed run with other options runs it again)."""
+        shape = {
+            "agent": asdict(self.agent),
+            "spec": asdict(self.spec),
+            "split": self.split,
+            "renderer": self.renderer,
+        }
+        digest = hashlib.sha1(json.dumps(shape, sort_keys=True, default=str).encode()).hexdigest()[:10]
+        s = self.spec
+        return f"{self.agent.variant}/{s.room_type}/{s.seed}/mess{s.mess_index}/{digest}"
+
 
 def _run_one(job: TidyJob) -> dict[str, Any]:
-    """One episode in this worker's own simulator (module-level so it pickles)."""
-    from tidee.agent.runner import AgentModels, EpisodeRunner
-    from tidee.protocol.transport import InProcessTransport
+    """One episode in this worker's own simulator with its loaded models (module-level so it pickles)."""
+    from tidee.agent.runner import EpisodeRunner
 
-    transport = _WORKER.get("transport")
-    if transport is None:  # a caller that did not run _init_worker: make this process's simulator now
-        transport = _WORKER["transport"] = InProcessTransport(renderer=job.renderer)
     cfg, spec = job.agent, job.spec
-    models = _WORKER.setdefault("models", {})
-    key = AgentModels.key_of(cfg)
-    if key not in models:
-        models[key] = AgentModels.load(cfg)
-    runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.log_dir, models=models[key])
+    transport = worker_transport(job.renderer)
+    runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.log_dir, models=worker_models(cfg))
     res = runner.run(
         spec,
         evaluate=True,
@@ -74,44 +85,30 @@ def _run_one(job: TidyJob) -> dict[str, Any]:
     return record
 
 
-_WORKER: dict[str, Any] = {}  # this process's simulator and loaded models, reused by every episode it runs
-
-
-def _init_worker(renderer: str, threads: int) -> None:
-    """Set up a worker process: its share of the cores (tidee.threads) and its own simulator."""
-    from tidee.protocol.transport import InProcessTransport
-    from tidee.threads import use_threads
-
-    use_threads(threads)
-    _WORKER["transport"] = InProcessTransport(renderer=renderer)
-
-
-def run_jobs(jobs: list[TidyJob], workers: int, renderer: str, progress: bool = True) -> list[dict[str, Any]]:
-    """Every job's episode record, in job order: in this process (``workers`` 1) or in a pool of
-    worker processes, each with its own simulator and its loaded models."""
-    from tqdm import tqdm
-
-    records: list[dict[str, Any]] = []
-    bar = tqdm(total=len(jobs), desc="tidy episodes", disable=not progress)
-    threads = threads_per_process(max(1, workers))
-    if workers <= 1:
-        if "transport" not in _WORKER:
-            _init_worker(renderer, threads)
-        for job in jobs:
-            records.append(_run_one(job))
-            bar.update()
-    else:
-        with cf.ProcessPoolExecutor(
-            workers,
-            mp_context=mp.get_context("spawn"),
-            initializer=_init_worker,
-            initargs=(renderer, threads),
-        ) as pool:
-            for rec in pool.map(_run_one, jobs):
-                records.append(rec)
-                bar.update()
-    bar.close()
-    return records
+def run_jobs(
+    jobs: list[TidyJob],
+    workers: int,
+    renderer: str,
+    progress: bool = True,
+    *,
+    backend: Backend = "local",
+    ray_address: str | None = None,
+    out_jsonl: Path | None = None,
+    resume: bool = False,
+) -> list[dict[str, Any]]:
+    """Every job's episode record, in job order (``backends.run_jobs`` with this eval's episode)."""
+    return backends.run_jobs(
+        jobs,
+        _run_one,
+        workers=workers,
+        renderer=renderer,
+        backend=backend,
+        ray_address=ray_address,
+        progress=progress,
+        out_jsonl=out_jsonl,
+        resume=resume,
+        desc="tidy episodes",
+    )
 
 
 def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
@@ -128,6 +125,10 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
         check_variant_built(v)  # reads the placement registry: a registered variant of yours is an agent
     if not agents:
         raise ValueError("give at least one agent variant (the reference rows need an agent's episodes)")
+    if cfg.ray_address is not None and cfg.backend != "ray":
+        raise ValueError("--ray-address is for --backend ray")
+    if cfg.backend == "ray":
+        backends.import_ray()  # not installed: say how, before any episode
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     configs = select_configs(split, cfg.episodes)
@@ -149,7 +150,19 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
         for v in agents
     ]
     t0 = time.time()
-    records = run_jobs(jobs, workers, renderer, progress)
+    episodes_file = out / EPISODES_FILE
+    resumed = len({j.key() for j in jobs} & set(backends.read_records(episodes_file))) if cfg.resume else 0
+    records = run_jobs(
+        jobs,
+        workers,
+        renderer,
+        progress,
+        backend=cfg.backend,
+        ray_address=cfg.ray_address,
+        out_jsonl=episodes_file,
+        resume=cfg.resume,
+    )
+    retries = sum(int(r.get("retries", 0)) for r in records)
     all_records = with_references(records)
     keep = set(variants) | set(agents)
     if not any(v in REFERENCE_VARIANTS for v in variants):
@@ -176,7 +189,12 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
         f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} "
         f"--missing-top {missing_top} "
         + (f"--detection-threshold {detection_threshold} " if detection_threshold is not None else "")
-        + f"--max-steps {max_steps} --resolution {resolution} --workers {workers} --out {out}",
-        f"total wall time {time.time() - t0:.0f} s with {workers} worker(s)",
+        + f"--max-steps {max_steps} --resolution {resolution} --workers {workers} "
+        + (f"--backend {cfg.backend} " if cfg.backend != "local" else "")
+        + f"--out {out}",
+        f"total wall time {time.time() - t0:.0f} s with {workers} worker(s), backend {cfg.backend}"
+        + (f" ({cfg.ray_address})" if cfg.ray_address else "")
+        + f"; {retries} episode retries after a worker died"
+        + (f"; {resumed} episodes resumed from {EPISODES_FILE}" if resumed else ""),
     ]
     return write_report(all_records, out, title=f"Tidy evaluation ({split} rooms)", notes=notes)
