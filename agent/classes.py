@@ -14,6 +14,10 @@ CLASSES: tuple[str, ...] = tuple(sorted(n for n in CATEGORIES if n not in _STRUC
 CLASS_INDEX: dict[str, int] = {n: i for i, n in enumerate(CLASSES)}
 RECEPTACLES: frozenset[str] = frozenset(n for n in CLASSES if CATEGORIES[n].receptacle)
 PICKUPABLE: frozenset[str] = frozenset(n for n in CLASSES if CATEGORIES[n].pickupable)
+# Openable furniture (doors, drawers): what a rearrangement's openness changes are about.
+OPENABLE: frozenset[str] = frozenset(
+    n for n in CLASSES if CATEGORIES[n].openable and not CATEGORIES[n].pickupable
+)
 # Receptacles an object is put *on or in*, in the order the agent prefers to try them.
 PLACEABLE_RECEPTACLES: frozenset[str] = RECEPTACLES - PICKUPABLE
 

@@ -1,10 +1,16 @@
 """The agent's episode loop: observation -> perception -> mapping -> policy -> action.
 
-``EpisodeRunner.run(spec)`` plays one tidy episode against any ``SimTransport`` (Zenoh
+``EpisodeRunner.run(spec)`` plays one episode against any ``SimTransport`` (Zenoh
 client or in-process), publishes telemetry when a publisher is attached, writes an
 episode log when a log directory is given, and returns an ``EpisodeResult`` with
 per-step timings and, when ``evaluate=True``, the evaluation record (the only place that
 reads the server's privileged state: after the episode, for scoring).
+
+A tidying episode runs ``TidyPolicy``; a rearrangement (``spec.rearrange_index``) runs
+``RearrangePolicy`` over both phases: when it calls Done in the walkthrough (or the
+walkthrough's budget runs out, which the runner tells it by throwing ``WalkthroughOver``),
+the runner asks the server for the unshuffle phase and starts a fresh map in the same
+start frame.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from tidee.agent.config import AgentConfig
 from tidee.agent.mapping.geometry import start_to_world_xy
 from tidee.agent.mapping.maps import SemanticMapper
 from tidee.agent.perception import make_perception
+from tidee.agent.policy.rearrange import RearrangePolicy, WalkthroughOver
 from tidee.agent.policy.skills import Body
 from tidee.agent.policy.tidy import TidyPolicy
 from tidee.agent.reasoning.oop import make_oop
@@ -76,7 +83,9 @@ def episode_summary(
     """How the episode ended; the moved / found / plausible / false-pick counts come from the
     evaluation ``record`` (scored against the server's privileged state), None without one."""
     counts: dict[str, Any] = {}
-    if record is not None:
+    if record is not None and "rearrange" in record:
+        counts = {"rearrange": {k: record["rearrange"][k] for k in REARRANGE_SUMMARY}}
+    elif record is not None:
         from tidee.agent.evaluation.report import variant_metrics
 
         m = variant_metrics([record])[record["variant"]]
@@ -93,12 +102,32 @@ def episode_summary(
     )
 
 
+REARRANGE_SUMMARY = (
+    "success",
+    "fixed_strict",
+    "misplaced",
+    "energy",
+    "start_misplaced",
+    "fixed",
+    "newly_misplaced",
+)
+
+
 def format_summary(s: EpisodeSummary) -> str:
     """One line for a terminal: what was moved, found, put away, judged plausible, and how to replay it."""
     e = s.episode
     mess = "tidy" if e.get("mess_index") is None else f"mess {e['mess_index']}"
+    if e.get("rearrange_index") is not None:
+        mess = f"rearrangement {e['rearrange_index']}"
     where = f"{e.get('room_type')} seed {e.get('seed')} {mess}"
-    if s.moved is None:
+    if s.rearrange is not None:
+        r = s.rearrange
+        scored = (
+            f"restored {r['fixed']} of {r['start_misplaced']} changed, "
+            f"newly misplaced {r['newly_misplaced']}, success {int(r['success'])}, "
+            f"FixedStrict {r['fixed_strict']:.2f} (RoomR metrics)"
+        )
+    elif s.moved is None:
         scored = f"put away {s.put_away}"
     else:
         scored = (
@@ -230,23 +259,26 @@ class EpisodeRunner:
             if writer:
                 writer.event(**kw)
 
-        policy = TidyPolicy(
+        rearrange = spec.rearrange_index is not None
+        policy = (RearrangePolicy if rearrange else TidyPolicy)(
             self.cfg,
             body,
             self.oop,
-            self.placement,
+            None if rearrange else self.placement,
             spec.room_type,
             on_event=on_event,
-            searcher=self.searcher,
-            preferences=self.models.preferences,
+            searcher=None if rearrange else self.searcher,
+            preferences=None if rearrange else self.models.preferences,
         )
+        unshuffle_start: dict | None = None  # a rearrangement's state when its unshuffle began (evaluation)
         self._policy = policy
         gen = policy.run()
         info = {
             "room_type": spec.room_type,
             "seed": spec.seed,
             "mess_index": spec.mess_index,
-            "variant": self.cfg.variant,
+            "rearrange_index": spec.rearrange_index,
+            "variant": "Rearrange" if rearrange else self.cfg.variant,
             "perception": self.cfg.perception,
             "oop": self.cfg.oop,
             "depth": self.cfg.depth,
@@ -278,11 +310,12 @@ class EpisodeRunner:
                 if obs.last_action == ActionName.PickupObject.value and obs.success and obs.held_id:
                     picked.add(obs.held_id)
                 trajectory.append((float(obs.agent_pose[0]), float(obs.agent_pose[1])))
-                if obs.done:
+                walkthrough = obs.phase == "walkthrough"
+                if obs.done and not walkthrough:
                     action = None
                 else:
-                    try:
-                        action = next(gen)
+                    try:  # the walkthrough's budget spent: the policy wraps up its walkthrough
+                        action = gen.throw(WalkthroughOver()) if obs.done else next(gen)
                     except StopIteration:
                         action = Action(ActionName.Done)
                 t3 = time.perf_counter()
@@ -303,7 +336,15 @@ class EpisodeRunner:
                         pose=list(obs.agent_pose),
                     )
                 t4 = time.perf_counter()
-                obs = self.transport.step(action, ground_truth=gt)
+                if walkthrough and action.name == ActionName.Done:
+                    obs = self.transport.begin_unshuffle(ground_truth=gt)
+                    mapper.reset()  # a fresh map of the shuffled room, in the same start frame
+                    body.path, body.goal = None, None
+                    if evaluate:
+                        unshuffle_start = self.transport.state()
+                    on_event(kind="unshuffle_started", walkthrough_steps=int(body.obs.step))
+                else:
+                    obs = self.transport.step(action, ground_truth=gt)
                 t5 = time.perf_counter()
                 timings["sim_ms"].append((t5 - t4) * 1e3)
                 timings["step_ms"].append((t3 - t0) * 1e3)
@@ -325,7 +366,11 @@ class EpisodeRunner:
         wall = time.perf_counter() - t_start
         end_reason = policy.state.end_reason or ("aborted" if aborted else "step cap")
         record = None
-        if evaluate:
+        if evaluate and rearrange:
+            record = self.rearrange_record(
+                spec, initial, unshuffle_start, self.transport.state(), events, obs, wall, end_reason
+            )
+        elif evaluate:
             record = self.evaluation_record(
                 spec, initial, self.transport.state(), events, picked, obs, wall, end_reason
             )
@@ -373,6 +418,8 @@ class EpisodeRunner:
     @staticmethod
     def _name(spec: EpisodeSpec) -> str:
         mess = "tidy" if spec.mess_index is None else f"mess{spec.mess_index}"
+        if spec.rearrange_index is not None:
+            mess = f"rearrange{spec.rearrange_index}"
         return f"{spec.room_type}_{spec.seed}_{mess}"
 
     # ------------------------------------------------------------------ telemetry
@@ -550,6 +597,65 @@ class EpisodeRunner:
             time.sleep(0.05)
 
     # ------------------------------------------------------------------ evaluation
+    def rearrange_record(
+        self,
+        spec: EpisodeSpec,
+        goal: dict | None,
+        start: dict | None,
+        end: dict,
+        events: list[dict[str, Any]],
+        obs: Observation,
+        wall: float,
+        end_reason: str,
+    ) -> dict[str, Any]:
+        """Score a rearrangement with RoomR's metrics (goal, unshuffle start and end states;
+        evaluation only). An episode that never reached the unshuffle phase scores its
+        walkthrough's end as the start (nothing was restored)."""
+        from tidee.agent.evaluation.rearrange_metrics import episode_metrics
+
+        assert goal is not None
+        start = start if start is not None else end
+        metrics = episode_metrics(goal["objects"], start["objects"], end["objects"])
+        walk = next((e["walkthrough_steps"] for e in events if e["kind"] == "unshuffle_started"), None)
+        # Which objects the agent's "moved" beliefs were about (the nearest of that type, within
+        # 0.5 m of where it believed the object was at the start of the unshuffle phase).
+        changed = {o["id"] for o in metrics["objects"] if o["misplaced_start"]}
+        believed = set()
+        for e in events:
+            if e["kind"] not in ("moved", "openness_changed") or "centroid" not in e:
+                continue
+            xy = np.asarray(start_to_world_xy(end["start"], e["centroid"]))
+            near = [
+                (float(np.linalg.norm(np.asarray(o["position"][:2]) - xy)), o["id"])
+                for o in start["objects"]
+                if o["type"] == e["label"]
+            ]
+            d, oid = min(near, default=(float("inf"), ""))
+            believed.add(
+                oid if d < 0.5 + (0.5 if e["kind"] == "openness_changed" else 0.0) else f"?{len(believed)}"
+            )
+        found = len(believed & changed)
+        return {
+            "variant": "Rearrange",
+            "perception": self.cfg.perception,
+            "depth": self.cfg.depth,
+            "pose_noise": spec.pose_noise,
+            "depth_noise": spec.depth_noise,
+            "split": None,
+            "room_type": spec.room_type,
+            "seed": spec.seed,
+            "rearrange_index": spec.rearrange_index,
+            "walkthrough_steps": walk,
+            "steps": int(obs.step),
+            "wall_s": round(wall, 2),
+            "end_reason": end_reason,
+            "believed_moved": sum(e["kind"] == "moved" for e in events),
+            "believed_toggled": sum(e["kind"] == "openness_changed" for e in events),
+            "changed_found": found,  # changed objects the agent believed changed
+            "false_beliefs": len(believed) - found,  # beliefs about objects that had not changed
+            "rearrange": metrics,
+        }
+
     def evaluation_record(
         self,
         spec: EpisodeSpec,

@@ -20,12 +20,13 @@ from tidee.protocol.messages import (
     ErrorCode,
     ErrorReply,
     Observation,
+    PhaseRequest,
     ResetRequest,
     StateReply,
     StateRequest,
     StepRequest,
 )
-from tidee.protocol.zenoh_config import open_session, resolve_endpoint, resolve_router
+from tidee.protocol.zenoh_config import open_session, resolve_config_file, resolve_endpoint, resolve_router
 
 DEFAULT_SERVER_ID = "sim0"
 _ZENOH_TIMEOUT = b"Timeout"  # what Zenoh itself answers when a query's time runs out
@@ -47,6 +48,10 @@ class SimClient:
     Declares ``tidee/alive/client/{server_id}/{session}``, so the server frees the
     session when this client closes, its Zenoh session closes, or its process dies.
     The constructor waits (up to ``connect_timeout`` s) until the server is visible.
+    ``zenoh_config``: a Zenoh config file merged over tidee's defaults (TLS, access control;
+    see ``tidee.protocol.zenoh_config``); default ``TIDEE_ZENOH_CONFIG``, else none. With one,
+    a request the visible server never answers raises ``PermissionError`` (a router's access
+    control drops what a client's certificate may not send) instead of ``TimeoutError``.
     Observations' raw arrays are read-only views of the received frame; copy to modify.
     Not thread-safe: one caller at a time (the server handles a session's requests in order).
     """
@@ -61,6 +66,7 @@ class SimClient:
         encoding: str = "raw",
         zsession: zenoh.Session | None = None,
         connect_timeout: float = 10.0,
+        zenoh_config: str | None = None,
     ) -> None:
         if encoding not in IMAGE_ENCODINGS:
             raise ValueError(f"encoding must be one of {IMAGE_ENCODINGS}, got {encoding!r}")
@@ -71,7 +77,8 @@ class SimClient:
         self._router = resolve_router(router)
         self._where = self._router or resolve_endpoint(endpoint)
         self._owns_zenoh = zsession is None
-        self._z: zenoh.Session | None = zsession or open_session(False, endpoint, router)
+        self._zenoh_config = resolve_config_file(zenoh_config)
+        self._z: zenoh.Session | None = zsession or open_session(False, endpoint, router, zenoh_config)
         try:
             token_key = keys.alive_client(self.server_id, self.session_id)
             self._token = self._z.liveliness().declare_token(token_key)
@@ -89,6 +96,13 @@ class SimClient:
         request = StepRequest(self.session_id, action, ground_truth, self.encoding)
         return self._call("step", request, Observation)
 
+    def begin_unshuffle(self, ground_truth: bool = False) -> Observation:
+        """A rearrangement (reset with ``spec.rearrange_index``): end the walkthrough and start
+        the unshuffle phase; the reply is its first observation."""
+        return self._call(
+            "phase", PhaseRequest(self.session_id, "unshuffle", ground_truth, self.encoding), Observation
+        )
+
     def state(self) -> dict[str, Any]:
         return self._call("state", StateRequest(self.session_id), StateReply).scene
 
@@ -98,7 +112,7 @@ class SimClient:
             return
         try:
             self._call("close", CloseRequest(self.session_id), CloseReply, timeout=min(self.timeout, 5.0))
-        except (RemoteError, TimeoutError):
+        except (RemoteError, TimeoutError, PermissionError):
             pass  # the token going away frees the session anyway
         finally:
             self._release()
@@ -127,6 +141,12 @@ class SimClient:
             reply = replies.recv()
         except zenoh.ZError:  # the query finished with no reply: nobody serves that key
             if self._server_visible():
+                if self._zenoh_config:  # the server is there: the router's access control refused op
+                    raise PermissionError(
+                        f"no reply to {op} on {key}: server {self.server_id!r} is up but nothing answered: "
+                        f"the Zenoh router's access control may refuse {op} to this client's certificate "
+                        f"({self._zenoh_config})"
+                    ) from None
                 raise TimeoutError(
                     f"no reply to {op} on {key}: is server {self.server_id!r} running at {self._where}?"
                 ) from None

@@ -9,6 +9,13 @@ pitch_deg) float32 in the start frame}``; everything else of the ``Observation``
 Reward is always 0: tidying is scored at the end by evaluation, not per step.
 ``terminated`` when the agent calls Done; ``truncated`` when the step cap ends the episode.
 ``reset(seed=s)`` plays room seed ``s``; without a seed, the env's RNG draws one.
+
+``tidee/Rearrange-v0`` (``RearrangeEnv``): a 2-phase rearrangement. ``reset`` starts the
+walkthrough of the goal state (the spec's ``rearrange_index``, default 0); ``Done`` there,
+or the walkthrough's step cap, switches to the unshuffle phase (the shuffled room, the agent
+back at its start pose; not terminated); ``Done`` in the unshuffle phase terminates. The
+observation gains ``phase`` (0 walkthrough, 1 unshuffle); interactions during the
+walkthrough fail with error ``walkthrough``.
 """
 
 from __future__ import annotations
@@ -20,7 +27,14 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from tidee.protocol.messages import PIXEL_ACTIONS, Action, ActionName, EpisodeSpec, Observation
+from tidee.protocol.messages import (
+    PIXEL_ACTIONS,
+    REARRANGE_PHASES,
+    Action,
+    ActionName,
+    EpisodeSpec,
+    Observation,
+)
 from tidee.protocol.transport import SimTransport, make_transport
 
 ACTIONS: tuple[ActionName, ...] = tuple(ActionName)
@@ -111,6 +125,42 @@ class TidyEnv(gym.Env[dict[str, np.ndarray], dict[str, Any]]):
         if obs.ground_truth is not None:
             info["ground_truth"] = obs.ground_truth
         return info
+
+
+class RearrangeEnv(TidyEnv):
+    """``tidee/Rearrange-v0``: the walkthrough, then the unshuffle phase (module docstring)."""
+
+    def __init__(self, spec: EpisodeSpec | None = None, **kwargs: Any) -> None:
+        spec = spec or EpisodeSpec()
+        if spec.rearrange_index is None:
+            spec = dataclasses.replace(spec, rearrange_index=0)
+        super().__init__(spec, **kwargs)
+        self.observation_space = spaces.Dict(  # type: ignore[assignment]
+            {**self.observation_space.spaces, "phase": spaces.Discrete(len(REARRANGE_PHASES))}  # type: ignore[attr-defined]
+        )
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """``options``: EpisodeSpec fields to change (``rearrange_index`` picks the configuration)."""
+        options = dict(options or {})
+        if options.get("rearrange_index", 0) is None:
+            raise ValueError("rearrange_index must be a configuration index, not None")
+        return super().reset(seed=seed, options=options)
+
+    def step(self, action: dict[str, Any]) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = super().step(action)
+        assert self._last is not None
+        if self._last.phase == "walkthrough" and (terminated or truncated):
+            self._last = first = self.transport.begin_unshuffle(ground_truth=self.ground_truth)
+            return self._observation(first), 0.0, False, False, self._info(first)
+        return obs, reward, terminated, truncated, info
+
+    @staticmethod
+    def _observation(obs: Observation) -> dict[str, np.ndarray]:
+        out = TidyEnv._observation(obs)
+        out["phase"] = np.int64(REARRANGE_PHASES.index(obs.phase or "unshuffle"))  # type: ignore[assignment]
+        return out
 
 
 def to_action(action: dict[str, Any]) -> Action:

@@ -7,7 +7,7 @@ Builders whose name ends in ``_wildcard`` accept ``"*"`` for an id.
 
 Simulation (one server, many sessions)::
 
-    tidee/sim/{server_id}/session/{session}/{op}   queryable; op in reset|step|state|close
+    tidee/sim/{server_id}/session/{session}/{op}   queryable; op in reset|step|phase|state|close
     tidee/sim/{server_id}/obs/{session}            publisher: every observation (viewers)
 
 Liveliness::
@@ -29,7 +29,7 @@ import re
 from typing import Literal, NamedTuple, get_args
 
 ROOT = "tidee"
-SessionOp = Literal["reset", "step", "state", "close"]
+SessionOp = Literal["reset", "step", "phase", "state", "close"]
 SESSION_OPS: tuple[str, ...] = get_args(SessionOp)
 MAX_ID_LENGTH = 128
 _ID_PATTERN = re.compile(rf"[A-Za-z0-9_-]{{1,{MAX_ID_LENGTH}}}")

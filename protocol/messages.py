@@ -68,6 +68,7 @@ class ActionError(str, Enum):
     hands_full = "hands_full"
     hands_empty = "hands_empty"
     episode_over = "episode_over"  # Done was called or the step cap reached
+    walkthrough = "walkthrough"  # an interaction during a rearrangement's walkthrough phase
 
 
 class ErrorCode(str, Enum):
@@ -117,6 +118,17 @@ class EpisodeSpec:
     pose_noise: bool = option(False, "LoCoBot-like pose noise: 0.005 m per move, 0.5 deg per turn")
     depth_noise: bool = option(False, "noisy depth")
     start_seed: int | None = option(None, "spawn pose; None: near the room centre, from seed", cli=False)
+    rearrange_index: int | None = option(
+        None,
+        "a 2-phase rearrangement episode: configuration index of the room (walkthrough the goal state, "
+        "then unshuffle the shuffled one; see protocol/README.md)",
+        type=argtypes.non_negative_int,
+    )
+    walkthrough_steps: int = option(
+        250,
+        "a rearrangement's walkthrough step budget (max_steps is the unshuffle's)",
+        type=argtypes.max_steps,
+    )
 
     def __post_init__(self) -> None:
         if self.room_type not in ROOM_TYPES:
@@ -133,6 +145,15 @@ class EpisodeSpec:
             raise ValueError(f"mess_index must be >= 0 or None, got {self.mess_index}")
         if self.start_seed is not None and int(self.start_seed) < 0:
             raise ValueError(f"start_seed must be >= 0 or None, got {self.start_seed}")
+        if self.rearrange_index is not None:
+            if int(self.rearrange_index) < 0:
+                raise ValueError(f"rearrange_index must be >= 0 or None, got {self.rearrange_index}")
+            if self.mess_index is not None:
+                raise ValueError(
+                    "give mess_index (a tidying episode) or rearrange_index (a rearrangement), not both"
+                )
+        if not (1 <= int(self.walkthrough_steps) <= 100_000):
+            raise ValueError(f"walkthrough_steps must be in [1, 100000], got {self.walkthrough_steps}")
 
 
 @dataclass
@@ -161,6 +182,7 @@ class Observation:
     done: bool = False
     steps_left: int = 0
     ground_truth: GroundTruth | None = None
+    phase: str | None = None  # a rearrangement's phase (REARRANGE_PHASES); None in a tidying episode
 
 
 def _check_encoding(encoding: str) -> None:
@@ -190,6 +212,28 @@ class StepRequest:
 
     def __post_init__(self) -> None:
         _check_encoding(self.encoding)
+
+
+REARRANGE_PHASES = ("walkthrough", "unshuffle")
+
+
+@dataclass
+class PhaseRequest:
+    """Rearrangement: end the walkthrough and start the unshuffle phase (the reply is its first
+    Observation: the shuffled room, the agent back at its start pose)."""
+
+    session: str
+    phase: str = "unshuffle"
+    ground_truth: bool = False
+    encoding: str = "raw"
+    protocol_version: int = PROTOCOL_VERSION
+
+    def __post_init__(self) -> None:
+        _check_encoding(self.encoding)
+        if self.phase != "unshuffle":
+            raise ValueError(
+                f"phase must be 'unshuffle' (the walkthrough starts at reset), got {self.phase!r}"
+            )
 
 
 @dataclass
@@ -236,6 +280,7 @@ class ErrorReply:
 TELEMETRY_KINDS = ("status", "frame", "maps", "memory", "search", "ack", "summary")
 PHASES = (
     "idle",
+    "walkthrough",
     "mapping",
     "searching",
     "approaching",
@@ -244,6 +289,7 @@ PHASES = (
     "placing",
     "searching_receptacle",
     "dropping",
+    "opening",
     "done",
 )
 COMMAND_KINDS = ("pause", "resume", "step", "new_episode", "preference")
@@ -378,6 +424,7 @@ class EpisodeSummary:
     plausible: int | None = None  # moved objects whose final receptacle the judge accepts
     false_picks: int | None = None  # objects picked that the mess-up had not moved
     replay: str = ""  # the command that replays the episode's log
+    rearrange: dict[str, Any] | None = None  # a rearrangement's RoomR metrics (success, fixed_strict, ...)
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """How an agent reaches an episode: over Zenoh, or in this process.
 
-Both transports have the same four methods (``SimTransport``), so agent code, the gym
+Both transports have the same five methods (``SimTransport``), so agent code, the gym
 env and evaluation never care which one they hold. The in-process transport imports
 ``tidee.server`` (and so pybullet) only when it builds an episode itself.
 """
@@ -19,6 +19,8 @@ class SimTransport(Protocol):
 
     def step(self, action: Action, ground_truth: bool = False) -> Observation: ...
 
+    def begin_unshuffle(self, ground_truth: bool = False) -> Observation: ...
+
     def state(self) -> dict[str, Any]: ...
 
     def close(self) -> None: ...
@@ -31,6 +33,8 @@ class EpisodeLike(Protocol):
     def reset(self, spec: EpisodeSpec, session: str = ..., ground_truth: bool = False) -> Observation: ...
 
     def step(self, action: Action, ground_truth: bool = False) -> Observation: ...
+
+    def begin_unshuffle(self, ground_truth: bool = False) -> Observation: ...
 
     def state(self) -> dict[str, Any]: ...
 
@@ -59,6 +63,10 @@ class InProcessTransport:
 
     def step(self, action: Action, ground_truth: bool = False) -> Observation:
         return self._episode().step(action, ground_truth=ground_truth)
+
+    def begin_unshuffle(self, ground_truth: bool = False) -> Observation:
+        """A rearrangement: end the walkthrough, start the unshuffle phase."""
+        return self._episode().begin_unshuffle(ground_truth=ground_truth)
 
     def state(self) -> dict[str, Any]:
         return self._episode().state()

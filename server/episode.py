@@ -1,9 +1,14 @@
-"""One tidy episode: a room, an agent body, its camera and the actions of the paper.
+"""One episode: a room, an agent body, its camera and the actions of the paper.
 
 ``Episode.reset`` builds the (tidy or messy) room for an ``EpisodeSpec`` and spawns the
 agent near the room centre; ``Episode.step`` executes one action and returns the next
 ``Observation``. World failures never raise: ``obs.success`` / ``obs.error`` say why.
 Ground truth is attached only when the caller asks for it.
+
+A rearrangement (``spec.rearrange_index``) has two phases: ``reset`` starts the
+*walkthrough* in the goal state (moving and looking only; ``spec.walkthrough_steps``), and
+``begin_unshuffle`` switches to the shuffled state with the agent back at its start pose
+(``spec.max_steps``). States come from ``tidee.server.shuffle``.
 """
 
 from __future__ import annotations
@@ -16,11 +21,20 @@ from typing import Literal
 
 import numpy as np
 
-from tidee.protocol.messages import Action, ActionError, ActionName, EpisodeSpec, GroundTruth, Observation
+from tidee.protocol.messages import (
+    PIXEL_ACTIONS,
+    Action,
+    ActionError,
+    ActionName,
+    EpisodeSpec,
+    GroundTruth,
+    Observation,
+)
 from tidee.server.messup import mess_up
-from tidee.server.rooms import AGENT_RADIUS, NAV_CELL, generate_scene, main_component, nav_grid, rooms_version
+from tidee.server.rooms import AGENT_RADIUS, NAV_CELL, generate_scene, nav_grid, rooms_version, spawn_point
 from tidee.server.scene import Scene
 from tidee.server.scene_cache import SceneCache
+from tidee.server.shuffle import Rearrangement, make_rearrangement
 from tidee.server.splits import check_mess_index
 from tidee.server.world import FOV_DEG, World
 
@@ -106,6 +120,21 @@ class SceneLibrary:
         world.build(scene)
         return scene
 
+    def rearrangement(self, world: World, room_type: str, seed: int, index: int) -> Rearrangement:
+        """Rearrangement configuration ``index`` of a room (``tidee.server.shuffle``): its goal
+        and shuffled scenes, generated from the tidy room when not cached. ``world`` is left
+        holding some state of the room: build the one you need."""
+        check_mess_index(int(seed), index)
+        keys = [(room_type, int(seed), f"{state}{int(index)}") for state in ("goal", "shuffle")]
+        cached = [self._get(key) for key in keys]
+        if cached[0] is None or cached[1] is None:
+            self.scene(world, room_type, seed, None)
+            made = make_rearrangement(world, world.export(), index)
+            for key, scene in zip(keys, (made.goal, made.shuffled)):
+                self._put(key, scene)
+            cached = [self._cache[key] for key in keys]
+        return Rearrangement(Scene.from_dict(cached[0]), Scene.from_dict(cached[1]))
+
 
 @dataclass
 class Body:
@@ -149,6 +178,8 @@ class Episode:
         self.free = np.zeros((1, 1), bool)
         self.rng = np.random.default_rng(0)
         self._present: list[str] = []
+        self.phase: str | None = None  # a rearrangement's phase; None in a tidying episode
+        self._shuffled: Scene | None = None  # the unshuffle phase's scene, during the walkthrough
 
     @property
     def renderer(self) -> str:
@@ -159,13 +190,22 @@ class Episode:
 
     # ----------------------------------------------------------------- reset
     def reset(self, spec: EpisodeSpec, session: str = "local", ground_truth: bool = False) -> Observation:
+        """A tidying episode (``spec.mess_index``; None: the tidy room), or the walkthrough phase
+        of a rearrangement (``spec.rearrange_index``): the goal state, interaction refused."""
         self.spec, self.session = spec, session
-        self.scene = self.library.scene(self.world, spec.room_type, spec.seed, spec.mess_index)
+        self.phase, self._shuffled = None, None
+        if spec.rearrange_index is None:
+            self.scene = self.library.scene(self.world, spec.room_type, spec.seed, spec.mess_index)
+        else:
+            pair = self.library.rearrangement(self.world, spec.room_type, spec.seed, spec.rearrange_index)
+            self.scene, self._shuffled, self.phase = pair.goal, pair.shuffled, "walkthrough"
+            self.world.build(pair.goal)
         self.steps, self.done = 0, False
+        mess = 0 if spec.mess_index is None else spec.mess_index + 1
+        if spec.rearrange_index is not None:
+            mess = 1000 + spec.rearrange_index
         self.rng = np.random.default_rng(
-            np.random.SeedSequence(
-                [spec.seed, 0 if spec.mess_index is None else spec.mess_index + 1, spec.start_seed or 0, 5150]
-            )
+            np.random.SeedSequence([spec.seed, mess, spec.start_seed or 0, 5150])
         )
         self._update_free()
         x, y = self._spawn_point(spec.start_seed)
@@ -186,6 +226,7 @@ class Episode:
     ) -> Observation:
         """Start an episode in a given scene with the agent at a given pose (tests, tools)."""
         self.spec, self.session, self.scene = spec, session, scene
+        self.phase, self._shuffled = None, None
         self.world.build(scene)
         self.steps, self.done = 0, False
         self.rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5150]))
@@ -196,6 +237,29 @@ class Episode:
         self._last = (None, True, None, "")
         return self.observe(ground_truth)
 
+    def begin_unshuffle(self, ground_truth: bool = False) -> Observation:
+        """End a rearrangement's walkthrough: the shuffled room, the step count back to 0, the
+        agent at its start pose (the same start frame as the walkthrough's) with empty hands."""
+        if self.scene is None:
+            raise RuntimeError("begin_unshuffle() before reset()")
+        if self.phase is None:
+            raise ValueError("this is not a rearrangement episode: reset with spec.rearrange_index first")
+        if self.phase != "walkthrough" or self._shuffled is None:
+            raise ValueError("the unshuffle phase has already begun; reset to start a new rearrangement")
+        self.scene, self._shuffled, self.phase = self._shuffled, None, "unshuffle"
+        self.world.build(self.scene)
+        self._update_free()
+        self.steps, self.done = 0, False
+        x, y, yaw = self.start
+        self.body = Body(x, y, yaw, 0.0, x, y, yaw)
+        self._last = (None, True, None, "")
+        return self.observe(ground_truth)
+
+    @property
+    def step_cap(self) -> int:
+        """This phase's step budget: the walkthrough's, else ``spec.max_steps``."""
+        return self.spec.walkthrough_steps if self.phase == "walkthrough" else self.spec.max_steps
+
     def _update_free(self) -> None:
         assert self.scene is not None
         aabbs = [self.world.aabb(o.id) for o in self.scene.objects if not o.pickupable and o.type != "Floor"]
@@ -203,14 +267,7 @@ class Episode:
 
     def _spawn_point(self, start_seed: int | None) -> tuple[float, float]:
         assert self.scene is not None
-        cells = np.argwhere(main_component(self.free))
-        pts = (cells + 0.5) * NAV_CELL
-        if start_seed is None:
-            centre = np.array([self.scene.width / 2, self.scene.depth / 2])
-            k = int(np.argmin(np.linalg.norm(pts - centre, axis=1)))
-        else:
-            k = int(np.random.default_rng(start_seed).integers(len(pts)))
-        return float(pts[k][0]), float(pts[k][1])
+        return spawn_point(self.free, self.scene.width, self.scene.depth, start_seed)
 
     # ----------------------------------------------------------------- step
     def step(self, action: Action, ground_truth: bool = False) -> Observation:
@@ -234,8 +291,16 @@ class Episode:
             )
             return self._last[1:]
         self.steps += 1
-        ok, err, msg = self._execute(action)
-        if name == ActionName.Done or self.steps >= self.spec.max_steps:
+        if self.phase == "walkthrough" and name in PIXEL_ACTIONS:
+            ok, err, msg = (
+                False,
+                ActionError.walkthrough,
+                f"{name.value} is not allowed in the walkthrough phase (only moving and looking); "
+                "switch to the unshuffle phase first",
+            )
+        else:
+            ok, err, msg = self._execute(action)
+        if name == ActionName.Done or self.steps >= self.step_cap:
             self.done = True
         self._last = (name.value, ok, err, msg)
         return ok, err, msg
@@ -445,8 +510,9 @@ class Episode:
             error=err.value if err else None,
             message=msg,
             done=self.done,
-            steps_left=max(self.spec.max_steps - self.steps, 0),
+            steps_left=max(self.step_cap - self.steps, 0),
             ground_truth=gt,
+            phase=self.phase,
         )
 
     def _ground_truth(self, seg: np.ndarray | None) -> GroundTruth:
@@ -503,4 +569,5 @@ class Episode:
         }
         x0, y0, yaw0 = self.start
         scene["start"] = {"x": x0, "y": y0, "yaw_deg": math.degrees(yaw0)}  # the start frame in the world
+        scene["phase"] = self.phase
         return scene

@@ -46,7 +46,7 @@ def walkable_cells(world: World, scene: Scene) -> np.ndarray:
     return np.argwhere(main_component(free))
 
 
-def _snapshot(world: World) -> dict[str, tuple[list[float], list[float], str | None, str | None]]:
+def snapshot(world: World) -> dict[str, tuple[list[float], list[float], str | None, str | None]]:
     out = {}
     for oid in world.dynamic_ids():
         pos, orn = world.pose(oid)
@@ -55,7 +55,7 @@ def _snapshot(world: World) -> dict[str, tuple[list[float], list[float], str | N
     return out
 
 
-def _restore(world: World, snap: dict[str, tuple[list[float], list[float], str | None, str | None]]) -> None:
+def restore(world: World, snap: dict[str, tuple[list[float], list[float], str | None, str | None]]) -> None:
     for oid, (pos, orn, parent, ptype) in snap.items():
         world.set_pose(oid, pos, orn)
         o = world.bodies[oid].obj
@@ -67,7 +67,7 @@ def mess_up(world: World, scene: Scene, mess_index: int, n_objects: int = N_MOVE
     rng = mess_rng(scene.room_type, scene.seed, mess_index)
     present = sorted({o.type for o in scene.objects if o.receptacle and not o.pickupable})
     cells = walkable_cells(world, scene)
-    candidates = [o for o in scene.objects if o.pickupable and _reachable(world, o.id)]
+    candidates = [o for o in scene.objects if o.pickupable and reachable(world, o.id)]
     order = [candidates[int(i)] for i in rng.permutation(len(candidates))]
     records: list[MessRecord] = []
     for obj in order:
@@ -79,10 +79,37 @@ def mess_up(world: World, scene: Scene, mess_index: int, n_objects: int = N_MOVE
     return records
 
 
-def _reachable(world: World, obj_id: str) -> bool:
+def reachable(world: World, obj_id: str) -> bool:
     """Not shut inside a closed openable (the agent could not see it either)."""
     container = world.container_of(obj_id)
     return container is None or world.bodies[container].obj.is_open
+
+
+def toss(world: World, obj_id: str, rng: np.random.Generator, cells: np.ndarray) -> bool | None:
+    """Drop or throw ``obj_id`` from a hand at a random walkable cell, let physics settle and
+    refresh every object's parent. True: thrown, False: dropped, None: the start pose collided
+    (nothing was simulated; the caller restores its snapshot)."""
+    i, j = cells[int(rng.integers(len(cells)))]
+    ax, ay = (i + 0.5) * NAV_CELL, (j + 0.5) * NAV_CELL
+    yaw = float(rng.integers(4)) * math.pi / 2
+    throw = rng.random() >= P_DROP
+    fx, fy = math.cos(yaw), math.sin(yaw)
+    start = [ax + fx * HAND_REACH, ay + fy * HAND_REACH, HAND_HEIGHT]
+    spin = float(rng.uniform(-math.pi, math.pi))
+    world.set_pose(obj_id, start, [0, 0, math.sin(spin / 2), math.cos(spin / 2)])
+    if world.collides(obj_id, ignore=set()):
+        return None
+    if throw:
+        speed = min(THROW_FORCE_N * THROW_DT / max(world.bodies[obj_id].mass, 1e-3), MAX_THROW_SPEED)
+        pb.resetBaseVelocity(
+            world.bodies[obj_id].uid,
+            [fx * speed, fy * speed, 0.0],
+            [0, 0, 0],
+            physicsClientId=world.client,
+        )
+    world.settle(max_seconds=4.0, min_seconds=0.5)
+    world.refresh_parents()
+    return throw
 
 
 def _move_one(
@@ -92,28 +119,11 @@ def _move_one(
     orig_pos, orig_orn = world.pose(obj_id)
     orig_parent, orig_ptype = obj.parent, obj.parent_type
     for attempt in range(1, MAX_TRIES + 1):
-        snap = _snapshot(world)
-        i, j = cells[int(rng.integers(len(cells)))]
-        ax, ay = (i + 0.5) * NAV_CELL, (j + 0.5) * NAV_CELL
-        yaw = float(rng.integers(4)) * math.pi / 2
-        throw = rng.random() >= P_DROP
-        fx, fy = math.cos(yaw), math.sin(yaw)
-        start = [ax + fx * HAND_REACH, ay + fy * HAND_REACH, HAND_HEIGHT]
-        spin = float(rng.uniform(-math.pi, math.pi))
-        world.set_pose(obj_id, start, [0, 0, math.sin(spin / 2), math.cos(spin / 2)])
-        if world.collides(obj_id, ignore=set()):
-            _restore(world, snap)
+        snap = snapshot(world)
+        throw = toss(world, obj_id, rng, cells)
+        if throw is None:
+            restore(world, snap)
             continue
-        if throw:
-            speed = min(THROW_FORCE_N * THROW_DT / max(world.bodies[obj_id].mass, 1e-3), MAX_THROW_SPEED)
-            pb.resetBaseVelocity(
-                world.bodies[obj_id].uid,
-                [fx * speed, fy * speed, 0.0],
-                [0, 0, 0],
-                physicsClientId=world.client,
-            )
-        world.settle(max_seconds=4.0, min_seconds=0.5)
-        world.refresh_parents()
         disturbed = [
             o for o, (_, _, parent, _) in snap.items() if o != obj_id and world.bodies[o].obj.parent != parent
         ]
@@ -124,7 +134,7 @@ def _move_one(
             obj.type, obj.variant, scene.room_type, new_ptype, present
         )
         if disturbed or escaped or plausible or new_parent == orig_parent:
-            _restore(world, snap)
+            restore(world, snap)
             continue
         pos, orn = world.pose(obj_id)
         return MessRecord(

@@ -449,6 +449,18 @@ def main_component(free: np.ndarray) -> np.ndarray:
     return labels == (int(np.argmax(sizes)) + 1)
 
 
+def spawn_point(free: np.ndarray, width: float, depth: float, start_seed: int | None) -> tuple[float, float]:
+    """Where an episode starts the agent: the walkable cell (of the main component of the nav
+    grid ``free``) nearest the room centre, or a random one drawn from ``start_seed``."""
+    cells = np.argwhere(main_component(free))
+    pts = (cells + 0.5) * NAV_CELL
+    if start_seed is None:
+        k = int(np.argmin(np.linalg.norm(pts - np.array([width / 2, depth / 2]), axis=1)))
+    else:
+        k = int(np.random.default_rng(start_seed).integers(len(pts)))
+    return float(pts[k][0]), float(pts[k][1])
+
+
 def check_layout(layout: _Layout) -> str | None:
     """Why the layout is not walkable, or None when it is."""
     aabbs = []

@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 _SERVER_DIR = Path(__file__).resolve().parent
 # What shapes a scene: the catalog, the generator, the mess-up, the world's bodies and physics.
-_SCENE_SOURCES = ("bullet.py", "meshes.py", "messup.py", "rooms.py", "scene.py", "world.py")
+_SCENE_SOURCES = ("bullet.py", "meshes.py", "messup.py", "rooms.py", "scene.py", "shuffle.py", "world.py")
 
 
 def default_cache_dir() -> Path:
@@ -77,11 +77,18 @@ class SceneCache:
         self.hits = 0
         self.misses = 0
 
-    def path(self, room_type: str, seed: int, mess_index: int | None) -> Path:
-        mess = "tidy" if mess_index is None else f"mess{int(mess_index)}"
+    def path(self, room_type: str, seed: int, mess_index: int | str | None) -> Path:
+        """``mess_index``: a messy configuration, None for the tidy room, or a tag such as
+        ``"shuffle3"`` for another kind of state of the room."""
+        if isinstance(mess_index, str):
+            if not mess_index.isalnum():
+                raise ValueError(f"a scene tag must be letters and digits, got {mess_index!r}")
+            mess = mess_index
+        else:
+            mess = "tidy" if mess_index is None else f"mess{int(mess_index)}"
         return self.dir / f"{room_type}_{int(seed)}_{mess}.json.gz"
 
-    def load(self, room_type: str, seed: int, mess_index: int | None) -> dict[str, Any] | None:
+    def load(self, room_type: str, seed: int, mess_index: int | str | None) -> dict[str, Any] | None:
         """The stored scene, or None when absent or damaged (a damaged file is removed)."""
         path = self.path(room_type, seed, mess_index)
         try:
@@ -108,7 +115,7 @@ class SceneCache:
         self.hits += 1
         return scene
 
-    def store(self, room_type: str, seed: int, mess_index: int | None, scene: dict[str, Any]) -> None:
+    def store(self, room_type: str, seed: int, mess_index: int | str | None, scene: dict[str, Any]) -> None:
         """Write atomically; a cache that cannot be written (read-only disk) only costs speed."""
         path = self.path(room_type, seed, mess_index)
         entry = {

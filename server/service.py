@@ -64,6 +64,7 @@ from tidee.protocol.messages import (
     ErrorCode,
     ErrorReply,
     Observation,
+    PhaseRequest,
     ResetRequest,
     StateReply,
     StateRequest,
@@ -80,6 +81,7 @@ log = logging.getLogger("tidee.server")
 REQUEST_TYPES: dict[str, type] = {
     "reset": ResetRequest,
     "step": StepRequest,
+    "phase": PhaseRequest,
     "state": StateRequest,
     "close": CloseRequest,
 }
@@ -176,6 +178,7 @@ class SimServer:
         self._handlers: dict[str, Callable[[Any, str], Any]] = {
             "reset": self._reset,
             "step": self._step,
+            "phase": self._phase,
             "state": self._state,
             "close": self._close,
         }
@@ -183,7 +186,7 @@ class SimServer:
     # --- lifecycle ----------------------------------------------------------------------
     def start(self) -> SimServer:
         cfg = self.config
-        self._z = zenoh.open(make_config(listen=True, endpoint=cfg.endpoint, router=cfg.router))
+        self._z = zenoh.open(make_config(True, cfg.endpoint, cfg.router, cfg.zenoh_config))
         for worker in self._workers:
             worker.start()
         queries = self._z.declare_queryable(
@@ -415,15 +418,23 @@ class SimServer:
     # --- requests (on the session's worker) ----------------------------------------------
     # Each takes the request and its client (client_of); only a reset, which may open a session, uses it.
     def _reset(self, request: ResetRequest, client: str) -> Observation:
-        try:
-            check_mess_index(request.spec.seed, request.spec.mess_index)
-        except ValueError as e:
-            raise ProtocolError(ErrorCode.invalid_field, f"field 'spec.mess_index': {e}") from None
+        for name in ("mess_index", "rearrange_index"):
+            try:
+                check_mess_index(request.spec.seed, getattr(request.spec, name))
+            except ValueError as e:
+                raise ProtocolError(ErrorCode.invalid_field, f"field 'spec.{name}': {e}") from None
         episode = self._episode(request.session, create_for=client)
         return episode.reset(request.spec, session=request.session, ground_truth=request.ground_truth)
 
     def _step(self, request: StepRequest, client: str) -> Observation:
         return self._episode(request.session).step(request.action, ground_truth=request.ground_truth)
+
+    def _phase(self, request: PhaseRequest, client: str) -> Observation:
+        episode = self._episode(request.session)
+        try:
+            return episode.begin_unshuffle(ground_truth=request.ground_truth)
+        except ValueError as e:  # not a rearrangement, or the unshuffle already begun
+            raise ProtocolError(ErrorCode.invalid_field, f"field 'phase': {e}") from None
 
     def _state(self, request: StateRequest, client: str) -> StateReply:
         return StateReply(request.session, self._episode(request.session).state())

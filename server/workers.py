@@ -45,7 +45,7 @@ log = logging.getLogger("tidee.server")
 EpisodeMaker = Callable[[], Any]  # picklable (a module-level class or function, or a partial of one)
 _CONTEXT = multiprocessing.get_context("spawn")
 _STOP_GRACE_S = 5.0
-_OPS = ("reset", "step", "state")
+_OPS = ("reset", "step", "begin_unshuffle", "state")
 
 
 class EpisodeProcessDied(RuntimeError):
@@ -281,6 +281,9 @@ class RemoteEpisode:
 
     def step(self, action: Action, ground_truth: bool = False) -> Observation:
         return self._call("step", action, ground_truth=ground_truth)
+
+    def begin_unshuffle(self, ground_truth: bool = False) -> Observation:
+        return self._call("begin_unshuffle", ground_truth=ground_truth)
 
     def state(self) -> dict[str, Any]:
         return self._call("state")

@@ -625,7 +625,8 @@ class World:
         """Put a held (frozen, hidden) object stably on a surface of the receptacle.
 
         Candidate spots on the receptacle's surfaces (inside ones only when it is open)
-        are tried nearest to ``near`` first (the nearest ``PLACE_CANDIDATES``, on a 6 cm
+        are tried nearest to ``near`` first (``near`` itself before all, when on a surface;
+        then the nearest ``PLACE_CANDIDATES``, on a 6 cm
         lattice: a spot up to ~0.4 m from the aimed one, as a person would shift a pillow
         along a crowded bed): the object must fit in the surface, touch
         nothing and have headroom; then physics runs and the object must come to rest
@@ -643,6 +644,12 @@ class World:
             if mx < 0 or my < 0:
                 continue
             c, s = math.cos(syaw), math.sin(syaw)
+            # The aimed spot itself first, when the object fits there (a put that aims well
+            # lands where it aimed, not on the nearest lattice point, up to 4 cm away).
+            lx = c * (near[0] - cxy[0]) + s * (near[1] - cxy[1])
+            ly = -s * (near[0] - cxy[0]) + c * (near[1] - cxy[1])
+            if abs(lx) <= mx and abs(ly) <= my and abs(float(near[2]) - z) < 0.1:
+                candidates.append((-1.0, np.array([float(near[0]), float(near[1]), z])))
             for lx in np.linspace(-mx, mx, max(2, int(2 * mx / 0.06) + 1)):
                 for ly in np.linspace(-my, my, max(2, int(2 * my / 0.06) + 1)):
                     p = np.array([cxy[0] + c * lx - s * ly, cxy[1] + s * lx + c * ly, z])

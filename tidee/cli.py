@@ -20,6 +20,7 @@ from typing import NoReturn
 
 from tidee.agent.config import LIVE_RUN_SKIP, AgentProcessConfig, LiveRunConfig
 from tidee.agent.evaluation import config as ec
+from tidee.launch import RouterConfig
 from tidee.options import add_command, to_argv
 from tidee.paths import PROJECT_DIR, bench_out
 from tidee.protocol.messages import EpisodeSpec
@@ -30,15 +31,17 @@ from tidee.server.config import ServerConfig
 def _cmd_server(cfg: ServerConfig) -> int:
     import zenoh
 
-    from tidee.protocol.zenoh_config import open_error
+    from tidee.protocol.zenoh_config import make_config, open_error, resolve_config_file
     from tidee.server.service import serve
 
-    if not cfg.router:  # before the simulator processes start: a port in use is refused at once
+    # Before the simulator processes start: a bad config file or a port in use is refused at once.
+    make_config(True, cfg.endpoint, cfg.router, cfg.zenoh_config)
+    if not cfg.router and not resolve_config_file(cfg.zenoh_config):  # a file may listen elsewhere
         _check_listen_endpoint(cfg.endpoint)
     try:
         serve(cfg)
     except zenoh.ZError as e:  # opening the session: a bad endpoint, an unreachable router
-        raise open_error(e, True, cfg.endpoint, cfg.router) from None
+        raise open_error(e, True, cfg.endpoint, cfg.router, cfg.zenoh_config) from None
     return 0
 
 
@@ -230,14 +233,22 @@ def _cmd_agent(cfg: AgentProcessConfig) -> int:
 
 def _cmd_run(cfg: LiveRunConfig) -> int:
     from tidee.launch import run_all
+    from tidee.protocol.zenoh_config import make_config
     from tidee.threads import threads_per_process
 
     _check_episodes(cfg.agent.spec, cfg.agent.episodes)
+    make_config(False, zenoh_config=cfg.agent.zenoh_config)  # a bad file is refused before anything starts
     agent = cfg.agent
     if not agent.threads:  # the server renders on one core while the agent thinks: never oversubscribe
         agent = replace(agent, threads=threads_per_process(2))
     argv = to_argv(agent, skip=[s.removeprefix("agent.") for s in LIVE_RUN_SKIP])  # tidee run gives its own
-    return run_all(replace(cfg.launch, agent_args=argv))
+    return run_all(replace(cfg.launch, agent_args=argv, zenoh_config=agent.zenoh_config))
+
+
+def _cmd_router(cfg: RouterConfig) -> int:
+    from tidee.launch import run_router
+
+    return run_router(cfg)
 
 
 def _cmd_eval_tidy(cfg: ec.TidyEvalConfig) -> int:
@@ -246,6 +257,14 @@ def _cmd_eval_tidy(cfg: ec.TidyEvalConfig) -> int:
     report = run_tidy_eval(cfg)
     print((Path(cfg.out) / "report.md").read_text())
     return 0 if report else 1
+
+
+def _cmd_eval_rearrange(cfg: ec.RearrangeEvalConfig) -> int:
+    from tidee.agent.evaluation.rearrange_eval import run_rearrange_eval
+
+    run_rearrange_eval(cfg)
+    print((Path(cfg.out) / "report.md").read_text())
+    return 0
 
 
 def _cmd_eval_tidy_merge(cfg: ec.TidyMergeConfig) -> int:
@@ -320,6 +339,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     add_command(sub, "server", ServerConfig, _cmd_server, "run a simulation server on Zenoh")
+    add_command(
+        sub,
+        "router",
+        RouterConfig,
+        _cmd_router,
+        "a Zenoh router for processes on several machines (TLS and access control: --zenoh-config)",
+    )
 
     scene = _group(sub, "scene", "generate, render and export rooms")
     add_command(
@@ -419,6 +445,14 @@ def build_parser() -> argparse.ArgumentParser:
         _cmd_eval_tidy,
         "tidy episodes on held-out rooms, scored by the simulated judge (Table 1)",
         skip=ec.TIDY_EVAL_SKIP,
+    )
+    add_command(
+        ev,
+        "rearrange",
+        ec.RearrangeEvalConfig,
+        _cmd_eval_rearrange,
+        "2-phase rearrangement on held-out rooms, RoomR's metrics (Table 4)",
+        skip=ec.REARRANGE_EVAL_SKIP,
     )
     add_command(
         ev,

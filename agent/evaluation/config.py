@@ -1,9 +1,11 @@
-"""What ``tidee eval tidy`` takes, each option declared once (a light module: no torch)."""
+"""What ``tidee eval tidy`` and the other evaluations take, each option declared once (a light
+module: no torch)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal, get_args
 
 from tidee import argtypes
 from tidee.agent.config import (
@@ -41,11 +43,73 @@ class TidyEvalConfig:
     workers: int = option(1, "parallel simulator processes", type=argtypes.positive_int)
     renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
     keep_logs: bool = option(False, "write every episode's log under OUT/logs")
+    backend: Literal["local", "ray"] = option(
+        "local",
+        "local: worker processes on this machine | ray: one Ray actor per worker "
+        "(needs pip install -e '.[cluster]')",
+    )
+    ray_address: str | None = option(
+        None, "a running Ray cluster's HOST:PORT for --backend ray (default: start Ray on this machine)"
+    )
+    resume: bool = option(False, "skip the episodes OUT/episodes.jsonl already holds (an interrupted run)")
     progress: bool = option(True, "a progress bar", cli=False)
 
 
 # Flags of AgentConfig that eval tidy sets per episode rather than from the command line.
 TIDY_EVAL_SKIP = ("agent.variant", "agent.seed")
+
+# The rows of ``tidee eval rearrange``: the paper's Table 4 rows, the oracle and a floor.
+# Agent flags a rearrangement row decides (perception, depth) or that it does not use.
+REARRANGE_EVAL_SKIP = (
+    "agent.variant",
+    "agent.seed",
+    "agent.oop",
+    "agent.preferences",
+    "agent.perception",
+    "agent.depth",
+    "agent.detection_threshold",
+)
+RearrangeRow = Literal["clean", "noisy-pose", "est-depth", "noisy-depth", "oracle", "do-nothing"]
+REARRANGE_ROWS: tuple[RearrangeRow, ...] = get_args(RearrangeRow)
+
+
+@dataclass
+class RearrangeEvalConfig:
+    """``tidee eval rearrange``: 2-phase rearrangement on held-out rooms, scored with RoomR's
+    metrics (the paper's Table 4): each row is the reduced TIDEE agent under one condition."""
+
+    out: Path = option(help="directory for report.json, report.md and report.png", type=argtypes.output_path)
+    split: HeldOutSplit = option("test", "held-out rooms only")
+    episodes: int | None = option(
+        None, "configurations (default: all; test has 100)", type=argtypes.positive_int
+    )
+    rows: tuple[RearrangeRow, ...] = option(
+        REARRANGE_ROWS,
+        "comma list of rows: clean (learned perception), noisy-pose, est-depth (depth from RGB), "
+        "noisy-depth, oracle (ORACLE perception: the simulator's segmentation), do-nothing",
+    )
+    agent: AgentConfig = option(default_factory=AgentConfig)
+    resolution: int = option(256, "square images, pixels a side", type=argtypes.resolution)
+    walkthrough_steps: int = option(250, "the walkthrough's step budget", type=argtypes.max_steps)
+    max_steps: int = option(500, "the unshuffle phase's step budget", type=argtypes.max_steps)
+    workers: int = option(1, "parallel simulator processes", type=argtypes.positive_int)
+    renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
+    backend: Literal["local", "ray"] = option(
+        "local", "local: worker processes on this machine | ray: one Ray actor per worker"
+    )
+    ray_address: str | None = option(None, "a running Ray cluster's HOST:PORT for --backend ray")
+    resume: bool = option(False, "skip the episodes OUT/episodes.jsonl already holds (an interrupted run)")
+    keep_logs: bool = option(False, "write every episode's log under OUT/logs")
+    progress: bool = option(True, "a progress bar", cli=False)
+
+    def __post_init__(self) -> None:
+        for row in self.rows:
+            if row not in REARRANGE_ROWS:
+                raise ValueError(f"rows must be among {', '.join(REARRANGE_ROWS)}, got {row!r}")
+        if not self.rows:
+            raise ValueError("give at least one row")
+        if self.ray_address is not None and self.backend != "ray":
+            raise ValueError("--ray-address needs --backend ray")
 
 
 @dataclass

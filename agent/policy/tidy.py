@@ -38,6 +38,7 @@ from tidee.agent.navigation.explore import (
 from tidee.agent.policy.skills import (
     MOVE_M,
     Body,
+    Sighting,
     face_point,
     find_in_view,
     frontier_goal,
@@ -253,7 +254,23 @@ class TidyPolicy:
             return
         if not self._still_out_of_place(obj):
             return
-        st.phase = "picking"
+        if not (yield from self.pick(obj, sighting)):
+            return
+        st.phase = "inferring"
+        placed = yield from self.put_away(obj)
+        if not placed:
+            st.phase = "dropping"
+            placed = yield from self.drop()
+            if placed:
+                self.dropped.append((obj.label, self.body.xy.copy()))
+                self._rescore = True
+                self.event("dropped", label=obj.label)
+        st.target = None
+
+    def pick(self, obj: TrackedObject, sighting: Sighting) -> Gen:
+        """Pick ``obj`` up at the pixel of its sighting (again at the highest point over its
+        footprint when that pixel hit its support); a picked object leaves the memory."""
+        self.state.phase = "picking"
         yield sighting.action(ActionName.PickupObject, self.body.obs.depth.shape)
         obs = self.body.obs
         if not obs.success and obs.error == "not_pickupable":
@@ -268,7 +285,7 @@ class TidyPolicy:
             if obj.meta["pick_fails"] >= 2:
                 obj.meta["give_up"] = f"pickup failed: {obs.error}"
             self.event("pick_failed", label=obj.label, error=obs.error, message=obs.message)
-            return
+            return False
         self.body.mapper.memory.remove(obj.id)
         self.event(
             "picked",
@@ -277,16 +294,7 @@ class TidyPolicy:
             held_id=obs.held_id,
             oop_prob=round(obj.oop_prob or 0.0, 3),
         )
-        st.phase = "inferring"
-        placed = yield from self.put_away(obj)
-        if not placed:
-            st.phase = "dropping"
-            placed = yield from self.drop()
-            if placed:
-                self.dropped.append((obj.label, self.body.xy.copy()))
-                self._rescore = True
-                self.event("dropped", label=obj.label)
-        st.target = None
+        return True
 
     def _still_out_of_place(self, obj: TrackedObject) -> bool:
         """Re-score a target seen from up close before picking it: the walk there refined its

@@ -30,11 +30,13 @@ class FakeEpisode:
         self.history = 0
         self.pose = [0.0, 0.0, 0.0, 0.0]
         self.closed = False
+        self.phase: str | None = None  # a rearrangement's: walkthrough, then unshuffle
 
     def reset(self, spec: EpisodeSpec, session: str = "local", ground_truth: bool = False) -> Observation:
         self.spec, self.session = spec, session
         self.steps, self.done, self.history = 0, False, spec.seed
         self.pose = [0.0, 0.0, 0.0, 0.0]
+        self.phase = None if spec.rearrange_index is None else "walkthrough"
         return self._observe(None, True, None, "", ground_truth)
 
     def step(self, action: Action, ground_truth: bool = False) -> Observation:
@@ -56,9 +58,21 @@ class FakeEpisode:
             self.pose[2] = (self.pose[2] + 90.0 + 180) % 360 - 180
         elif name == ActionName.PickupObject and action.x is not None and action.x < 0.5:
             ok, err = False, ActionError.nothing_there
-        if name == ActionName.Done or self.steps >= self.spec.max_steps:
+        if name == ActionName.Done or self.steps >= self._cap():
             self.done = True
         return self._observe(name.value, ok, err, "" if ok else "fake: nothing at that pixel", ground_truth)
+
+    def begin_unshuffle(self, ground_truth: bool = False) -> Observation:
+        """A rearrangement's second phase: the same room (the fake has no shuffle), steps from 0."""
+        if self.spec is None:
+            raise RuntimeError("begin_unshuffle() before reset()")
+        if self.phase is None:
+            raise ValueError("this is not a rearrangement episode: reset with spec.rearrange_index first")
+        if self.phase != "walkthrough":
+            raise ValueError("the unshuffle phase has already begun")
+        self.steps, self.done, self.phase = 0, False, "unshuffle"
+        self.pose = [0.0, 0.0, 0.0, 0.0]
+        return self._observe(None, True, None, "", ground_truth)
 
     def state(self) -> dict:
         if self.spec is None:
@@ -72,6 +86,10 @@ class FakeEpisode:
 
     def close(self) -> None:
         self.closed = True
+
+    def _cap(self) -> int:
+        assert self.spec is not None
+        return self.spec.walkthrough_steps if self.phase == "walkthrough" else self.spec.max_steps
 
     def _observe(
         self, last: str | None, ok: bool, err: ActionError | None, msg: str, ground_truth: bool
@@ -98,6 +116,7 @@ class FakeEpisode:
             error=err.value if err else None,
             message=msg,
             done=self.done,
-            steps_left=max(self.spec.max_steps - self.steps, 0),
+            steps_left=max(self._cap() - self.steps, 0),
             ground_truth=gt,
+            phase=self.phase,
         )

@@ -1,0 +1,67 @@
+"""The rearrangement agent's decisions: which objects moved, which openables changed."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tidee.agent.mapping.memory import TrackedObject
+from tidee.agent.policy.rearrange import Seen, box_change, find_moves, find_toggles
+
+
+def _track(
+    i: int, label: str, xyz: tuple[float, float, float], half: float = 0.05, n_obs: int = 3
+) -> TrackedObject:
+    c = np.array(xyz, float)
+    return TrackedObject(i, label, 0.9, c, c - half, c + half, n_obs=n_obs)
+
+
+def _seen(label: str, xyz: tuple[float, float, float], half: float = 0.05, n_obs: int = 3) -> Seen:
+    return Seen.of(_track(0, label, xyz, half, n_obs))
+
+
+def test_a_moved_object_is_found_and_a_still_one_is_not() -> None:
+    then = [_seen("Mug", (1.0, 1.0, 0.9)), _seen("Book", (2.0, 0.0, 0.5))]
+    now = [_track(1, "Mug", (3.0, -1.0, 0.0)), _track(2, "Book", (2.1, 0.05, 0.5))]
+    moves = find_moves(then, now)
+    assert [(m.now.id, m.then.label) for m in moves] == [(1, "Mug")]
+    assert np.isclose(moves[0].distance, np.linalg.norm([2.0, -2.0, -0.9]))
+
+
+def test_two_instances_one_moved_pairs_the_still_one_with_its_old_place() -> None:
+    then = [_seen("Pen", (0.0, 0.0, 0.8)), _seen("Pen", (1.0, 0.0, 0.8))]
+    now = [_track(1, "Pen", (0.02, 0.0, 0.8)), _track(2, "Pen", (3.0, 2.0, 0.0))]
+    moves = find_moves(then, now)
+    assert len(moves) == 1 and moves[0].now.id == 2 and np.allclose(moves[0].then.centroid, [1.0, 0.0, 0.8])
+
+
+def test_tracks_seen_once_and_new_places_held_before_are_not_moves() -> None:
+    # seen once in the unshuffle: not trusted
+    assert find_moves([_seen("Mug", (0, 0, 0.9))], [_track(1, "Mug", (2, 2, 0.9), n_obs=1)]) == []
+    # its new place held a mug in the walkthrough too (a second mug the walkthrough saw there)
+    then = [_seen("Mug", (0, 0, 0.9)), _seen("Mug", (2, 2, 0.9), n_obs=1)]
+    assert find_moves(then, [_track(1, "Mug", (2, 2, 0.9))]) == []
+
+
+def test_an_openable_whose_box_grew_was_opened_and_one_that_shrank_was_closed() -> None:
+    closed = _seen("Fridge", (1.0, 1.0, 0.9), half=0.4)
+    opened = _track(1, "Fridge", (1.2, 1.0, 0.9), half=0.4)
+    opened.box_max = opened.box_max + np.array([0.5, 0.0, 0.0])  # the door swung out along +x
+    grown, shrunk = box_change(closed, opened)
+    assert np.isclose(grown, 0.7) and np.isclose(shrunk, 0.2)
+    (t,) = find_toggles([closed], [opened])
+    assert t.opened and np.isclose(t.change_m, 0.7)
+    (back,) = find_toggles([Seen.of(opened)], [_track(2, "Fridge", (1.0, 1.0, 0.9), half=0.4)])
+    assert not back.opened
+
+
+def test_an_unchanged_openable_and_a_second_track_of_a_toggled_one_are_left_alone() -> None:
+    same = find_toggles(
+        [_seen("Cabinet", (0, 0, 0.4), half=0.3)], [_track(1, "Cabinet", (0.05, 0, 0.4), half=0.3)]
+    )
+    assert same == []
+    then = [_seen("Fridge", (1.0, 1.0, 0.9), half=0.4), _seen("Fridge", (1.6, 1.0, 0.9), half=0.1)]
+    a = _track(1, "Fridge", (1.0, 1.0, 0.9), half=0.4)
+    a.box_max = a.box_max + np.array([0.6, 0.0, 0.0])
+    b = _track(2, "Fridge", (1.7, 1.0, 0.9), half=0.4)  # the open door, tracked apart
+    toggles = find_toggles(then, [a, b])
+    assert len(toggles) == 1  # one fridge: toggled once, never back
