@@ -51,6 +51,7 @@ from tidee.protocol.messages import (
     ReceptaclePrediction,
     SearchHeatmap,
     TrackedObjectMsg,
+    WalkthroughMemoryMsg,
 )
 from tidee.protocol.transport import SimTransport
 
@@ -337,6 +338,7 @@ class EpisodeRunner:
                     )
                 t4 = time.perf_counter()
                 if walkthrough and action.name == ActionName.Done:
+                    self._emit_walkthrough(body.obs, policy, writer)
                     obs = self.transport.begin_unshuffle(ground_truth=gt)
                     mapper.reset()  # a fresh map of the shuffled room, in the same start frame
                     body.path, body.goal = None, None
@@ -495,6 +497,11 @@ class EpisodeRunner:
             )
 
         def memory() -> ObjectMemoryMsg:
+            # a rearrangement's unshuffle: each object believed moved goes back to its walkthrough box
+            goals = {
+                m.now.id: tuple(float(v) for v in (m.then.box_min + m.then.box_max) / 2)
+                for m in getattr(policy, "moves", [])
+            }
             return ObjectMemoryMsg(
                 self.session,
                 int(obs.step),
@@ -509,6 +516,7 @@ class EpisodeRunner:
                         o.oop_prob,
                         bool(o.out_of_place),
                         False,
+                        goals.get(o.id),
                     )
                     for o in mapper.memory
                 ],
@@ -539,6 +547,10 @@ class EpisodeRunner:
         if new_search:
             builders["search"] = search
             self._search_sent = (view.label, view.step)
+        walk: WalkthroughMemoryMsg | None = getattr(self, "_walkthrough_msg", None)
+        if self.publisher is not None and walk is not None and obs.phase == "unshuffle":
+            # sent (and logged) once at the phase switch; again now and then for viewers that joined late
+            self.publisher.offer("walkthrough", lambda: walk)
         final = bool(obs.done)
         for kind, build in builders.items():
             msg = None
@@ -551,6 +563,29 @@ class EpisodeRunner:
                     msg = build()
                 if msg is not None:
                     writer.message(kind, msg)
+
+    def _emit_walkthrough(self, obs: Observation, policy: Any, writer: LogWriter | None) -> None:
+        """The walkthrough's memory, once, as the walkthrough ends (telemetry kind ``walkthrough``)."""
+        msg = WalkthroughMemoryMsg(
+            self.session,
+            int(obs.step),
+            [
+                TrackedObjectMsg(
+                    i,
+                    s.label,
+                    1.0,
+                    tuple(map(float, s.centroid)),
+                    tuple(map(float, s.box_min)),
+                    tuple(map(float, s.box_max)),
+                )
+                for i, s in enumerate(getattr(policy, "walkthrough", []))
+            ],
+        )
+        self._walkthrough_msg = msg
+        if self.publisher is not None:
+            self.publisher.offer("walkthrough", lambda: msg, force=True)
+        if writer is not None:
+            writer.message("walkthrough", msg)
 
     # ------------------------------------------------------------------ commands
     def _handle_commands(
@@ -620,7 +655,7 @@ class EpisodeRunner:
         # Which objects the agent's "moved" beliefs were about (the nearest of that type, within
         # 0.5 m of where it believed the object was at the start of the unshuffle phase).
         changed = {o["id"] for o in metrics["objects"] if o["misplaced_start"]}
-        believed = set()
+        believed: set[str] = set()
         for e in events:
             if e["kind"] not in ("moved", "openness_changed") or "centroid" not in e:
                 continue

@@ -21,12 +21,14 @@ from tidee.protocol.messages import AgentCommand, CommandAck
 
 log = logging.getLogger("tidee.agent.telemetry")
 
-# Maximum publish rate per kind (Hz). ``status`` is tiny and goes every step.
+# Maximum publish rate per kind (Hz). ``status`` is tiny and goes every step. A rearrangement's
+# ``walkthrough`` memory goes once when the walkthrough ends, then this often for late viewers.
 DEFAULT_RATES = {
     "status": 1000.0,
     "frame": 10.0,
     "maps": 4.0,
     "memory": 5.0,
+    "walkthrough": 0.2,
     "search": 2.0,
     "ack": 1000.0,
     "summary": 1000.0,

@@ -53,6 +53,8 @@ class SimClient:
     a request the visible server never answers raises ``PermissionError`` (a router's access
     control drops what a client's certificate may not send) instead of ``TimeoutError``.
     Observations' raw arrays are read-only views of the received frame; copy to modify.
+    ``depth`` is float32 metres whatever the wire carried: exact from a default server, 1 mm
+    precision from one started with ``TIDEE_WIRE_DEPTH=mm`` (protocol/README.md).
     Not thread-safe: one caller at a time (the server handles a session's requests in order).
     """
 
@@ -154,7 +156,7 @@ class SimClient:
                 f"no reply to {op} on {key}: server {self.server_id!r} at {self._where} went away "
                 f"(its liveliness token is gone)"
             ) from None
-        if reply.ok is not None:
+        if reply.ok is not None:  # to_bytes: the one copy (ZBytes has no buffer protocol); decode adds none
             return self._decode(reply.ok.payload.to_bytes(), (reply_type, ErrorReply), op)
         # A zenoh reply holds exactly one of ok and err; its stubs type each as optional.
         payload = cast("zenoh.ReplyError", reply.err).payload.to_bytes()

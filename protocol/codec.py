@@ -15,7 +15,10 @@ lists). An array field's JSON value is a descriptor
 ``n`` bytes at offset ``o`` of the buffer section. ``raw`` arrays decode zero-copy with
 ``np.frombuffer`` (read-only views of the frame); ``encoding="png"|"jpeg"`` compresses
 ``Observation.rgb`` with opencv and sends ``Observation.depth`` as a 16-bit PNG in
-millimetres (``png-depth-mm``).
+millimetres (``png-depth-mm``). ``raw_depth="mm"`` sends a raw frame's depth maps as
+uint16 millimetres (``raw-depth-mm``: half the bytes of float32, 1 mm precision); they
+decode to float32 metres like every depth map. A simulation server does that when started
+with ``TIDEE_WIRE_DEPTH=mm`` (``wire_depth()``; default ``f32``: exact).
 
 Decoding is strict: any problem raises ``ProtocolError(code, message)`` with the field's
 dotted path in the message; ``__post_init__`` validation of the dataclasses surfaces as
@@ -30,6 +33,7 @@ import functools
 import inspect
 import json
 import math
+import os
 import struct
 import types
 import typing
@@ -47,6 +51,14 @@ ALIGN = 16
 DEFAULT_MAX_BYTES = 64 * 1024 * 1024
 DEFAULT_JPEG_QUALITY = 90
 _INT64 = (-(1 << 63), 1 << 63)
+
+# How a raw frame's depth maps (ArraySpec image "depth") travel: "f32" float32 metres (the
+# ``raw`` buffer encoding: exact, zero-copy decode) or "mm" uint16 millimetres
+# (``raw-depth-mm``: half the bytes; 1 mm precision, 0 = no return, clamped at 65.535 m).
+RAW_DEPTH_FORMS = ("f32", "mm")
+DEPTH_MM = "raw-depth-mm"
+WIRE_DEPTH_ENV = "TIDEE_WIRE_DEPTH"
+DEFAULT_WIRE_DEPTH = "f32"  # mm flips a few map cells at their edges: opt in
 
 # Every dataclass in messages.py can be a frame's top-level message.
 MESSAGE_TYPES: dict[str, type] = {
@@ -138,13 +150,35 @@ class _Buffers:
         return desc
 
 
-def encode(msg: Any, encoding: str = "raw", *, jpeg_quality: int = DEFAULT_JPEG_QUALITY) -> bytes:
-    """One frame for ``msg`` (any message dataclass); ``encoding`` applies to images."""
+def wire_depth() -> str:
+    """The ``raw_depth`` a simulation server sends: ``TIDEE_WIRE_DEPTH``, ``f32`` (default) or ``mm``."""
+    form = os.environ.get(WIRE_DEPTH_ENV, "").strip() or DEFAULT_WIRE_DEPTH
+    if form not in RAW_DEPTH_FORMS:
+        raise ValueError(f"{WIRE_DEPTH_ENV} must be one of {RAW_DEPTH_FORMS}, got {form!r}")
+    return form
+
+
+def encode(
+    msg: Any,
+    encoding: str = "raw",
+    *,
+    jpeg_quality: int = DEFAULT_JPEG_QUALITY,
+    raw_depth: str = "f32",
+) -> bytes:
+    """One frame for ``msg`` (any message dataclass); ``encoding`` applies to images.
+
+    ``raw_depth``: under ``encoding="raw"``, depth maps travel as ``"f32"`` (exact) or
+    ``"mm"`` (uint16 millimetres, ``raw-depth-mm``); png/jpeg always send millimetres.
+    """
     name = type(msg).__name__
     if MESSAGE_TYPES.get(name) is not type(msg):
         raise TypeError(f"cannot encode {name}: not a message type ({', '.join(sorted(MESSAGE_TYPES))})")
     if encoding not in IMAGE_ENCODINGS:
         raise ValueError(f"encoding must be one of {IMAGE_ENCODINGS}, got {encoding!r}")
+    if raw_depth not in RAW_DEPTH_FORMS:
+        raise ValueError(f"raw_depth must be one of {RAW_DEPTH_FORMS}, got {raw_depth!r}")
+    if encoding == "raw" and raw_depth == "mm":
+        encoding = DEPTH_MM  # internal: raw, with millimetre depth maps
     buffers = _Buffers()
     fields = _encode_dataclass(msg, "", buffers, encoding, jpeg_quality)
     header = json.dumps({"type": name, "fields": fields}, separators=(",", ":"), allow_nan=False).encode()
@@ -200,7 +234,7 @@ def _encode_array(
         raise TypeError(f"field '{path}' has dtype {arr.dtype}; the wire carries {sorted(_WIRE_DTYPES)}")
     if spec is not None and not spec.matches(dtype, arr.shape):
         raise TypeError(f"field '{path}' must be {spec.describe()}, got {arr.dtype} {arr.shape}")
-    if encoding != "raw" and spec is not None and spec.image == "color":
+    if encoding in ("png", "jpeg") and spec is not None and spec.image == "color":
         ext = ".jpg" if encoding == "jpeg" else ".png"
         import cv2  # OpenCV loads with the first compressed image, not with the protocol
 
@@ -209,16 +243,33 @@ def _encode_array(
         if not ok:
             raise ValueError(f"opencv could not {encoding}-encode field '{path}'")
         return buffers.add(buf.reshape(-1).data, dtype, arr.shape, encoding)
+    if encoding == DEPTH_MM and spec is not None and spec.image == "depth":
+        return buffers.add(memoryview(depth_to_mm(arr)).cast("B"), dtype, arr.shape, DEPTH_MM)  # type: ignore[arg-type]
     if encoding != "raw" and spec is not None and spec.image == "depth":
         import cv2
 
-        mm = np.nan_to_num(arr * 1000.0, nan=0.0, posinf=0.0, neginf=0.0)
-        ok, buf = cv2.imencode(".png", np.clip(np.rint(mm), 0, 65535).astype(np.uint16))
+        ok, buf = cv2.imencode(".png", depth_to_mm(arr))
         if not ok:
             raise ValueError(f"opencv could not png-encode field '{path}'")
         return buffers.add(buf.reshape(-1).data, dtype, arr.shape, "png-depth-mm")
     # numpy's stubs declare ndarray's buffer protocol (__buffer__) for Python >= 3.12 only.
     return buffers.add(memoryview(arr).cast("B"), dtype, arr.shape, "raw")  # type: ignore[arg-type]
+
+
+def depth_to_mm(depth: np.ndarray) -> np.ndarray:
+    """float32 metres -> uint16 millimetres: rounded to the nearest mm (error <= 0.5 mm), 0 for
+    no return (nan, +-inf, <= 0.5 mm), clamped at 65535 (65.535 m)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        mm = np.multiply(depth, np.float32(1000.0), dtype=np.float32)  # overflow: inf, clamped
+        mm[~np.isfinite(depth)] = 0.0
+        np.rint(mm, out=mm)
+        np.clip(mm, 0.0, 65535.0, out=mm)
+    return mm.astype("<u2")
+
+
+def mm_to_depth(mm: np.ndarray) -> np.ndarray:
+    """uint16 millimetres -> float32 metres (the float32 nearest to mm / 1000)."""
+    return np.divide(mm, np.float32(1000.0), dtype=np.float32)
 
 
 # --- decode -----------------------------------------------------------------------------
@@ -431,9 +482,17 @@ class _Decoder:
                 )
             return np.frombuffer(buf, dtype=dtype).reshape(shape_t)
         image = spec.image if spec is not None else None
-        allowed = {"color": ("png", "jpeg"), "depth": ("png-depth-mm",)}.get(image or "", ())
+        allowed = {"color": ("png", "jpeg"), "depth": ("png-depth-mm", DEPTH_MM)}.get(image or "", ())
         if enc not in allowed:
             raise _invalid(f"{path}.encoding", f"one of {['raw', *allowed]}", enc)
+        if enc == DEPTH_MM:
+            if nbytes != size // 2:
+                raise ProtocolError(
+                    ErrorCode.invalid_field,
+                    f"field '{path}' declares {shape_t} uint16 millimetres ({DEPTH_MM}) = "
+                    f"{size // 2} bytes but nbytes is {nbytes}",
+                )
+            return mm_to_depth(np.frombuffer(buf, dtype="<u2").reshape(shape_t))
         return _decode_image(buf, shape_t, image, path)
 
 

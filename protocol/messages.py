@@ -277,7 +277,7 @@ class ErrorReply:
 # along +y. Every message carries the agent ``step`` it describes; viewers keep the
 # latest of each kind (a ring buffer of one), so a slow viewer drops frames, never lags.
 
-TELEMETRY_KINDS = ("status", "frame", "maps", "memory", "search", "ack", "summary")
+TELEMETRY_KINDS = ("status", "frame", "maps", "memory", "walkthrough", "search", "ack", "summary")
 PHASES = (
     "idle",
     "walkthrough",
@@ -377,13 +377,27 @@ class TrackedObjectMsg:
     box_min: tuple[float, float, float]
     box_max: tuple[float, float, float]
     oop_prob: float | None = None
-    out_of_place: bool = False
+    out_of_place: bool = False  # a rearrangement's unshuffle: believed moved or toggled
     held: bool = False
+    # A rearrangement's unshuffle, an object believed moved: where it goes back (the centre of
+    # the walkthrough box it was matched to)
+    goal_centroid: tuple[float, float, float] | None = None
 
 
 @dataclass
 class ObjectMemoryMsg:
     """Kind ``memory``: every object the agent tracks."""
+
+    session: str
+    step: int
+    objects: list[TrackedObjectMsg] = field(default_factory=list)
+
+
+@dataclass
+class WalkthroughMemoryMsg:
+    """Kind ``walkthrough``: what a rearrangement's walkthrough remembers of the goal room, sent
+    when the walkthrough ends. ``step`` is the walkthrough's last step; each object's ``id`` is
+    its index in that memory, its ``score`` 1.0 (the memory keeps no detection score)."""
 
     session: str
     step: int

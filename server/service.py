@@ -57,7 +57,7 @@ from typing import Any
 import zenoh
 
 from tidee.protocol import keys
-from tidee.protocol.codec import ProtocolError, decode, encode
+from tidee.protocol.codec import ProtocolError, decode, encode, wire_depth
 from tidee.protocol.messages import (
     CloseReply,
     CloseRequest,
@@ -388,8 +388,13 @@ class SimServer:
         query = job.query
         assert query is not None
         try:
+            raw_depth = "f32"
             try:
-                payload = zenoh.ZBytes(encode(reply, encoding))  # converted once: reply and feed share it
+                # Depth under raw: float32, or uint16 mm with TIDEE_WIRE_DEPTH=mm (codec.wire_depth).
+                raw_depth = wire_depth()
+                # One join into bytes, one copy into Zenoh (ZBytes cannot wrap a Python buffer);
+                # the reply and the feed then share that ZBytes (put/reply take a reference).
+                payload = zenoh.ZBytes(encode(reply, encoding, raw_depth=raw_depth))
             except Exception as e:  # e.g. an episode returned a depth map of the wrong dtype
                 log.exception("session %s: cannot encode the %s reply", job.session, job.op)
                 reply = ErrorReply(ErrorCode.internal, f"cannot encode the reply: {e}", job.session)
@@ -399,20 +404,26 @@ class SimServer:
             else:
                 query.reply(query.key_expr, payload)  # congestion control: the query's (BLOCK)
             if isinstance(reply, Observation):
-                self._publish(job.session, reply, payload, encoding)  # type: ignore[arg-type]
+                self._publish(job.session, reply, payload, encoding, raw_depth)  # type: ignore[arg-type]
         except Exception:
             log.exception("session %s: could not reply to %s", job.session, job.op)
         finally:
             query.drop()  # sends the final answer now rather than when Python collects the query
 
-    def _publish(self, session: str, obs: Observation, frame: zenoh.ZBytes, encoding: str) -> None:
+    def _publish(
+        self, session: str, obs: Observation, frame: zenoh.ZBytes, encoding: str, raw_depth: str = "f32"
+    ) -> None:
         """The viewer feed: the same frame, minus any privileged ground truth."""
         with self._lock:
             entry = self._sessions.get(session)
         if entry is None or entry.publisher is None:
             return
         if obs.ground_truth is not None:
-            frame = zenoh.ZBytes(encode(dataclasses.replace(obs, ground_truth=None), encoding))
+            status: Any = entry.publisher.matching_status  # a MatchingStatus (zenoh's stubs say bool)
+            if not status.matching:
+                return  # no viewer listens: spare the second encode (and its copies)
+            stripped = dataclasses.replace(obs, ground_truth=None)
+            frame = zenoh.ZBytes(encode(stripped, encoding, raw_depth=raw_depth))
         entry.publisher.put(frame)
 
     # --- requests (on the session's worker) ----------------------------------------------

@@ -17,6 +17,7 @@ PANELS = (
     ("map", "2D map: occupancy, explored floor, the path walked and planned"),
     ("canvas", "3D map: voxels by class (or camera RGB), tracked objects, labels, the agent"),
     ("summary", "Episode finished: moved, found, put away, plausible, false picks, replay command"),
+    ("phase", "Rearrangement phase: walkthrough (mapping the goal room) or unshuffle"),
     ("episode", "Episode: phase, step, target, held object"),
     ("predictions", "Receptacle predictions: where the held object belongs (top 5)"),
     ("plot", "Progress: objects put away and found, by step"),

@@ -7,6 +7,10 @@ put a command on Zenoh. Memory stays flat: no list grows with the episode (the l
 is a bounded deque; the trajectory arrives whole in each status message; the camera-coloured
 cloud keeps at most ``scene_view.RGB_MAX_POINTS`` voxels).
 
+A rearrangement's two phases are one episode: its walkthrough memory (sent once, when the
+walkthrough ends) stays drawn through the unshuffle phase, whose step count starts again at 0
+(``phases.py``); a replay lays the unshuffle after the walkthrough on one step axis.
+
 When the agent reports the episode's end (an ``EpisodeSummary``), the page shows it in an
 "Episode finished" panel and stays live; when the viewer itself stops, it first tells the
 open pages so (they freeze, dimmed, once the connection closes).
@@ -45,6 +49,7 @@ from tidee.viewer import access, geometry, images, palette
 from tidee.viewer.config import ViewerConfig
 from tidee.viewer.feed import OBSERVATION, LiveFeed
 from tidee.viewer.panels import Panels
+from tidee.viewer.phases import rearrangement_phase, unshuffle_began
 from tidee.viewer.replay import REPLAYED_KINDS, ReplayLog
 from tidee.viewer.scene_view import LABEL_FALLBACK_HEIGHT, SceneView, oracle_objects
 
@@ -52,7 +57,7 @@ log = logging.getLogger("tidee.viewer")
 
 HISTORY_POINTS = 600  # live plot: (step, fixed, OOP found) rows kept
 SESSION_REFRESH_S = 1.0
-DRAW_ORDER = ("maps", "memory", "search", "frame", OBSERVATION, "status", "ack", "summary")
+DRAW_ORDER = ("maps", "memory", "walkthrough", "search", "frame", OBSERVATION, "status", "ack", "summary")
 REPLAY_FUSE_MAX = 150  # replay: frames fused into the coloured cloud when jumping ahead, at most
 STOP_NOTE_S = 0.3  # on stop: time for the "viewer stopped" note to reach the browsers
 
@@ -188,6 +193,7 @@ class ViewerApp:
         with self.server.atomic():
             self.scene.clear()
             self.panels.show_summary(None)
+            self.panels.show_phase(None)
         self._session_shown, self._latest, self._agent_frames = session, {}, False
         self._camera_aimed = False
         self._history.clear()
@@ -197,7 +203,12 @@ class ViewerApp:
     def _draw(self, msgs: dict[str, Any]) -> None:
         """Apply one batch (at most one message per kind) to the scene and panels."""
         status, shown = msgs.get("status"), self._latest.get("status")
-        if status is not None and shown is not None and status.step < shown.step:
+        if (
+            status is not None
+            and shown is not None
+            and status.step < shown.step
+            and not unshuffle_began(shown, status)  # a rearrangement's second phase: the same episode
+        ):
             self._switch_session(self._session_shown)  # a new episode: drop the old one's layers
         with self.server.atomic():
             for kind in DRAW_ORDER:
@@ -241,7 +252,8 @@ class ViewerApp:
                 images.draw_detections(msg.rgb, msg.detections), images.colorize_depth(msg.depth)
             )
         elif isinstance(msg, AgentStatus):
-            self.stats.last_step = msg.step
+            if self.replay is None:  # a replay counts steps on its own axis (_replay_tick)
+                self.stats.last_step = msg.step
             self.panels.show_status(msg)
             if self._history and msg.step < self._history[-1][0]:
                 self._history.clear()  # a new episode started
@@ -349,19 +361,26 @@ class ViewerApp:
             with self.server.atomic():
                 self.scene.clear()
                 self.panels.show_summary(None)
+                self.panels.show_phase(None)
             self._latest, self._agent_frames, self._cloud_upto = {}, False, -1
             msgs = self.replay.at(step)
         self._replay_shown = current
         self._catch_up_cloud(current["frame"])
         if msgs:
             self._draw(msgs)
+        if current["status"] is not None:
+            self.stats.last_step = self.replay.step_of("status", current["status"])
         with self.server.atomic():
             self.scene.push_cloud(force=True)
         self.panels.show_plot(self.replay.history(step))
         trunc = f" · **log truncated** ({self.replay.corrupt_message})" if self.replay.truncated else ""
+        status: AgentStatus | None = self._latest.get("status")
+        local = ""
+        if status is not None and rearrangement_phase(status) is not None and status.step != step:
+            local = f" ({rearrangement_phase(status)} step {status.step})"
         self.panels.show_replay_step(
             step,
-            f"step {step} of {self.replay.first_step}–{self.replay.last_step} · "
+            f"step {step}{local} of {self.replay.first_step}–{self.replay.last_step} · "
             f"{self.replay.messages} messages{trunc}",
         )
 

@@ -78,7 +78,8 @@ PANEL_BOXES = (
   });
   const canvas = document.querySelector('canvas');
   if (canvas) out.canvas = box(canvas);
-  for (const [name, id] of [['summary', 'tidee-summary'], ['predictions', 'tidee-predictions']]) {
+  for (const [name, id] of [['summary', 'tidee-summary'], ['predictions', 'tidee-predictions'],
+                            ['phase', 'tidee-phase']]) {
     const b = box(document.getElementById(id)); if (b) out[name] = b; }
   const walker = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);
   const folders = {Episode: 'episode', Agent: 'controls', Replay: 'controls', Layers: 'layers'};

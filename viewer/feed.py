@@ -34,6 +34,7 @@ from tidee.protocol.messages import (
     SearchHeatmap,
     StateReply,
     StateRequest,
+    WalkthroughMemoryMsg,
 )
 from tidee.protocol.zenoh_config import open_session, resolve_endpoint, resolve_router
 
@@ -45,6 +46,7 @@ MESSAGE_TYPES: dict[str, type] = {
     "frame": AgentFrame,
     "maps": MapSnapshot,
     "memory": ObjectMemoryMsg,
+    "walkthrough": WalkthroughMemoryMsg,
     "search": SearchHeatmap,
     "ack": CommandAck,
     "summary": EpisodeSummary,

@@ -26,6 +26,7 @@ FRUSTUM_RGB: RGB = (220, 30, 30)
 SEARCH_POINT_RGB: RGB = (230, 0, 200)
 ORACLE_RGB: RGB = (120, 120, 120)  # ground truth, in place
 ORACLE_MOVED_RGB: RGB = (200, 0, 0)  # ground truth, moved by the mess-up
+WALKTHROUGH_RGB: RGB = (150, 40, 255)  # a rearrangement's walkthrough memory (the goal room)
 
 # Twenty well-separated hues first (then golden-ratio hues): class i always gets colour i.
 _BASE = np.array(

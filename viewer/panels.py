@@ -1,5 +1,5 @@
-"""The GUI around the 3D scene: camera and map panels, episode status, plot, controls,
-and the "Episode finished" summary.
+"""The GUI around the 3D scene: camera and map panels, episode status (with a
+rearrangement's phase), plot, controls, and the "Episode finished" summary.
 
 ``Panels`` builds every widget once and exposes ``show_*`` methods that assign to the
 widgets' handles. What a person does (pick a session, pause, type a preference, move the
@@ -10,8 +10,9 @@ thread pool.
 from __future__ import annotations
 
 import html
+import math
 from collections.abc import Sequence
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import viser
@@ -19,19 +20,23 @@ import viser
 from tidee.protocol.messages import ROOM_TYPES, AgentStatus, CommandAck, EpisodeSummary
 from tidee.viewer import images, palette
 from tidee.viewer.feed import SessionInfo
+from tidee.viewer.phases import WALKTHROUGH, rearrangement_phase
 from tidee.viewer.scene_view import COLOUR_MODES, LAYERS
 
 AUTO_SESSION = "(follow newest)"
 LAYER_LABELS = {
     "voxels": "3D map",
     "objects": "Object memory",
+    "walkthrough": "Walkthrough memory",
     "agent": "Agent (camera, paths)",
     "search": "Search heatmap",
     "oracle": "Ground truth (oracle)",
 }
 LAYER_HINTS = {
+    "walkthrough": "A rearrangement: the objects the agent remembered of the goal room in its "
+    "walkthrough (violet boxes), beside what it tracks now.",
     "oracle": "Privileged: the server's true object boxes (moved objects in red), fetched "
-    "about once a second from the server's state. Not what the agent knows."
+    "about once a second from the server's state. Not what the agent knows.",
 }
 COLOUR_LABELS = {"semantic": "semantic classes", "rgb": "camera RGB", "height": "height"}
 COLOUR_HINT = (
@@ -40,6 +45,7 @@ COLOUR_HINT = (
 )
 SUMMARY_ID = "tidee-summary"  # DOM ids: the screenshot tools find these panels by them
 PREDICTIONS_ID = "tidee-predictions"
+PHASE_ID = "tidee-phase"
 
 
 class PanelActions(Protocol):
@@ -100,6 +106,8 @@ class Panels:
         gui.main_panel.dock_right()
         gui.main_panel.set_width(330)
         self.title = gui.add_markdown("**tidee viewer** · connecting…")
+        # a rearrangement's phase (walkthrough / unshuffle), in large type; hidden for tidying
+        self.phase = gui.add_html("", visible=False)
         # shown when the agent reports the episode's end (EpisodeSummary); above everything else
         self.summary = gui.add_html("", visible=False)
         self._summary_shown: EpisodeSummary | None = None
@@ -214,7 +222,11 @@ class Panels:
             self.slider = gui.add_slider(
                 "Step", min=first, max=max(last, first + 1), step=1, initial_value=first
             )
-            self.slider.on_update(lambda e: actions.replay_seek(int(e.target.value)))
+            # a person's move only: the viewer moving the slider to the step it drew (a callback on
+            # the update worker, with no client) must not undo a seek asked for meanwhile
+            self.slider.on_update(
+                lambda e: actions.replay_seek(int(e.target.value)) if e.client_id is not None else None
+            )
             self.speed = gui.add_slider("Steps / s", min=1, max=100, step=1, initial_value=10)
             self.play = gui.add_button("Play", icon=viser.Icon.PLAYER_PLAY)
             self._playing = False
@@ -236,9 +248,8 @@ class Panels:
 
     def show_status(self, s: AgentStatus) -> None:
         ep = s.episode or {}
-        mess = ep.get("mess_index")
-        room = f"{ep.get('room_type', '?')} seed {ep.get('seed', '?')}"
-        room += f" mess {mess}" if mess is not None else " (tidy)"
+        room = f"{ep.get('room_type', '?')} seed {ep.get('seed', '?')} {_episode_kind(ep)}"
+        found = "changes found" if rearrangement_phase(s) is not None else "OOP found"
         lines = [
             f"**{html.escape(s.phase)}** · step **{s.step}**"
             + (" · **PAUSED**" if s.paused else "")
@@ -246,7 +257,7 @@ class Panels:
             f"{html.escape(room)} · {html.escape(str(ep.get('variant', '')))} "
             f"{html.escape(str(ep.get('perception', '')))}",
             f"target: **{html.escape(s.target_object or '–')}** → {html.escape(s.target_receptacle or '–')}",
-            f"holding: {html.escape(s.held or '–')} · fixed **{s.objects_fixed}** · OOP found {s.oop_found}",
+            f"holding: {html.escape(s.held or '–')} · fixed **{s.objects_fixed}** · {found} {s.oop_found}",
         ]
         if s.message:
             lines.append(f"_{html.escape(s.message)}_")
@@ -254,6 +265,15 @@ class Panels:
         predictions = predictions_html([(p.label, p.prob) for p in s.predictions[:5]])
         if self.predictions.content != predictions:
             self.predictions.content = predictions
+        self.show_phase(s)
+
+    def show_phase(self, s: AgentStatus | None) -> None:
+        """The rearrangement phase banner (hidden for a tidying episode, or with None)."""
+        content = phase_html(s) if s is not None else ""
+        if self.phase.content != content:
+            self.phase.content = content
+        if self.phase.visible != bool(content):
+            self.phase.visible = bool(content)
 
     def show_plot(self, history: np.ndarray) -> None:
         """Redraw the progress plot when its data changed (``K x 3``: step, put away, found)."""
@@ -350,38 +370,94 @@ def predictions_html(preds: Sequence[tuple[str, float]]) -> str:
     )
 
 
-def summary_html(s: EpisodeSummary) -> str:
-    """The "Episode finished" box: how the episode ended, its scores and the replay command.
-    Every string is escaped (it comes from the network)."""
+def _episode_kind(ep: dict[str, Any]) -> str:
+    """``mess 3``, ``rearrangement 1`` or ``(tidy)``."""
+    if ep.get("rearrange_index") is not None:
+        return f"rearrangement {ep['rearrange_index']}"
+    return f"mess {ep['mess_index']}" if ep.get("mess_index") is not None else "(tidy)"
+
+
+def phase_html(s: AgentStatus) -> str:
+    """A rearrangement's phase in large type: the walkthrough (mapping the goal room) or the
+    unshuffle (putting the shuffled room back); empty for a tidying episode."""
+    phase = rearrangement_phase(s)
+    if phase is None:
+        return ""
+    if phase == WALKTHROUGH:
+        colour, head, what = palette.WALKTHROUGH_RGB, "WALKTHROUGH · phase 1 of 2", "mapping the goal room"
+    else:
+        colour, head, what = palette.WARNING_RGB, "UNSHUFFLE · phase 2 of 2", "putting the shuffled room back"
+        what += f" · {s.oop_found} changes believed · {s.objects_fixed} restored"
     ep = s.episode or {}
-    mess = ep.get("mess_index")
-    room = f"{ep.get('room_type', '?')} seed {ep.get('seed', '?')}" + (
-        f" mess {mess}" if mess is not None else ""
+    return (
+        f"<div id='{PHASE_ID}' style='border-left:6px solid {palette.css(colour)};background:#f7f5fb;"
+        f"border-radius:4px;padding:3px 8px;margin:2px 8px 6px;line-height:1.35'>"
+        f"<div style='font-size:1.25em;font-weight:800;color:{palette.css(colour)}'>{head}</div>"
+        f"<div style='font-size:0.8em'>{html.escape(_episode_kind(ep))} · {html.escape(what)} · "
+        f"step {s.step}</div></div>"
     )
-    who = " ".join(str(ep[k]) for k in ("variant", "perception") if ep.get(k))
 
-    def count(v: int | None, of: int | None = None) -> str:
-        if v is None:
-            return "–"
-        return f"<b>{v}</b>" + (f"/{of}" if of is not None else "")
 
+def _count(v: Any, of: Any = None) -> str:
+    if not isinstance(v, (int, float)) or isinstance(v, bool):
+        return "–"
+    return f"<b>{int(v)}</b>" + (f"/{int(of)}" if isinstance(of, (int, float)) else "")
+
+
+def _fraction(v: Any) -> str:
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+        return "–"
+    return f"<b>{float(v):.2f}</b>"
+
+
+def _score_cells(s: EpisodeSummary) -> tuple[list[tuple[str, str]], str, str]:
+    """The summary's chips, a note under them and their tooltip: RoomR's metrics for a
+    rearrangement, the tidying counts otherwise."""
+    if s.rearrange is not None:
+        r = s.rearrange
+        success = r.get("success")
+        cells = [
+            ("success", "–" if success is None else f"<b>{'yes' if success else 'no'}</b>"),
+            ("FixedStrict", _fraction(r.get("fixed_strict"))),
+            ("misplaced", _fraction(r.get("misplaced"))),
+            ("energy", _fraction(r.get("energy"))),
+            ("fixed", _count(r.get("fixed"), r.get("start_misplaced"))),
+            ("newly misplaced", _count(r.get("newly_misplaced"))),
+        ]
+        tip = (
+            "RoomR's metrics against the goal room: fixed is out of the objects the shuffle changed; "
+            "misplaced and energy are fractions of the start's (lower is better)"
+        )
+        return cells, f"<div style='color:#555'>put back or reset by the agent: {s.put_away}</div>", tip
     cells = [
-        ("moved", count(s.moved)),
-        ("found", count(s.found, s.moved)),
-        ("put away", count(s.put_away)),
-        ("plausible", count(s.plausible, s.moved)),
-        ("false picks", count(s.false_picks)),
+        ("moved", _count(s.moved)),
+        ("found", _count(s.found, s.moved)),
+        ("put away", _count(s.put_away)),
+        ("plausible", _count(s.plausible, s.moved)),
+        ("false picks", _count(s.false_picks)),
     ]
-    chips = "".join(
-        f"<span style='display:inline-block;white-space:nowrap;background:#fff;border-radius:4px;"
-        f"padding:0 5px;margin:2px 4px 0 0'>{html.escape(k)} {v}</span>"
-        for k, v in cells
-    )
     unscored = (
         "<div style='color:#777'>moved, found, plausible, false picks: not scored (the server gave no "
         "state)</div>"
         if s.moved is None
         else ""
+    )
+    tip = "found and plausible are out of the objects the mess-up moved; plausible by the simulated judge"
+    return cells, unscored, tip
+
+
+def summary_html(s: EpisodeSummary) -> str:
+    """The "Episode finished" box: how the episode ended, its scores (RoomR's metrics for a
+    rearrangement) and the replay command. Every string is escaped (it comes from the network)."""
+    ep = s.episode or {}
+    kind = _episode_kind(ep)
+    room = f"{ep.get('room_type', '?')} seed {ep.get('seed', '?')}" + (f" {kind}" if kind != "(tidy)" else "")
+    who = " ".join(str(ep[k]) for k in ("variant", "perception") if ep.get(k))
+    cells, unscored, tip = _score_cells(s)
+    chips = "".join(
+        f"<span style='display:inline-block;white-space:nowrap;background:#fff;border-radius:4px;"
+        f"padding:0 5px;margin:2px 4px 0 0'>{html.escape(k)} {v}</span>"
+        for k, v in cells
     )
     replay = (
         f"<div style='margin-top:3px'>replay: <code style='font-size:0.9em;word-break:break-all'>"
@@ -396,8 +472,7 @@ def summary_html(s: EpisodeSummary) -> str:
         f"<div>{html.escape(room)} · {html.escape(who)} · <b>{s.steps}</b> steps · "
         f"<b>{s.wall_s:.0f}</b> s</div>"
         f"<div style='color:#555'>ended: {html.escape(s.end_reason or '–')}</div>"
-        f"<div title='found and plausible are out of the objects the mess-up moved; plausible by the "
-        f"simulated judge'>{chips}</div>{unscored}{replay}</div>"
+        f"<div title='{html.escape(tip)}'>{chips}</div>{unscored}{replay}</div>"
     )
 
 
@@ -413,6 +488,7 @@ def _object_key_html() -> str:
         (palette.TRACKED_RGB, "tracked"),
         (palette.WARNING_RGB, "out of place"),
         (palette.HELD_RGB, "held"),
+        (palette.WALKTHROUGH_RGB, "walkthrough memory"),
         (palette.TRAJECTORY_RGB, "trajectory"),
         (palette.PATH_RGB, "planned path"),
         (palette.SEARCH_POINT_RGB, "search points"),

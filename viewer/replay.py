@@ -3,6 +3,10 @@
 The log (``protocol/episode_log.py``) is read once. Raw arrays of maps, memory and search
 messages stay zero-copy views of the file's bytes; frames, whose images the log stores as
 JPEG, are kept encoded and decoded only when shown, so memory stays near the log's size.
+
+A rearrangement's log holds two phases whose step counts each start at 0: the replay's step
+axis puts the unshuffle phase after the walkthrough (its step ``k`` is replay step
+``walkthrough's last + 1 + k``); the messages themselves keep the agent's own step.
 """
 
 from __future__ import annotations
@@ -19,8 +23,9 @@ import numpy as np
 from tidee.protocol import codec
 from tidee.protocol.episode_log import LogReader
 from tidee.protocol.messages import AgentFrame, AgentStatus, EpisodeSummary
+from tidee.viewer.phases import unshuffle_began
 
-REPLAYED_KINDS = ("status", "frame", "maps", "memory", "search", "summary")
+REPLAYED_KINDS = ("status", "frame", "maps", "memory", "walkthrough", "search", "summary")
 
 
 @dataclass
@@ -54,11 +59,19 @@ class ReplayLog:
         self._tracks: dict[str, _Track] = {kind: _Track() for kind in REPLAYED_KINDS}
         self.session: str | None = None
         count, last = 0, 0
+        self.unshuffle_step: int | None = None  # a rearrangement: the replay step its unshuffle begins at
+        offset, status = 0, None
         for kind, msg in reader.messages():
+            if isinstance(msg, AgentStatus):
+                if status is not None and msg.step < status.step:
+                    began = unshuffle_began(status, msg)
+                    offset = last + 1 if began else 0  # else: a new episode in the same log
+                    self.unshuffle_step = offset if began else self.unshuffle_step
+                status = msg
             if isinstance(msg, EpisodeSummary):
                 step = last  # the episode's end: shown from the last step logged before it
             elif kind in self._tracks and hasattr(msg, "step"):
-                step = int(msg.step)
+                step = offset + int(msg.step)
             else:
                 continue  # acks and unknown kinds: nothing to show at a step
             item = codec.encode(msg, "jpeg") if isinstance(msg, AgentFrame) else msg
@@ -78,9 +91,10 @@ class ReplayLog:
             logged = episode_summary(self.summary.get("summary"))  # a log whose tlog lacks it
             if logged is not None:
                 self._tracks["summary"].add(self.last_step, logged)
-        status = self._tracks["status"]
+        statuses = self._tracks["status"]
         self._history = np.array(
-            [(m.step, m.objects_fixed, m.oop_found) for m in status.items], dtype=np.float64
+            [(s, m.objects_fixed, m.oop_found) for s, m in zip(statuses.steps, statuses.items)],
+            dtype=np.float64,
         ).reshape(-1, 3)
 
     def at(self, step: int) -> dict[str, Any]:
@@ -113,6 +127,10 @@ class ReplayLog:
             idx = idx[np.unique(np.linspace(len(idx) - 1, 0, max_frames).round().astype(int))]
         for i in idx:
             yield codec.decode(self._tracks["frame"].items[int(i)])
+
+    def step_of(self, kind: str, index: int) -> int:
+        """The replay step of message ``index`` of ``kind``."""
+        return self._tracks[kind].steps[index]
 
     def count(self, kind: str) -> int:
         return len(self._tracks[kind].steps)

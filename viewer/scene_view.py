@@ -2,9 +2,11 @@
 
 Layers: the 3D map (the semantic voxel map coloured by class or by height, or the
 camera-coloured point cloud fused from the agent's RGB-D frames), the object memory
-(wireframe boxes and labels: out of place in orange, held in blue), the agent (camera
-frustum, trajectory, planned path and goal), the search heatmap on the floor with its
-ranked points, and the server's ground truth (oracle, off by default).
+(wireframe boxes and labels: out of place in orange, held in blue; in a rearrangement's
+unshuffle, a line from each object believed moved to its walkthrough place), a
+rearrangement's walkthrough memory (violet boxes: the goal room as the agent remembers it),
+the agent (camera frustum, trajectory, planned path and goal), the search heatmap on the
+floor with its ranked points, and the server's ground truth (oracle, off by default).
 
 Nodes are never re-created per message: each update assigns to a node handle's props,
 inside ``server.atomic()`` (the caller groups a whole batch). Labels come from a pool
@@ -23,11 +25,18 @@ import cv2
 import numpy as np
 import viser
 
-from tidee.protocol.messages import AgentFrame, AgentStatus, MapSnapshot, ObjectMemoryMsg, SearchHeatmap
+from tidee.protocol.messages import (
+    AgentFrame,
+    AgentStatus,
+    MapSnapshot,
+    ObjectMemoryMsg,
+    SearchHeatmap,
+    WalkthroughMemoryMsg,
+)
 from tidee.viewer import geometry, images, palette
 from tidee.viewer.colour_cloud import ColourCloud
 
-LAYERS = ("voxels", "objects", "agent", "search", "oracle")
+LAYERS = ("voxels", "objects", "walkthrough", "agent", "search", "oracle")
 COLOUR_MODES = ("semantic", "rgb", "height")  # how the 3D map is coloured (the "voxels" layer)
 RGB_VOXEL = 0.05  # the camera-coloured cloud's voxel edge (m) and its point cap
 RGB_MAX_POINTS = 150_000
@@ -144,6 +153,9 @@ class SceneView:
                 "rgb_cloud",
                 "boxes",
                 "leaders",
+                "goal_lines",
+                "goal_points",
+                "walkthrough",
                 "frustum",
                 "trajectory",
                 "path",
@@ -155,6 +167,7 @@ class SceneView:
         }
         self._map: MapSnapshot | None = None
         self._memory: ObjectMemoryMsg | None = None
+        self._walkthrough: WalkthroughMemoryMsg | None = None
         self._target_id: int | None = None
         self.colour_cloud = ColourCloud(voxel=RGB_VOXEL, cap=RGB_MAX_POINTS, floor_z=FLOOR_LAYER_TOP)
         self._cloud_step: int | None = None  # the step of the last frame fused
@@ -209,6 +222,26 @@ class SceneView:
             visible=False,
         )
         self.labels = _LabelPool(scene, "/objects/labels", MAX_LABELS)
+        # a rearrangement's unshuffle: object believed moved -> its walkthrough place
+        self.goal_lines = scene.add_line_segments(
+            "/objects/goals",
+            empty_seg,
+            palette.WARNING_RGB,
+            thickness=3.0,
+            thickness_units="screen",
+            visible=False,
+        )
+        self.goal_points = scene.add_point_cloud(
+            "/objects/goal_points", empty_pts, empty_rgb, point_size=0.07, point_shape="circle", visible=False
+        )
+        self.walkthrough_boxes = scene.add_line_segments(
+            "/walkthrough/boxes",
+            empty_seg,
+            palette.WALKTHROUGH_RGB,
+            thickness=2.0,
+            thickness_units="screen",
+            visible=False,
+        )
         self.frustum = scene.add_camera_frustum(
             "/agent/camera",
             fov=STATUS_FOV,
@@ -252,6 +285,9 @@ class SceneView:
             "rgb_cloud": ("voxels", self.rgb_cloud),
             "boxes": ("objects", self.boxes),
             "leaders": ("objects", self.leaders),
+            "goal_lines": ("objects", self.goal_lines),
+            "goal_points": ("objects", self.goal_points),
+            "walkthrough": ("walkthrough", self.walkthrough_boxes),
             "frustum": ("agent", self.frustum),
             "trajectory": ("agent", self.trajectory),
             "path": ("agent", self.path),
@@ -312,7 +348,7 @@ class SceneView:
         for pool in (self.labels, self.search_labels, self.oracle_labels):
             pool.show([])
         self._map, self.counts, self._has_frame = None, {}, False
-        self._memory, self._target_id = None, None
+        self._memory, self._target_id, self._walkthrough = None, None, None
         self.colour_cloud.clear()
         self._cloud_step, self._cloud_dirty = None, False
 
@@ -321,6 +357,7 @@ class SceneView:
         handler = {
             "maps": self.apply_maps,
             "memory": self.apply_memory,
+            "walkthrough": self.apply_walkthrough,
             "status": self.apply_status,
             "frame": self.apply_frame,
             "search": self.apply_search,
@@ -376,9 +413,29 @@ class SceneView:
             ).reshape(-1, 2, 3)
             self.boxes.points, self.boxes.colors = segments, colors
         self._set_has("boxes", bool(objs))
+        goals = [o for o in objs if o.goal_centroid is not None and not o.held]
+        if goals:
+            ends = np.array([(o.centroid, o.goal_centroid) for o in goals], np.float32)
+            self.goal_lines.points = ends
+            self.goal_points.points = np.ascontiguousarray(ends[:, 1])
+            self.goal_points.colors = np.tile(np.array(palette.WARNING_RGB, np.uint8), (len(goals), 1))
+        self._set_has("goal_lines", bool(goals))
+        self._set_has("goal_points", bool(goals))
         self._memory = msg
         self._layout_labels()
         self.counts["objects"] = len(objs)
+        self.counts["goals"] = len(goals)
+
+    def apply_walkthrough(self, msg: WalkthroughMemoryMsg) -> None:
+        """A rearrangement's walkthrough memory: the goal room's objects as violet boxes."""
+        objs = msg.objects
+        if objs:
+            mins = np.array([o.box_min for o in objs], np.float32)
+            maxs = np.array([o.box_max for o in objs], np.float32)
+            self.walkthrough_boxes.points = geometry.boxes_segments(mins, maxs)
+        self._set_has("walkthrough", bool(objs))
+        self._walkthrough = msg
+        self.counts["walkthrough"] = len(objs)
 
     def _layout_labels(self) -> None:
         """Label the objects that matter now (or all of them), placed so that none covers
@@ -552,7 +609,9 @@ def labelled_objects(objects: list[Any], target_id: int | None, label_all: bool)
 def _object_text(o: Any, target: bool = False) -> str:
     if o.held:
         return f"{o.label} (held)"
-    if o.out_of_place:
+    if getattr(o, "goal_centroid", None) is not None:
+        text = f"{o.label}: moved"
+    elif o.out_of_place:
         p = f" {o.oop_prob:.2f}" if o.oop_prob is not None else ""
         text = f"{o.label}: out of place{p}"
     else:

@@ -15,6 +15,7 @@ from tidee.agent.config import (
     AgentConfig,
     PerceptionMode,
 )
+from tidee.agent.evaluation.conditions import CONDITIONS, Condition, check_condition
 from tidee.options import option
 from tidee.protocol.vocab import HeldOutSplit, Renderer, RoomType
 from tidee.server.config import RENDERER_HELP, TRAINED_RENDERER
@@ -26,7 +27,10 @@ class TidyEvalConfig:
 
     ``agent`` holds every agent option (perception, OOP detector, policy thresholds ...) except
     ``variant`` and ``seed``: each episode runs each of ``variants`` with the agent seed set to
-    the configuration's index.
+    the configuration's index, once under each of ``conditions`` (one report row each).
+
+    ``agent.depth`` "estimated" is the est-depth condition for every row: alone (conditions left
+    at clean) it runs the est-depth rows; with conditions that use the sensor it is refused.
     """
 
     out: Path = option(help="directory for report.json, report.md and the plots", type=argtypes.output_path)
@@ -36,6 +40,12 @@ class TidyEvalConfig:
     )
     variants: tuple[str, ...] = option(
         (*PAPER_VARIANTS, *REFERENCE_VARIANTS), "comma list of agents and reference rows"
+    )
+    conditions: tuple[Condition, ...] = option(
+        ("clean",),
+        "comma list; each agent runs under each, one report row apiece: clean (the variant's name), "
+        "noisy-pose (VARIANT +noisy pose: LoCoBot-like odometry noise), est-depth (VARIANT +est. depth: "
+        "depth from RGB by the depth network), noisy-depth (VARIANT +noisy depth)",
     )
     agent: AgentConfig = option(default_factory=AgentConfig)
     resolution: int = option(256, "square images, pixels a side", type=argtypes.resolution)
@@ -53,6 +63,21 @@ class TidyEvalConfig:
     )
     resume: bool = option(False, "skip the episodes OUT/episodes.jsonl already holds (an interrupted run)")
     progress: bool = option(True, "a progress bar", cli=False)
+
+    def __post_init__(self) -> None:
+        self.conditions = tuple(dict.fromkeys(check_condition(c) for c in self.conditions))
+        if not self.conditions:
+            raise ValueError(f"give at least one condition ({', '.join(CONDITIONS)})")
+        if self.agent.depth == "estimated":
+            if self.conditions == ("clean",):
+                self.conditions = ("est-depth",)  # every row estimates depth: name them so
+            elif self.conditions != ("est-depth",):
+                sensor = [c for c in self.conditions if c != "est-depth"]
+                raise ValueError(
+                    f"--depth estimated contradicts --conditions {','.join(self.conditions)}: "
+                    f"{', '.join(sensor)} use the depth sensor; drop --depth estimated and list est-depth "
+                    "among the conditions"
+                )
 
 
 # Flags of AgentConfig that eval tidy sets per episode rather than from the command line.

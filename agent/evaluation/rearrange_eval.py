@@ -87,15 +87,14 @@ class RearrangeJob:
 
 
 def row_setup(row: str, agent: AgentConfig, spec: EpisodeSpec) -> tuple[AgentConfig | None, EpisodeSpec]:
-    """The agent and episode of ``row`` from the clean ones."""
+    """The agent and episode of ``row`` from the clean ones (the noise and depth rows are the
+    conditions of ``tidee.agent.evaluation.conditions``, shared with ``eval tidy``)."""
+    from tidee.agent.evaluation.conditions import CONDITIONS, apply_condition
+
     if row == "do-nothing":
         return None, spec
-    if row == "noisy-pose":
-        return agent, replace(spec, pose_noise=True)
-    if row == "noisy-depth":
-        return agent, replace(spec, depth_noise=True)
-    if row == "est-depth":
-        return replace(agent, depth="estimated"), spec
+    if row in CONDITIONS:
+        return apply_condition(row, agent, spec)
     if row == "oracle":
         return replace(agent, perception="oracle", oop="auto"), spec
     return agent, spec

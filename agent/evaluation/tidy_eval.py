@@ -1,7 +1,9 @@
 """``tidee eval tidy``: tidy episodes on held-out rooms, scored by the simulated judge.
 
 Runs each requested agent variant on the same messy configurations of a split (test by
-default: 20 rooms x 5 messes) on worker processes or Ray actors (``backends``: one simulator
+default: 20 rooms x 5 messes), once under each requested condition (``--conditions``: clean,
+noisy pose, estimated or noisy depth; one report row each, named as in the paper, e.g.
+"TIDEE +noisy pose"), on worker processes or Ray actors (``backends``: one simulator
 and one set of loaded models per worker), streams each episode's record to
 ``OUT/episodes.jsonl`` (``--resume`` skips the episodes already there), and writes
 ``report.json``, ``report.md`` and PNG plots through ``tidee.agent.evaluation.report``.
@@ -23,6 +25,7 @@ import numpy as np
 from tidee.agent.config import REFERENCE_VARIANTS, AgentConfig, check_variant_built
 from tidee.agent.evaluation import backends
 from tidee.agent.evaluation.backends import Backend, worker_models, worker_transport
+from tidee.agent.evaluation.conditions import CONDITION_MEANINGS, Condition, apply_condition, row_name
 from tidee.agent.evaluation.config import TidyEvalConfig
 from tidee.protocol.messages import EpisodeSpec
 
@@ -45,17 +48,25 @@ def select_configs(split: str, episodes: int | None) -> list[Any]:
 
 @dataclass(frozen=True)
 class TidyJob:
-    """One episode of the eval: the agent and the episode, as the config objects themselves."""
+    """One episode of the eval: the agent and the episode, as the config objects themselves, and
+    the condition (``tidee.agent.evaluation.conditions``) they were built for."""
 
     agent: AgentConfig
     spec: EpisodeSpec
     split: str
     renderer: str
     log_dir: Path | None = None
+    condition: Condition = "clean"
+
+    @property
+    def row(self) -> str:
+        """The report row: the variant's name, with the condition's suffix unless clean."""
+        return row_name(self.agent.variant, self.condition)
 
     def key(self) -> str:
         """The episode's key in ``episodes.jsonl``: agent, room, seed, mess and a digest of every
-        option that shapes the episode (a resumed run with other options runs it again)."""
+        option that shapes the episode (a resumed run with other options runs it again; each
+        condition changes the agent's depth or the episode's noise, so the digest)."""
         shape = {
             "agent": asdict(self.agent),
             "spec": asdict(self.spec),
@@ -66,6 +77,20 @@ class TidyJob:
         s = self.spec
         return f"{self.agent.variant}/{s.room_type}/{s.seed}/mess{s.mess_index}/{digest}"
 
+    def label(self, record: dict[str, Any]) -> dict[str, Any]:
+        """``record`` (this job's episode) with its row and condition: ``variant`` the report row,
+        ``agent_variant`` the agent, and the condition's settings."""
+        return dict(
+            record,
+            variant=self.row,
+            agent_variant=self.agent.variant,
+            condition=self.condition,
+            pose_noise=self.spec.pose_noise,
+            depth_noise=self.spec.depth_noise,
+            depth=self.agent.depth,
+            split=self.split,
+        )
+
 
 def _run_one(job: TidyJob) -> dict[str, Any]:
     """One episode in this worker's own simulator with its loaded models (module-level so it pickles)."""
@@ -74,13 +99,14 @@ def _run_one(job: TidyJob) -> dict[str, Any]:
     cfg, spec = job.agent, job.spec
     transport = worker_transport(job.renderer)
     runner = EpisodeRunner(cfg, transport, session="eval", log_dir=job.log_dir, models=worker_models(cfg))
+    suffix = "" if job.condition == "clean" else f"_{job.condition}"
     res = runner.run(
         spec,
         evaluate=True,
-        episode_name=f"{cfg.variant}_{spec.room_type}_{spec.seed}_mess{spec.mess_index}",
+        episode_name=f"{cfg.variant}{suffix}_{spec.room_type}_{spec.seed}_mess{spec.mess_index}",
     )
     assert res.record is not None
-    record = dict(res.record, split=job.split)
+    record = job.label(res.record)
     record["timing_ms"] = {k: float(np.median(v)) if v else None for k, v in res.timings.items()}
     return record
 
@@ -111,20 +137,51 @@ def run_jobs(
     )
 
 
-def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
-
-    from tidee.agent.evaluation.report import with_references, write_report
-
-    agent = cfg.agent  # "auto" OOP resolved, a bad threshold or missing_top refused: before any episode
-    split, variants, workers, renderer = cfg.split, list(cfg.variants), cfg.workers, cfg.renderer
-    perception, oop, depth, explorer = agent.perception, agent.oop, agent.depth, agent.explorer
-    missing_top, detection_threshold = agent.policy.missing_top, agent.detection_threshold
-    resolution, max_steps, progress = cfg.resolution, cfg.max_steps, cfg.progress
-    agents = [v for v in variants if v not in REFERENCE_VARIANTS]
+def agent_variants(cfg: TidyEvalConfig) -> list[str]:
+    """The agents among ``cfg.variants`` (not the reference rows), each checked to be built."""
+    agents = [v for v in cfg.variants if v not in REFERENCE_VARIANTS]
     for v in agents:
         check_variant_built(v)  # reads the placement registry: a registered variant of yours is an agent
     if not agents:
         raise ValueError("give at least one agent variant (the reference rows need an agent's episodes)")
+    return agents
+
+
+def build_jobs(cfg: TidyEvalConfig, configs: list[Any] | None = None) -> list[TidyJob]:
+    """Every episode of the eval, without running any: per configuration, each agent under each
+    condition (``configs``: ``select_configs(cfg.split, cfg.episodes)`` when None)."""
+    agent = cfg.agent  # "auto" OOP resolved, a bad threshold or missing_top refused: before any episode
+    agents = agent_variants(cfg)
+    if configs is None:
+        configs = select_configs(cfg.split, cfg.episodes)
+    log_dir = Path(cfg.out) / "logs" if cfg.keep_logs else None
+    jobs = []
+    for c in configs:
+        base = EpisodeSpec(
+            room_type=c.room_type,
+            seed=c.seed,
+            mess_index=c.mess_index,
+            resolution=cfg.resolution,
+            max_steps=cfg.max_steps,
+        )
+        for v in agents:
+            for condition in cfg.conditions:
+                row_agent, spec = apply_condition(condition, replace(agent, variant=v, seed=c.index), base)
+                jobs.append(TidyJob(row_agent, spec, cfg.split, cfg.renderer, log_dir, condition))
+    return jobs
+
+
+def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
+
+    from tidee.agent.evaluation.report import with_references, write_report
+
+    agent = cfg.agent
+    split, variants, workers, renderer = cfg.split, list(cfg.variants), cfg.workers, cfg.renderer
+    perception, oop, depth, explorer = agent.perception, agent.oop, agent.depth, agent.explorer
+    missing_top, detection_threshold = agent.policy.missing_top, agent.detection_threshold
+    resolution, max_steps, progress = cfg.resolution, cfg.max_steps, cfg.progress
+    conditions = list(cfg.conditions)
+    agents = agent_variants(cfg)
     if cfg.ray_address is not None and cfg.backend != "ray":
         raise ValueError("--ray-address is for --backend ray")
     if cfg.backend == "ray":
@@ -132,23 +189,7 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     configs = select_configs(split, cfg.episodes)
-    jobs = [
-        TidyJob(
-            agent=replace(agent, variant=v, seed=c.index),
-            spec=EpisodeSpec(
-                room_type=c.room_type,
-                seed=c.seed,
-                mess_index=c.mess_index,
-                resolution=resolution,
-                max_steps=max_steps,
-            ),
-            split=split,
-            renderer=renderer,
-            log_dir=out / "logs" if cfg.keep_logs else None,
-        )
-        for c in configs
-        for v in agents
-    ]
+    jobs = build_jobs(cfg, configs)
     t0 = time.time()
     episodes_file = out / EPISODES_FILE
     resumed = len({j.key() for j in jobs} & set(backends.read_records(episodes_file))) if cfg.resume else 0
@@ -162,9 +203,14 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
         out_jsonl=episodes_file,
         resume=cfg.resume,
     )
+    records = [j.label(r) for j, r in zip(jobs, records, strict=True)]  # resumed records too
     retries = sum(int(r.get("retries", 0)) for r in records)
-    all_records = with_references(records)
-    keep = set(variants) | set(agents)
+    # The reference rows depend on the mess only, not on the agent's perception: built once per
+    # configuration, from a clean record where there is one.
+    ordered = sorted(records, key=lambda r: r["condition"] != "clean")
+    all_records = records + with_references(ordered)[len(ordered) :]
+    rows = [j.row for j in jobs]
+    keep = set(variants) | set(rows)
     if not any(v in REFERENCE_VARIANTS for v in variants):
         keep |= set(REFERENCE_VARIANTS)  # the reference rows are always part of Table 1
     all_records = [r for r in all_records if r["variant"] in keep]
@@ -173,8 +219,9 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
         for k in ("perception_ms", "mapping_ms", "planning_ms", "step_ms", "sim_ms")
     }
     notes = [
-        f"split={split}, {len(configs)} messy configurations x {len(agents)} agents, "
-        f"resolution {resolution}, max {max_steps} steps, OOP detector '{oop}', explorer '{explorer}', "
+        f"split={split}, {len(configs)} messy configurations x {len(agents)} agents"
+        + (f" x {len(conditions)} conditions" if len(conditions) > 1 else "")
+        + f", resolution {resolution}, max {max_steps} steps, OOP detector '{oop}', explorer '{explorer}', "
         f"missing top receptacle: {missing_top}",
         f"perception: {perception}"
         + (
@@ -183,10 +230,21 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
             else " (the shipped RGB-D detector)"
         )
         + f", depth: {depth}"
+        + (" (the est-depth rows: estimated)" if depth != "estimated" and "est-depth" in conditions else "")
         + (f", detection threshold {detection_threshold}" if detection_threshold is not None else ""),
+        "conditions (one row per agent and condition): "
+        + "; ".join(f"{row_name('VARIANT', c)}: {c}, {CONDITION_MEANINGS[c]}" for c in conditions)
+        + (
+            "; the reference rows come once per configuration from "
+            + ("its clean episodes" if "clean" in conditions else "its first episode")
+            + " (they depend on the mess only)"
+            if conditions != ["clean"]
+            else ""
+        ),
         "median per-step agent time (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in timing.items()),
         f"command: tidee eval tidy --split {split} --episodes {len(configs)} --variants {','.join(variants)} "
-        f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} "
+        + (f"--conditions {','.join(conditions)} " if conditions != ["clean"] else "")
+        + f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} "
         f"--missing-top {missing_top} "
         + (f"--detection-threshold {detection_threshold} " if detection_threshold is not None else "")
         + f"--max-steps {max_steps} --resolution {resolution} --workers {workers} "

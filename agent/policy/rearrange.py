@@ -24,6 +24,7 @@ simulator's segmentation instead (a named variant in every report).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -50,6 +51,8 @@ SURVEY_SPACING_M = 1.2  # survey waypoints are at least this far apart
 STAY_M = 0.5  # a pickupable this close to its walkthrough match has not moved
 OPEN_M = 0.15  # an openable's box growing (or shrinking) by this much changed its openness
 MIN_OBS = 2  # tracks seen fewer times are not trusted to say that something moved
+DOOR_CELLS = 8  # obstacle cells (5 cm) that must appear or vanish beside a floor-standing openable
+FLOOR_STANDING_Z = 0.3  # an openable whose box starts below this stands on the floor
 FLOOR_Z = 0.08  # a remembered object whose box starts this low stood on the floor
 
 
@@ -144,8 +147,45 @@ def box_change(then: Seen, now: TrackedObject) -> tuple[float, float]:
     return grown, shrunk
 
 
-def find_toggles(then: list[Seen], now: list[TrackedObject], open_m: float = OPEN_M) -> list[Toggle]:
-    """Openables matched across the phases whose box grew or shrank by more than ``open_m``."""
+@dataclass(frozen=True)
+class Occupancy:
+    """A phase's 2D obstacle map and the cells it observed (``SemanticMapper``'s, same grid)."""
+
+    obstacle: np.ndarray
+    seen: np.ndarray
+
+    @staticmethod
+    def of(mapper: Any) -> Occupancy:
+        return Occupancy(mapper.obstacle.copy(), mapper.explored | mapper.obstacle)
+
+
+def door_evidence(
+    grid: Any, then: Occupancy, now: Occupancy, box_min: np.ndarray, box_max: np.ndarray, reach_m: float = 0.9
+) -> tuple[int, int]:
+    """(appeared, vanished): cells within ``reach_m`` of a footprint, observed in both phases, that
+    are obstacles now but were free then (a door swung open, a drawer pulled out) and the
+    other way round. The depth map decides, not the detector's boxes."""
+    xs = grid.origin[0] + (np.arange(grid.shape[0]) + 0.5) * grid.cell
+    ys = grid.origin[1] + (np.arange(grid.shape[1]) + 0.5) * grid.cell
+    near = footprint_gap(box_min, box_max, xs[:, None], ys[None, :]) <= reach_m
+    both = near & then.seen & now.seen
+    return int((both & now.obstacle & ~then.obstacle).sum()), int(
+        (both & then.obstacle & ~now.obstacle).sum()
+    )
+
+
+def find_toggles(
+    then: list[Seen],
+    now: list[TrackedObject],
+    open_m: float = OPEN_M,
+    maps: tuple[Any, Occupancy, Occupancy] | None = None,
+    min_cells: int = DOOR_CELLS,
+) -> list[Toggle]:
+    """Openables matched across the phases whose box grew or shrank by more than ``open_m``.
+    With ``maps`` (grid, walkthrough and unshuffle occupancy), a piece standing on the floor
+    must also show at least ``min_cells`` obstacle cells appear (or vanish) beside it, and
+    that decides the direction: a big piece's boxes differ between views far more than its
+    door does."""
     then = [s for s in then if s.label in OPENABLE]
     now = [o for o in now if o.label in OPENABLE]
     toggles = []
@@ -153,8 +193,17 @@ def find_toggles(then: list[Seen], now: list[TrackedObject], open_m: float = OPE
         if d > 1.0:  # not the same piece of furniture
             continue
         grown, shrunk = box_change(s, o)
-        if max(grown, shrunk) > open_m:
-            toggles.append(Toggle(o, s, opened=grown >= shrunk, change_m=max(grown, shrunk)))
+        if max(grown, shrunk) <= open_m:
+            continue
+        opened = grown >= shrunk
+        if maps is not None and min(float(s.box_min[2]), float(o.box_min[2])) < FLOOR_STANDING_Z:
+            grid, before, after = maps
+            lo, hi = np.minimum(s.box_min, o.box_min), np.maximum(s.box_max, o.box_max)
+            appeared, vanished = door_evidence(grid, before, after, lo, hi)
+            if max(appeared, vanished) < min_cells:
+                continue
+            opened = appeared >= vanished
+        toggles.append(Toggle(o, s, opened=opened, change_m=max(grown, shrunk)))
     # One piece of furniture can leave two tracks (an open door seen apart from its body): keep
     # the larger change, so a second track never toggles it back.
     kept: list[Toggle] = []
@@ -187,6 +236,7 @@ class RearrangePolicy(TidyPolicy):
             pass
         walk_steps = int(self.body.obs.step)
         self.walkthrough = [Seen.of(o) for o in self.body.mapper.memory]
+        walk_map = Occupancy.of(self.body.mapper)
         self.event("walkthrough_done", steps=self.body.obs.step, objects=len(self.walkthrough))
         yield Action(ActionName.Done)  # the runner starts the unshuffle phase
         self.frontier = FrontierExplorer(self.body.mapper.grid)
@@ -198,7 +248,8 @@ class RearrangePolicy(TidyPolicy):
             min(walk_steps - self.body.obs.step, self.body.steps_left() - self.p.reserve_steps)
         )
         now = list(self.body.mapper.memory)
-        self.toggles = find_toggles(self.walkthrough, now)
+        maps = (self.body.mapper.grid, walk_map, Occupancy.of(self.body.mapper))
+        self.toggles = find_toggles(self.walkthrough, now, maps=maps)
         self.moves = find_moves(self.walkthrough, now)
         self.state.oop_found = len(self.moves) + len(self.toggles)
         for t in self.toggles:
@@ -398,9 +449,11 @@ class RearrangePolicy(TidyPolicy):
         self.event("put_back", label=seen.label, how=how, receptacle=self.state.target_receptacle)
         return True
 
-    def _point_sighting(self, point: np.ndarray) -> Sighting | None:
-        """The pixel where a start-frame point projects, if in view and not hidden behind
-        something nearer than it (the ray reaches it)."""
+    def _point_sighting(self, point: np.ndarray, window: int = 12) -> Sighting | None:
+        """The pixel whose surface point (from the depth map) lies nearest, in (x, y), to a
+        start-frame point in view: the ray through the point itself meets the surface off it
+        when the point's height is a little off; None when out of view or hidden behind
+        something nearer."""
         obs = self.body.obs
         h, w = obs.depth.shape
         u, v, z = project(point[None, :], obs.intrinsics, obs.camera_pose)
@@ -409,13 +462,16 @@ class RearrangePolicy(TidyPolicy):
         ui, vi = int(u[0]), int(v[0])
         if float(obs.depth[vi, ui]) < float(z[0]) - 0.25:
             return None  # something nearer stands in the way
-        pts, _ = unproject(
-            obs.depth,
-            obs.intrinsics,
-            obs.camera_pose,
-            mask=np.eye(1, h * w, vi * w + ui, dtype=bool).reshape(h, w),
-        )
+        mask = np.zeros((h, w), bool)
+        mask[max(vi - window, 0) : vi + window + 1, max(ui - window, 0) : ui + window + 1] = True
+        pts, pix = unproject(obs.depth, obs.intrinsics, obs.camera_pose, mask=mask)
         if len(pts) == 0:
             return None
+        near_height = np.abs(pts[:, 2] - point[2]) < 0.15
+        if not near_height.any():
+            return None
+        gap = np.linalg.norm(pts[:, :2] - point[:2], axis=1) + np.where(near_height, 0.0, np.inf)
+        k = int(np.argmin(gap))
         cam = obs.camera_pose[:3, 3]
-        return Sighting(None, ui, vi, float(np.linalg.norm(pts[0] - cam)), pts[0])
+        pv, pu = divmod(int(pix[k]), w)
+        return Sighting(None, pu, pv, float(np.linalg.norm(pts[k] - cam)), pts[k])

@@ -39,6 +39,7 @@ from tidee.protocol.messages import (
     StateRequest,
     StepRequest,
     TrackedObjectMsg,
+    WalkthroughMemoryMsg,
 )
 
 PREFIX = struct.Struct("<4sHI")
@@ -145,6 +146,31 @@ EXAMPLES: list[Any] = [
     ObjectMemoryMsg(
         "s1", 7, [TrackedObjectMsg(2, "Mug", 1.0, (1.0, 0.0, 0.9), (0.9, -0.1, 0.85), (1.1, 0.1, 0.95))]
     ),
+    ObjectMemoryMsg(  # a rearrangement's unshuffle: a mug believed moved, and where it goes back
+        "s1",
+        7,
+        [
+            TrackedObjectMsg(
+                2,
+                "Mug",
+                1.0,
+                (1.0, 0.0, 0.9),
+                (0.9, -0.1, 0.85),
+                (1.1, 0.1, 0.95),
+                None,
+                True,
+                goal_centroid=(-0.5, 1.25, 0.8),
+            )
+        ],
+    ),
+    WalkthroughMemoryMsg(
+        "s1",
+        54,
+        [
+            TrackedObjectMsg(0, "Mug", 1.0, (-0.5, 1.25, 0.8), (-0.55, 1.2, 0.75), (-0.45, 1.3, 0.85)),
+            TrackedObjectMsg(1, "Fridge", 1.0, (2.0, 0.0, 0.9), (1.6, -0.4, 0.0), (2.4, 0.4, 1.8)),
+        ],
+    ),
     SearchHeatmap(
         "s1", 7, "Desk", (-6.4, -6.4), 0.1, np.zeros((4, 4), np.float32), np.zeros((2, 2), np.float32)
     ),
@@ -162,6 +188,23 @@ EXAMPLES: list[Any] = [
         plausible=4,
         false_picks=0,
         replay="tidee viewer --replay runs/Kitchen_200_mess0",
+    ),
+    EpisodeSummary(
+        "s1",
+        {"room_type": "Kitchen", "seed": 201, "rearrange_index": 1},
+        92,
+        4.1,
+        "restored what it found",
+        3,
+        rearrange={
+            "success": False,
+            "fixed_strict": 0.75,
+            "misplaced": 0.25,
+            "energy": 0.25,
+            "start_misplaced": 4,
+            "fixed": 3,
+            "newly_misplaced": 0,
+        },
     ),
 ]
 
@@ -438,3 +481,117 @@ def test_oversized_frame() -> None:
 def test_protocol_error_names_its_code() -> None:
     err = ProtocolError(ErrorCode.malformed, "x")
     assert str(err) == "malformed: x" and err.code is ErrorCode.malformed and err.message == "x"
+
+
+# --- raw-depth-mm: depth as uint16 millimetres under raw --------------------------------
+
+
+def mm_frame(obs: Observation | None = None) -> bytes:
+    return encode(observation(32) if obs is None else obs, raw_depth="mm")
+
+
+def test_raw_depth_mm_round_trip_is_millimetric_and_half_the_bytes() -> None:
+    obs = observation(64, ground_truth=True)
+    frame = mm_frame(obs)
+    header_len = PREFIX.unpack_from(frame)[2]
+    fields = json.loads(frame[PREFIX.size : PREFIX.size + header_len])["fields"]
+    assert fields["depth"]["encoding"] == "raw-depth-mm" and fields["depth"]["dtype"] == "<f4"
+    assert fields["depth"]["nbytes"] == 64 * 64 * 2 and fields["depth"]["offset"] % ALIGN == 0
+    assert fields["rgb"]["encoding"] == "raw"  # only depth maps change
+    assert len(encode(obs)) - len(frame) >= 64 * 64 * 2 - 2 * ALIGN  # a longer header, padding
+    out = decode(frame)
+    assert out.depth.dtype == np.float32 and out.depth.shape == (64, 64)
+    assert np.abs(out.depth - obs.depth).max() <= 0.0005 + 1e-6
+    assert_same(obs.rgb, out.rgb)  # the rest is exact, and rgb still a view of the frame
+    assert not out.rgb.flags.writeable
+    assert_same(obs.ground_truth, out.ground_truth)
+    assert_same(obs.camera_pose, out.camera_pose)
+    frame_agent = AgentFrame("s1", 1, obs.rgb, obs.depth, np.eye(4), np.eye(3), [])
+    assert np.abs(decode(encode(frame_agent, raw_depth="mm")).depth - obs.depth).max() <= 0.0005 + 1e-6
+
+
+def test_raw_depth_mm_special_values() -> None:
+    """0 and no-return (nan, +-inf, negative, under 0.5 mm) decode to 0; past 65.535 m clamps."""
+    obs = observation(16)
+    values = [0.0, 0.0004, 0.0005, 0.001, 1.234, 65.535, 65.5354, 100.0, np.nan, np.inf, -np.inf, -1.0, 3e38]
+    obs.depth[0, : len(values)] = values
+    out = decode(mm_frame(obs)).depth[0, : len(values)]
+    want = [0.0, 0.0, 0.0, 0.001, 1.234, 65.535, 65.535, 65.535, 0.0, 0.0, 0.0, 0.0, 65.535]
+    assert out.tolist() == np.array(want, np.float32).tolist()  # whole millimetres come back exactly
+    assert decode(mm_frame(dataclasses.replace(obs, depth=np.zeros((16, 16), np.float32)))).depth.max() == 0.0
+
+
+def test_raw_depth_mm_is_opt_in_and_f32_still_decodes() -> None:
+    obs = observation(32)
+    assert_same(obs, decode(encode(obs)))  # the default: float32, exact
+    assert_same(obs, decode(encode(obs, raw_depth="f32")))
+    png = decode(encode(obs, "png", raw_depth="mm"))  # png/jpeg carry millimetres either way
+    assert np.abs(png.depth - obs.depth).max() <= 0.0005 + 1e-6
+    with pytest.raises(ValueError, match="raw_depth must be one of"):
+        encode(obs, raw_depth="f16")
+
+
+def test_wire_depth_comes_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    from tidee.protocol.codec import WIRE_DEPTH_ENV, wire_depth
+
+    monkeypatch.delenv(WIRE_DEPTH_ENV, raising=False)
+    assert wire_depth() == "f32"  # exact unless the server is told otherwise
+    monkeypatch.setenv(WIRE_DEPTH_ENV, "mm")
+    assert wire_depth() == "mm"
+    monkeypatch.setenv(WIRE_DEPTH_ENV, "float16")
+    with pytest.raises(ValueError, match="TIDEE_WIRE_DEPTH must be one of"):
+        wire_depth()
+
+
+@pytest.mark.parametrize(
+    "mutate, code, fragments",
+    [
+        (set_in("depth.nbytes", 2046), ErrorCode.invalid_field, ["field 'depth'", "nbytes is 2046"]),
+        (set_in("depth.nbytes", 2064), ErrorCode.invalid_field, ["field 'depth'", "raw-depth-mm"]),
+        (set_in("depth.shape", [16, 16]), ErrorCode.invalid_field, ["field 'depth'", "nbytes is 2048"]),
+        (set_in("depth.offset", 10**6), ErrorCode.malformed, ["truncated", "field 'depth'"]),
+        (set_in("depth.dtype", "<u2"), ErrorCode.invalid_field, ["field 'depth' must be float32 NxN"]),
+        (set_in("rgb.encoding", "raw-depth-mm"), ErrorCode.invalid_field, ["field 'rgb.encoding' must be"]),
+        (
+            set_in("camera_pose.encoding", "raw-depth-mm"),
+            ErrorCode.invalid_field,
+            ["field 'camera_pose.encoding' must be"],
+        ),
+    ],
+)
+def test_raw_depth_mm_rejects_malformed_buffers(
+    mutate: Callable[[dict], None], code: ErrorCode, fragments: list[str]
+) -> None:
+    rejects(reframe(mm_frame(), mutate), code, *fragments)
+
+
+def test_raw_depth_mm_truncated_buffer() -> None:
+    frame = mm_frame()
+    header_len = PREFIX.unpack_from(frame)[2]
+    depth = json.loads(frame[PREFIX.size : PREFIX.size + header_len])["fields"]["depth"]
+    cut = frame[: PREFIX.size + header_len + depth["offset"] + depth["nbytes"] - 1]
+    rejects(cut, ErrorCode.malformed, "truncated", "field 'depth'")
+
+
+def test_agent_sees_the_same_points_within_a_millimetre() -> None:
+    """What the agent's mapping makes of mm depth: the same pixels, points within 1 mm."""
+    from tidee.agent.mapping.geometry import unproject
+
+    rng = np.random.default_rng(5)
+    obs = observation(64)
+    obs.depth[:] = rng.uniform(0.03, 12.0, (64, 64)).astype(np.float32)
+    obs.depth[:2] = 0.0  # no return
+    pose = np.eye(4)
+    pose[:3, 3] = (0.2, -0.3, 0.9)
+    obs = dataclasses.replace(obs, camera_pose=pose)
+    out = decode(mm_frame(obs))
+    assert isinstance(out.depth, np.ndarray) and out.depth.dtype == np.float32
+    exact, exact_pix = unproject(obs.depth, obs.intrinsics, obs.camera_pose)
+    got, got_pix = unproject(out.depth, out.intrinsics, out.camera_pose)
+    # Only a depth within 0.5 mm of the 0.05 m / 10 m cut-offs can cross one; the rest map alike.
+    flipped = np.setxor1d(exact_pix, got_pix)
+    near_cut = np.minimum(np.abs(obs.depth.ravel() - 0.05), np.abs(obs.depth.ravel() - 10.0)) <= 0.0005
+    assert near_cut[flipped].all()
+    both, i, j = np.intersect1d(exact_pix, got_pix, return_indices=True)
+    rays = np.linalg.norm(exact[i] - pose[:3, 3], axis=1) / obs.depth.ravel()[both]
+    assert (np.linalg.norm(got[j] - exact[i], axis=1) <= 0.0005 * rays + 1e-5).all()

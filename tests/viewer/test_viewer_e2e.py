@@ -7,8 +7,11 @@ page. Three moments are screenshotted and checked panel by panel (each panel's r
 in the page's DOM, must hold a picture): early (the first map), mid-episode (an object
 labelled out of place, the agent paused from the page) and after the episode ended (the
 "Episode finished" panel with the agent's summary, the page still live, not dimmed).
-Set ``TIDEE_VIEWER_SHOTS=DIR`` to keep the screenshots (early.png, mid.png, finished.png, and
-finished_rgb.png: the 3D map in camera colours). The docs' pictures come from a replayed
+A second test replays a real rearrangement's log (run in this process) at the first step
+where the agent believes objects moved: the phase banner, the walkthrough memory's violet
+boxes and the orange lines from moved objects to their walkthrough places must be on the page.
+Set ``TIDEE_VIEWER_SHOTS=DIR`` to keep the screenshots (early.png, mid.png, finished.png,
+finished_rgb.png: the 3D map in camera colours, and rearrange.png). The docs' pictures come from a replayed
 episode instead: ``tidee viewer --replay LOG --screenshot docs/viewer.png --annotated
 docs/viewer_annotated.png --window 1280x960``.
 """
@@ -28,6 +31,7 @@ import pytest
 
 from tests.support.net import free_endpoint
 from tidee.agent.classes import CLASSES  # the agent's class list (plain data, no torch)
+from tidee.viewer import palette
 from tidee.viewer.browser import (
     CANVAS,
     DISMISS_SOFTWARE_GL_NOTE,
@@ -37,6 +41,7 @@ from tidee.viewer.browser import (
     distinct_colors,
     find_chromium,
     map_drawn,
+    palette_pixels,
     region_drawn,
 )
 
@@ -233,5 +238,68 @@ def test_viewer_early_mid_and_finished_in_headless_chromium(telemetry_source: Te
                 float(np.any(canvas != semantic, axis=2).mean()) > 0.05
             )  # other colours than the semantic map's
         assert time.monotonic() - t0 < 240
+    finally:
+        viewer.stop()
+
+
+def test_rearrangement_replay_shows_both_phases_memories_in_headless_chromium(tmp_path):
+    """A real rearrangement (LivingRoom 200, configuration 0: the oracle agent believes objects
+    moved), logged in this process, replayed at the first step with a walkthrough place known."""
+    from tidee.agent.config import AgentConfig
+    from tidee.agent.runner import EpisodeRunner
+    from tidee.protocol.messages import EpisodeSpec
+    from tidee.protocol.transport import InProcessTransport
+    from tidee.viewer.app import ViewerConfig, run_viewer
+
+    shots_dir = os.environ.get("TIDEE_VIEWER_SHOTS") or str(tmp_path / "shots")
+    spec = EpisodeSpec(
+        room_type="LivingRoom",
+        seed=200,
+        rearrange_index=0,
+        resolution=128,
+        walkthrough_steps=100,
+        max_steps=150,
+    )
+    runner = EpisodeRunner(
+        AgentConfig(perception="oracle"), InProcessTransport(renderer="tiny"), "rearrange", log_dir=tmp_path
+    )
+    runner.run(spec, evaluate=True, episode_name="ep")
+    viewer = run_viewer(ViewerConfig(replay=str(tmp_path / "ep"), port=0))
+    try:
+        app = viewer.app
+        assert app.replay is not None
+        log = app.replay
+        step = next(
+            s for s in log.steps("memory") if any(o.goal_centroid for o in log.at(s)["memory"].objects)
+        )
+        assert log.unshuffle_step is not None and step > log.unshuffle_step
+        app.replay_seek(step)
+        wait_until(lambda: app.stats.last_step == step, 30, f"the replay to draw step {step}")
+        shown = app.scene.node_names()
+        assert shown["/walkthrough/boxes"] and shown["/objects/goals"] and shown["/objects/boxes"]
+        with HeadlessChromium(width=WIDTH, height=HEIGHT) as browser:
+            browser.navigate(viewer.url)
+            maps = log.at(step)["maps"]
+            browser.wait_for(lambda img: map_drawn(img, len(maps.classes)), timeout=60)
+            browser.evaluate(DISMISS_SOFTWARE_GL_NOTE)
+            shot = browser.wait_settled(timeout=15)
+            save(shot, shots_dir, "rearrange.png")
+            boxes = browser.panel_boxes()
+            check_panels(shot, boxes, ("phase", "camera", "map", "canvas", "episode"), "rearrangement")
+            text = browser.text()
+            for words in (
+                "UNSHUFFLE",
+                "phase 2 of 2",
+                "changes believed",
+                "rearrangement 0",
+                "unshuffle step",
+            ):
+                assert words in text, f"{words!r} is not on the page"
+            labels = [h.text for h in app.scene.labels.handles[: app.scene.labels.shown]]
+            assert any(t.endswith(": moved") for t in labels), labels
+            x0, y0, x1, y1 = boxes["canvas"]
+            canvas = shot[y0:y1, x0:x1]
+            assert palette_pixels(canvas, np.array([palette.WALKTHROUGH_RGB]), tolerance=30) > 50
+            assert palette_pixels(canvas, np.array([palette.WARNING_RGB]), tolerance=30) > 20
     finally:
         viewer.stop()
