@@ -22,6 +22,25 @@ from tidee.server.config import RENDERER_HELP, TRAINED_RENDERER
 
 
 @dataclass
+class BatchConfig:
+    """Where a batch evaluation's episodes run, and whether it goes on from an interrupted run."""
+
+    backend: Literal["local", "ray"] = option(
+        "local",
+        "local: worker processes on this machine | ray: one Ray actor per worker "
+        "(needs pip install -e '.[cluster]')",
+    )
+    ray_address: str | None = option(
+        None, "a running Ray cluster's HOST:PORT for --backend ray (default: start Ray on this machine)"
+    )
+    resume: bool = option(False, "skip the episodes OUT/episodes.jsonl already holds (an interrupted run)")
+
+    def __post_init__(self) -> None:
+        if self.ray_address is not None and self.backend != "ray":
+            raise ValueError("--ray-address is for --backend ray")
+
+
+@dataclass
 class TidyEvalConfig:
     """``tidee eval tidy``: the agents on held-out rooms, scored by the simulated judge (Table 1).
 
@@ -53,15 +72,7 @@ class TidyEvalConfig:
     workers: int = option(1, "parallel simulator processes", type=argtypes.positive_int)
     renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
     keep_logs: bool = option(False, "write every episode's log under OUT/logs")
-    backend: Literal["local", "ray"] = option(
-        "local",
-        "local: worker processes on this machine | ray: one Ray actor per worker "
-        "(needs pip install -e '.[cluster]')",
-    )
-    ray_address: str | None = option(
-        None, "a running Ray cluster's HOST:PORT for --backend ray (default: start Ray on this machine)"
-    )
-    resume: bool = option(False, "skip the episodes OUT/episodes.jsonl already holds (an interrupted run)")
+    batch: BatchConfig = option(default_factory=BatchConfig)
     progress: bool = option(True, "a progress bar", cli=False)
 
     def __post_init__(self) -> None:
@@ -119,11 +130,7 @@ class RearrangeEvalConfig:
     max_steps: int = option(500, "the unshuffle phase's step budget", type=argtypes.max_steps)
     workers: int = option(1, "parallel simulator processes", type=argtypes.positive_int)
     renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
-    backend: Literal["local", "ray"] = option(
-        "local", "local: worker processes on this machine | ray: one Ray actor per worker"
-    )
-    ray_address: str | None = option(None, "a running Ray cluster's HOST:PORT for --backend ray")
-    resume: bool = option(False, "skip the episodes OUT/episodes.jsonl already holds (an interrupted run)")
+    batch: BatchConfig = option(default_factory=BatchConfig)
     keep_logs: bool = option(False, "write every episode's log under OUT/logs")
     progress: bool = option(True, "a progress bar", cli=False)
 
@@ -133,8 +140,6 @@ class RearrangeEvalConfig:
                 raise ValueError(f"rows must be among {', '.join(REARRANGE_ROWS)}, got {row!r}")
         if not self.rows:
             raise ValueError("give at least one row")
-        if self.ray_address is not None and self.backend != "ray":
-            raise ValueError("--ray-address needs --backend ray")
 
 
 @dataclass

@@ -289,11 +289,11 @@ def run_rearrange_eval(cfg: RearrangeEvalConfig) -> dict[str, Any]:
         _run_one,
         workers=cfg.workers,
         renderer=cfg.renderer,
-        backend=cfg.backend,
-        ray_address=cfg.ray_address,
+        backend=cfg.batch.backend,
+        ray_address=cfg.batch.ray_address,
         progress=cfg.progress,
         out_jsonl=out / "episodes.jsonl",
-        resume=cfg.resume,
+        resume=cfg.batch.resume,
         desc="rearrangement episodes",
     )
     wall = time.time() - t0
@@ -306,7 +306,7 @@ def run_rearrange_eval(cfg: RearrangeEvalConfig) -> dict[str, Any]:
     )
     notes = [
         f"command: {command}",
-        f"total wall time {wall:.0f} s with {cfg.workers} worker(s) ({cfg.backend} backend), "
+        f"total wall time {wall:.0f} s with {cfg.workers} worker(s) ({cfg.batch.backend} backend), "
         f"{sum(r.get('retries', 0) for r in records)} retried episode(s)",
         "configurations: `tidee.server.shuffle` (goal: the tidy room with 0-2 openables open; shuffled: "
         "0-3 openables toggled, 1-5 pickupables moved by placement or the mess-up's physics)",

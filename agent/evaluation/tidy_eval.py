@@ -182,9 +182,7 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
     resolution, max_steps, progress = cfg.resolution, cfg.max_steps, cfg.progress
     conditions = list(cfg.conditions)
     agents = agent_variants(cfg)
-    if cfg.ray_address is not None and cfg.backend != "ray":
-        raise ValueError("--ray-address is for --backend ray")
-    if cfg.backend == "ray":
+    if cfg.batch.backend == "ray":
         backends.import_ray()  # not installed: say how, before any episode
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -192,16 +190,18 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
     jobs = build_jobs(cfg, configs)
     t0 = time.time()
     episodes_file = out / EPISODES_FILE
-    resumed = len({j.key() for j in jobs} & set(backends.read_records(episodes_file))) if cfg.resume else 0
+    resumed = (
+        len({j.key() for j in jobs} & set(backends.read_records(episodes_file))) if cfg.batch.resume else 0
+    )
     records = run_jobs(
         jobs,
         workers,
         renderer,
         progress,
-        backend=cfg.backend,
-        ray_address=cfg.ray_address,
+        backend=cfg.batch.backend,
+        ray_address=cfg.batch.ray_address,
         out_jsonl=episodes_file,
-        resume=cfg.resume,
+        resume=cfg.batch.resume,
     )
     records = [j.label(r) for j, r in zip(jobs, records, strict=True)]  # resumed records too
     retries = sum(int(r.get("retries", 0)) for r in records)
@@ -248,10 +248,10 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
         f"--missing-top {missing_top} "
         + (f"--detection-threshold {detection_threshold} " if detection_threshold is not None else "")
         + f"--max-steps {max_steps} --resolution {resolution} --workers {workers} "
-        + (f"--backend {cfg.backend} " if cfg.backend != "local" else "")
+        + (f"--backend {cfg.batch.backend} " if cfg.batch.backend != "local" else "")
         + f"--out {out}",
-        f"total wall time {time.time() - t0:.0f} s with {workers} worker(s), backend {cfg.backend}"
-        + (f" ({cfg.ray_address})" if cfg.ray_address else "")
+        f"total wall time {time.time() - t0:.0f} s with {workers} worker(s), backend {cfg.batch.backend}"
+        + (f" ({cfg.batch.ray_address})" if cfg.batch.ray_address else "")
         + f"; {retries} episode retries after a worker died"
         + (f"; {resumed} episodes resumed from {EPISODES_FILE}" if resumed else ""),
     ]
