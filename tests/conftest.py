@@ -28,3 +28,17 @@ def raw_zenoh(server: SimServer) -> Iterator[zenoh.Session]:
     assert wait_until(lambda: any(r.ok is not None for r in z.liveliness().get(server_token, timeout=1.0)))
     yield z
     z.close()
+
+
+@pytest.fixture
+def scene_view() -> Iterator[object]:
+    """The viewer's 3D scene on a viser server bound to an ephemeral loopback port."""
+    import viser
+
+    from tidee.viewer.scene_view import SceneView
+
+    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        yield SceneView(server)
+    finally:
+        server.stop()

@@ -9,7 +9,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from tests.support.net import wait_until
 from tidee.protocol.episode_log import LogReader, LogWriter
@@ -141,19 +140,6 @@ def test_summary_panel_shows_roomr_metrics_for_a_rearrangement():
 
 
 # --- the scene ----------------------------------------------------------------------------------
-
-
-@pytest.fixture
-def scene_view():
-    import viser
-
-    from tidee.viewer.scene_view import SceneView
-
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    try:
-        yield SceneView(server)
-    finally:
-        server.stop()
 
 
 def test_scene_draws_the_walkthrough_beside_the_memory_and_lines_to_where_moved_objects_go(scene_view):

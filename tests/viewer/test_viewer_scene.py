@@ -371,19 +371,6 @@ def test_depth_colormap_blacks_out_invalid_depth():
 # --- the scene's nodes (a real viser server, no browser) ---------------------------------------------
 
 
-@pytest.fixture
-def scene_view():
-    import viser
-
-    from tidee.viewer.scene_view import SceneView
-
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    try:
-        yield SceneView(server)
-    finally:
-        server.stop()
-
-
 def test_scene_updates_assign_to_the_same_nodes(scene_view):
     ep = SyntheticEpisode(seed=1)
     handles = (scene_view.voxels, scene_view.boxes, scene_view.frustum, scene_view.heatmap)
