@@ -346,20 +346,15 @@ class RearrangePolicy(TidyPolicy):
             st.phase = "opening"
             for name in (first, second):
                 yield sighting.action(name, shape)
+                if self.body.obs.error == "blocked":  # the door would hit the agent: step back and retry
+                    yield Action(ActionName.MoveBack)
+                    yield sighting.action(name, shape)
                 obs = self.body.obs
                 if obs.success:
                     st.objects_fixed += 1
                     self.event("openness_restored", label=t.now.label, action=name.value)
                     st.target = None
                     return True
-                if obs.error == "blocked":  # the door would hit the agent: step back and retry
-                    yield Action(ActionName.MoveBack)
-                    yield sighting.action(name, shape)
-                    if self.body.obs.success:
-                        st.objects_fixed += 1
-                        self.event("openness_restored", label=t.now.label, action=name.value)
-                        st.target = None
-                        return True
                 if obs.error not in ("already_open", "already_closed"):
                     break
         self.event("openness_failed", label=t.now.label, track_id=t.now.id)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from tidee.agent.evaluation.preference_eval import score, script_profile
+from tidee.agent.evaluation.preference_eval import GROUP_PHRASES, score, script_profile
 
 
 def _obj(i, t, moved, orig, final, found=True):
@@ -34,20 +34,7 @@ def _rec(variant, mug, apple, plate, bowl="Shelf"):
     }
 
 
-MEMBERS = {
-    p: ()
-    for p in (
-        "dishes",
-        "food",
-        "fruit and vegetables",
-        "kitchen utensils",
-        "toys",
-        "electronics",
-        "writing things",
-        "bathroom things",
-        "sports equipment",
-    )
-}
+MEMBERS = {p: () for p in GROUP_PHRASES}
 
 
 def test_the_profile_asks_for_another_place_forbids_the_agents_own_and_names_a_group() -> None:
