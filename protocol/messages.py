@@ -16,6 +16,7 @@ Frames and units (the whole system uses these):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any
@@ -86,14 +87,41 @@ class ErrorCode(str, Enum):
 IMAGE_ENCODINGS = ("raw", "jpeg", "png")  # how observation images travel (protocol/README.md)
 
 
+def _put_option(
+    name: ActionName, field: str, value: Any, unit: str, bounds: str, within: Callable[[float], bool]
+) -> float | None:
+    """A PutObject-only number, checked: None stays None; NaN is outside any bounds."""
+    if value is None:
+        return None
+    if name != ActionName.PutObject:
+        raise ValueError(f"{name.value} takes no {field} (only PutObject does); got {field}={value!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"PutObject's {field} must be a number of {unit}, got {value!r}")
+    if not within(float(value)):
+        raise ValueError(f"PutObject's {field} must be in {bounds} {unit}, got {value!r}")
+    return float(value)
+
+
 @dataclass
 class Action:
     name: ActionName
     x: float | None = None  # normalised pixel column in [0, 1] (left to right)
     y: float | None = None  # normalised pixel row in [0, 1] (top to bottom)
+    # PutObject only: degrees (counter-clockwise, [-180, 180]) to turn the held object from how it
+    # lay when picked up (it turns with the agent while held) before putting it down; None: put it
+    # down with its x axis along the agent's heading.
+    yaw: float | None = None
+    # PutObject only: metres along the pixel's ray, (0, 10]: put it on the surface under that point
+    # (reaching over a receptacle's edge: a counter top at eye height is seen edge-on); None: where
+    # the ray first meets something.
+    reach: float | None = None
 
     def __post_init__(self) -> None:
         self.name = ActionName(self.name)
+        self.yaw = _put_option(
+            self.name, "yaw", self.yaw, "degrees", "[-180, 180]", lambda v: -180 <= v <= 180
+        )
+        self.reach = _put_option(self.name, "reach", self.reach, "metres", "(0, 10]", lambda v: 0 < v <= 10)
         if self.name in PIXEL_ACTIONS:
             for axis, v in (("x", self.x), ("y", self.y)):
                 if v is None or not (0.0 <= float(v) <= 1.0):

@@ -32,7 +32,7 @@ from tidee.protocol.messages import (
 )
 from tidee.server.messup import mess_up
 from tidee.server.rooms import AGENT_RADIUS, NAV_CELL, generate_scene, nav_grid, rooms_version, spawn_point
-from tidee.server.scene import Scene
+from tidee.server.scene import Scene, quat_yaw
 from tidee.server.scene_cache import SceneCache
 from tidee.server.shuffle import Rearrangement, make_rearrangement
 from tidee.server.splits import check_mess_index
@@ -43,6 +43,8 @@ TURN_DEG = 90.0
 LOOK_DEG = 30.0
 PITCH_LIMITS = (-30.0, 60.0)  # AI2THOR's horizon limits, positive looking down
 INTERACT_M = 1.5
+REACH_DROP_M = 0.15  # a put at a point: the surface must lie this close under it
+REACH_SLACK_M = 0.05  # ... and nothing nearer along the ray than the point less this
 POSE_NOISE_M = 0.005
 POSE_NOISE_DEG = 0.5
 DEPTH_NOISE_REL = 0.02
@@ -148,6 +150,7 @@ class Body:
     odo_y: float
     odo_yaw: float
     held: str | None = None
+    held_turn: float = 0.0  # radians: the held object's yaw at pick-up less the agent's then
 
 
 def _rot_z(yaw: float) -> np.ndarray:
@@ -338,7 +341,7 @@ class Episode:
         if n == ActionName.PickupObject:
             return self._pickup(a.x, a.y)
         if n == ActionName.PutObject:
-            return self._put(a.x, a.y)
+            return self._put(a.x, a.y, a.yaw, a.reach)
         return self._open_close(a.x, a.y, open_=(n == ActionName.OpenObject))
 
     def _walkable(self, x: float, y: float) -> bool:
@@ -370,16 +373,19 @@ class Episode:
         ((u + 0.5) / w, (v + 0.5) / h)) along the ray the render shows there; returns (object
         id, link, hit point, distance). Thin things on the floor (a knife, a pencil) are two
         or three pixels wide: half a pixel off and a pick aimed at them hits the floor."""
+        eye = self._eye()
+        oid, link, point, _ = self.world.ray(eye, eye + 20.0 * self._pixel_dir(u, v))
+        return oid, link, point, float(np.linalg.norm(point - eye))
+
+    def _pixel_dir(self, u: float, v: float) -> np.ndarray:
+        """The unit world direction of the ray the render shows at a normalised image point."""
         right, down, fwd = camera_axes(self.body.yaw, self.body.pitch)
         t = math.tan(math.radians(FOV_DEG / 2))
         du, dv = self.world.pixel_offset
         r = self.spec.resolution
         u, v = u + du / r, v + dv / r
         d = fwd + (2 * u - 1) * t * right + (2 * v - 1) * t * down
-        d /= np.linalg.norm(d)
-        eye = self._eye()
-        oid, link, point, _ = self.world.ray(eye, eye + 20.0 * d)
-        return oid, link, point, float(np.linalg.norm(point - eye))
+        return d / np.linalg.norm(d)
 
     def _target(self, u: float, v: float) -> tuple[str, np.ndarray] | tuple[bool, ActionError, str]:
         """The object at a pixel within reach: (id, hit point), or a failure triple."""
@@ -400,17 +406,43 @@ class Episode:
         obj = self.world.bodies[oid].obj
         if not obj.pickupable:
             return False, ActionError.not_pickupable, f"{obj.type} cannot be picked up"
+        _, orn = self.world.pose(oid)
+        self.body.held_turn = quat_yaw(orn) - self.body.yaw  # a held object turns with the agent
         self.world.set_static(oid, True)
         self.world.set_pose(oid, [self.body.x, self.body.y, -5.0], [0, 0, 0, 1])
         obj.parent, obj.parent_type = "agent", "agent"
         self.body.held = oid
         return True, None, ""
 
-    def _put(self, u: float, v: float) -> tuple[bool, ActionError | None, str]:
+    def _reach(
+        self, u: float, v: float, reach: float
+    ) -> tuple[str, np.ndarray] | tuple[bool, ActionError, str]:
+        """The surface under the point ``reach`` metres along the pixel's ray (as AI2THOR's
+        PlaceObjectAtPoint puts at a point): (id, surface point), or a failure triple. The way
+        there must be clear (an arm reaches over a counter's edge, not through a vase), and
+        something must lie within ``REACH_DROP_M`` under the point."""
+        if reach > INTERACT_M:
+            return False, ActionError.too_far, f"a reach of {reach:.2f} m is beyond {INTERACT_M} m"
+        oid, _, _, dist = self._pixel_ray(u, v)
+        if oid is not None and dist < reach - REACH_SLACK_M:
+            return False, ActionError.blocked, f"{oid} is in the way, {dist:.2f} m along the ray"
+        point = self._eye() + reach * self._pixel_dir(u, v)
+        under, _, hit, _ = self.world.ray(point + [0.0, 0.0, 0.01], point - [0.0, 0.0, REACH_DROP_M])
+        if under is None:
+            return False, ActionError.nothing_there, f"nothing within {REACH_DROP_M} m under that point"
+        return under, hit
+
+    def _put(
+        self, u: float, v: float, turn_deg: float | None = None, reach: float | None = None
+    ) -> tuple[bool, ActionError | None, str]:
+        """Put the held object down where the pixel's ray meets a receptacle, or (``reach``
+        given) on the receptacle under the point that far along the ray: with its x axis along
+        the agent's heading, or (``turn_deg`` given) turned that much from how it lay when
+        picked up, as the agent has turned since."""
         held = self.body.held
         if held is None:
             return False, ActionError.hands_empty, "not holding anything"
-        hit = self._target(u, v)
+        hit = self._target(u, v) if reach is None else self._reach(u, v, reach)
         if len(hit) == 3:
             return hit  # type: ignore[return-value]
         oid, point = hit  # type: ignore[misc]
@@ -421,7 +453,12 @@ class Episode:
             return False, ActionError.not_receptacle, f"{target.type} is not a receptacle"
         if target.openable and not target.is_open:
             return False, ActionError.receptacle_closed, f"{target.type} is closed; open it first"
-        if self.world.place(held, target.id, point, yaw=self.body.yaw):
+        yaw = (
+            self.body.yaw
+            if turn_deg is None
+            else self.body.yaw + self.body.held_turn + math.radians(turn_deg)
+        )
+        if self.world.place(held, target.id, point, yaw=yaw):
             self.body.held = None
             return True, None, ""
         return False, ActionError.no_free_space, f"no stable free spot for {held} on {target.id} there"

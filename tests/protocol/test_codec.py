@@ -96,6 +96,7 @@ EXAMPLES: list[Any] = [
     ResetRequest("s1", EpisodeSpec(room_type="Bathroom", seed=4), ground_truth=True, encoding="png"),
     StepRequest("s1", Action(ActionName.OpenObject, 0.5, 0.25), encoding="jpeg"),
     StepRequest("s1", Action(ActionName.Done)),
+    StepRequest("s1", Action(ActionName.PutObject, 0.5, 0.75, yaw=-42.5, reach=0.8)),
     StateRequest("s1"),
     PhaseRequest("s1", ground_truth=True, encoding="png"),
     StateReply("s1", {"objects": [{"id": "a", "size": [1, 2, 3]}], "agent": {"x": 1.5, "held": None}}),
@@ -269,6 +270,27 @@ def test_depth_png_clips_what_16_bits_cannot_hold() -> None:
     assert out.depth[0, 0] == 0.0 and out.depth[0, 1] == pytest.approx(65.535) and out.depth[0, 2] == 0.0
 
 
+def test_only_a_put_takes_a_yaw_and_a_reach() -> None:
+    assert Action(ActionName.PutObject, 0.5, 0.5, yaw=90).yaw == 90.0
+    assert Action(ActionName.PutObject, 0.5, 0.5, reach=1).reach == 1.0
+    assert Action(ActionName.PutObject, 0.5, 0.5).yaw is None
+    for bad, says in [
+        (dict(name=ActionName.PickupObject, x=0.5, y=0.5, yaw=10.0), "PickupObject takes no yaw"),
+        (dict(name=ActionName.RotateLeft, yaw=10.0), "RotateLeft takes no yaw"),
+        (dict(name=ActionName.PutObject, x=0.5, y=0.5, yaw=190.0), r"in \[-180, 180\] degrees, got 190"),
+        (dict(name=ActionName.PutObject, x=0.5, y=0.5, yaw=float("nan")), "got nan"),
+        (dict(name=ActionName.PutObject, x=0.5, y=0.5, yaw=True), "a number of degrees, got True"),
+        (dict(name=ActionName.OpenObject, x=0.5, y=0.5, reach=1.0), "OpenObject takes no reach"),
+        (
+            dict(name=ActionName.PutObject, x=0.5, y=0.5, reach=0.0),
+            r"reach must be in \(0, 10\] metres, got 0",
+        ),
+        (dict(name=ActionName.PutObject, x=0.5, y=0.5, reach="far"), "a number of metres, got 'far'"),
+    ]:
+        with pytest.raises(ValueError, match=says):
+            Action(**bad)
+
+
 def test_encode_refuses_arrays_that_break_the_contract() -> None:
     obs = observation()
     with pytest.raises(TypeError, match="field 'depth' must be float32 NxN, got float64"):
@@ -393,6 +415,9 @@ def test_unknown_and_unexpected_message_types() -> None:
         (set_in("action", "MoveAhead"), ["field 'action' must be an object"]),
         (set_in("extra", 1), ["unknown field 'extra'"]),
         (set_in("action.z", 1), ["unknown field 'action.z'"]),
+        (set_in("action.yaw", 30.0), ["invalid field 'action'", "PickupObject takes no yaw"]),
+        (set_in("action.yaw", "left"), ["field 'action.yaw' must be a number", "'left'"]),
+        (set_in("action.reach", -1.0), ["invalid field 'action'", "PickupObject takes no reach"]),
         (delete("action"), ["field 'action' is required"]),
         (delete("action.name"), ["field 'action.name' is required"]),
     ],

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.support.fixtures import project, spec, table_room, table_top
+from tests.support.fixtures import counter_room, project, spec, table_room, table_top
 from tidee.protocol.messages import Action
 from tidee.protocol.messages import ActionName as A
 from tidee.server.episode import Episode
@@ -114,6 +114,92 @@ def test_pickup_and_put_on_table(ep):
     state = {o["id"]: o for o in ep.object_states()}
     assert state["Mug_0"]["parent"] == "DiningTable_0"
     assert abs(state["Mug_0"]["position"][0] - 2.3) < 0.2
+
+
+def _yaw_deg(ep: Episode, oid: str) -> float:
+    _, q = ep.world.pose(oid)
+    return float(np.degrees(np.arctan2(2 * (q[3] * q[2] + q[0] * q[1]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))))
+
+
+def _turn(a: float, b: float) -> float:
+    return (a - b + 180.0) % 360.0 - 180.0
+
+
+@pytest.mark.parametrize("turn", [None, 0.0, 35.0, -120.0])
+def test_put_turns_the_held_object_by_the_yaw_asked_from_how_it_lay(ep, turn):
+    obs = at_table(ep)
+    mug = ep.world.bodies["Mug_0"].obj
+    x, y = project(ep, obs, np.array(mug.position) + [0, 0, mug.size[2] / 2])
+    lay = _yaw_deg(ep, "Mug_0")
+    assert ep.step(Action(A.PickupObject, x, y)).success
+    ep.step(Action(A.RotateLeft))  # the held mug turns with the agent: +90
+    ep.step(Action(A.RotateRight))
+    ep.step(Action(A.RotateRight))  # and back, then -90: the agent faces east (0 deg)
+    obs = ep.step(Action(A.RotateLeft))  # north again, as at pick-up
+    table = ep.world.bodies["DiningTable_0"].obj
+    tx, ty = project(ep, obs, np.array([2.3, 1.9, table_top(table)]))
+    obs = ep.step(Action(A.PutObject, tx, ty, yaw=turn))
+    assert obs.success, obs.message
+    want = 90.0 if turn is None else lay + turn  # None: along the agent's heading (north)
+    assert abs(_turn(_yaw_deg(ep, "Mug_0"), want)) < 2.0
+
+
+def test_a_turned_agent_turns_what_it_holds(ep):
+    obs = at_table(ep)  # facing north, south of the table
+    mug = ep.world.bodies["Mug_0"].obj
+    x, y = project(ep, obs, np.array(mug.position) + [0, 0, mug.size[2] / 2])
+    lay = _yaw_deg(ep, "Mug_0")
+    assert ep.step(Action(A.PickupObject, x, y)).success
+    walk = [A.RotateLeft] + [A.MoveAhead] * 6 + [A.RotateRight] + [A.MoveAhead] * 6 + [A.RotateRight]
+    for a in walk:  # west of the table, facing east: turned -90 since the pick
+        obs = ep.step(Action(a))
+        assert obs.success, (a, obs.message)
+    table = ep.world.bodies["DiningTable_0"].obj
+    tx, ty = project(ep, obs, np.array([1.8, 2.0, table_top(table)]))
+    obs = ep.step(Action(A.PutObject, tx, ty, yaw=10.0))
+    assert obs.success, obs.message
+    assert abs(_turn(_yaw_deg(ep, "Mug_0"), lay - 90.0 + 10.0)) < 2.0
+
+
+def holding_mug_at_counter(ep: Episode):
+    """In front of the counter (1.0 m south of its back half), facing it, looking down 30 deg,
+    holding the mug; the counter top is at the camera's height."""
+    ep.load(counter_room(), spec(), (2.0, 2.7), yaw_deg=90)
+    obs = ep.step(Action(A.LookDown))
+    mug = ep.world.bodies["Mug_0"].obj
+    assert ep.step(Action(A.PickupObject, *project(ep, obs, np.array(mug.position) + [0, 0, 0.05]))).success
+    return obs, table_top(ep.world.bodies["CounterTop_0"].obj)
+
+
+def test_a_put_with_a_reach_lands_where_a_counter_seen_edge_on_hides_the_spot(ep):
+    obs, top = holding_mug_at_counter(ep)
+    goal = np.array([2.2, 3.75, top])  # near the back of the counter
+    obs = ep.step(Action(A.PutObject, *project(ep, obs, goal)))
+    assert obs.success, obs.message  # the ray meets the counter's front: the mug lands at its edge
+    plain = np.array(ep.world.pose("Mug_0")[0])
+    assert goal[1] - plain[1] > 0.2
+    x, y = project(ep, obs, plain + [0, 0, 0.05])
+    assert ep.step(Action(A.PickupObject, x, y)).success
+    point = goal + [0, 0, 0.03]
+    eye = np.array([2.0, 2.7, ep.spec.camera_height])
+    obs = ep.step(Action(A.PutObject, *project(ep, obs, point), reach=float(np.linalg.norm(point - eye))))
+    assert obs.success, obs.message
+    assert np.linalg.norm(np.array(ep.world.pose("Mug_0")[0])[:2] - goal[:2]) < 0.02
+
+
+def test_a_reach_needs_a_clear_way_a_surface_under_it_and_arms_length(ep):
+    obs, top = holding_mug_at_counter(ep)
+    eye = np.array([2.0, 2.7, ep.spec.camera_height])
+    # the counter's front face stands between the eye and a point 10 cm below its top
+    low = np.array([2.0, 3.6, top - 0.1])
+    obs = ep.step(Action(A.PutObject, *project(ep, obs, low), reach=float(np.linalg.norm(low - eye))))
+    assert obs.error == "blocked" and "CounterTop_0 is in the way" in obs.message
+    air = np.array([2.0, 3.2, 0.5])  # over the floor in front of the counter, 0.5 m up
+    obs = ep.step(Action(A.PutObject, *project(ep, obs, air), reach=float(np.linalg.norm(air - eye))))
+    assert obs.error == "nothing_there" and "under that point" in obs.message
+    far = np.array([2.0, 3.7, top + 0.03])
+    obs = ep.step(Action(A.PutObject, *project(ep, obs, far), reach=1.6))
+    assert obs.error == "too_far" and obs.held == "Mug"
 
 
 def test_failure_reasons(ep):

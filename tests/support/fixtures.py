@@ -60,6 +60,20 @@ def table_room() -> Scene:
     )
 
 
+def counter_room() -> Scene:
+    """A 4 x 4 m kitchen: a 0.92 m high counter (1.6 x 0.6 m) against the north wall, its
+    front at y = 3.39, a mug on it at (1.5, 3.7): the counter top is at the camera's height,
+    seen edge-on."""
+    width = depth = 4.0
+    objects = _shell(width, depth, _Ids())
+    counter = make_object("CounterTop_0", "CounterTop", (2.0, 3.69), yaw_deg=180, size=[1.6, 0.6, 0.92])
+    mug = make_object("Mug_0", "Mug", (1.5, 3.7), z=table_top(counter), parent="CounterTop_0")
+    objects += [counter, mug]
+    return Scene(
+        room_type="Kitchen", seed=0, width=width, depth=depth, wall_height=WALL_HEIGHT, objects=objects
+    )
+
+
 def table_top(table: SceneObject) -> float:
     cat = CATEGORIES[table.type]
     return max(s.z for s in cat.surfaces if not s.inside) * table.size[2] + 0.002
