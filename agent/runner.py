@@ -295,6 +295,8 @@ class EpisodeRunner:
         }
         trajectory: list[tuple[float, float]] = []
         picked: set[str] = set()
+        put: set[str] = set()  # ids put down (a rearrangement's evaluation)
+        held_before: str | None = None
         aborted: AgentCommand | None = None
         action: Action | None = None
         try:
@@ -310,6 +312,9 @@ class EpisodeRunner:
                 policy.score_objects(touched)
                 if obs.last_action == ActionName.PickupObject.value and obs.success and obs.held_id:
                     picked.add(obs.held_id)
+                if obs.last_action == ActionName.PutObject.value and obs.success and held_before:
+                    put.add(held_before)
+                held_before = obs.held_id
                 trajectory.append((float(obs.agent_pose[0]), float(obs.agent_pose[1])))
                 walkthrough = obs.phase == "walkthrough"
                 if obs.done and not walkthrough:
@@ -369,8 +374,18 @@ class EpisodeRunner:
         end_reason = policy.state.end_reason or ("aborted" if aborted else "step cap")
         record = None
         if evaluate and rearrange:
+            assert isinstance(policy, RearrangePolicy)
             record = self.rearrange_record(
-                spec, initial, unshuffle_start, self.transport.state(), events, obs, wall, end_reason
+                spec,
+                initial,
+                unshuffle_start,
+                self.transport.state(),
+                events,
+                obs,
+                wall,
+                end_reason,
+                policy,
+                (picked, put),
             )
         elif evaluate:
             record = self.evaluation_record(
@@ -642,11 +657,16 @@ class EpisodeRunner:
         obs: Observation,
         wall: float,
         end_reason: str,
+        policy: RearrangePolicy,
+        handled: tuple[set[str], set[str]],
     ) -> dict[str, Any]:
         """Score a rearrangement with RoomR's metrics (goal, unshuffle start and end states;
-        evaluation only). An episode that never reached the unshuffle phase scores its
-        walkthrough's end as the start (nothing was restored)."""
+        evaluation only) and say where each change's score went (``fates``). An episode
+        that never reached the unshuffle phase scores its walkthrough's end as the start
+        (nothing was restored). ``handled``: the ids the agent picked up and put down."""
+        from tidee.agent.evaluation.rearrange_fates import change_fates
         from tidee.agent.evaluation.rearrange_metrics import episode_metrics
+        from tidee.agent.policy.rearrange import MIN_OBS
 
         assert goal is not None
         start = start if start is not None else end
@@ -670,6 +690,26 @@ class EpisodeRunner:
                 oid if d < 0.5 + (0.5 if e["kind"] == "openness_changed" else 0.0) else f"?{len(believed)}"
             )
         found = len(believed & changed)
+        aims: dict[str, np.ndarray] = {}  # object id: the world (x, y) its put aimed at
+        held: str | None = None
+        for e in events:
+            if e["kind"] == "picked":
+                held = e.get("held_id")
+            elif e["kind"] == "put_back" and held is not None and "target" in e:
+                aims[held] = start_to_world_xy(end["start"], e["target"])
+        fates = change_fates(
+            metrics,
+            goal["objects"],
+            start["objects"],
+            end["objects"],
+            end["start"],
+            [(t.label, t.centroid, t.n_obs) for t in policy.walkthrough],
+            [(t.label, t.centroid, t.n_obs) for t in policy.unshuffle],
+            believed,
+            *handled,
+            min_obs=MIN_OBS,
+            aims=aims,
+        )
         return {
             "variant": "Rearrange",
             "perception": self.cfg.perception,
@@ -689,6 +729,7 @@ class EpisodeRunner:
             "changed_found": found,  # changed objects the agent believed changed
             "false_beliefs": len(believed) - found,  # beliefs about objects that had not changed
             "rearrange": metrics,
+            "fates": fates,
         }
 
     def evaluation_record(

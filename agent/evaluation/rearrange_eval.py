@@ -33,6 +33,7 @@ import numpy as np
 from tidee.agent.config import AgentConfig
 from tidee.agent.evaluation.backends import run_jobs, worker_models, worker_transport
 from tidee.agent.evaluation.config import RearrangeEvalConfig
+from tidee.agent.evaluation.rearrange_fates import OPENABLE_FATES, PICKUPABLE_FATES, sum_counts
 from tidee.agent.evaluation.rearrange_metrics import aggregate, episode_metrics
 from tidee.protocol.episode_log import write_atomic
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
@@ -168,6 +169,9 @@ def row_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     out["false_beliefs"] = int(sum(r.get("false_beliefs", 0) for r in records))
     out["believed_moved"] = int(sum(r["believed_moved"] for r in records))
     out["believed_toggled"] = int(sum(r["believed_toggled"] for r in records))
+    with_fates = [r["fates"] for r in records if r.get("fates")]
+    out["fates"] = sum_counts(with_fates) if with_fates else None
+    out["put_off"] = put_errors([c for f in with_fates for c in f["changes"]])
     return out
 
 
@@ -201,6 +205,7 @@ def format_markdown(report: dict[str, Any]) -> str:
             f"{m['steps_median']:.0f} | "
             f"{m['wall_s_median']:.1f} / {m['wall_s_p90']:.1f} / {m['wall_s_max']:.1f} |"
         )
+    lines += fates_markdown(rows)
     lines += [
         "",
         "For comparison (not the same rooms: AI2THOR's RoomR test sets, with the paper's own agent and "
@@ -218,6 +223,56 @@ def format_markdown(report: dict[str, Any]) -> str:
     lines.append(f"| RoomR 2022 leaderboard, best 2-phase | {ROOMR_LEADERBOARD_BEST_FIXED_STRICT} | | | |")
     lines += ["", "## Notes", ""] + [f"- {n}" for n in report["notes"]]
     return "\n".join(lines) + "\n"
+
+
+PUT_ERRORS = ("position_cm", "yaw_deg", "iou", "estimate_cm", "landed_cm")
+
+
+def put_errors(changes: list[dict[str, Any]]) -> dict[str, float | None]:
+    """Medians of the put-off objects' errors (``rearrange_fates``), None where none has one."""
+    off = [c for c in changes if c["fate"] == "put_off"]
+    return {
+        k: float(np.median([c[k] for c in off if k in c])) if any(k in c for c in off) else None
+        for k in PUT_ERRORS
+    }
+
+
+def fates_markdown(rows: dict[str, Any]) -> list[str]:
+    """The table of where each row's changes went (``rearrange_fates``), empty when no row has it."""
+    rows = {n: m for n, m in rows.items() if m.get("fates")}
+    if not rows:
+        return []
+    cols = [("pickupable", f) for f in PICKUPABLE_FATES] + [("openable", f) for f in OPENABLE_FATES]
+    head = [f"{'object' if k == 'pickupable' else 'openable'}: {f.replace('_', ' ')}" for k, f in cols]
+    lines = [
+        "",
+        "## Where the score goes",
+        "",
+        "Each changed object's fate, the first that applies (`agent/evaluation/rearrange_fates.py`), "
+        "and the objects in place at the start that ended misplaced (newly misplaced: picked by the "
+        "agent / an openable it believed toggled / disturbed). Put off: put down, not in place; the "
+        "medians of its x-y distance from the goal (cm), folded yaw (degrees) and IoU, and of the x-y "
+        "error's parts: the point the put aimed at from the goal, where it came to rest from that.",
+        "",
+        "| row | " + " | ".join(head) + " | newly: picked / believed / disturbed "
+        "| put off: cm / yaw / IoU | parts: estimate / landed cm |",
+        "|---|" + "---|" * (len(cols) + 3),
+    ]
+
+    def cm(x: float | None, fmt: str = ".1f") -> str:
+        return "-" if x is None else format(x, fmt)
+
+    for name, m in rows.items():
+        f, po = m["fates"], m["put_off"]
+        newly = f["newly"]
+        lines.append(
+            f"| {ROW_TITLES.get(name, name)} | "
+            + " | ".join(str(f[k][c]) for k, c in cols)
+            + f" | {newly['picked']} / {newly['believed']} / {newly['disturbed']} "
+            f"| {cm(po['position_cm'])} / {cm(po['yaw_deg'], '.0f')} / {cm(po['iou'], '.2f')} "
+            f"| {cm(po['estimate_cm'])} / {cm(po['landed_cm'])} |"
+        )
+    return lines
 
 
 def _plot(report: dict[str, Any]) -> bytes:

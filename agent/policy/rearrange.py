@@ -30,11 +30,11 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from tidee.agent.classes import OPENABLE, PICKUPABLE, PLACEABLE_RECEPTACLES
+from tidee.agent.mapping.footprint import FootprintVotes, axis_gap, footprint
 from tidee.agent.mapping.geometry import project, unproject
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import FrontierExplorer
 from tidee.agent.policy.skills import (
-    Sighting,
     face_point,
     find_in_view,
     footprint_gap,
@@ -48,12 +48,16 @@ from tidee.agent.policy.tidy import Gen, TidyPolicy
 from tidee.protocol.messages import Action, ActionName
 
 SURVEY_SPACING_M = 1.2  # survey waypoints are at least this far apart
-STAY_M = 0.5  # a pickupable this close to its walkthrough match has not moved
+STAY_M = 0.15  # a pickupable this close to its walkthrough match has not moved
+OTHER_M = 0.5  # another same-class track this close to an old or new place: no move
+COLOUR_M = 2.0  # metres of matching cost per unit of mean-colour difference (RGB, 0-1)
 OPEN_M = 0.15  # an openable's box growing (or shrinking) by this much changed its openness
 MIN_OBS = 2  # tracks seen fewer times are not trusted to say that something moved
 DOOR_CELLS = 8  # obstacle cells (5 cm) that must appear or vanish beside a floor-standing openable
 FLOOR_STANDING_Z = 0.3  # an openable whose box starts below this stands on the floor
 FLOOR_Z = 0.08  # a remembered object whose box starts this low stood on the floor
+REACH_LIFT_M = 0.03  # a put reaches for the point this far above the remembered base
+REACH_SLACK = 0.05  # depth this much (relative) nearer than that point: something is in the way
 
 
 class WalkthroughOver(Exception):
@@ -62,17 +66,38 @@ class WalkthroughOver(Exception):
 
 @dataclass(frozen=True)
 class Seen:
-    """What the walkthrough remembers of one tracked object (start frame, metres)."""
+    """What a phase remembers of one tracked object (start frame, metres); for a pickupable
+    also its footprint pooled over the views (``tidee.agent.mapping.footprint``): the centre
+    (x, y) and the long axis's heading (degrees, None when it showed none)."""
 
     label: str
     centroid: np.ndarray
     box_min: np.ndarray
     box_max: np.ndarray
     n_obs: int
+    centre: np.ndarray | None = None
+    axis_deg: float | None = None
+    colour: np.ndarray | None = None  # mean RGB (0-1) of its points
 
     @staticmethod
-    def of(o: TrackedObject) -> Seen:
-        return Seen(o.label, o.centroid.copy(), o.box_min.copy(), o.box_max.copy(), o.n_obs)
+    def of(o: TrackedObject, votes: FootprintVotes | None = None) -> Seen:
+        if votes is None:
+            return Seen(o.label, o.centroid.copy(), o.box_min.copy(), o.box_max.copy(), o.n_obs)
+        return Seen(
+            o.label,
+            o.centroid.copy(),
+            o.box_min.copy(),
+            o.box_max.copy(),
+            o.n_obs,
+            votes.centre,
+            votes.axis_deg(),
+            votes.colour,
+        )
+
+    @property
+    def spot(self) -> np.ndarray:
+        """(x, y): the footprint's centre when known, else the box's."""
+        return self.centre if self.centre is not None else (self.box_min[:2] + self.box_max[:2]) / 2
 
 
 @dataclass
@@ -94,40 +119,60 @@ class Toggle:
     change_m: float
 
 
-def _pairs(then: list[Seen], now: list[TrackedObject]) -> list[tuple[Seen, TrackedObject, float]]:
-    """Minimum-distance one-to-one matching of same-class tracks (Hungarian)."""
+def colour_gap(a: np.ndarray | None, b: np.ndarray | None) -> float:
+    """How different two mean colours (RGB, 0-1) are; 0 when either is unknown."""
+    return 0.0 if a is None or b is None else float(np.linalg.norm(a - b))
+
+
+def _pairs(
+    then: list[Seen], now: list[TrackedObject], colours: dict[int, np.ndarray] | None = None
+) -> list[tuple[Seen, TrackedObject, float]]:
+    """One-to-one matching of same-class tracks (Hungarian) on centroid distance plus
+    ``COLOUR_M`` per unit of colour difference (``colours``: track id -> the unshuffle's mean
+    colour), so two mugs that both moved go back to their own places when they look different.
+    Each pair comes with its centroid distance."""
+    colours = colours or {}
     out = []
     for label in sorted({s.label for s in then} & {o.label for o in now}):
         a = [s for s in then if s.label == label]
         b = [o for o in now if o.label == label]
-        cost = np.linalg.norm(
+        dist = np.linalg.norm(
             np.array([s.centroid for s in a])[:, None, :] - np.array([o.centroid for o in b])[None, :, :],
             axis=2,
         )
-        rows, cols = linear_sum_assignment(cost)
-        out += [(a[r], b[c], float(cost[r, c])) for r, c in zip(rows, cols)]
+        look = np.array([[colour_gap(s.colour, colours.get(o.id)) for o in b] for s in a])
+        rows, cols = linear_sum_assignment(dist + COLOUR_M * look)
+        out += [(a[r], b[c], float(dist[r, c])) for r, c in zip(rows, cols)]
     return out
 
 
 def find_moves(
-    then: list[Seen], now: list[TrackedObject], stay_m: float = STAY_M, min_obs: int = MIN_OBS
+    then: list[Seen],
+    now: list[TrackedObject],
+    stay_m: float = STAY_M,
+    min_obs: int = MIN_OBS,
+    colours: dict[int, np.ndarray] | None = None,
+    other_m: float = OTHER_M,
 ) -> list[Move]:
-    """Pickupables matched across the phases that are now farther than ``stay_m`` from where
-    they were, whose old place no other track of their class now holds and whose new place
-    none held in the walkthrough (so a second instance or a stray track is not taken for a move)."""
+    """Pickupables matched across the phases that are now farther from where they were than
+    ``stay_m`` and than a third of their size (nearer, an object of that size still overlaps
+    its old box by IoU 0.5: the metric counts it in place), whose old place no other track of
+    their class now holds and whose new place none held in the walkthrough, within ``other_m``
+    (so a second instance or a stray track is not taken for a move)."""
     sure_then = [s for s in then if s.label in PICKUPABLE and s.n_obs >= min_obs]
     sure_now = [o for o in now if o.label in PICKUPABLE and o.n_obs >= min_obs]
     moves = []
-    for s, o, d in _pairs(sure_then, sure_now):
-        if d <= stay_m:
+    for s, o, d in _pairs(sure_then, sure_now, colours):
+        size = float(np.max(s.box_max[:2] - s.box_min[:2]))
+        if d <= max(stay_m, size / 3):
             continue
         # every track counts against a move, those seen once too
         old_taken = any(
-            p.label == s.label and p is not o and np.linalg.norm(p.centroid - s.centroid) <= stay_m
+            p.label == s.label and p is not o and np.linalg.norm(p.centroid - s.centroid) <= other_m
             for p in now
         )
         new_held = any(
-            q.label == o.label and q is not s and np.linalg.norm(q.centroid - o.centroid) <= stay_m
+            q.label == o.label and q is not s and np.linalg.norm(q.centroid - o.centroid) <= other_m
             for q in then
         )
         if not old_taken and not new_held:
@@ -216,17 +261,53 @@ def find_toggles(
     return kept
 
 
+def put_turn(goal_axis: float | None, held: tuple[float, float] | None, heading: float) -> float | None:
+    """The put's turn (degrees, ``Action.yaw``) that lays a held object's long axis at
+    ``goal_axis`` (its heading in the walkthrough): ``held`` is (the axis's heading as it lay
+    when picked up, the agent's heading then); it has turned with the agent, now at
+    ``heading``. None (put it down along the agent's heading) when either axis is unknown."""
+    if goal_axis is None or held is None:
+        return None
+    lay, heading_then = held
+    return axis_gap(goal_axis, lay + heading - heading_then)
+
+
 class RearrangePolicy(TidyPolicy):
     """Walkthrough, then unshuffle (module docstring). Reuses the tidy agent's mapping,
     approach, pick and put skills; needs no OOP detector and no placement model."""
 
-    def score_objects(self, touched: list[TrackedObject] | None = None) -> None:
-        """No out-of-place scoring: a rearrangement compares the room with its walkthrough."""
-
-    def run(self) -> Gen:
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.votes: dict[tuple[str | None, int], FootprintVotes] = {}  # (phase, track id): its views
         self.walkthrough: list[Seen] = []
+        self.unshuffle: list[Seen] = []  # the unshuffle's memory as the phases were compared
         self.moves: list[Move] = []
         self.toggles: list[Toggle] = []
+
+    def score_objects(self, touched: list[TrackedObject] | None = None) -> None:
+        """No out-of-place scoring (a rearrangement compares the room with its walkthrough):
+        each frame's detections of pickupables add their footprints to their tracks' votes."""
+        obs, mapper = self.body.obs, self.body.mapper
+        if obs is None:
+            return
+        shape = obs.depth.shape
+        for det, tid in zip(self.body.detections, mapper.last_track_ids):
+            if tid is None or det.label not in PICKUPABLE:
+                continue
+            region = det.region(shape)
+            if region[0].any() or region[-1].any() or region[:, 0].any() or region[:, -1].any():
+                continue  # cut by the image's edge: a part of it, off centre
+            pts, pix = unproject(obs.depth, obs.intrinsics, obs.camera_pose, mask=region)
+            fp = footprint(pts, np.asarray(obs.rgb).reshape(-1, 3)[pix])
+            if fp is not None:
+                self.votes.setdefault((obs.phase, tid), FootprintVotes()).add(fp)
+
+    def seen(self, o: TrackedObject) -> Seen:
+        """``o`` as this phase saw it, with its pooled footprint."""
+        assert self.body.obs is not None
+        return Seen.of(o, self.votes.get((self.body.obs.phase, o.id)))
+
+    def run(self) -> Gen:
         self.state.phase = "walkthrough"
         try:
             yield from look_around(self.body)
@@ -235,7 +316,7 @@ class RearrangePolicy(TidyPolicy):
         except WalkthroughOver:
             pass
         walk_steps = int(self.body.obs.step)
-        self.walkthrough = [Seen.of(o) for o in self.body.mapper.memory]
+        self.walkthrough = [self.seen(o) for o in self.body.mapper.memory]
         walk_map = Occupancy.of(self.body.mapper)
         self.event("walkthrough_done", steps=self.body.obs.step, objects=len(self.walkthrough))
         yield Action(ActionName.Done)  # the runner starts the unshuffle phase
@@ -248,9 +329,29 @@ class RearrangePolicy(TidyPolicy):
             min(walk_steps - self.body.obs.step, self.body.steps_left() - self.p.reserve_steps)
         )
         now = list(self.body.mapper.memory)
+        self.unshuffle = [self.seen(o) for o in now]
         maps = (self.body.mapper.grid, walk_map, Occupancy.of(self.body.mapper))
         self.toggles = find_toggles(self.walkthrough, now, maps=maps)
-        self.moves = find_moves(self.walkthrough, now)
+        colours = {o.id: s.colour for o, s in zip(now, self.unshuffle) if s.colour is not None}
+        self.moves = find_moves(self.walkthrough, now, colours=colours)
+        self.event(
+            "compared",  # every same-class pairing of the two memories (the log's account of the decision)
+            pairs=[
+                [
+                    s.label,
+                    round(d, 3),
+                    s.n_obs,
+                    o.n_obs,
+                    [round(float(v), 3) for v in s.centroid],
+                    [round(float(v), 3) for v in o.centroid],
+                ]
+                for s, o, d in _pairs(
+                    [s for s in self.walkthrough if s.label in PICKUPABLE],
+                    [o for o in now if o.label in PICKUPABLE],
+                    colours,
+                )
+            ],
+        )
         self.state.oop_found = len(self.moves) + len(self.toggles)
         for t in self.toggles:
             t.now.out_of_place = True
@@ -288,7 +389,9 @@ class RearrangePolicy(TidyPolicy):
     def survey(self, budget: int) -> Gen:
         """Walk to waypoints spread over the reachable map (farthest-point order from the
         agent, ``SURVEY_SPACING_M`` apart, nearest next) and look around at each, looking down
-        at receptacle tops, until ``budget`` steps are spent."""
+        at receptacle tops, until ``budget`` steps are spent; with steps to spare, a second
+        round between the first's waypoints (``SURVEY_SPACING_M`` x 2/3 from every one so
+        far): more views of each object make its place and heading surer."""
         start = self.body.obs.step
         mapper = self.body.mapper
         reach = reachable_mask(self.body)
@@ -297,29 +400,32 @@ class RearrangePolicy(TidyPolicy):
         if len(cells) == 0 or budget <= 0:
             return
         pts = g.origin + (cells + 0.5) * g.cell
-        chosen: list[np.ndarray] = []
         dist = np.linalg.norm(pts - self.body.xy, axis=1)
-        while len(chosen) < 32:
-            k = int(np.argmax(dist))
-            if dist[k] < SURVEY_SPACING_M:
-                break
-            chosen.append(pts[k])
-            dist = np.minimum(dist, np.linalg.norm(pts - pts[k], axis=1))
-        here = self.body.xy
-        while chosen and self.body.obs.step - start < budget:
-            k = int(np.argmin([np.linalg.norm(p - here) for p in chosen]))
-            goal = chosen.pop(k)
-            left = budget - (self.body.obs.step - start)
-            yield from navigate(
-                self.body, goal_xy=(float(goal[0]), float(goal[1])), budget=min(self.p.goal_step_budget, left)
-            )
+        for spacing in (SURVEY_SPACING_M, SURVEY_SPACING_M * 2 / 3):
+            chosen: list[np.ndarray] = []
+            while len(chosen) < 32:
+                k = int(np.argmax(dist))
+                if dist[k] < spacing:
+                    break
+                chosen.append(pts[k])
+                dist = np.minimum(dist, np.linalg.norm(pts - pts[k], axis=1))
             here = self.body.xy
-            for pitch in (30.0, 60.0):
-                if budget - (self.body.obs.step - start) < 6:
-                    return
-                yield from pitch_to(self.body, pitch)
-                for _ in range(4):
-                    yield Action(ActionName.RotateLeft)
+            while chosen and self.body.obs.step - start < budget:
+                k = int(np.argmin([np.linalg.norm(p - here) for p in chosen]))
+                goal = chosen.pop(k)
+                left = budget - (self.body.obs.step - start)
+                yield from navigate(
+                    self.body,
+                    goal_xy=(float(goal[0]), float(goal[1])),
+                    budget=min(self.p.goal_step_budget, left),
+                )
+                here = self.body.xy
+                for pitch in (30.0, 60.0):
+                    if budget - (self.body.obs.step - start) < 6:
+                        return
+                    yield from pitch_to(self.body, pitch)
+                    for _ in range(4):
+                        yield Action(ActionName.RotateLeft)
 
     def _distance(self, item: Move | Toggle) -> float:
         return float(np.linalg.norm(item.now.centroid[:2] - self.body.xy))
@@ -372,11 +478,14 @@ class RearrangePolicy(TidyPolicy):
             self.event("unreachable", label=m.now.label, track_id=m.now.id)
             st.target = None
             return False
+        votes = self.votes.get(("unshuffle", m.now.id))
+        lay = votes.axis_deg() if votes is not None else None
+        heading = self.body.pose[2]
         if not (yield from self.pick(m.now, sighting)):
             st.target = None
             return False
         st.phase = "placing"
-        placed = yield from self.put_at(m.then)
+        placed = yield from self.put_at(m.then, None if lay is None else (lay, heading))
         if not placed:
             st.phase = "dropping"
             yield from self.drop()
@@ -402,35 +511,31 @@ class RearrangePolicy(TidyPolicy):
                 best = (score, o)
         return best[1] if best else None
 
-    def put_at(self, seen: Seen) -> Gen:
-        """Put the held object at the remembered place: aim at its base point from beside it;
-        then at the receptacle tracked under it; on the floor where it stood on the floor."""
+    def put_at(self, seen: Seen, held: tuple[float, float] | None = None) -> Gen:
+        """Put the held object at the remembered place: from beside it, reach to the point just
+        above its base (``Action.reach``: the spot need not be in sight, a counter top at eye
+        height never is), turned as it lay there (``held``: see ``put_turn``); then on the
+        receptacle tracked under it; on the floor where it stood on the floor."""
         # The box's centre, not the centroid of the seen points: those lean towards the camera
         # (with the simulator's masks, 1 cm vs 5 cm median error from the true place).
         centre = (seen.box_min + seen.box_max) / 2
-        target = np.array([centre[0], centre[1], max(float(seen.box_min[2]), 0.0) + 0.01])
+        target = np.array([centre[0], centre[1], max(float(seen.box_min[2]), 0.0) + REACH_LIFT_M])
         support = self.support_of(seen)
         self.state.target_receptacle = support.label if support is not None else "Floor"
-        shape = self.body.obs.depth.shape
         for radius in (0.55, 0.8, 1.0):
             lo = target - np.array([0.05, 0.05, 0.0])
             hi = target + np.array([0.05, 0.05, 0.0])
             mask = goal_mask_near_box(self.body.mapper, lo, hi, radius)
             yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
             yield from face_point(self.body, target)
-            sighting = self._point_sighting(target)
-            if sighting is None or sighting.distance > self.p.interact_m:
+            action = self.reach_action(target, put_turn(seen.axis_deg, held, self.body.pose[2]))
+            if isinstance(action, str):
+                self.event("aim_failed", label=seen.label, radius=radius, why=action)
                 continue
-            yield sighting.action(ActionName.PutObject, shape)
+            yield action
             obs = self.body.obs
             if obs.success:
-                return self._put_back_done(seen, "aimed")
-            if obs.error == "receptacle_closed":
-                yield sighting.action(ActionName.OpenObject, shape)
-                if self.body.obs.success:
-                    yield sighting.action(ActionName.PutObject, shape)
-                    if self.body.obs.success:
-                        return self._put_back_done(seen, "aimed")
+                return self._put_back_done(seen, "reached", target)
             self.event(
                 "put_failed", receptacle=self.state.target_receptacle, error=obs.error, message=obs.message
             )
@@ -438,35 +543,27 @@ class RearrangePolicy(TidyPolicy):
             return self._put_back_done(seen, "on its receptacle")
         return False
 
-    def _put_back_done(self, seen: Seen, how: str) -> bool:
-        self.state.objects_fixed += 1
-        self.placed.append((seen.label, seen.centroid[:2].copy()))
-        self.event("put_back", label=seen.label, how=how, receptacle=self.state.target_receptacle)
-        return True
-
-    def _point_sighting(self, point: np.ndarray, window: int = 12) -> Sighting | None:
-        """The pixel whose surface point (from the depth map) lies nearest, in (x, y), to a
-        start-frame point in view: the ray through the point itself meets the surface off it
-        when the point's height is a little off; None when out of view or hidden behind
-        something nearer."""
+    def reach_action(self, point: np.ndarray, yaw: float | None) -> Action | str:
+        """A put at a start-frame point: its pixel and its distance from the eye; or why not
+        (out of view, out of reach, something seen in front of it)."""
         obs = self.body.obs
         h, w = obs.depth.shape
         u, v, z = project(point[None, :], obs.intrinsics, obs.camera_pose)
         if not z[0] > 0 or not (0 <= u[0] < w and 0 <= v[0] < h):
-            return None
-        ui, vi = int(u[0]), int(v[0])
-        if float(obs.depth[vi, ui]) < float(z[0]) - 0.25:
-            return None  # something nearer stands in the way
-        mask = np.zeros((h, w), bool)
-        mask[max(vi - window, 0) : vi + window + 1, max(ui - window, 0) : ui + window + 1] = True
-        pts, pix = unproject(obs.depth, obs.intrinsics, obs.camera_pose, mask=mask)
-        if len(pts) == 0:
-            return None
-        near_height = np.abs(pts[:, 2] - point[2]) < 0.15
-        if not near_height.any():
-            return None
-        gap = np.linalg.norm(pts[:, :2] - point[:2], axis=1) + np.where(near_height, 0.0, np.inf)
-        k = int(np.argmin(gap))
-        cam = obs.camera_pose[:3, 3]
-        pv, pu = divmod(int(pix[k]), w)
-        return Sighting(None, pu, pv, float(np.linalg.norm(pts[k] - cam)), pts[k])
+            return "not in view"
+        reach = float(np.linalg.norm(point - obs.camera_pose[:3, 3]))
+        if reach > self.p.interact_m:
+            return f"{reach:.2f} m away"
+        seen_at = float(obs.depth[int(v[0]), int(u[0])])
+        if 0 < seen_at < float(z[0]) * (1 - REACH_SLACK):
+            return f"something {seen_at:.2f} m away in front of it"
+        return Action(ActionName.PutObject, x=(u[0] + 0.5) / w, y=(v[0] + 0.5) / h, yaw=yaw, reach=reach)
+
+    def _put_back_done(self, seen: Seen, how: str, target: np.ndarray | None = None) -> bool:
+        """Count a put; ``target``: the point it reached for (start frame; the evaluation splits
+        a put's error into the estimate's and the landing's)."""
+        self.state.objects_fixed += 1
+        self.placed.append((seen.label, seen.centroid[:2].copy()))
+        where = {} if target is None else {"target": [round(float(v), 3) for v in target]}
+        self.event("put_back", label=seen.label, how=how, receptacle=self.state.target_receptacle, **where)
+        return True

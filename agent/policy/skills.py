@@ -270,9 +270,10 @@ class Sighting:
     distance: float  # eye-to-surface distance along the ray at (u, v), metres
     point: np.ndarray  # start-frame 3D point at (u, v)
 
-    def action(self, name: ActionName, shape: tuple[int, int]) -> Action:
+    def action(self, name: ActionName, shape: tuple[int, int], yaw: float | None = None) -> Action:
+        """``name`` at this pixel (``yaw``: a put's turn of the held object, degrees)."""
         h, w = shape
-        return Action(name, x=(self.u + 0.5) / w, y=(self.v + 0.5) / h)
+        return Action(name, x=(self.u + 0.5) / w, y=(self.v + 0.5) / h, yaw=yaw)
 
 
 def find_in_view(body: Body, obj: TrackedObject, max_pixel_gap: float = 0.15) -> Sighting | None:

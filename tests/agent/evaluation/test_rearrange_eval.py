@@ -55,7 +55,9 @@ def test_the_oracle_agent_restores_a_kitchen_it_walked_through() -> None:
     """Kitchen 201 rearrangement 1: a cabinet, a fridge and a microwave toggled, a fork moved
     out of sight (into the garbage can). The agent finds the toggles from its own map (the
     oracle only labels its detections) and sets them back without breaking anything."""
-    spec = EpisodeSpec(room_type="Kitchen", seed=201, rearrange_index=1, resolution=128, max_steps=300)
+    spec = EpisodeSpec(
+        room_type="Kitchen", seed=201, rearrange_index=1, resolution=128, max_steps=300, walkthrough_steps=160
+    )
     job = RearrangeJob("oracle", AgentConfig(perception="oracle"), spec, "test", 6, "tiny")
     rec = _run_one(job)
     m = rec["rearrange"]

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from tidee.agent.mapping.memory import TrackedObject
-from tidee.agent.policy.rearrange import Seen, box_change, find_moves, find_toggles
+from tidee.agent.policy.rearrange import Seen, box_change, find_moves, find_toggles, put_turn
 
 
 def _track(
@@ -15,8 +17,15 @@ def _track(
     return TrackedObject(i, label, 0.9, c, c - half, c + half, n_obs=n_obs)
 
 
-def _seen(label: str, xyz: tuple[float, float, float], half: float = 0.05, n_obs: int = 3) -> Seen:
-    return Seen.of(_track(0, label, xyz, half, n_obs))
+def _seen(
+    label: str,
+    xyz: tuple[float, float, float],
+    half: float = 0.05,
+    n_obs: int = 3,
+    colour: tuple[float, float, float] | None = None,
+) -> Seen:
+    s = Seen.of(_track(0, label, xyz, half, n_obs))
+    return s if colour is None else dataclasses.replace(s, colour=np.array(colour))
 
 
 def test_a_moved_object_is_found_and_a_still_one_is_not() -> None:
@@ -65,3 +74,34 @@ def test_an_unchanged_openable_and_a_second_track_of_a_toggled_one_are_left_alon
     b = _track(2, "Fridge", (1.7, 1.0, 0.9), half=0.4)  # the open door, tracked apart
     toggles = find_toggles(then, [a, b])
     assert len(toggles) == 1  # one fridge: toggled once, never back
+
+
+def test_a_put_turns_the_held_object_onto_its_walkthrough_axis() -> None:
+    # picked lying at 10 degrees while the agent faced 90; the agent now faces 180, so the object
+    # (turned with it) lies at 100: 70 degrees clockwise takes it to the walkthrough's 30
+    assert put_turn(30.0, (10.0, 90.0), 180.0) == -70.0
+    assert put_turn(170.0, (10.0, 0.0), 0.0) == -20.0  # the short way round an axis
+    assert put_turn(None, (10.0, 0.0), 0.0) is None  # the walkthrough saw no axis
+    assert put_turn(30.0, None, 0.0) is None  # nor did the unshuffle
+
+
+def test_two_moved_instances_go_back_to_the_places_their_colours_say() -> None:
+    red, green = (0.8, 0.1, 0.1), (0.2, 0.7, 0.2)
+    then = [_seen("Apple", (0.0, 0.0, 0.9), colour=red), _seen("Apple", (2.0, 0.0, 0.9), colour=green)]
+    # the red apple now lies nearer the green one's old place, and the other way round
+    now = [_track(1, "Apple", (1.6, 1.0, 0.5)), _track(2, "Apple", (0.4, 1.0, 0.5))]
+    by_distance = {m.now.id: tuple(m.then.centroid) for m in find_moves(then, now)}
+    assert by_distance == {1: (2.0, 0.0, 0.9), 2: (0.0, 0.0, 0.9)}  # a swap
+    colours = {1: np.array(red) + 0.05, 2: np.array(green) - 0.05}  # seen a little differently now
+    by_look = {m.now.id: tuple(m.then.centroid) for m in find_moves(then, now, colours=colours)}
+    assert by_look == {1: (0.0, 0.0, 0.9), 2: (2.0, 0.0, 0.9)}
+
+
+def test_a_short_move_counts_but_not_one_the_metric_would_call_in_place() -> None:
+    # a knife slid 25 cm along the counter (the shuffle moves things at least 30 cm on one receptacle)
+    (m,) = find_moves([_seen("Knife", (1.0, 0.0, 0.93))], [_track(1, "Knife", (1.0, 0.25, 0.93))])
+    assert np.isclose(m.distance, 0.25)
+    # a 90 cm box 20 cm off still overlaps its old box by IoU 0.64: in place, left alone
+    big = [_seen("Box", (0.0, 0.0, 0.45), half=0.45)]
+    assert find_moves(big, [_track(1, "Box", (0.2, 0.0, 0.45), half=0.45)]) == []
+    assert len(find_moves(big, [_track(1, "Box", (0.35, 0.0, 0.45), half=0.45)])) == 1
