@@ -249,7 +249,9 @@ class EpisodeRunner:
         t_start = time.perf_counter()
         obs = self.transport.reset(spec, ground_truth=gt)
         initial = self.transport.state() if evaluate else None
-        mapper = SemanticMapper(self.cfg.map, CLASSES, passable=PICKUPABLE)
+        rearrange = spec.rearrange_index is not None
+        policy_class = RearrangePolicy if rearrange else TidyPolicy
+        mapper = SemanticMapper(policy_class.map_config(self.cfg.map), CLASSES, passable=PICKUPABLE)
         body = Body(mapper)
         writer = LogWriter(self.log_dir / (episode_name or self._name(spec))) if self.log_dir else None
         events: list[dict[str, Any]] = []
@@ -260,8 +262,7 @@ class EpisodeRunner:
             if writer:
                 writer.event(**kw)
 
-        rearrange = spec.rearrange_index is not None
-        policy = (RearrangePolicy if rearrange else TidyPolicy)(
+        policy = policy_class(
             self.cfg,
             body,
             self.oop,

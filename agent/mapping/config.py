@@ -33,6 +33,9 @@ class MapConfig:
     semantic_sigma_voxels: float = 1.5  # Gaussian dilation of centroids, in xy voxels
     agent_free_radius: float = 0.15  # disc kept free around each believed position
     merge_distance: float = 1.0  # object memory: same label within this merges
+    # object memory: passable (pickupable) labels merge within this instead (None: merge_distance);
+    # the rearrangement agent's: two apples on one counter are two objects to put back
+    small_merge_distance: float | None = None
     box_merge: str = "union"  # object memory: 3D boxes of merged views (mean | union)
     min_object_points: int = 5  # detections with fewer valid pixels are skipped
     max_object_points: int = 4096  # pixels used for an object's box (subsampled)
@@ -40,7 +43,16 @@ class MapConfig:
     def __post_init__(self) -> None:
         self.voxel_z_range = (float(self.voxel_z_range[0]), float(self.voxel_z_range[1]))
         self.obstacle_z = (float(self.obstacle_z[0]), float(self.obstacle_z[1]))
-        for name in ("map_size_m", "nav_cell", "voxel_xy", "voxel_z", "merge_distance"):
+        for name in (
+            "map_size_m",
+            "nav_cell",
+            "voxel_xy",
+            "voxel_z",
+            "merge_distance",
+            "small_merge_distance",
+        ):
+            if name == "small_merge_distance" and self.small_merge_distance is None:
+                continue
             if not float(getattr(self, name)) > 0:
                 raise ValueError(f"MapConfig.{name} must be > 0, got {getattr(self, name)}")
         _cells_per(self.map_size_m, self.nav_cell, "MapConfig.map_size_m / nav_cell")

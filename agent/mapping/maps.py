@@ -98,7 +98,10 @@ class SemanticMapper:
         self.grid = GridSpec((-half, -half), cfg.nav_cell, cfg.nav_shape)
         self.voxel_grid = GridSpec((-half, -half), cfg.voxel_xy, cfg.voxel_shape[:2])
         self.voxel_shape = cfg.voxel_shape
-        self.memory = ObjectMemory(cfg.merge_distance, cfg.box_merge)
+        small = (
+            {} if cfg.small_merge_distance is None else dict.fromkeys(self.passable, cfg.small_merge_distance)
+        )
+        self.memory = ObjectMemory(cfg.merge_distance, cfg.box_merge, small)
         self._rays: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self.reset()
 

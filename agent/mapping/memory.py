@@ -10,7 +10,7 @@ mean of the out-of-place probability.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -58,11 +58,21 @@ class ObjectMemory:
     """Remembered objects keyed by id; ids increase from 0 and are never reused
     (until ``clear``, which starts a fresh memory for a new episode)."""
 
-    def __init__(self, merge_distance: float = 1.0, box_merge: str = "mean") -> None:
+    def __init__(
+        self,
+        merge_distance: float = 1.0,
+        box_merge: str = "mean",
+        label_merge: Mapping[str, float] | None = None,
+    ) -> None:
         """``box_merge``: how a merged detection's 3D box combines with the entry's:
-        ``"mean"`` (score-weighted running average) or ``"union"`` (the hull of all views)."""
+        ``"mean"`` (score-weighted running average) or ``"union"`` (the hull of all views).
+        ``label_merge``: merge distances of particular labels, instead of ``merge_distance``."""
         if not merge_distance > 0:
             raise ValueError(f"merge_distance must be > 0 metres, got {merge_distance}")
+        bad = {k: v for k, v in (label_merge or {}).items() if not v > 0}
+        if bad:
+            raise ValueError(f"label_merge distances must be > 0 metres, got {bad}")
+        self.label_merge = dict(label_merge or {})
         if box_merge not in ("mean", "union"):
             raise ValueError(f"box_merge must be 'mean' or 'union', got {box_merge!r}")
         self.merge_distance = float(merge_distance)
@@ -95,7 +105,7 @@ class ObjectMemory:
             raise ValueError(f"oop_prob must be in [0, 1] or None, got {oop_prob}")
         w = max(score, _MIN_WEIGHT)
 
-        target = self._nearest_within(label, c, self.merge_distance)
+        target = self._nearest_within(label, c, self.label_merge.get(label, self.merge_distance))
         if target is None:
             obj = TrackedObject(
                 id=self._next_id,

@@ -23,13 +23,14 @@ simulator's segmentation instead (a named variant in every report).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from tidee.agent.classes import OPENABLE, PICKUPABLE, PLACEABLE_RECEPTACLES
+from tidee.agent.mapping.config import MapConfig
 from tidee.agent.mapping.footprint import FootprintVotes, axis_gap, footprint
 from tidee.agent.mapping.geometry import project, unproject
 from tidee.agent.mapping.memory import TrackedObject
@@ -52,8 +53,10 @@ STAY_M = 0.15  # a pickupable this close to its walkthrough match has not moved
 OTHER_M = 0.5  # another same-class track this close to an old or new place: no move
 COLOUR_M = 2.0  # metres of matching cost per unit of mean-colour difference (RGB, 0-1)
 OPEN_M = 0.15  # an openable's box growing (or shrinking) by this much changed its openness
+SMALL_MERGE_M = 0.25  # the memory merges detections of a pickupable class this close (``map_config``)
 MIN_OBS = 2  # tracks seen fewer times are not trusted to say that something moved
 DOOR_CELLS = 8  # obstacle cells (5 cm) that must appear or vanish beside a floor-standing openable
+DOOR_ONE_SIDED = 2  # ... and at least this many times as many as went the other way
 FLOOR_STANDING_Z = 0.3  # an openable whose box starts below this stands on the floor
 FLOOR_Z = 0.08  # a remembered object whose box starts this low stood on the floor
 REACH_LIFT_M = 0.03  # a put reaches for the point this far above the remembered base
@@ -117,6 +120,7 @@ class Toggle:
     then: Seen
     opened: bool
     change_m: float
+    cells: tuple[int, int] | None = None  # obstacle cells that appeared / vanished beside it, when checked
 
 
 def colour_gap(a: np.ndarray | None, b: np.ndarray | None) -> float:
@@ -229,8 +233,8 @@ def find_toggles(
     """Openables matched across the phases whose box grew or shrank by more than ``open_m``.
     With ``maps`` (grid, walkthrough and unshuffle occupancy), a piece standing on the floor
     must also show at least ``min_cells`` obstacle cells appear (or vanish) beside it, and
-    that decides the direction: a big piece's boxes differ between views far more than its
-    door does."""
+    ``DOOR_ONE_SIDED`` times as many as vanished (appeared), and that decides the direction: a
+    big piece's boxes differ between views far more than its door does."""
     then = [s for s in then if s.label in OPENABLE]
     now = [o for o in now if o.label in OPENABLE]
     toggles = []
@@ -245,10 +249,15 @@ def find_toggles(
             grid, before, after = maps
             lo, hi = np.minimum(s.box_min, o.box_min), np.maximum(s.box_max, o.box_max)
             appeared, vanished = door_evidence(grid, before, after, lo, hi)
-            if max(appeared, vanished) < min_cells:
+            # a door that swung open adds cells and takes none away (closed: the other way round);
+            # two maps that merely disagree do both
+            if max(appeared, vanished) < max(min_cells, DOOR_ONE_SIDED * min(appeared, vanished)):
                 continue
             opened = appeared >= vanished
-        toggles.append(Toggle(o, s, opened=opened, change_m=max(grown, shrunk)))
+            cells = (appeared, vanished)
+        else:
+            cells = None
+        toggles.append(Toggle(o, s, opened=opened, change_m=max(grown, shrunk), cells=cells))
     # One piece of furniture can leave two tracks (an open door seen apart from its body): keep
     # the larger change, so a second track never toggles it back.
     kept: list[Toggle] = []
@@ -275,6 +284,13 @@ def put_turn(goal_axis: float | None, held: tuple[float, float] | None, heading:
 class RearrangePolicy(TidyPolicy):
     """Walkthrough, then unshuffle (module docstring). Reuses the tidy agent's mapping,
     approach, pick and put skills; needs no OOP detector and no placement model."""
+
+    @staticmethod
+    def map_config(config: MapConfig) -> MapConfig:
+        """Pickupables merge only within ``SMALL_MERGE_M``: the memory's default (1 m, the
+        original TIDEE's) makes one track of two apples on a counter, whose centroid lies
+        between their places."""
+        return replace(config, small_merge_distance=SMALL_MERGE_M)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -361,6 +377,7 @@ class RearrangePolicy(TidyPolicy):
                 track_id=t.now.id,
                 opened=t.opened,
                 change_m=round(t.change_m, 2),
+                cells=t.cells,
                 centroid=[round(float(v), 3) for v in t.now.centroid],
             )
         for m in self.moves:

@@ -28,6 +28,7 @@ import numpy as np
 
 from tidee.agent.classes import PICKUPABLE, PLACEABLE_RECEPTACLES
 from tidee.agent.config import AgentConfig
+from tidee.agent.mapping.config import MapConfig
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.navigation.explore import (
     FrontierExplorer,
@@ -132,6 +133,11 @@ class TidyPolicy:
         self.frontier = FrontierExplorer(body.mapper.grid)
         self._rescore = True
         self._last_put_xy = np.zeros(2)
+
+    @staticmethod
+    def map_config(config: MapConfig) -> MapConfig:
+        """The mapping this policy needs, from the agent's (the tidy agent: as configured)."""
+        return config
 
     # ------------------------------------------------------------------ bookkeeping
     def event(self, kind: str, **fields: Any) -> None:

@@ -23,6 +23,18 @@ def test_same_label_within_merge_distance_merges() -> None:
     assert a.n_obs == 2 and a.first_seen == 3 and a.last_seen == 7
 
 
+def test_a_label_can_have_its_own_merge_distance() -> None:
+    mem = ObjectMemory(merge_distance=1.0, label_merge={"Apple": 0.25})
+    a = add(mem, "Apple", [1.0, 2.0, 0.9])
+    b = add(mem, "Apple", [1.4, 2.0, 0.9])  # two apples 40 cm apart on one counter
+    c = add(mem, "Apple", [1.1, 2.0, 0.9])
+    assert b is not a and c is a and len(mem.of_label("Apple")) == 2
+    d = add(mem, "Cabinet", [0.0, 0.0, 0.4])
+    assert add(mem, "Cabinet", [0.6, 0.0, 0.4]) is d  # other labels: merge_distance
+    with pytest.raises(ValueError, match="label_merge distances must be > 0"):
+        ObjectMemory(label_merge={"Apple": 0.0})
+
+
 def test_different_label_or_far_makes_new_entries() -> None:
     mem = ObjectMemory(merge_distance=1.0)
     a = add(mem, "Mug", [0.0, 0.0, 0.9])

@@ -6,8 +6,9 @@ import dataclasses
 
 import numpy as np
 
+from tidee.agent.mapping.geometry import GridSpec
 from tidee.agent.mapping.memory import TrackedObject
-from tidee.agent.policy.rearrange import Seen, box_change, find_moves, find_toggles, put_turn
+from tidee.agent.policy.rearrange import Occupancy, Seen, box_change, find_moves, find_toggles, put_turn
 
 
 def _track(
@@ -105,3 +106,49 @@ def test_a_short_move_counts_but_not_one_the_metric_would_call_in_place() -> Non
     big = [_seen("Box", (0.0, 0.0, 0.45), half=0.45)]
     assert find_moves(big, [_track(1, "Box", (0.2, 0.0, 0.45), half=0.45)]) == []
     assert len(find_moves(big, [_track(1, "Box", (0.35, 0.0, 0.45), half=0.45)])) == 1
+
+
+def test_a_fridge_is_toggled_only_when_its_door_cells_appear_and_few_vanish() -> None:
+    grid = GridSpec((-2.0, -2.0), 0.05, (80, 80))  # 4 x 4 m around the start
+    then = [_seen("Fridge", (1.0, 0.0, 0.45), half=0.4)]  # standing on the floor
+    now = _track(1, "Fridge", (1.0, 0.0, 0.45), half=0.4)
+    now.box_min = now.box_min - np.array([0.0, 0.3, 0.0])  # its box grew 30 cm towards -y
+    free = np.zeros(grid.shape, bool)
+    seen = np.ones(grid.shape, bool)
+    door = np.zeros(grid.shape, bool)
+    door[50:66, 29] = True  # 16 cells in front of it (x 0.5-1.3 m, y -0.55 m)
+    noise = np.zeros(grid.shape, bool)
+    noise[44:48, 36:38] = True  # 8 cells beside it, obstacles in the walkthrough only
+
+    def toggles(before: np.ndarray, after: np.ndarray):
+        return find_toggles(then, [now], maps=(grid, Occupancy(before, seen), Occupancy(after, seen)))
+
+    (t,) = toggles(free, door)
+    assert t.opened and t.cells == (16, 0)
+    (t,) = toggles(noise, door)  # 16 appeared, 8 vanished: still one-sided enough
+    assert t.opened and t.cells == (16, 8)
+    more_noise = noise.copy()
+    more_noise[44:48, 38:40] = True  # 16 vanished as well: two maps that disagree, not a door
+    assert toggles(more_noise, door) == []
+    (t,) = toggles(door, free)  # the door's cells vanished: it was closed
+    assert not t.opened
+
+
+def test_the_rearrangement_agent_keeps_nearby_small_objects_apart_in_its_memory() -> None:
+    from tidee.agent.classes import CLASSES, PICKUPABLE
+    from tidee.agent.mapping.config import MapConfig
+    from tidee.agent.mapping.maps import SemanticMapper
+    from tidee.agent.policy.rearrange import RearrangePolicy
+    from tidee.agent.policy.tidy import TidyPolicy
+
+    base = MapConfig()
+    assert TidyPolicy.map_config(base) is base  # the tidy agent maps as configured
+    cfg = RearrangePolicy.map_config(base)
+    assert cfg.small_merge_distance == 0.25 and base.small_merge_distance is None
+    memory = SemanticMapper(cfg, CLASSES, passable=PICKUPABLE).memory
+    c = np.array([1.0, 2.0, 0.9])
+    first = memory.add_or_merge("Apple", 0.9, c, c - 0.04, c + 0.04, step=0)
+    other = memory.add_or_merge("Apple", 0.9, c + [0.4, 0, 0], c - 0.04, c + 0.04, step=0)
+    assert other is not first
+    shelf = memory.add_or_merge("Shelf", 0.9, c, c - 0.3, c + 0.3, step=0)
+    assert memory.add_or_merge("Shelf", 0.9, c + [0.6, 0, 0], c - 0.3, c + 0.3, step=0) is shelf
