@@ -1,16 +1,15 @@
-"""Where exactly a small object stands and which way it lies, from the depth of its detections.
+"""Which way a small object lies and what colour it is, from the depth and colour of its views.
 
 The object memory keeps a centroid and an axis-aligned box per tracked object: good enough to
-walk to it, but its box is the union of every view's and, with a box-only detector, also holds
-the surface around the object. Putting an object back where it stood is judged far more
+walk to it and to say where it stood, not which way it lay. Putting an object back is judged
 finely (RoomR: the oriented boxes must overlap by IoU > 0.5, about 2 cm and the right heading
 for a 10 cm object), so the rearrangement agent estimates each view's *footprint* of a small
 object: its depth points standing above the lowest ones (the surface that a depth-cut box mask
-also covers), their principal axes in (x, y), the middle of their extent along those axes
-(not the points' mean, which leans towards the camera: only the near sides are seen) and the
-heading of the long axis. ``FootprintVotes`` pools the views of one tracked object, each
-weighted by its point count (a nearer view has more), the heading also by how elongated the
-view was (a round thing has none).
+also covers), of those its top face (the sides a camera sees would pull the axis), their
+principal axes in (x, y) and the heading of the long one; and the mean colour of its points,
+which tells two apples apart when the shuffle moved both. ``FootprintVotes`` pools the views
+of one tracked object, each weighted by its point count (a nearer view has more), the heading
+also by how elongated the view was (a round thing has none).
 """
 
 from __future__ import annotations
@@ -28,11 +27,10 @@ TRIM = (2.0, 98.0)  # percentiles that bound an extent (stray pixels at a mask's
 
 @dataclass(frozen=True)
 class Footprint:
-    """One view's estimate: the footprint's centre (x, y), the long axis's heading in degrees
-    ([0, 180): an axis has no direction), its elongation (0 round or square .. 1 a line) and
-    the number of points it rests on; ``colour``: the mean RGB (0-1) of its points, when given."""
+    """One view's estimate: the long axis's heading in degrees ([0, 180): an axis has no
+    direction), its elongation (0 round or square .. 1 a line) and the number of points it
+    rests on; ``colour``: the mean RGB (0-1) of its points, when given."""
 
-    centre: np.ndarray
     axis_deg: float
     elongation: float
     n: int
@@ -44,10 +42,12 @@ def footprint(
     colours: np.ndarray | None = None,
     lift: float = LIFT_M,
     min_points: int = MIN_POINTS,
+    top_band: float = TOP_BAND_M,
 ) -> Footprint | None:
     """A view's footprint of an object from its depth points (start frame, metres, Nx3), or None
     when too few points are left. Points no higher than ``lift`` above the lowest few percent
-    are its support, unless that leaves too few (a flat thing seen from above: all of it).
+    are its support, unless that leaves too few (a flat thing seen from above: all of it); of
+    the rest, those within ``top_band`` of the highest are its top face, unless too few.
     ``colours``: the points' RGB (Nx3, 0-255), averaged over the object's points."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     if len(pts) < min_points:
@@ -58,7 +58,7 @@ def footprint(
         keep[:] = True
     pts = pts[keep]
     colour = None if colours is None else np.asarray(colours, np.float64).reshape(-1, 3)[keep].mean(0) / 255.0
-    top = pts[pts[:, 2] >= np.percentile(pts[:, 2], 98) - TOP_BAND_M]
+    top = pts[pts[:, 2] >= np.percentile(pts[:, 2], 98) - top_band]
     if len(top) >= min_points:  # its top face: the sides a camera sees would pull the axis
         pts = top
     xy = pts[:, :2]
@@ -66,16 +66,11 @@ def footprint(
     xy = xy[np.all((xy >= lo) & (xy <= hi), axis=1)]
     if len(xy) < min_points:
         return None
-    mean = xy.mean(axis=0)
-    evals, evecs = np.linalg.eigh(np.cov((xy - mean).T))
-    major, minor = evecs[:, 1], evecs[:, 0]
-    along, across = (xy - mean) @ major, (xy - mean) @ minor
-    a0, a1 = np.percentile(along, TRIM)
-    c0, c1 = np.percentile(across, TRIM)
-    centre = mean + 0.5 * (a0 + a1) * major + 0.5 * (c0 + c1) * minor
+    evals, evecs = np.linalg.eigh(np.cov((xy - xy.mean(axis=0)).T))
+    major = evecs[:, 1]
     axis = math.degrees(math.atan2(major[1], major[0])) % 180.0
     elongation = 1.0 - math.sqrt(max(float(evals[0]), 0.0) / max(float(evals[1]), 1e-12))
-    return Footprint(centre, axis, float(np.clip(elongation, 0.0, 1.0)), len(xy), colour)
+    return Footprint(axis, float(np.clip(elongation, 0.0, 1.0)), len(xy), colour)
 
 
 def axis_gap(a: float, b: float) -> float:
@@ -84,11 +79,10 @@ def axis_gap(a: float, b: float) -> float:
 
 
 class FootprintVotes:
-    """The views of one tracked object pooled: weighted centre, long-axis heading and colour."""
+    """The views of one tracked object pooled: long-axis heading and colour."""
 
     def __init__(self) -> None:
         self.weight = 0.0
-        self._centre = np.zeros(2)
         self._axis = np.zeros(2)  # sum of weight * (cos 2θ, sin 2θ): an axis's doubled angle
         self._axis_weight = 0.0
         self._colour = np.zeros(3)
@@ -97,7 +91,6 @@ class FootprintVotes:
     def add(self, fp: Footprint) -> None:
         w = float(fp.n)
         self.weight += w
-        self._centre += w * fp.centre
         if fp.colour is not None:
             self._colour += w * fp.colour
             self._colour_weight += w
@@ -105,10 +98,6 @@ class FootprintVotes:
         aw = w * fp.elongation
         self._axis += aw * np.array([math.cos(t), math.sin(t)])
         self._axis_weight += aw
-
-    @property
-    def centre(self) -> np.ndarray | None:
-        return self._centre / self.weight if self.weight > 0 else None
 
     @property
     def colour(self) -> np.ndarray | None:

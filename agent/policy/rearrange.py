@@ -3,18 +3,23 @@ put the shuffled room back.
 
 ``RearrangePolicy.run()`` is one generator over both phases::
 
-    walkthrough  look around, map the room (the tidy agent's mapping), remember every
-                 object it tracked; Done (the runner switches to the unshuffle phase and
-                 starts a fresh map in the same start frame)
-    unshuffle    look around, map the room again
-                 match the two memories class by class (Hungarian on centroid distance):
-                   a pickupable now more than ``stay_m`` from its match has moved;
+    walkthrough  look around, map the room (the tidy agent's mapping; pickupables merge only
+                 within 25 cm), survey it (waypoints, then a second round with steps to spare),
+                 remember every object it tracked, with each small object's footprint pooled
+                 over its views (long axis, mean colour); Done (the runner switches to the
+                 unshuffle phase and starts a fresh map in the same start frame)
+    unshuffle    look around, map the room again, the same survey for as many steps
+                 match the two memories class by class (Hungarian on centroid distance and
+                 colour):
+                   a pickupable now more than ``stay_m`` (and a third of its size) from its
+                   match has moved;
                    an openable whose box grew or shrank by ``open_m`` changed openness
                  each changed openable, nearest first: walk there, Close it (Open it when its
                    box shrank); the other one when the server says it already is
                  each moved object, nearest first: walk there, pick it up, walk to its
-                   walkthrough place, put it down aimed at that point (else on the
-                   receptacle tracked under it, else on the floor)
+                   walkthrough place, reach to the point there (``Action.reach``) and put it
+                   down turned onto the walkthrough's long axis (``Action.yaw``); else on the
+                   receptacle tracked under it
     Done
 
 Only the agent's own maps and detections decide; ``--perception oracle`` feeds it the
@@ -70,15 +75,14 @@ class WalkthroughOver(Exception):
 @dataclass(frozen=True)
 class Seen:
     """What a phase remembers of one tracked object (start frame, metres); for a pickupable
-    also its footprint pooled over the views (``tidee.agent.mapping.footprint``): the centre
-    (x, y) and the long axis's heading (degrees, None when it showed none)."""
+    also its footprint pooled over the views (``tidee.agent.mapping.footprint``): the long
+    axis's heading (degrees, None when it showed none) and its mean colour."""
 
     label: str
     centroid: np.ndarray
     box_min: np.ndarray
     box_max: np.ndarray
     n_obs: int
-    centre: np.ndarray | None = None
     axis_deg: float | None = None
     colour: np.ndarray | None = None  # mean RGB (0-1) of its points
 
@@ -92,15 +96,9 @@ class Seen:
             o.box_min.copy(),
             o.box_max.copy(),
             o.n_obs,
-            votes.centre,
             votes.axis_deg(),
             votes.colour,
         )
-
-    @property
-    def spot(self) -> np.ndarray:
-        """(x, y): the footprint's centre when known, else the box's."""
-        return self.centre if self.centre is not None else (self.box_min[:2] + self.box_max[:2]) / 2
 
 
 @dataclass

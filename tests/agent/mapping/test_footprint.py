@@ -1,4 +1,4 @@
-"""A small object's footprint (centre, long axis) from the depth points of one view, pooled over views."""
+"""A small object's footprint (long axis, colour) from the points of one view, pooled over views."""
 
 from __future__ import annotations
 
@@ -15,12 +15,13 @@ def box_view(
     size: tuple[float, float, float],
     heading_deg: float,
     table_z: float = 0.75,
-    camera_side: float = -1.0,
     surround: float = 0.06,
     step: float = 0.004,
+    corner: bool = False,
 ) -> np.ndarray:
-    """Points a camera sees of a box on a table: its top face, the side facing the camera
-    (along -y local when ``camera_side`` is -1) and the table around it (a depth-cut box mask)."""
+    """Points a camera sees of a box on a table: its top face, the side facing the camera (its
+    -y side; ``corner``: its -x side too, a camera looking at a corner) and the table around it
+    (a depth-cut box mask)."""
     sx, sy, sz = size
     t = math.radians(heading_deg)
     rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
@@ -29,7 +30,10 @@ def box_view(
         for ly in np.arange(-sy / 2, sy / 2 + 1e-9, step):
             pts.append((lx, ly, table_z + sz))
         for lz in np.arange(0.0, sz, step):
-            pts.append((lx, camera_side * sy / 2, table_z + lz))
+            pts.append((lx, -sy / 2, table_z + lz))
+    for ly in np.arange(-sy / 2, sy / 2 + 1e-9, step) if corner else ():
+        for lz in np.arange(0.0, sz, step):
+            pts.append((-sx / 2, ly, table_z + lz))
     out = np.array(pts)
     out[:, :2] = out[:, :2] @ rot.T + centre
     gx = np.arange(-sx / 2 - surround, sx / 2 + surround, step)
@@ -42,20 +46,29 @@ def box_view(
 
 
 @pytest.mark.parametrize("heading", [0.0, 30.0, 100.0, 165.0])
-def test_a_long_box_gives_its_centre_and_heading_not_the_table_around_it(heading: float) -> None:
+def test_a_long_box_gives_its_heading_not_the_table_around_it(heading: float) -> None:
     fp = footprint(box_view((1.2, -0.4), (0.16, 0.05, 0.03), heading))
     assert fp is not None
-    assert np.linalg.norm(fp.centre - [1.2, -0.4]) < 0.006  # the seen side face does not pull it
     assert abs(axis_gap(fp.axis_deg, heading % 180.0)) < 3.0
     assert fp.elongation > 0.5
 
 
-def test_the_centre_is_the_middle_of_the_extent_not_the_mean_of_the_points() -> None:
-    pts = box_view((0.0, 0.0), (0.10, 0.10, 0.10), 0.0, surround=0.0)
-    # the side face facing the camera (at -y) adds as many points as the top face
-    assert pts[:, 1].mean() < -0.01
+def test_a_tall_box_seen_at_a_corner_lies_along_its_top_face() -> None:
+    # 14 x 7 cm, 25 cm tall: its two sides a camera sees at a corner have far more points than
+    # its top, and pull the points' long axis round towards the corner's diagonal
+    pts = box_view((0.0, 0.0), (0.14, 0.07, 0.25), 30.0, surround=0.0, corner=True)
     fp = footprint(pts)
-    assert fp is not None and np.linalg.norm(fp.centre) < 0.005
+    assert fp is not None and abs(axis_gap(fp.axis_deg, 30.0)) < 3.0
+    sides_too = footprint(pts, top_band=10.0)  # the sides' points count too
+    assert sides_too is not None and abs(axis_gap(sides_too.axis_deg, 30.0)) > 10.0
+
+
+def test_the_colour_is_that_of_the_object_not_its_support() -> None:
+    pts = box_view((0.0, 0.0), (0.10, 0.05, 0.04), 0.0)
+    rgb = np.where((pts[:, 2] > 0.751)[:, None], [200, 20, 20], [90, 90, 90])  # a red box on grey
+    fp = footprint(pts, rgb)
+    assert fp is not None and fp.colour is not None
+    assert np.allclose(fp.colour, np.array([200, 20, 20]) / 255)
 
 
 def test_a_flat_thing_is_all_points_and_too_few_points_are_nothing() -> None:
@@ -65,28 +78,24 @@ def test_a_flat_thing_is_all_points_and_too_few_points_are_nothing() -> None:
     assert footprint(flat[:5]) is None
 
 
-def _fp(centre: tuple[float, float], axis: float, elongation: float, n: int) -> Footprint:
-    return Footprint(np.array(centre), axis, elongation, n)
-
-
 def test_votes_pool_views_by_their_points_and_axes_by_elongation_too() -> None:
     v = FootprintVotes()
-    assert v.centre is None and v.axis_deg() is None
-    v.add(_fp((0.0, 0.0), 178.0, 0.8, 300))  # near view: 178 and 4 degrees are one axis
-    v.add(_fp((0.04, 0.0), 4.0, 0.8, 100))
-    v.add(_fp((0.0, 0.0), 90.0, 0.0, 200))  # a view where it looked square: no say in the axis
-    assert np.allclose(v.centre, [0.04 * 100 / 600, 0.0])
+    assert v.axis_deg() is None and v.colour is None
+    v.add(Footprint(178.0, 0.8, 300, np.array([0.9, 0.1, 0.1])))  # near view: 178 and 4 degrees are one axis
+    v.add(Footprint(4.0, 0.8, 100, np.array([0.5, 0.1, 0.1])))
+    v.add(Footprint(90.0, 0.0, 200))  # a view where it looked square: no say in the axis, none in colour
     axis = v.axis_deg()
     assert axis is not None and abs(axis_gap(axis, 179.5)) < 0.6
+    assert np.allclose(v.colour, [0.8, 0.1, 0.1])  # (300 x 0.9 + 100 x 0.5) / 400
 
 
 def test_no_axis_when_the_views_disagree_or_the_thing_is_round() -> None:
     split = FootprintVotes()
-    split.add(_fp((0, 0), 0.0, 0.9, 100))
-    split.add(_fp((0, 0), 90.0, 0.9, 100))
+    split.add(Footprint(0.0, 0.9, 100))
+    split.add(Footprint(90.0, 0.9, 100))
     assert split.axis_deg() is None
     round_ = FootprintVotes()
-    round_.add(_fp((0, 0), 33.0, 0.05, 500))
+    round_.add(Footprint(33.0, 0.05, 500))
     assert round_.axis_deg() is None
 
 
