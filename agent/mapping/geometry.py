@@ -94,10 +94,18 @@ def unproject(
     if mask is not None and np.shape(mask) != depth.shape:
         raise ValueError(f"mask shape {np.shape(mask)} does not match depth shape {depth.shape}")
     k, t = _check_camera(intrinsics, camera_pose)
-    rays, pix = pixel_rays(depth.shape, k, stride)
+    if mask is not None and stride == 1:  # a few pixels of a large image: rays for those alone
+        pix = np.flatnonzero(np.asarray(mask, dtype=bool))
+        w = depth.shape[1]
+        rays = np.empty((pix.size, 3))
+        rays[:, 0] = (pix % w - k[0, 2]) / k[0, 0]
+        rays[:, 1] = (pix // w - k[1, 2]) / k[1, 1]
+        rays[:, 2] = 1.0
+    else:
+        rays, pix = pixel_rays(depth.shape, k, stride)
     d = depth.ravel()[pix]
     keep = valid_depth(d, max_depth)
-    if mask is not None:
+    if mask is not None and stride != 1:
         keep &= np.asarray(mask, dtype=bool).ravel()[pix]
     pix = pix[keep]
     cam = rays[keep] * d[keep, None].astype(np.float64)

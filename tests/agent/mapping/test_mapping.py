@@ -139,6 +139,22 @@ def test_unproject_drops_invalid_depths_and_honours_mask() -> None:
         unproject(depth, k, np.eye(4), mask=np.ones((3, 3), bool))
 
 
+def test_a_masked_unprojection_gives_the_points_of_the_full_one() -> None:
+    # a mask takes the few pixels' rays alone: the same points, in the same order
+    res = 48
+    k = intrinsics(res)
+    pose = camera_pose(0.3, -0.2, 40.0, 30.0)
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.2, 6.0, (res, res)).astype(np.float32)
+    depth[rng.random((res, res)) < 0.1] = 0.0
+    mask = rng.random((res, res)) < 0.2
+    pts, pix = unproject(depth, k, pose, mask=mask)
+    full, full_pix = unproject(depth, k, pose)
+    keep = mask.ravel()[full_pix]
+    np.testing.assert_array_equal(pix, full_pix[keep])
+    np.testing.assert_array_equal(pts, full[keep])
+
+
 def test_project_behind_camera_is_nan() -> None:
     u, v, z = project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 2.0]]), intrinsics(8), np.eye(4))
     assert np.isnan(u[0]) and np.isnan(v[0]) and z[0] == -1.0
