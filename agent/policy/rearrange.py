@@ -61,10 +61,11 @@ OPEN_M = 0.15  # an openable's box growing (or shrinking) by this much changed i
 SMALL_MERGE_M = 0.25  # the memory merges detections of a pickupable class this close (``map_config``)
 MIN_OBS = 2  # tracks seen fewer times are not trusted to say that something moved
 DOOR_CELLS = 8  # obstacle cells (5 cm) that must appear or vanish beside a floor-standing openable
-DOOR_ONE_SIDED = 2  # ... and at least this many times as many as went the other way
 FLOOR_STANDING_Z = 0.3  # an openable whose box starts below this stands on the floor
 FLOOR_Z = 0.08  # a remembered object whose box starts this low stood on the floor
-REACH_LIFT_M = 0.03  # a put reaches for the point this far above the remembered base
+# a put reaches for the point this far above the remembered base: the eye (0.90 m) is below a
+# counter top (0.92 m), so the ray to a point just over the top would meet the counter's front edge
+REACH_LIFT_M = 0.10
 REACH_SLACK = 0.05  # depth this much (relative) nearer than that point: something is in the way
 
 
@@ -231,8 +232,8 @@ def find_toggles(
     """Openables matched across the phases whose box grew or shrank by more than ``open_m``.
     With ``maps`` (grid, walkthrough and unshuffle occupancy), a piece standing on the floor
     must also show at least ``min_cells`` obstacle cells appear (or vanish) beside it, and
-    ``DOOR_ONE_SIDED`` times as many as vanished (appeared), and that decides the direction: a
-    big piece's boxes differ between views far more than its door does."""
+    that decides the direction: a big piece's boxes differ between views far more than its
+    door does."""
     then = [s for s in then if s.label in OPENABLE]
     now = [o for o in now if o.label in OPENABLE]
     toggles = []
@@ -247,9 +248,7 @@ def find_toggles(
             grid, before, after = maps
             lo, hi = np.minimum(s.box_min, o.box_min), np.maximum(s.box_max, o.box_max)
             appeared, vanished = door_evidence(grid, before, after, lo, hi)
-            # a door that swung open adds cells and takes none away (closed: the other way round);
-            # two maps that merely disagree do both
-            if max(appeared, vanished) < max(min_cells, DOOR_ONE_SIDED * min(appeared, vanished)):
+            if max(appeared, vanished) < min_cells:
                 continue
             opened = appeared >= vanished
             cells = (appeared, vanished)
