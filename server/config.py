@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tidee import argtypes
+from tidee.batch import BackendConfig
 from tidee.options import option
 from tidee.protocol import keys
 from tidee.protocol.vocab import RENDERERS, Renderer, RoomType, Split
@@ -190,7 +191,10 @@ class CacheConfig:
     limit: int | None = option(
         None, "only the first N configurations (default: all)", type=argtypes.positive_int
     )
-    workers: int = option(1, "processes generating rooms", type=argtypes.positive_int)
+    workers: int = option(
+        1, "worker processes (local) or Ray actors generating rooms", type=argtypes.positive_int
+    )
+    batch: BackendConfig = option(default_factory=BackendConfig)
     cache_dir: Path | None = option(
         None, "default: $XDG_CACHE_HOME/tidee/scenes (~/.cache/tidee/scenes)", type=argtypes.output_path
     )

@@ -181,6 +181,7 @@ def _cmd_bench_scale(cfg: ec.ScaleBenchConfig) -> int:
             variants=",".join(cfg.variants),
             repeats=cfg.repeats,
             split=cfg.split,
+            backends=cfg.backends,
         )
     )
 
@@ -204,7 +205,9 @@ def _cmd_gen_cache(cfg: sc.CacheConfig) -> int:
     from tidee.server.bench_reset import fill_cache
 
     directory = str(cfg.cache_dir) if cfg.cache_dir is not None else None
-    return _print_json(fill_cache(cfg.split, workers=cfg.workers, directory=directory, limit=cfg.limit))
+    return _print_json(
+        fill_cache(cfg.split, workers=cfg.workers, directory=directory, limit=cfg.limit, backend=cfg.batch)
+    )
 
 
 # --- the agent -----------------------------------------------------------------------------
@@ -318,7 +321,13 @@ def _cmd_gen_stats(cfg: ec.StatsGenConfig) -> int:
                 f"--seeds {cfg.seeds!r}: {part!r} is not a seed or a range; expected e.g. 0-19,10000-10179"
             )
         seeds += list(range(int(lo), int(hi or lo) + 1))
-    data = build_stats(seeds, cfg.out or DEFAULT_PATH, command=f"tidee gen stats --seeds {cfg.seeds}")
+    data = build_stats(
+        seeds,
+        cfg.out or DEFAULT_PATH,
+        command=f"tidee gen stats --seeds {cfg.seeds}",
+        workers=cfg.workers,
+        backend=cfg.batch,
+    )
     return _print_json(data["meta"])
 
 
@@ -385,7 +394,7 @@ def build_parser() -> argparse.ArgumentParser:
         "scale",
         ec.ScaleBenchConfig,
         _cmd_bench_scale,
-        "tidy episodes per minute with 1 vs 2 worker processes, side by side",
+        "tidy episodes per hour with 1 vs 2 workers, local processes and Ray actors, side by side",
     )
     add_command(
         bench, "transport", sc.TransportBenchConfig, _cmd_bench_transport, "in-process vs Zenoh step latency"

@@ -30,8 +30,9 @@ import numpy as np
 from tidee.agent.classes import PLACEABLE_RECEPTACLES
 from tidee.agent.evaluation.config import PreferenceEvalConfig
 from tidee.agent.evaluation.judge import plausible
-from tidee.agent.evaluation.tidy_eval import TidyJob, run_jobs, select_configs
+from tidee.agent.evaluation.tidy_eval import EPISODES_FILE, TidyJob, run_jobs, select_configs
 from tidee.agent.reasoning.relations import words
+from tidee.batch import import_ray
 from tidee.protocol.messages import EpisodeSpec
 
 # Group phrases a household might use; each configuration takes the first whose members include
@@ -171,7 +172,23 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
             for v in cfg.variants
         ]
 
-    without = run_jobs(jobs({}), cfg.workers, cfg.renderer, cfg.progress)
+    batch = cfg.batch
+    if batch.backend == "ray":
+        import_ray()  # not installed: say how, before any episode
+
+    def run(todo: list[TidyJob], resume: bool) -> list[dict[str, Any]]:
+        return run_jobs(
+            todo,
+            cfg.workers,
+            cfg.renderer,
+            cfg.progress,
+            backend=batch.backend,
+            ray_address=batch.ray_address,
+            out_jsonl=out / EPISODES_FILE,
+            resume=resume,
+        )
+
+    without = run(jobs({}), batch.resume)
     members = {p: group_members(p) for p in GROUP_PHRASES}
     profiles: dict[Any, Any] = {}
     files: dict[Any, str] = {}
@@ -185,7 +202,8 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
         sentences = [p["text"] for p in prof.values() if p]
         path.write_text(json.dumps({"household": path.stem, "preferences": sentences}, indent=1))
         files[_key(rec)] = str(path)
-    with_ = run_jobs(jobs(files), cfg.workers, cfg.renderer, cfg.progress)
+    # the same records file: this run's episodes without preferences are in it (resumed or not)
+    with_ = run(jobs(files), True)
     result: dict[str, Any] = {
         "command": command,
         "config": {

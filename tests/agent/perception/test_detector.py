@@ -26,10 +26,11 @@ def test_generator_refuses_held_out_rooms_and_lists_training_rooms() -> None:
     assert len(jobs) == 22 * 4 * 2
     with pytest.raises(ValueError, match="training rooms"):
         list(iter_frames(GenConfig(), jobs=[("Kitchen", 200, 0)], progress=False))
+    from tidee.agent.perception.detector.config import GenDetectionConfig
     from tidee.agent.perception.detector.data import generate
 
     with pytest.raises(ValueError, match="training data only"):
-        generate(GenConfig(split="test"), "/nonexistent")
+        generate(GenDetectionConfig(out="/nonexistent", gen=GenConfig(split="test")))
 
 
 def test_instance_masks_match_the_rendered_geometry() -> None:
