@@ -17,6 +17,11 @@ loading is start-up, not episode time) and on which worker. From these, per run:
   (what a long evaluation approaches, where start-up is spread over thousands of episodes);
 * ``tail_idle_s``: per worker, from its last episode's end to the run's last end (stragglers).
 
+A lone local worker runs twice: with what ``--workers 1`` gives it (every core: its episodes
+are shorter where torch uses both) and with one thread, as each of 2 workers on 2 cores has. The
+first is what the 1 to 2 speedup is measured against; the second tells whether two workers slow
+each other down (memory bandwidth, caches), which the first cannot.
+
 Reported: each, median / p90 / max over the repeats; the 1 to 2 worker speedup of each backend;
 Ray's overhead per episode against local at equal workers; episodes per hour per core for each
 agent from the 2-worker local runs (a worker per core, one thread each: its mean episode time);
@@ -41,7 +46,22 @@ import numpy as np
 
 from tidee.protocol.episode_log import write_atomic
 
-ORDER = (("local", 1), ("local", 2), ("ray", 1), ("ray", 2))
+# (backend, workers, threads of a lone in-process worker: None for what the command gives it, all
+# the cores). One worker with one thread measures whether workers get in each other's way; one
+# with every core is what `--workers 1` gives and the 1-to-2 speedup is measured against.
+Run = tuple[str, int, int | None]
+ORDER: tuple[Run, ...] = (
+    ("local", 1, None),
+    ("local", 1, 1),
+    ("local", 2, None),
+    ("ray", 1, None),
+    ("ray", 2, None),
+)
+
+
+def _name(run: Run) -> str:
+    backend, workers, threads = run
+    return f"{backend}_{workers}" + ("" if threads is None else f"_{threads}_thread")
 
 
 def _warm_scene_cache(split: str, configs: int) -> None:
@@ -77,11 +97,16 @@ def _timed_episode(job: Any) -> dict[str, Any]:
     }
 
 
-def _child(backend: str, workers: int, split: str, configs: int, variants: list[str]) -> None:
+def _child(
+    backend: str, workers: int, threads: int | None, split: str, configs: int, variants: list[str]
+) -> None:
     """The measured run, in a fresh process: prints one JSON line of episode timings."""
     from tidee.agent.evaluation.config import TidyEvalConfig
     from tidee.agent.evaluation.tidy_eval import _job_cost, build_jobs
-    from tidee.batch import BatchConfig, run_jobs
+    from tidee.batch import BatchConfig, init_worker, run_jobs
+
+    if threads is not None:  # the lone worker is this process
+        init_worker(None, threads)
 
     with tempfile.TemporaryDirectory(prefix="tidee-bench-scale-") as out:
         cfg = TidyEvalConfig(
@@ -106,14 +131,15 @@ def _child(backend: str, workers: int, split: str, configs: int, variants: list[
     print(json.dumps({"episodes": episodes}))
 
 
-def _measure(backend: str, workers: int, split: str, configs: int, variants: list[str]) -> dict[str, Any]:
+def _measure(run: Run, split: str, configs: int, variants: list[str]) -> dict[str, Any]:
+    backend, workers, threads = run
     code = "import json, sys\nfrom tidee.agent.bench_scale import _child\n_child(*json.loads(sys.argv[1]))\n"
-    args = json.dumps([backend, workers, split, configs, variants])
+    args = json.dumps([backend, workers, threads, split, configs, variants])
     t0 = time.time()
     r = subprocess.run([sys.executable, "-c", code, args], capture_output=True, text=True, timeout=6 * 3600)
     t1 = time.time()
     if r.returncode != 0:
-        raise RuntimeError(f"bench scale: {backend} with {workers} worker(s) failed: {r.stderr[-1500:]}")
+        raise RuntimeError(f"bench scale: {_name(run)} failed: {r.stderr[-1500:]}")
     episodes = json.loads(r.stdout.strip().splitlines()[-1])["episodes"]
     first = min(e["t_start"] for e in episodes)
     last = max(e["t_end"] for e in episodes)
@@ -121,8 +147,7 @@ def _measure(backend: str, workers: int, split: str, configs: int, variants: lis
     for e in episodes:
         ends[e["worker"]] = max(ends.get(e["worker"], 0.0), e["t_end"])
     return {
-        "backend": backend,
-        "workers": workers,
+        "run": _name(run),
         "episodes": episodes,
         "command_s": t1 - t0,
         "setup_s": first - t0,
@@ -152,11 +177,11 @@ def run_scale_bench(
         import_ray()  # not installed: say how, before any run
     _warm_scene_cache(split, configs)
     load0 = os.getloadavg()
-    order = [pair for pair in ORDER if pair[0] in backends]
-    runs: dict[tuple[str, int], list[dict[str, Any]]] = {pair: [] for pair in order}
+    order = [run for run in ORDER if run[0] in backends]
+    runs: dict[Run, list[dict[str, Any]]] = {run: [] for run in order}
     for k in range(repeats):
-        for pair in order if k % 2 == 0 else order[::-1]:
-            runs[pair].append(_measure(*pair, split, configs, agents))
+        for run in order if k % 2 == 0 else order[::-1]:
+            runs[run].append(_measure(run, split, configs, agents))
     load1 = os.getloadavg()
     reference = [e["digest"] for e in runs[order[0]][0]["episodes"]]
     same = all([e["digest"] for e in r["episodes"]] == reference for rs in runs.values() for r in rs)
@@ -169,30 +194,42 @@ def run_scale_bench(
         "repeats": repeats,
         "same_episodes_every_run": same,
     }
-    per_hour: dict[tuple[str, int], float] = {}
-    steady: dict[tuple[str, int], float] = {}
-    for (backend, workers), rs in runs.items():
-        name = f"{backend}_{workers}"
-        per_hour[backend, workers] = float(np.median([3600.0 * n / r["command_s"] for r in rs]))
-        steady[backend, workers] = float(np.median([3600.0 * n / r["window_s"] for r in rs]))
-        result[f"{name}_episodes_per_hour"] = round(per_hour[backend, workers], 1)
-        result[f"{name}_steady_episodes_per_hour"] = round(steady[backend, workers], 1)
+    per_hour: dict[str, float] = {}
+    steady: dict[str, float] = {}
+    command: dict[str, float] = {}
+    for run, rs in runs.items():
+        name = _name(run)
+        per_hour[name] = float(np.median([3600.0 * n / r["command_s"] for r in rs]))
+        steady[name] = float(np.median([3600.0 * n / r["window_s"] for r in rs]))
+        command[name] = float(np.median([r["command_s"] for r in rs]))
+        result[f"{name}_episodes_per_hour"] = round(per_hour[name], 1)
+        result[f"{name}_steady_episodes_per_hour"] = round(steady[name], 1)
         for key in ("command_s", "setup_s", "window_s", "tail_idle_s"):
             result[f"{name}_{key}"] = _spread([r[key] for r in rs])
         result[f"{name}_episode_wall_s"] = _spread([e["wall_s"] for r in rs for e in r["episodes"]])
-    for backend in dict.fromkeys(b for b, _ in order):
-        if (backend, 1) in runs and (backend, 2) in runs:
-            result[f"{backend}_speedup_1_to_2"] = round(per_hour[backend, 2] / per_hour[backend, 1], 2)
-            result[f"{backend}_steady_speedup_1_to_2"] = round(steady[backend, 2] / steady[backend, 1], 2)
-    if "ray" in backends and "local" in backends:
-        for workers in (1, 2):
-            local = float(np.median([r["command_s"] for r in runs["local", workers]]))
-            ray = float(np.median([r["command_s"] for r in runs["ray", workers]]))
+    for backend in dict.fromkeys(b for b, _, _ in order):
+        one, two = f"{backend}_1", f"{backend}_2"
+        if one in per_hour and two in per_hour:
+            result[f"{backend}_speedup_1_to_2"] = round(per_hour[two] / per_hour[one], 2)
+            result[f"{backend}_steady_speedup_1_to_2"] = round(steady[two] / steady[one], 2)
+    if "local_1_1_thread" in steady and "local_2" in steady:  # a core per worker in both
+        result["local_steady_speedup_1_to_2_one_thread_each"] = round(
+            steady["local_2"] / steady["local_1_1_thread"], 2
+        )
+    for workers in (1, 2):
+        local, ray = command.get(f"local_{workers}"), command.get(f"ray_{workers}")
+        if local is not None and ray is not None:
             result[f"ray_overhead_per_episode_{workers}_workers_s"] = round((ray - local) / n, 2)
             result[f"ray_overhead_{workers}_workers_pct"] = round(100.0 * (ray - local) / local, 1)
+            result[f"ray_steady_overhead_{workers}_workers_pct"] = round(
+                100.0 * (steady[f"local_{workers}"] / steady[f"ray_{workers}"] - 1.0), 1
+            )
     for agent in agents:  # 2 workers on 2 cores: each worker a core (one thread) all the time
         walls = [
-            e["wall_s"] for r in runs.get(("local", 2), []) for e in r["episodes"] if e["variant"] == agent
+            e["wall_s"]
+            for r in runs.get(("local", 2, None), [])
+            for e in r["episodes"]
+            if e["variant"] == agent
         ]
         if walls:
             result[f"{agent}_episodes_per_hour_per_core"] = round(3600.0 / float(np.mean(walls)), 1)
@@ -212,6 +249,6 @@ def run_scale_bench(
     )
     write_atomic(
         os.path.splitext(out)[0] + "_runs.json",
-        json.dumps({f"{b}_{w}": rs for (b, w), rs in runs.items()}, indent=1).encode(),
+        json.dumps({_name(run): rs for run, rs in runs.items()}, indent=1).encode(),
     )
     return result

@@ -13,6 +13,7 @@ only when perception is "oracle", which every report names).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -118,9 +119,14 @@ def episode_cost(spec: EpisodeSpec) -> float:
     """An estimate of an episode's run time, to start the longest first: the number of objects in
     its room (over the 100 test configurations TIDEE's episode wall time rises with it, Spearman
     0.71), read from the scene cache; a room not cached costs more than any (its reset generates it)."""
+    return _room_cost(spec.room_type, spec.seed)
+
+
+@functools.lru_cache(maxsize=256)
+def _room_cost(room_type: str, seed: int) -> float:
     from tidee.server.scene_cache import SceneCache
 
-    scene = SceneCache().load(spec.room_type, spec.seed, None)
+    scene = SceneCache().load(room_type, seed, None)
     return UNCACHED_COST if scene is None else float(len(scene["objects"]))
 
 
