@@ -25,7 +25,7 @@ each other down (memory bandwidth, caches), which the first cannot.
 Reported: each, median / p90 / max over the repeats; the 1 to 2 worker speedup of each backend;
 Ray's overhead per episode against local at equal workers; episodes per hour per core for each
 agent from the 2-worker local runs (a worker per core, one thread each: its mean episode time);
-the load average. Every run's
+a worker's peak memory (resident set, 2-worker runs); the load average. Every run's
 episodes are checked equal (wall times aside) to the first run's: the same records on either
 backend.
 """
@@ -36,6 +36,7 @@ import hashlib
 import json
 import os
 import platform
+import resource
 import subprocess
 import sys
 import tempfile
@@ -94,6 +95,7 @@ def _timed_episode(job: Any) -> dict[str, Any]:
         "worker": os.getpid(),
         "wall_s": float(record["wall_s"]),
         "digest": digest,
+        "worker_peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }
 
 
@@ -224,6 +226,9 @@ def run_scale_bench(
             result[f"ray_steady_overhead_{workers}_workers_pct"] = round(
                 100.0 * (steady[f"local_{workers}"] / steady[f"ray_{workers}"] - 1.0), 1
             )
+    result["worker_peak_rss_mb"] = _spread(
+        [e["worker_peak_rss_mb"] for run in runs if run[1] == 2 for r in runs[run] for e in r["episodes"]], 0
+    )
     for agent in agents:  # 2 workers on 2 cores: each worker a core (one thread) all the time
         walls = [
             e["wall_s"]
