@@ -214,7 +214,8 @@ class ShardJob:
     def key(self) -> str:
         from tidee.batch import config_digest
 
-        return f"{self.name}/{config_digest(self.gen, ('room_types', 'rooms_per_type', 'skip_rooms'))}"
+        # every field: which configurations fall in a shard depends on them all
+        return f"{self.name}/{config_digest(self.gen)}"
 
 
 def shard_jobs(cfg: GenConfig) -> list[ShardJob]:
