@@ -65,6 +65,11 @@ class ServerConfig:
 
     def __post_init__(self) -> None:
         keys.check_id("server_id", self.server_id)
+        if self.server_id == keys.AUTO_SERVER:
+            raise ValueError(
+                f"server_id {keys.AUTO_SERVER!r} is reserved: clients ask for it to choose a live server; "
+                "give this server another id"
+            )
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         for name in ("max_sessions", "workers", "max_request_bytes", "max_sessions_per_client"):

@@ -118,6 +118,8 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
 class _GoneClient:
     """A SimClient stand-in whose server never comes back."""
 
+    auto, server_id = False, "sim0"
+
     def __init__(self) -> None:
         self.waits: list[float] = []
 
@@ -165,3 +167,65 @@ def test_a_refused_episode_or_no_reconnect_fails_at_once() -> None:
 def test_reconnect_timeout_must_not_be_negative() -> None:
     with pytest.raises(ValueError, match="reconnect_timeout"):
         _cfg(-1)
+
+
+class _AutoClient:
+    """A SimClient stand-in that chose its server (``--server-id auto``); ``others``: where it may move."""
+
+    auto = True
+
+    def __init__(self, others: list[str]) -> None:
+        self.server_id, self.others = "sim1", others
+        self.chosen: list[tuple[float, set[str]]] = []
+
+    def choose_server(self, timeout: float, avoid: set[str] = frozenset()) -> str:  # type: ignore[assignment]
+        self.chosen.append((timeout, set(avoid)))
+        if not self.others:
+            raise TimeoutError("no live tidee server at tcp/router:7447 within 5 s")
+        self.server_id = self.others.pop(0)
+        return self.server_id
+
+
+class _FlakyRunner:
+    """Fails its first run with ``error`` (at step 12), then plays the episode."""
+
+    def __init__(self, error: Exception, step: dict[str, int]) -> None:
+        self.error, self.step, self.runs = error, step, 0
+
+    def run(self, spec: EpisodeSpec, evaluate: bool = False) -> str:
+        self.runs += 1
+        if self.runs == 1:
+            self.step["last"] = 12
+            raise self.error
+        return "finished"
+
+
+def test_an_agent_that_chose_its_server_moves_to_another_and_runs_again(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    cfg, step = _cfg(5), {"last": 0}
+    client, runner = _AutoClient(["sim0"]), _FlakyRunner(TimeoutError("no reply to step"), step)
+    assert _run_until_done(runner, client, cfg.spec, cfg, step) == "finished"  # type: ignore[arg-type]
+    assert runner.runs == 2 and client.chosen == [(5, {"sim1"})]  # a silent server: tried last
+    assert capsys.readouterr().out == (
+        "agent: server 'sim1' went away at step 12; moving to another live server "
+        "(waiting up to 5 s for one with room)\n"
+        "agent: on server 'sim0'; running LivingRoom seed 200 mess 0 again from the start\n"
+    )
+    # A server that restarted (it no longer knows the session) is as good as any other.
+    client, runner = _AutoClient(["sim1"]), _FlakyRunner(RemoteError(ErrorCode.unknown_session, "gone"), step)
+    assert _run_until_done(runner, client, cfg.spec, cfg, step) == "finished"  # type: ignore[arg-type]
+    assert client.chosen == [(5, set())]
+
+
+def test_an_agent_that_chose_its_server_gives_up_when_none_has_room(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    cfg, step = _cfg(5), {"last": 0}
+    client, runner = _AutoClient([]), _FlakyRunner(TimeoutError("no reply to step"), step)
+    with pytest.raises(TimeoutError) as info:
+        _run_until_done(runner, client, cfg.spec, cfg, step)  # type: ignore[arg-type]
+    assert str(info.value) == (
+        "after server 'sim1' went away: no live tidee server at tcp/router:7447 within 5 s"
+    )
+    assert runner.runs == 1
