@@ -176,6 +176,16 @@ class ScaleServerBenchConfig:
 
 
 @dataclass
+class DeploymentBenchConfig:
+    """``tidee bench deployment``."""
+
+    resolution: int = option(256, "image side, pixels", type=argtypes.resolution)
+    steps: int = option(200, "timed steps each way", type=argtypes.positive_int)
+    renderer: Renderer = option("tiny", "who draws the frames")
+    out: Path | None = option(None, "report path (default: bench/deployment.json)", type=argtypes.output_path)
+
+
+@dataclass
 class SoakBenchConfig:
     """``tidee bench soak``."""
 
@@ -203,6 +213,7 @@ class CacheConfig:
 
 __all__ = [
     "CacheConfig",
+    "DeploymentBenchConfig",
     "ResetBenchConfig",
     "ScaleServerBenchConfig",
     "SceneConfig",

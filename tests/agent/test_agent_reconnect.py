@@ -1,68 +1,24 @@
-"""An agent whose server disappears waits for it, and plays the episode again once it is back.
+"""An agent whose server disappears plays the episode again from the start: on the same server once
+it is back, or, when it chose its server (``--server-id auto``), on another live one.
 
 Loopback only: a real ``tidee server`` and ``tidee agent`` as subprocesses; the server is
-killed mid-episode (SIGKILL, no goodbye) and a new one started on the same endpoint.
+killed mid-episode (SIGKILL, no goodbye) and a new one started on the same endpoint. Moving to
+another server is tests/test_deployment.py's (a router and two servers); here, its decisions.
 """
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from tests.support import REPO as SUPPORT_REPO
+from tests.support.processes import OutputLines, kill_group, start_tidee
 from tidee.agent.config import AgentConfig
 from tidee.agent.process import AgentProcessConfig, _run_until_done
 from tidee.launch import free_port
 from tidee.protocol.client import RemoteError
 from tidee.protocol.messages import EpisodeSpec, ErrorCode
-
-REPO = SUPPORT_REPO
-
-
-def _start(*args: str, **kw: object) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "tidee.cli", *args], cwd=REPO, text=True, start_new_session=True, **kw
-    )  # type: ignore[call-overload]
-
-
-def _kill(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=10)
-
-
-class _Lines:
-    """Collects a process's output lines in a thread, so waiting for one never blocks on the pipe."""
-
-    def __init__(self, proc: subprocess.Popen) -> None:
-        self.lines: list[str] = []
-        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
-        self._thread.start()
-
-    def _read(self, proc: subprocess.Popen) -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-
-    def wait_for(self, text: str, deadline: float) -> str:
-        while time.monotonic() < deadline:
-            for line in self.lines:
-                if text in line:
-                    return line
-            time.sleep(0.1)
-        raise AssertionError(f"no line with {text!r} in time; output so far:\n" + "\n".join(self.lines))
-
-    @property
-    def text(self) -> str:
-        self._thread.join(timeout=5)
-        return "\n".join(self.lines)
 
 
 @pytest.mark.timeout(90)
@@ -70,8 +26,8 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
     deadline = time.monotonic() + 60
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server_args = ("server", "--endpoint", endpoint, "--processes", "1")
-    server = _start(*server_args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    agent = _start(
+    server = start_tidee(*server_args, output=False)
+    agent = start_tidee(
         "agent",
         "--endpoint",
         endpoint,
@@ -87,17 +43,15 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
         "40",
         "--log-dir",
         str(tmp_path / "runs"),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
     )
     second = None
     try:
-        out = _Lines(agent)
+        out = OutputLines(agent)
         out.wait_for("agent: session", deadline)
         time.sleep(3)  # a few steps into the episode
         assert agent.poll() is None, out.text
-        _kill(server)
-        second = _start(*server_args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        kill_group(server)
+        second = start_tidee(*server_args, output=False)
         gone = out.wait_for("went away", deadline)
         assert gone.startswith("agent: server 'sim0' went away at step ")
         assert gone.endswith("; waiting up to 40 s for it to come back")
@@ -109,10 +63,10 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
         summaries = list((tmp_path / "runs").rglob("summary.json"))
         assert len(summaries) == 1, summaries  # the re-run's log is the finished one
     finally:
-        _kill(agent)
-        _kill(server)
+        kill_group(agent)
+        kill_group(server)
         if second is not None:
-            _kill(second)
+            kill_group(second)
 
 
 class _GoneClient:
