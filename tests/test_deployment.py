@@ -216,12 +216,18 @@ def test_a_killed_servers_client_finishes_its_episode_on_the_other(
 ) -> None:
     spec = EpisodeSpec(room_type="LivingRoom", seed=200, mess_index=0, resolution=32, max_steps=50)
     cfg = AgentProcessConfig(spec=spec, reconnect_timeout=60.0, score=False)
-    clients = [
-        SimClient(
-            router=deployment.here.router, server_id="auto", session=name, timeout=60.0, connect_timeout=30.0
+    clients: list[SimClient] = []
+    for name in AGENTS:  # one after the other, as compose's agents start: the first counts once it chose
+        assert wait_until(lambda: sum(i.sessions for i in ask_servers(deployment.z)) == len(clients), 10)
+        clients.append(
+            SimClient(
+                router=deployment.here.router,
+                server_id="auto",
+                session=name,
+                timeout=60.0,
+                connect_timeout=30.0,
+            )
         )
-        for name in AGENTS
-    ]
     assert clients[0].server_id != clients[1].server_id, "the second client took the other server"
     victim = clients[0].server_id
     steps = [{"last": 0}, {"last": 0}]
