@@ -21,9 +21,9 @@ from tidee.protocol.client import RemoteError
 from tidee.protocol.messages import EpisodeSpec, ErrorCode
 
 
-@pytest.mark.timeout(90)
+@pytest.mark.timeout(180)
 def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 150  # a loaded 2-core machine plays the episode twice
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server_args = ("server", "--endpoint", endpoint, "--processes", "1")
     server = start_tidee(*server_args, output=False)
@@ -38,7 +38,7 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
         "--oop",
         "relation_stats",
         "--max-steps",
-        "150",
+        "80",
         "--reconnect-timeout",
         "40",
         "--log-dir",
