@@ -65,6 +65,11 @@ class ServerConfig:
 
     def __post_init__(self) -> None:
         keys.check_id("server_id", self.server_id)
+        if self.server_id == keys.AUTO_SERVER:
+            raise ValueError(
+                f"server_id {keys.AUTO_SERVER!r} is reserved: clients ask for it to choose a live server; "
+                "give this server another id"
+            )
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         for name in ("max_sessions", "workers", "max_request_bytes", "max_sessions_per_client"):
@@ -171,6 +176,16 @@ class ScaleServerBenchConfig:
 
 
 @dataclass
+class DeploymentBenchConfig:
+    """``tidee bench deployment``."""
+
+    resolution: int = option(256, "image side, pixels", type=argtypes.resolution)
+    steps: int = option(200, "timed steps each way", type=argtypes.positive_int)
+    renderer: Renderer = option("tiny", "who draws the frames")
+    out: Path | None = option(None, "report path (default: bench/deployment.json)", type=argtypes.output_path)
+
+
+@dataclass
 class SoakBenchConfig:
     """``tidee bench soak``."""
 
@@ -198,6 +213,7 @@ class CacheConfig:
 
 __all__ = [
     "CacheConfig",
+    "DeploymentBenchConfig",
     "ResetBenchConfig",
     "ScaleServerBenchConfig",
     "SceneConfig",

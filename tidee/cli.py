@@ -154,6 +154,13 @@ def _cmd_bench_scale_server(cfg: sc.ScaleServerBenchConfig) -> int:
     )
 
 
+def _cmd_bench_deployment(cfg: sc.DeploymentBenchConfig) -> int:
+    from tidee.server.bench_deployment import run_deployment_bench
+
+    out = str(bench_out(cfg.out, "deployment.json"))
+    return _print_json(run_deployment_bench(out, cfg.steps, cfg.resolution, cfg.renderer))
+
+
 def _cmd_bench_episode(cfg: ec.EpisodeBenchConfig) -> int:
     from tidee.agent.bench_episode import run_episode_bench
 
@@ -396,6 +403,13 @@ def build_parser() -> argparse.ArgumentParser:
         sc.ScaleServerBenchConfig,
         _cmd_bench_scale_server,
         "server steps/s for 1 vs 2 concurrent sessions, per process count",
+    )
+    add_command(
+        bench,
+        "deployment",
+        sc.DeploymentBenchConfig,
+        _cmd_bench_deployment,
+        "step latency peer-to-peer vs through a tidee router, side by side on one server",
     )
     add_command(
         bench,
