@@ -6,13 +6,14 @@ types in turn; a room not in the scene cache is generated once and stored there)
 few times, then closed. What a user pays is the resident set (VmRSS from /proc) of the server
 process plus all its descendants (the simulator processes, fresh ones included once the
 server recycles them: ``--recycle-after``), read in every session after its steps, while its
-simulator process is up, with the machine's load average beside it. Warm-up is the first tenth of the sessions (libraries loaded, the scene LRU
-filled). Recycled simulator processes make memory a saw tooth, so the figure compares peaks:
-the growth after warm-up is the peak of the last few sessions over the peak of the first few
-after warm-up, in percent (``growth_window``: a tenth of the run, at least two recycling
-periods); the target is at most 5 %. The median, p90 and max of the memory after warm-up and
-the reset times (of a room built before, and of the first reset in a fresh simulator process:
-what recycling costs) go in the report too.
+simulator process is up, with the machine's load average beside it. Warm-up is the first
+tenth of the sessions (libraries loaded, the scene LRU filled). Recycled simulator processes
+make memory a saw tooth, so the figure compares peaks: the growth after warm-up is the peak of
+the last few sessions over the peak of the first few after warm-up, in percent
+(``growth_window``: a tenth of the run, at least two recycling periods); the target is at most
+5 %. The median, p90 and max of the memory after warm-up and the reset times (of a room built
+before, and of the first reset in a fresh simulator process: what recycling costs) go in the
+report too.
 """
 
 from __future__ import annotations

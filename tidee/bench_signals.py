@@ -303,11 +303,12 @@ def _write(out_path: Path, r: dict[str, Any]) -> None:
     lines = [
         "# Signals benchmark (`tidee bench signals`)",
         "",
-        f"`{r['command']}`: each try starts the command in a session of its own, waits until it runs "
-        "(`tidee run`: the viewer answering and the agent's frames on the feed; `tidee server`: a client "
-        "resetting and stepping), sends one signal to that process alone after a drawn delay, and after "
-        "the exit timeout counts the processes of its session still alive, its ports still open and "
-        f"the tracebacks printed. {r['machine']}; {r['wall_s']} s; load average (1/5/15 min) "
+        f"`{r['command']}`: each try starts the command in a session of its own and sends one signal to "
+        "that process alone after a drawn delay: `tidee run` once it runs (the viewer answering, the "
+        "agent's frames on the feed), `tidee server` during its start-up (half the tries) or while a "
+        "client resets and steps (the other half). After the exit timeout it counts the processes of "
+        "the session still alive, its ports still open and the tracebacks printed. "
+        f"{r['machine']}; {r['wall_s']} s; load average (1/5/15 min) "
         f"{' / '.join(f'{x:.2f}' for x in r['load_avg_before'])} before, "
         f"{' / '.join(f'{x:.2f}' for x in r['load_avg_after'])} after; 1-minute load during the run: "
         f"median {r['load_1min_during']['median']}, max {r['load_1min_during']['max']}.",
