@@ -17,7 +17,9 @@ thread *i* owns child process *i* and is the only thread that talks to it, and t
 holds a proxy per episode. ``ServerConfig.processes`` sets how many (0: one per available
 core, never more than ``max_sessions``); each starts with its first session, so N sessions
 run on min(N, processes) cores. A child that dies fails its sessions' next request (a
-reset starts them again in a fresh child) and the other sessions carry on. A server given
+reset starts them again in a fresh child) and the other sessions carry on. A child that has
+run ``ServerConfig.recycle_after`` resets is replaced by a fresh one without disturbing a live
+session (``tidee.server.workers``, Recycling): PyBullet leaks a little memory at every reset. A server given
 its own ``episode_factory`` (a test's fake, an ``Episode`` in this process) runs the
 episodes in ``ServerConfig.workers`` threads of this process instead; pass an
 ``EpisodeProcesses`` to run a factory of your own in child processes.
@@ -150,7 +152,10 @@ class SimServer:
         self.config = config
         if episode_factory is None:
             episode_factory = EpisodeProcesses(
-                config.process_count(), config.renderer, name=f"tidee-sim-{config.server_id}"
+                config.process_count(),
+                config.renderer,
+                name=f"tidee-sim-{config.server_id}",
+                recycle_after=config.recycle_after,
             )
         self.processes: EpisodeProcesses | None = None
         if isinstance(episode_factory, EpisodeProcesses):
