@@ -522,6 +522,8 @@ class SimServer:
         gets it. ``create``: open the session for ``client`` if there is none (a reset)."""
         cfg = self.config
         create_for = client if create else None
+        if create_for is not None and session in self._departed:
+            self._readmit_if_alive(session)
         with self._lock:
             entry = self._sessions.get(session)
             if entry is not None and client is not None:
@@ -570,6 +572,15 @@ class SimServer:
             )
             log.info("session %s: opened (%d held)", session, len(self.sessions))
         return entry.episode
+
+    def _readmit_if_alive(self, session: str) -> None:
+        """Forget that ``session``'s client left if a client token for it is declared now: a new
+        client may reuse the id, and its reset can arrive before the server sees its token."""
+        assert self._z is not None
+        replies = self._z.liveliness().get(keys.alive_client(self.config.server_id, session), timeout=1.0)
+        if any(reply.ok is not None for reply in replies):
+            with self._lock:
+                self._departed.pop(session, None)
 
     def _reap_idle(self) -> None:
         """Reaper thread: queue an ``idle`` job for each session idle past the timeout."""

@@ -8,10 +8,10 @@ import pytest
 import zenoh
 
 from tests.support.fakes import FakeEpisode
-from tests.support.net import SPEC, client, start_server
+from tests.support.net import SPEC, start_server, wait_until
 from tidee.protocol import keys
 from tidee.protocol.codec import ProtocolError, decode, encode
-from tidee.protocol.messages import Action, ActionName, StepRequest
+from tidee.protocol.messages import Action, ActionName, ResetRequest, StepRequest
 from tidee.protocol.zenoh_config import make_config
 from tidee.server.bench_fuzz import FAMILIES, Case, CaseMaker, run_fuzz_bench, send, write_fuzz_report
 from tidee.server.config import FuzzBenchConfig
@@ -40,17 +40,19 @@ def test_every_family_and_op_is_drawn_and_only_valid_cases_decode_unchanged() ->
 def test_an_episode_that_raises_is_counted_internal_and_a_key_nobody_serves_unrouted() -> None:
     srv = start_server(lambda: FakeEpisode(fail_on="LookUp"))
     z = zenoh.open(make_config(False, srv.config.endpoint))
-    try:
-        with client(srv) as c:
-            c.reset(SPEC)
-            key = keys.sim_op(srv.config.server_id, c.session_id, "step")
-            look_up = encode(StepRequest(c.session_id, Action(ActionName.LookUp)))
-            outcome, reply, _ = send(z, Case(0, "valid", "step", key, look_up, "LookUp"), 10.0)
-            assert outcome == "internal" and "fake failure on LookUp" in reply.message
-            outcome, _, _ = send(z, Case(1, "key", "step", key + "/more", look_up, "extra chunk"), 10.0)
-            assert outcome == "unrouted"
-            move = encode(StepRequest(c.session_id, Action(ActionName.MoveAhead)))
-            assert send(z, Case(2, "valid", "step", key, move, "MoveAhead"), 10.0)[0] == "ok"
+    try:  # the raw session opens its own session (the server refuses steps to another client's)
+        session = "fuzz-raw"
+        reset = encode(ResetRequest(session, SPEC))
+        reset_key = keys.sim_op(srv.config.server_id, session, "reset")
+        assert wait_until(lambda: send(z, Case(0, "valid", "reset", reset_key, reset, "reset"), 2.0)[0] == "ok")
+        key = keys.sim_op(srv.config.server_id, session, "step")
+        look_up = encode(StepRequest(session, Action(ActionName.LookUp)))
+        outcome, reply, _ = send(z, Case(1, "valid", "step", key, look_up, "LookUp"), 10.0)
+        assert outcome == "internal" and "fake failure on LookUp" in reply.message
+        outcome, _, _ = send(z, Case(2, "key", "step", key + "/more", look_up, "extra chunk"), 10.0)
+        assert outcome == "unrouted"
+        move = encode(StepRequest(session, Action(ActionName.MoveAhead)))
+        assert send(z, Case(3, "valid", "step", key, move, "MoveAhead"), 10.0)[0] == "ok"
     finally:
         z.close()
         srv.stop()
