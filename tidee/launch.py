@@ -22,6 +22,7 @@ import urllib.error
 import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 from tidee import argtypes
 from tidee.options import option
@@ -80,6 +81,31 @@ class RunConfig:
     renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
     endpoint: str | None = option(None, "Zenoh endpoint (default: a free loopback port)", cli=False)
     zenoh_config: str | None = option(None, "Zenoh config file for the server and viewer", cli=False)
+
+
+@dataclass
+class SignalsBenchConfig:
+    """``tidee bench signals`` (tidee/bench_signals.py)."""
+
+    tries: int = option(
+        20, "tidee run tries per signal (SIGTERM and SIGINT, in turn)", type=argtypes.non_negative_int
+    )
+    server_tries: int = option(
+        20, "tidee server tries, one SIGTERM each", type=argtypes.non_negative_int, metavar="N"
+    )
+    seed: int = option(0, "draws the delay before each signal", type=argtypes.non_negative_int)
+    resolution: int = option(64, "the episode's image side, pixels", type=argtypes.resolution)
+    max_steps: int = option(
+        300, "the episode's step budget (it must outlast the signal)", type=argtypes.max_steps
+    )
+    exit_timeout_s: float = option(
+        60.0,
+        "what of a try's process session is still alive this long after the signal is orphaned",
+        flag="--exit-timeout",
+        type=argtypes.positive_float,
+        metavar="S",
+    )
+    out: Path | None = option(None, "report path (default: bench/signals.json)", type=argtypes.output_path)
 
 
 # = tidee.protocol.zenoh_config.DEFAULT_ENDPOINT (this module imports no Zenoh)
