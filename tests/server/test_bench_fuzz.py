@@ -44,7 +44,9 @@ def test_an_episode_that_raises_is_counted_internal_and_a_key_nobody_serves_unro
         session = "fuzz-raw"
         reset = encode(ResetRequest(session, SPEC))
         reset_key = keys.sim_op(srv.config.server_id, session, "reset")
-        assert wait_until(lambda: send(z, Case(0, "valid", "reset", reset_key, reset, "reset"), 2.0)[0] == "ok")
+        assert wait_until(
+            lambda: send(z, Case(0, "valid", "reset", reset_key, reset, "reset"), 2.0)[0] == "ok"
+        )
         key = keys.sim_op(srv.config.server_id, session, "step")
         look_up = encode(StepRequest(session, Action(ActionName.LookUp)))
         outcome, reply, _ = send(z, Case(1, "valid", "step", key, look_up, "LookUp"), 10.0)
