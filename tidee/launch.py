@@ -157,15 +157,15 @@ def run_router(cfg: RouterConfig) -> int:
 
 
 def wait_for_signal() -> None:
-    """Block until SIGINT or SIGTERM (a service's main thread), then restore the handlers."""
+    """Block until SIGINT or SIGTERM (a service's main thread). The handlers stay: a signal that
+    comes while the service shuts down (Ctrl-C reaches the whole group, and ``tidee run`` then
+    signals each child it started) is absorbed rather than raised inside the shutdown; every
+    step of a shutdown is bounded, and ``end_process`` kills a process that outstays its grace."""
     stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        while not stop.wait(0.2):  # a bounded wait: the handler runs within 0.2 s of any signal
-            pass
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    while not stop.wait(0.2):  # a bounded wait: the handler runs within 0.2 s of any signal
+        pass
 
 
 def _tidee(*args: str) -> list[str]:
