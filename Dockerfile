@@ -1,4 +1,4 @@
-# tidee: one image for the simulation server (and, later, the agent and viewer).
+# tidee: one image for every tidee process (router, server, agent, viewer); compose.yaml picks the command.
 FROM python:3.11-slim
 RUN apt-get update && apt-get install -y --no-install-recommends \
         libegl1 libegl-mesa0 libgl1-mesa-dri make && \

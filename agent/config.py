@@ -221,7 +221,11 @@ class AgentProcessConfig:
         "control (default: $TIDEE_ZENOH_CONFIG; see deploy/secure/README.md)",
         metavar="FILE",
     )
-    server_id: str = option("sim0", "the simulation server to use")
+    server_id: str = option(
+        "sim0",
+        "the simulation server to use; auto: the live server with the fewest sessions for its capacity "
+        "(through a router: several servers; protocol/discovery.py), and another one if it goes away",
+    )
     session: str | None = option(None, "session id (default: agent-<random>)")
     episodes: int = option(
         1, "episodes on consecutive mess indices from --mess-index", type=argtypes.positive_int
@@ -237,8 +241,9 @@ class AgentProcessConfig:
     )
     reconnect_timeout: float = option(
         60.0,
-        "if the server goes away mid-episode, seconds to wait for it to come back before giving up; "
-        "the episode then runs again from the start (at most 3 times; 0: give up at once)",
+        "if the server goes away mid-episode, seconds to wait for it to come back (--server-id auto: for "
+        "another live server with room) before giving up; the episode then runs again from the start "
+        "(at most 3 times; 0: give up at once)",
         type=argtypes.non_negative_float,
     )
     threads: int = option(

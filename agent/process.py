@@ -13,13 +13,16 @@ import signal
 import sys
 import time
 import uuid
+from typing import TYPE_CHECKING
 
 from tidee.agent.config import AgentProcessConfig
-from tidee.agent.runner import EpisodeResult, EpisodeRunner, format_summary
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.protocol.client import RemoteError, SimClient
 from tidee.protocol.messages import AgentCommand, EpisodeSpec, ErrorCode
 from tidee.protocol.zenoh_config import ZenohOpenError, open_session
+
+if TYPE_CHECKING:
+    from tidee.agent.runner import EpisodeResult, EpisodeRunner
 
 log = logging.getLogger("tidee.agent")
 
@@ -40,6 +43,9 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
     except ZenohOpenError as e:  # a bad endpoint, an unreachable router
         print(f"agent: error: {e}", file=sys.stderr, flush=True)
         return 1
+    # The episode loop (torch, the models) loads only once Zenoh is up: a wrong endpoint is told in seconds.
+    from tidee.agent.runner import EpisodeRunner, format_summary
+
     publisher = None
     try:
         client = SimClient(
@@ -61,9 +67,11 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
         runner = EpisodeRunner(
             cfg.agent, client, session=session, publisher=publisher, log_dir=cfg.log_dir, on_step=_on_step
         )
+        chosen = " (chosen: the live server with the most room)" if client.auto else ""
         print(
-            f"agent: session {session}, variant {cfg.agent.variant}, perception {cfg.agent.perception}"
-            f"{' (ORACLE)' if cfg.agent.perception == 'oracle' else ''}; logs in {cfg.log_dir}",
+            f"agent: session {session} on server {client.server_id!r}{chosen}, variant {cfg.agent.variant}, "
+            f"perception {cfg.agent.perception}{' (ORACLE)' if cfg.agent.perception == 'oracle' else ''}; "
+            f"logs in {cfg.log_dir}",
             flush=True,
         )
         queue: list[EpisodeSpec] = []
@@ -100,10 +108,12 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
 def _run_until_done(
     runner: EpisodeRunner, client: SimClient, spec: EpisodeSpec, cfg: AgentProcessConfig, step: dict[str, int]
 ) -> EpisodeResult:
-    """Play ``spec``; if its server goes away, wait for it and play the episode again from the start.
+    """Play ``spec``; if its server goes away, play the episode again from the start: on another
+    live server when the agent chose its server (``--server-id auto``), else on the same one once
+    it is back. Either wait is bounded by ``--reconnect-timeout``.
 
-    The reset of a re-run opens a new session on the restarted server, and the runner's
-    new log writer replaces the aborted run's log (same episode name).
+    The reset of a re-run opens a new session there, and the runner's new log writer replaces
+    the aborted run's log (same episode name).
     """
     for attempt in range(MAX_RECONNECTS + 1):
         step["last"] = 0
@@ -113,8 +123,23 @@ def _run_until_done(
             if attempt == MAX_RECONNECTS or cfg.reconnect_timeout <= 0 or not _server_went_away(e):
                 raise
             log.debug("episode failed: %s", e)
+            # A server that still answers but did not answer us: the last resort, not the first.
+            avoid = {client.server_id} if isinstance(e, TimeoutError) else set()
+        gone, again = client.server_id, f"{spec.room_type} seed {spec.seed} mess {spec.mess_index}"
+        if client.auto:
+            print(
+                f"agent: server {gone!r} went away at step {step['last']}; moving to another live server "
+                f"(waiting up to {cfg.reconnect_timeout:g} s for one with room)",
+                flush=True,
+            )
+            try:
+                client.choose_server(cfg.reconnect_timeout, avoid=avoid)
+            except TimeoutError as e:
+                raise TimeoutError(f"after server {gone!r} went away: {e}") from None
+            print(f"agent: on server {client.server_id!r}; running {again} again from the start", flush=True)
+            continue
         print(
-            f"agent: server {cfg.server_id!r} went away at step {step['last']}; "
+            f"agent: server {gone!r} went away at step {step['last']}; "
             f"waiting up to {cfg.reconnect_timeout:g} s for it to come back",
             flush=True,
         )
@@ -122,13 +147,9 @@ def _run_until_done(
             client.wait_for_server(cfg.reconnect_timeout)
         except TimeoutError:
             raise TimeoutError(
-                f"server {cfg.server_id!r} did not come back within {cfg.reconnect_timeout:g} s"
+                f"server {gone!r} did not come back within {cfg.reconnect_timeout:g} s"
             ) from None
-        print(
-            f"agent: server {cfg.server_id!r} is back; running {spec.room_type} seed {spec.seed} "
-            f"mess {spec.mess_index} again from the start",
-            flush=True,
-        )
+        print(f"agent: server {gone!r} is back; running {again} again from the start", flush=True)
     raise AssertionError("unreachable")
 
 

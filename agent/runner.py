@@ -184,6 +184,18 @@ class AgentModels:
         )
 
 
+def worker_models(config: AgentConfig) -> AgentModels:
+    """The ``AgentModels`` for an ``AgentConfig``, loaded once per batch worker and key (kept in
+    ``tidee.batch.worker_state``)."""
+    from tidee.batch import worker_state
+
+    models: dict[Any, AgentModels] = worker_state().setdefault("models", {})
+    key = AgentModels.key_of(config)
+    if key not in models:
+        models[key] = AgentModels.load(config)
+    return models[key]
+
+
 class EpisodeRunner:
     def __init__(
         self,

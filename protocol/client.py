@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import itertools
 import threading
+import time
 import uuid
+from collections.abc import Collection
 from typing import Any, cast
 
 import zenoh
 
 from tidee.protocol import keys
 from tidee.protocol.codec import ProtocolError, decode, encode
+from tidee.protocol.discovery import ask_servers, describe, rank_servers
 from tidee.protocol.messages import (
     IMAGE_ENCODINGS,
     Action,
@@ -48,6 +51,12 @@ class SimClient:
     Declares ``tidee/alive/client/{server_id}/{session}``, so the server frees the
     session when this client closes, its Zenoh session closes, or its process dies.
     The constructor waits (up to ``connect_timeout`` s) until the server is visible.
+    ``server_id="auto"`` names no server: the constructor waits for a live server with a free
+    session and takes the best one (``tidee.protocol.discovery``: fewest sessions for its
+    capacity); ``server_id`` is then the chosen server's. A reset that server refuses as full
+    (``server_busy``) moves the client to the next one; ``choose_server`` moves it on demand
+    (after its server went away). A session id another client holds is refused by name
+    (``RemoteError``, ``invalid_field``) wherever it is held.
     ``zenoh_config``: a Zenoh config file merged over tidee's defaults (TLS, access control;
     see ``tidee.protocol.zenoh_config``); default ``TIDEE_ZENOH_CONFIG``, else none. With one,
     a request the visible server never answers raises ``PermissionError`` (a router's access
@@ -72,7 +81,8 @@ class SimClient:
     ) -> None:
         if encoding not in IMAGE_ENCODINGS:
             raise ValueError(f"encoding must be one of {IMAGE_ENCODINGS}, got {encoding!r}")
-        self.server_id = keys.check_id("server_id", server_id)
+        self.auto = server_id == keys.AUTO_SERVER
+        self.server_id = server_id if self.auto else keys.check_id("server_id", server_id)
         self.session_id = keys.check_id("session", session or uuid.uuid4().hex[:16])
         self.timeout, self.encoding = timeout, encoding
         self._sequence = itertools.count()
@@ -81,10 +91,13 @@ class SimClient:
         self._owns_zenoh = zsession is None
         self._zenoh_config = resolve_config_file(zenoh_config)
         self._z: zenoh.Session | None = zsession or open_session(False, endpoint, router, zenoh_config)
+        self._token: Any = None
         try:
-            token_key = keys.alive_client(self.server_id, self.session_id)
-            self._token = self._z.liveliness().declare_token(token_key)
-            self._wait_for_server(connect_timeout)
+            if self.auto:
+                self.choose_server(connect_timeout)
+            else:
+                self._declare_token()
+                self._wait_for_server(connect_timeout)
         except BaseException:
             self._release()
             raise
@@ -92,7 +105,28 @@ class SimClient:
     # --- the session ----------------------------------------------------------------
     def reset(self, spec: EpisodeSpec, ground_truth: bool = False) -> Observation:
         request = ResetRequest(self.session_id, spec, ground_truth, self.encoding)
-        return self._call("reset", request, Observation)
+        refused: dict[str, str] = {}  # server id -> why it refused (auto: each full server in turn)
+        while True:
+            try:
+                return self._call("reset", request, Observation)
+            except RemoteError as e:
+                if not self.auto or e.code != ErrorCode.server_busy:
+                    raise
+                refused[self.server_id] = e.message
+            infos = ask_servers(self._live(), self.session_id)
+            untried = [
+                i.server_id for i in rank_servers(infos, self.session_id) if i.server_id not in refused
+            ]
+            if not untried:
+                why = "; ".join(f"{server}: {message}" for server, message in refused.items())
+                others = [i for i in infos if i.server_id not in refused]
+                why += f"; the others are full: {describe(others)}" if others else ""
+                raise RemoteError(
+                    ErrorCode.server_busy,
+                    f"no live server took session {self.session_id!r}: {why}",
+                    self.session_id,
+                )
+            self._move_to(untried[0])
 
     def step(self, action: Action, ground_truth: bool = False) -> Observation:
         request = StepRequest(self.session_id, action, ground_truth, self.encoding)
@@ -173,6 +207,40 @@ class SimClient:
             raise RemoteError(msg.code, msg.message, msg.session)
         return msg
 
+    def choose_server(self, timeout: float, avoid: Collection[str] = ()) -> str:
+        """(``server_id="auto"``) Move this client to the best live server that has a free session
+        (``tidee.protocol.discovery``), waiting up to ``timeout`` s for one; returns its id.
+
+        ``avoid``: servers to take only when no other has room (one that stopped answering).
+        A session held on the server left behind is freed there (its client token goes).
+        Raises TimeoutError naming what it saw when no live server has room in time.
+        """
+        if not self.auto:
+            raise RuntimeError(
+                f"this client uses server {self.server_id!r}; choose_server needs server_id='auto'"
+            )
+        z = self._live()
+        deadline = time.monotonic() + timeout
+        while True:
+            infos = ask_servers(z, self.session_id, timeout=max(0.1, min(2.0, deadline - time.monotonic())))
+            ranked = rank_servers(infos, self.session_id, avoid)
+            if ranked:
+                self._move_to(ranked[0].server_id)
+                return self.server_id
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            time.sleep(min(0.25, left))
+        if infos:
+            raise TimeoutError(
+                f"no live tidee server at {self._where} had a free session within {timeout:g} s: "
+                f"{describe(infos)}"
+            )
+        raise TimeoutError(
+            f"no live tidee server at {self._where} within {timeout:g} s "
+            f"(start one with: tidee server {self._flag()} {self._where})"
+        )
+
     def wait_for_server(self, timeout: float) -> None:
         """Block until the server's liveliness token is visible (e.g. after a restart).
 
@@ -190,13 +258,35 @@ class SimClient:
         )
         try:
             if not seen.wait(timeout):
-                flag = "--router" if self._where == self._router else "--endpoint"
                 raise TimeoutError(
                     f"no tidee server {self.server_id!r} at {self._where} within {timeout:g} s "
-                    f"(start one with: tidee server {flag} {self._where})"
+                    f"(start one with: tidee server {self._flag()} {self._where})"
                 )
         finally:
             sub.undeclare()
+
+    def _flag(self) -> str:
+        return "--router" if self._where == self._router else "--endpoint"
+
+    def _live(self) -> zenoh.Session:
+        if self._z is None:
+            raise RuntimeError(f"session {self.session_id} is closed")
+        return self._z
+
+    def _declare_token(self) -> None:
+        self._token = (
+            self._live().liveliness().declare_token(keys.alive_client(self.server_id, self.session_id))
+        )
+
+    def _move_to(self, server_id: str) -> None:
+        """Use ``server_id`` from now on: the client token moves with it."""
+        if server_id == self.server_id and self._token is not None:
+            return
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
+        self.server_id = server_id
+        self._declare_token()
 
     def _server_visible(self, timeout: float = 1.0) -> bool:
         """Whether the server's liveliness token is there now (asked once, at most ``timeout`` s)."""
@@ -208,8 +298,8 @@ class SimClient:
         z, self._z = self._z, None
         if z is None:
             return
-        token = getattr(self, "_token", None)
-        if token is not None:
-            token.undeclare()
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
         if self._owns_zenoh:
             z.close()

@@ -10,6 +10,16 @@ Reward is always 0: tidying is scored at the end by evaluation, not per step.
 ``terminated`` when the agent calls Done; ``truncated`` when the step cap ends the episode.
 ``reset(seed=s)`` plays room seed ``s``; without a seed, the env's RNG draws one.
 
+``transport``: ``"inproc"`` (a simulator in this process), ``"zenoh"`` (a session on a running
+server; ``transport_kwargs`` go to ``SimClient``), a ``SimTransport``, or a function that makes
+one. Each env holds its own simulator session, so vector environments work as Gymnasium makes
+them: ``gymnasium.make_vec("tidee/Tidy-v0", num_envs=N, vectorization_mode="sync" | "async")``
+(one simulator or Zenoh session per sub-env; ``vector_kwargs={"context": "spawn"}`` for async:
+a forked PyBullet or Zenoh is unsafe). ``reset(seed=s)`` on the vector env plays rooms s, s+1, ...,
+and a finished sub-env resets on its next step (Gymnasium's default autoreset). A transport
+*instance* can serve one env at a time: give a function instead for several (sub-envs of one
+``make_vec`` call share its keyword arguments).
+
 ``tidee/Rearrange-v0`` (``RearrangeEnv``): a 2-phase rearrangement. ``reset`` starts the
 walkthrough of the goal state (the spec's ``rearrange_index``, default 0); ``Done`` there,
 or the walkthrough's step cap, switches to the unshuffle phase (the shuffled room, the agent
@@ -21,6 +31,8 @@ walkthrough fail with error ``walkthrough``.
 from __future__ import annotations
 
 import dataclasses
+import weakref
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
@@ -43,6 +55,9 @@ _MAX_SEED = 2**31 - 1
 MAX_DEPTH_M = 100.0
 POSE_LOW = np.array([-100.0, -100.0, -180.0, -90.0], np.float32)
 POSE_HIGH = -POSE_LOW
+# Transports held by an open env: an instance given to several (make_vec passes one set of keyword
+# arguments to every sub-env) would interleave their episodes, so the second is refused.
+_HELD: weakref.WeakSet[Any] = weakref.WeakSet()
 
 
 class TidyEnv(gym.Env[dict[str, np.ndarray], dict[str, Any]]):
@@ -51,7 +66,7 @@ class TidyEnv(gym.Env[dict[str, np.ndarray], dict[str, Any]]):
     def __init__(
         self,
         spec: EpisodeSpec | None = None,
-        transport: str | SimTransport = "inproc",
+        transport: str | SimTransport | Callable[[], SimTransport] = "inproc",
         transport_kwargs: dict[str, Any] | None = None,
         ground_truth: bool = False,
         render_mode: str | None = None,
@@ -63,9 +78,7 @@ class TidyEnv(gym.Env[dict[str, np.ndarray], dict[str, Any]]):
         self.episode_spec = spec or EpisodeSpec()
         self.ground_truth = ground_truth
         self.render_mode = render_mode
-        self.transport: SimTransport = (
-            make_transport(transport, **(transport_kwargs or {})) if isinstance(transport, str) else transport
-        )
+        self.transport: SimTransport = _own_transport(transport, transport_kwargs)
         r = self.episode_spec.resolution
         self.action_space = spaces.Dict(
             {
@@ -108,6 +121,7 @@ class TidyEnv(gym.Env[dict[str, np.ndarray], dict[str, Any]]):
         return None
 
     def close(self) -> None:
+        _HELD.discard(self.transport)
         self.transport.close()
         super().close()
 
@@ -161,6 +175,29 @@ class RearrangeEnv(TidyEnv):
         out = TidyEnv._observation(obs)
         out["phase"] = np.int64(REARRANGE_PHASES.index(obs.phase or "unshuffle"))  # type: ignore[assignment]
         return out
+
+
+def _own_transport(
+    transport: str | SimTransport | Callable[[], SimTransport], kwargs: dict[str, Any] | None
+) -> SimTransport:
+    """The env's own transport: made from a name or a function, or an instance no open env holds."""
+    if isinstance(transport, str):
+        made = make_transport(transport, **(kwargs or {}))
+    elif isinstance(transport, SimTransport):
+        if transport in _HELD:
+            raise ValueError(
+                "this transport already serves another open env (make_vec gives every sub-env the "
+                "same arguments): pass transport as a function that makes one, or a name"
+            )
+        made = transport
+    elif callable(transport):
+        made = transport()
+    else:
+        raise TypeError(
+            f"transport must be a name, a SimTransport or a function, got {type(transport).__name__}"
+        )
+    _HELD.add(made)
+    return made
 
 
 def to_action(action: dict[str, Any]) -> Action:

@@ -9,6 +9,8 @@ Simulation (one server, many sessions)::
 
     tidee/sim/{server_id}/session/{session}/{op}   queryable; op in reset|step|phase|state|close
     tidee/sim/{server_id}/obs/{session}            publisher: every observation (viewers)
+    tidee/sim/{server_id}/info                     queryable: how full the server is (clients
+                                                   choosing a server ask tidee/sim/*/info)
 
 Liveliness::
 
@@ -29,6 +31,9 @@ import re
 from typing import Literal, NamedTuple, get_args
 
 ROOT = "tidee"
+# The server id a client gives to name no server: it then chooses a live one (protocol/discovery.py).
+# Reserved: no server may take it.
+AUTO_SERVER = "auto"
 SessionOp = Literal["reset", "step", "phase", "state", "close"]
 SESSION_OPS: tuple[str, ...] = get_args(SessionOp)
 MAX_ID_LENGTH = 128
@@ -102,6 +107,22 @@ def parse_observations(key: object) -> tuple[str, str]:
     """``(server_id, session)`` of an observation key."""
     _, _, server_id, _, session = _split(key, f"{ROOT}/sim/<server_id>/obs/<session>")
     return check_id("server_id", server_id), check_id("session", session)
+
+
+def server_info(server_id: str) -> str:
+    """Where a server answers ``ServerInfoRequest``: its load and capacity."""
+    return f"{ROOT}/sim/{check_id('server_id', server_id)}/info"
+
+
+def server_info_wildcard() -> str:
+    """What a client asks to hear from every live server at once."""
+    return f"{ROOT}/sim/*/info"
+
+
+def parse_server_info(key: object) -> str:
+    """The server id of an info key."""
+    _, _, server_id, _ = _split(key, f"{ROOT}/sim/<server_id>/info")
+    return check_id("server_id", server_id)
 
 
 # --- liveliness -------------------------------------------------------------------------

@@ -291,6 +291,23 @@ class CloseReply:
 
 
 @dataclass
+class ServerInfoRequest:
+    """Asked of every live server at once (``tidee/sim/*/info``) by a client choosing one: how full
+    is it, and does it hold ``session`` already?"""
+
+    session: str | None = None
+    protocol_version: int = PROTOCOL_VERSION
+
+
+@dataclass
+class ServerInfo:
+    server_id: str
+    sessions: int  # held now, being opened, or announced (another client's token is up, no reset yet)
+    max_sessions: int  # the most it holds at once (max_sessions)
+    holds_session: bool = False  # the request's session is one of them
+
+
+@dataclass
 class ErrorReply:
     code: ErrorCode
     message: str

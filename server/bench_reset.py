@@ -14,7 +14,7 @@ import platform
 import tempfile
 import time
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -23,6 +23,9 @@ from tidee.server.bench_sim import spread, write_report
 from tidee.server.episode import Episode, SceneLibrary
 from tidee.server.scene_cache import SceneCache
 from tidee.server.splits import mess_config, num_configs
+
+if TYPE_CHECKING:
+    from tidee.batch import BackendConfig
 
 RESET_RESOLUTION = 64  # a reset's cost is the scene, not the first frame: keep the render small
 
@@ -50,30 +53,57 @@ def reset_times(configs: Iterable[tuple[str, int, int]], cache: SceneCache | Non
     return times
 
 
-def _fill_chunk(args: tuple[list[tuple[str, int, int]], str | None]) -> int:
-    configs, directory = args
+def _fill_room(job: tuple[tuple[tuple[str, int, int], ...], str | None]) -> dict[str, Any]:
+    """Generate and store one room's configurations (a batch job); their cache files (and the tidy
+    room's), by path under the cache's root, so the command's own cache holds them too wherever
+    the job ran."""
+    configs, directory = job
     cache = SceneCache(directory) if directory else SceneCache()
     reset_times(configs, cache)
-    return len(configs)
+    room_type, seed = configs[0][:2]
+    paths = [cache.path(room_type, seed, None), *(cache.path(*c) for c in configs)]
+    return {
+        "files": {str(p.relative_to(cache.root)): p.read_bytes() for p in paths if p.is_file()},
+        "configurations": len(configs),
+    }
 
 
-def fill_cache(split: str, workers: int = 1, directory: str | None = None, limit: int | None = None) -> dict:
+def fill_cache(
+    split: str,
+    workers: int = 1,
+    directory: str | None = None,
+    limit: int | None = None,
+    backend: BackendConfig | None = None,
+    progress: bool = True,
+) -> dict:
     """Generate and store every configuration of ``split`` (rooms in order, each room's messes
-    in one worker so its tidy room is generated once)."""
+    in one job so its tidy room is generated once) on local workers or Ray (``tidee.batch``)."""
+    from tidee.batch import BackendConfig, run_jobs
+
+    backend = backend or BackendConfig()
     configs = split_configs(split, limit)
     by_room: dict[tuple[str, int], list[tuple[str, int, int]]] = {}
     for c in configs:
         by_room.setdefault(c[:2], []).append(c)
-    chunks = [(chunk, directory) for chunk in by_room.values()]
     cache = SceneCache(directory) if directory else SceneCache()
     before = sum(1 for c in configs if cache.path(*c).exists())
+    todo = [
+        (tuple(chunk), directory)
+        for chunk in by_room.values()
+        if any(not cache.path(*c).exists() for c in chunk)
+    ]
     t0 = time.perf_counter()
-    if workers <= 1:
-        for chunk_args in chunks:
-            _fill_chunk(chunk_args)
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            list(pool.map(_fill_chunk, chunks))
+    run_jobs(
+        todo,
+        _fill_room,
+        workers=workers,
+        renderer=None,
+        backend=backend.backend,
+        ray_address=backend.ray_address,
+        progress=progress,
+        desc=f"{split} rooms",
+        files_dir=cache.root,
+    )
     return {
         "split": split,
         "configurations": len(configs),

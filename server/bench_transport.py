@@ -56,7 +56,7 @@ def run_transport_bench(
         transports: dict[str, SimTransport] = {"inproc": inproc}
         for form in RAW_DEPTH_FORMS:
             transports[form] = stack.enter_context(_server_client(renderer_used, form))
-        ms = _interleaved_latencies(transports, spec, steps)
+        ms = interleaved_latencies(transports, spec, steps)
         frame = inproc.reset(spec)
     load_after = os.getloadavg()
     inproc_ms, zenoh_ms = ms["inproc"], {form: ms[form] for form in RAW_DEPTH_FORMS}
@@ -151,7 +151,7 @@ def _server_client(renderer: str, form: str) -> Iterator[SimClient]:
         server.wait(timeout=30)
 
 
-def _interleaved_latencies(
+def interleaved_latencies(
     transports: dict[str, SimTransport], spec: EpisodeSpec, steps: int
 ) -> dict[str, list[float]]:
     """Milliseconds per step (the caller's wall clock) of each transport over the shared action

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tidee import argtypes
+from tidee.batch import BackendConfig
 from tidee.options import option
 from tidee.protocol import keys
 from tidee.protocol.vocab import RENDERERS, Renderer, RoomType, Split
@@ -18,6 +19,8 @@ from tidee.protocol.vocab import RENDERERS, Renderer, RoomType, Split
 # The renderer the shipped detector was trained on (= tidee.agent.perception.TRAINED_RENDERER,
 # which the server does not import): the server's default, so agents see what they learned on.
 TRAINED_RENDERER: Renderer = "tiny"
+# Resets a simulator process runs before a fresh one replaces it (ServerConfig.recycle_after).
+DEFAULT_RECYCLE_AFTER = 50
 RENDERER_HELP = (
     f"who draws the frames; {TRAINED_RENDERER}: what the shipped detector was trained on (auto picks "
     "EGL when it loads: faster, but the detector scores lower on its frames)"
@@ -50,6 +53,13 @@ class ServerConfig:
         "simulator processes, sessions spread over them (0: one per available core)",
         type=argtypes.non_negative_int,
     )
+    recycle_after: int = option(
+        DEFAULT_RECYCLE_AFTER,
+        "replace a simulator process after N resets (PyBullet keeps ~0.1 MB a reset): it takes no new "
+        "session, its sessions move at their next reset, it stops when it holds none (0: never)",
+        type=argtypes.non_negative_int,
+        metavar="N",
+    )
     workers: int = option(1, "threads running episodes when a factory is given", cli=False)
     max_request_bytes: int = option(1 << 20, "largest request accepted (requests carry no arrays)", cli=False)
     max_sessions_per_client: int = option(
@@ -65,6 +75,11 @@ class ServerConfig:
 
     def __post_init__(self) -> None:
         keys.check_id("server_id", self.server_id)
+        if self.server_id == keys.AUTO_SERVER:
+            raise ValueError(
+                f"server_id {keys.AUTO_SERVER!r} is reserved: clients ask for it to choose a live server; "
+                "give this server another id"
+            )
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {self.renderer!r}")
         for name in ("max_sessions", "workers", "max_request_bytes", "max_sessions_per_client"):
@@ -72,6 +87,8 @@ class ServerConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if int(self.processes) < 0:
             raise ValueError(f"processes must be >= 0 (0: one per available core), got {self.processes}")
+        if int(self.recycle_after) < 0:
+            raise ValueError(f"recycle_after must be >= 0 (0: never), got {self.recycle_after}")
         if not float(self.idle_timeout_s) >= 0:
             raise ValueError(f"idle_timeout_s must be >= 0 seconds (0: never), got {self.idle_timeout_s}")
 
@@ -171,15 +188,53 @@ class ScaleServerBenchConfig:
 
 
 @dataclass
+class DeploymentBenchConfig:
+    """``tidee bench deployment``."""
+
+    resolution: int = option(256, "image side, pixels", type=argtypes.resolution)
+    steps: int = option(200, "timed steps each way", type=argtypes.positive_int)
+    renderer: Renderer = option("tiny", "who draws the frames")
+    out: Path | None = option(None, "report path (default: bench/deployment.json)", type=argtypes.output_path)
+
+
+@dataclass
 class SoakBenchConfig:
     """``tidee bench soak``."""
 
-    sessions: int = option(1000, "sessions opened and closed, one after another", type=argtypes.positive_int)
-    rooms: int = option(200, "distinct room configurations cycled over", type=argtypes.positive_int)
+    sessions: int = option(300, "sessions opened and closed, one after another", type=argtypes.positive_int)
+    rooms: int = option(40, "distinct room configurations cycled over", type=argtypes.positive_int)
     steps: int = option(2, "steps per session after its reset", type=argtypes.non_negative_int)
     resolution: int = option(64, "image side, pixels", type=argtypes.resolution)
     processes: int = option(1, "the server's simulator processes", type=argtypes.positive_int)
+    recycle_after: int = option(
+        DEFAULT_RECYCLE_AFTER,
+        "the server's --recycle-after: resets before a simulator process is replaced (0: never)",
+        type=argtypes.non_negative_int,
+        metavar="N",
+    )
     out: Path | None = option(None, "report path (default: bench/soak.json)", type=argtypes.output_path)
+
+
+@dataclass
+class FuzzBenchConfig:
+    """``tidee bench fuzz``."""
+
+    cases: int = option(20_000, "requests sent", type=argtypes.positive_int)
+    seed: int = option(
+        0, "draws the requests: the same seed sends the same ones", type=argtypes.non_negative_int
+    )
+    batch: int = option(
+        250, "an honest episode is checked after every N requests", type=argtypes.positive_int, metavar="N"
+    )
+    reply_timeout_s: float = option(
+        120.0,
+        "a request without a reply in S seconds is a hang",
+        flag="--reply-timeout",
+        type=argtypes.positive_float,
+        metavar="S",
+    )
+    processes: int = option(1, "the server's simulator processes", type=argtypes.positive_int)
+    out: Path | None = option(None, "report path (default: bench/fuzz.json)", type=argtypes.output_path)
 
 
 @dataclass
@@ -190,7 +245,10 @@ class CacheConfig:
     limit: int | None = option(
         None, "only the first N configurations (default: all)", type=argtypes.positive_int
     )
-    workers: int = option(1, "processes generating rooms", type=argtypes.positive_int)
+    workers: int = option(
+        1, "worker processes (local) or Ray actors generating rooms", type=argtypes.positive_int
+    )
+    batch: BackendConfig = option(default_factory=BackendConfig)
     cache_dir: Path | None = option(
         None, "default: $XDG_CACHE_HOME/tidee/scenes (~/.cache/tidee/scenes)", type=argtypes.output_path
     )
@@ -198,6 +256,8 @@ class CacheConfig:
 
 __all__ = [
     "CacheConfig",
+    "DeploymentBenchConfig",
+    "FuzzBenchConfig",
     "ResetBenchConfig",
     "ScaleServerBenchConfig",
     "SceneConfig",

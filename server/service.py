@@ -2,7 +2,10 @@
 
 Threads: the queryable and the client-liveliness subscriber deliver into Zenoh FIFO
 channels; one dispatcher thread per channel only turns each item into a job on a worker
-queue (no decoding, no simulation, no Zenoh calls); worker threads do everything else. No
+queue (no decoding, no simulation, no Zenoh calls); worker threads do everything else. The
+info queryable (``tidee/sim/{server}/info``: how full the server is, for clients choosing one;
+``tidee.protocol.discovery``) is answered by its own dispatcher thread, which never waits on an
+episode. No
 Python callback runs on Zenoh's threads, and a process that forgets ``stop()`` still exits
 (Zenoh's Python callbacks run on non-daemon threads that would keep it alive). A new
 session goes to the worker holding the fewest sessions and stays pinned to it for its life,
@@ -14,7 +17,9 @@ thread *i* owns child process *i* and is the only thread that talks to it, and t
 holds a proxy per episode. ``ServerConfig.processes`` sets how many (0: one per available
 core, never more than ``max_sessions``); each starts with its first session, so N sessions
 run on min(N, processes) cores. A child that dies fails its sessions' next request (a
-reset starts them again in a fresh child) and the other sessions carry on. A server given
+reset starts them again in a fresh child) and the other sessions carry on. A child that has
+run ``ServerConfig.recycle_after`` resets is replaced by a fresh one without disturbing a live
+session (``tidee.server.workers``, Recycling): PyBullet leaks a little memory at every reset. A server given
 its own ``episode_factory`` (a test's fake, an ``Episode`` in this process) runs the
 episodes in ``ServerConfig.workers`` threads of this process instead; pass an
 ``EpisodeProcesses`` to run a factory of your own in child processes.
@@ -27,13 +32,15 @@ freed on ``close``, when their client's liveliness token disappears, when they h
 request for ``ServerConfig.idle_timeout_s`` (a reaper thread; the session's next step or
 state says it was reclaimed and why), or when the server stops.
 
-Quota: one client holds at most ``ServerConfig.max_sessions_per_client`` sessions. Zenoh does
-not tell a queryable who sent a query, so a client is what the query says it is
+Quota and ownership: one client holds at most ``ServerConfig.max_sessions_per_client`` sessions,
+and only the client that opened a session may reset, step, advance or close it: another client
+naming the same session id is refused by name (``invalid_field``), and the first plays on.
+Zenoh does not tell a queryable who sent a query, so a client is what the query says it is
 (``client_of``): the Zenoh session id in the query's ``source_info`` (``SimClient`` sends
 its own; clients that share a Zenoh session share a quota), else the session id up to its
-last ``-`` (``agent7-0``, ``agent7-1`` are one client), else the session id alone. The quota
-keeps a well-behaved but careless client from filling the server; it is no defence against a
-client that lies, which only ``max_sessions`` and the idle timeout bound.
+last ``-`` (``agent7-0``, ``agent7-1`` are one client), else the session id alone. Both
+keep well-behaved but careless clients apart; they are no defence against a client that lies,
+which only ``max_sessions``, the idle timeout and a router's access control bound.
 
 Congestion: replies travel with the query's congestion control, which ``SimClient`` sets
 to ``BLOCK`` (the agent must get every frame; Zenoh 1.x ignores a reply's own setting);
@@ -66,6 +73,8 @@ from tidee.protocol.messages import (
     Observation,
     PhaseRequest,
     ResetRequest,
+    ServerInfo,
+    ServerInfoRequest,
     StateReply,
     StateRequest,
     StepRequest,
@@ -143,7 +152,10 @@ class SimServer:
         self.config = config
         if episode_factory is None:
             episode_factory = EpisodeProcesses(
-                config.process_count(), config.renderer, name=f"tidee-sim-{config.server_id}"
+                config.process_count(),
+                config.renderer,
+                name=f"tidee-sim-{config.server_id}",
+                recycle_after=config.recycle_after,
             )
         self.processes: EpisodeProcesses | None = None
         if isinstance(episode_factory, EpisodeProcesses):
@@ -155,7 +167,10 @@ class SimServer:
             self._open = lambda worker: factory()
             workers = config.workers
         self._sessions: dict[str, _Session] = {}
-        self._lock = threading.Lock()  # guards _sessions, _departed, _reclaimed, _pins, _load
+        self._lock = threading.Lock()  # guards _sessions, _announced, _departed, _reclaimed, _pins, _load
+        # Sessions whose client token is up here: a client that chose this server declares it before
+        # its first reset, so a second client choosing at the same moment counts it (ServerInfo).
+        self._announced: set[str] = set()
         # Sessions whose client's token went away: a request the client sent just before it
         # vanished must not create a session nobody will ever free.
         self._departed: OrderedDict[str, None] = OrderedDict()
@@ -197,7 +212,10 @@ class SimServer:
             zenoh.handlers.FifoChannel(INBOX_CAPACITY),
             history=True,
         )
-        self._inbound = [queries, clients]
+        info = self._z.declare_queryable(
+            keys.server_info(cfg.server_id), zenoh.handlers.FifoChannel(INBOX_CAPACITY)
+        )
+        self._inbound = [queries, clients, info]
         self._dispatchers = [
             threading.Thread(
                 target=self._dispatch, args=(queries, self._on_query), daemon=True, name="tidee-sim-queries"
@@ -207,6 +225,10 @@ class SimServer:
                 args=(clients, self._on_client_liveliness),
                 daemon=True,
                 name="tidee-sim-clients",
+            ),
+            # Answered on its own thread: a client choosing a server never waits behind an episode.
+            threading.Thread(
+                target=self._dispatch, args=(info, self._on_info), daemon=True, name="tidee-sim-info"
             ),
         ]
         for dispatcher in self._dispatchers:
@@ -292,6 +314,25 @@ class SimServer:
         job = _Job(session, op, query, payload, refusal, client_of(query, session))
         self._route(session, touch=True).put(job)
 
+    def _on_info(self, query: zenoh.Query) -> None:
+        """A client choosing a server: how full this one is, and whether it holds the asked session."""
+        try:
+            size = len(query.payload) if query.payload is not None else 0
+            if size > self.config.max_request_bytes:
+                raise ProtocolError(ErrorCode.oversized, f"info request is {size} bytes")
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            request = decode(payload, max_bytes=self.config.max_request_bytes, expected=ServerInfoRequest)
+            with self._lock:  # held, being opened, or announced by another client's token
+                holds = request.session is not None and request.session in self._sessions
+                coming = self._announced.difference(self._sessions, [request.session])
+                held = len(self._sessions) + len(coming)
+            reply = encode(ServerInfo(self.config.server_id, held, self.config.max_sessions, holds))
+            query.reply(keys.server_info(self.config.server_id), reply)
+        except ProtocolError as e:
+            query.reply_err(encode(ErrorReply(e.code, e.message)))
+        finally:
+            query.drop()
+
     def _on_client_liveliness(self, sample: zenoh.Sample) -> None:
         try:
             _, _, session = keys.parse_alive(str(sample.key_expr))
@@ -302,11 +343,14 @@ class SimServer:
         gone = sample.kind == zenoh.SampleKind.DELETE
         with self._lock:
             if gone:
+                self._announced.discard(session)
                 self._departed[session] = None
                 while len(self._departed) > DEPARTED_MEMORY:
                     self._departed.popitem(last=False)
             else:  # a (new) client declared this session id
                 self._departed.pop(session, None)
+                if len(self._announced) < DEPARTED_MEMORY:  # bounded whatever clients declare
+                    self._announced.add(session)
         if gone:
             self._route(session).put(_Job(session, "gone"))
 
@@ -427,21 +471,24 @@ class SimServer:
         entry.publisher.put(frame)
 
     # --- requests (on the session's worker) ----------------------------------------------
-    # Each takes the request and its client (client_of); only a reset, which may open a session, uses it.
+    # Each takes the request and its client (client_of): a reset may open a session for it, and
+    # only the client that opened a session may reset, step, advance or close it (state is read
+    # by evaluators too; a router's access control decides who may ask).
     def _reset(self, request: ResetRequest, client: str) -> Observation:
         for name in ("mess_index", "rearrange_index"):
             try:
                 check_mess_index(request.spec.seed, getattr(request.spec, name))
             except ValueError as e:
                 raise ProtocolError(ErrorCode.invalid_field, f"field 'spec.{name}': {e}") from None
-        episode = self._episode(request.session, create_for=client)
+        episode = self._episode(request.session, client, create=True)
         return episode.reset(request.spec, session=request.session, ground_truth=request.ground_truth)
 
     def _step(self, request: StepRequest, client: str) -> Observation:
-        return self._episode(request.session).step(request.action, ground_truth=request.ground_truth)
+        episode = self._episode(request.session, client)
+        return episode.step(request.action, ground_truth=request.ground_truth)
 
     def _phase(self, request: PhaseRequest, client: str) -> Observation:
-        episode = self._episode(request.session)
+        episode = self._episode(request.session, client)
         try:
             return episode.begin_unshuffle(ground_truth=request.ground_truth)
         except ValueError as e:  # not a rearrangement, or the unshuffle already begun
@@ -451,17 +498,36 @@ class SimServer:
         return StateReply(request.session, self._episode(request.session).state())
 
     def _close(self, request: CloseRequest, client: str) -> CloseReply:
+        with self._lock:
+            entry = self._sessions.get(request.session)
+            if entry is not None:
+                self._check_owner(request.session, entry, client)
         closed = self._free(request.session)
         if closed:
             log.info("session %s: closed by its client", request.session)
         return CloseReply(request.session, closed)
 
     # --- sessions -------------------------------------------------------------------------
-    def _episode(self, session: str, create_for: str | None = None) -> EpisodeLike:
-        """The session's episode; ``create_for``: open it for this client if there is none (a reset)."""
+    def _check_owner(self, session: str, entry: _Session, client: str) -> None:
+        """Refuse, by name, a client other than the one that opened ``session``."""
+        if entry.client != client:
+            raise ProtocolError(
+                ErrorCode.invalid_field,
+                f"field 'session': session {session!r} is held by another client on server "
+                f"{self.config.server_id!r}; use another session id (tidee agent --session)",
+            )
+
+    def _episode(self, session: str, client: str | None = None, create: bool = False) -> EpisodeLike:
+        """The session's episode. ``client``: who asks; when given, only the session's own client
+        gets it. ``create``: open the session for ``client`` if there is none (a reset)."""
         cfg = self.config
+        create_for = client if create else None
+        if create_for is not None and session in self._departed:
+            self._readmit_if_alive(session)
         with self._lock:
             entry = self._sessions.get(session)
+            if entry is not None and client is not None:
+                self._check_owner(session, entry, client)
             if entry is None and create_for is not None:
                 if session in self._departed:
                     raise ProtocolError(
@@ -506,6 +572,15 @@ class SimServer:
             )
             log.info("session %s: opened (%d held)", session, len(self.sessions))
         return entry.episode
+
+    def _readmit_if_alive(self, session: str) -> None:
+        """Forget that ``session``'s client left if a client token for it is declared now: a new
+        client may reuse the id, and its reset can arrive before the server sees its token."""
+        assert self._z is not None
+        replies = self._z.liveliness().get(keys.alive_client(self.config.server_id, session), timeout=1.0)
+        if any(reply.ok is not None for reply in replies):
+            with self._lock:
+                self._departed.pop(session, None)
 
     def _reap_idle(self) -> None:
         """Reaper thread: queue an ``idle`` job for each session idle past the timeout."""

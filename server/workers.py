@@ -1,24 +1,34 @@
 """Episodes in child processes: N sessions simulate on N cores instead of sharing one GIL.
 
-An :class:`EpisodeProcess` is one child process (``multiprocessing``, "spawn" context: no
-forked Zenoh or GL state) that hosts any number of episodes, each under an integer id, and
-executes ``open`` / ``reset`` / ``step`` / ``state`` / ``close`` sent over a Pipe, one
-request at a time. Its episodes share one ``SceneLibrary`` (and so its in-memory LRU; the
-on-disk scene cache is shared by every process), and a closed real episode is kept for the
-next ``open`` (PyBullet does not give back all of a disconnected client's memory). A
-:class:`RemoteEpisode` is the parent's handle on one of them: it implements ``EpisodeLike``,
-so the server holds it exactly as it would hold an ``Episode``. :class:`EpisodeProcesses` is
-the server's set of them, one per worker thread; the thread with index *i* is the only one
-that talks to process *i*, so a pipe is never shared between threads and needs no lock.
+An :class:`EpisodeProcess` runs a child process (``multiprocessing``, "spawn" context: no
+forked Zenoh or GL state; a fresh one after the last died or retired, see Recycling) that hosts
+any number of episodes, each under an integer id, and executes ``open`` / ``reset`` / ``step`` /
+``state`` / ``close`` sent over a Pipe, one request at a time. Its episodes share one
+``SceneLibrary`` (and so its in-memory LRU; the on-disk scene cache is shared by every
+process), and a closed real episode is kept for the next ``open`` (PyBullet does not give
+back all of a disconnected client's memory). A :class:`RemoteEpisode` is the parent's handle on
+one of them: it implements ``EpisodeLike``, so the server holds it exactly as it would hold an
+``Episode``. :class:`EpisodeProcesses` is the server's set of them, one per worker thread; the
+thread with index *i* is the only one that talks to process *i* (and to its retiring children),
+so a pipe is never shared between threads and needs no lock.
+
+Recycling: PyBullet keeps part of every collision mesh it was ever given (the vertices of each
+``createCollisionShape(GEOM_MESH, vertices=...)``; neither ``resetSimulation`` nor a disconnect
+frees them), so a simulator process grows about 70-150 kB with every reset. A child that has
+run ``recycle_after`` resets *retires*: it takes no new episode (the next ``open`` starts a
+fresh child beside it), an episode of it that is reset moves to the fresh child (a reset starts
+over anyway, from the same deterministic spec, so the frames are the same), and it is stopped
+once its last episode is closed or has moved. An episode that is only stepped is never moved:
+a live session is not disturbed, its child just lives on until that session resets or ends.
 
 Errors: an exception raised in the child is pickled and raised again in the parent with its
 type and message (the child's traceback rides along as its ``__cause__``, as in
 ``concurrent.futures``); one that cannot make the trip becomes a :class:`RemoteEpisodeError`
 naming the original type. A child that dies (killed, out of memory, a crash in native code)
-makes the next request of each of its episodes raise :class:`EpisodeProcessDied`; the
-process is started afresh for the next episode opened on it, and a ``reset`` of an episode
-that lived there reopens it in the new process (as an episode's exception leaves its session
-usable for a new reset).
+makes the next request of each of its episodes raise :class:`EpisodeProcessDied`; a fresh
+child is started for the next episode opened, and a ``reset`` of an episode that lived there
+reopens it in the new process (as an episode's exception leaves its session usable for a new
+reset).
 
 Children ignore SIGINT (a Ctrl-C reaches the whole process group; the parent decides when
 they stop) and exit when asked, or when the pipe closes because the parent is gone, so a
@@ -144,84 +154,121 @@ def _portable(e: Exception) -> Exception:
 
 
 # --- the parent -----------------------------------------------------------------------------
-class EpisodeProcess:
-    """One child process hosting episodes; started on the first ``open()``, and again after it dies.
+class _Child:
+    """One simulator process as the parent sees it: its pipe, the episodes it holds, its resets."""
 
-    Not thread-safe: one thread (the server's worker *i*) talks to it.
+    def __init__(self, process: Any, conn: multiprocessing.connection.Connection, generation: int) -> None:
+        self.process = process
+        self.conn = conn
+        self.generation = generation
+        self.episodes: set[int] = set()
+        self.resets = 0
+
+    @property
+    def alive(self) -> bool:
+        return self.process.is_alive()
+
+
+class EpisodeProcess:
+    """Episodes in a child process, started on the first ``open()``, again after it dies or retires.
+
+    Not thread-safe: one thread (the server's worker *i*) talks to it and to every child it runs.
     ``make_episode``: builds an episode in the child (picklable); default: a real ``Episode``
-    with ``renderer`` and the child's shared ``SceneLibrary``.
+    with ``renderer`` and the child's shared ``SceneLibrary``. ``recycle_after``: resets a child
+    runs before it retires (0: never; module docstring, Recycling).
     """
 
     def __init__(
-        self, renderer: str = "tiny", make_episode: EpisodeMaker | None = None, name: str = "tidee-sim"
+        self,
+        renderer: str = "tiny",
+        make_episode: EpisodeMaker | None = None,
+        name: str = "tidee-sim",
+        recycle_after: int = 0,
     ) -> None:
+        if recycle_after < 0:
+            raise ValueError(f"recycle_after must be >= 0 (0: never), got {recycle_after}")
         self.renderer = renderer
         self.make_episode = make_episode
         self.name = name
-        self.generation = 0  # bumped at every start: episodes of a dead child are stale
-        self._process: Any = None  # multiprocessing.Process
-        self._conn: multiprocessing.connection.Connection | None = None
+        self.recycle_after = recycle_after
+        self.generation = 0  # bumped at every start: episodes of another generation live elsewhere
+        self.started = 0  # children started so far (the first, fresh ones after deaths and retirements)
+        self._current: _Child | None = None  # the child new episodes go to
+        self._retiring: dict[int, _Child] = {}  # generation -> a retired child still holding episodes
         self._ids = itertools.count()
         self._deaths: dict[int, str] = {}  # generation -> how that child ended
 
     @property
     def pid(self) -> int | None:
-        """The live child's pid (None before the first start or once it has died)."""
-        return self._process.pid if self.alive else None
+        """The pid of the live child that takes new episodes (None before the first start, or once
+        it has died or retired)."""
+        current = self._current
+        return current.process.pid if current is not None and current.alive else None
+
+    @property
+    def pids(self) -> list[int]:
+        """Every live child: the current one and those retiring."""
+        children = [self._current, *self._retiring.values()]
+        return [c.process.pid for c in children if c is not None and c.alive]
 
     @property
     def alive(self) -> bool:
-        return self._conn is not None and self._process is not None and self._process.is_alive()
+        return self._current is not None and self._current.alive
+
+    def takes(self, generation: int) -> bool:
+        """Whether the child of ``generation`` is the live one that takes new episodes."""
+        return self.alive and self._current is not None and self._current.generation == generation
 
     def open(self) -> RemoteEpisode:
-        """A new episode in the child (starting or restarting the child if needed)."""
+        """A new episode in the current child (starting a fresh one if there is none)."""
         if not self.alive:
             self._start()
+        child = self._current
+        assert child is not None
         episode_id = next(self._ids)
-        renderer = self.call(self.generation, "open", episode_id)
-        return RemoteEpisode(self, episode_id, self.generation, renderer)
+        renderer = self.call(child.generation, "open", episode_id)
+        child.episodes.add(episode_id)
+        return RemoteEpisode(self, episode_id, child.generation, renderer)
 
     def call(self, generation: int, op: str, episode_id: int, *args: Any, **kwargs: Any) -> Any:
-        """Run ``op`` on an episode in the child; its exception is raised here."""
-        if generation != self.generation or self._conn is None:
+        """Run ``op`` on an episode in the child of ``generation``; its exception is raised here."""
+        child = self._child(generation)
+        if child is None:
             raise self._died_error(generation)
         try:
-            self._conn.send((op, episode_id, args, kwargs))
-            ok, value, *child_traceback = self._conn.recv()
+            child.conn.send((op, episode_id, args, kwargs))
+            ok, value, *child_traceback = child.conn.recv()
         except (EOFError, OSError):  # BrokenPipeError, ConnectionResetError: the child is gone
-            self._reap()
+            self._reap(child)
             raise self._died_error(generation) from None
+        if op == "close":
+            child.episodes.discard(episode_id)
+            if child.generation in self._retiring and not child.episodes:
+                self._stop(child, "retired")
+        elif op == "reset" and ok:
+            child.resets += 1
+            if child is self._current and 0 < self.recycle_after <= child.resets:
+                self._retire(child)
         if ok:
             return value
         value.__cause__ = _RemoteTraceback(child_traceback[0])
         raise value
 
     def stop(self) -> None:
-        """Ask the child to close its episodes and exit; terminate it if it does not."""
-        conn, process = self._conn, self._process
-        if conn is not None:
-            try:
-                conn.send(None)
-            except (OSError, EOFError):
-                pass
-        if process is not None:
-            process.join(_STOP_GRACE_S)
-            if process.is_alive():
-                log.warning(
-                    "%s (pid %d) did not exit in %.0f s; terminating it",
-                    self.name,
-                    process.pid,
-                    _STOP_GRACE_S,
-                )
-                process.terminate()
-                process.join(2.0)
-            if process.is_alive():
-                process.kill()
-                process.join()
-        self._reap(stopping=True)
+        """Ask every child to close its episodes and exit; terminate one that does not."""
+        for child in [*self._retiring.values(), self._current]:
+            if child is not None:
+                self._stop(child, "was stopped")
+
+    def _child(self, generation: int) -> _Child | None:
+        current = self._current
+        if current is not None and current.generation == generation:
+            return current
+        return self._retiring.get(generation)
 
     def _start(self) -> None:
-        self._reap()
+        if self._current is not None:  # dead: forget it
+            self._reap(self._current)
         parent_end, child_end = _CONTEXT.Pipe()
         process = _CONTEXT.Process(
             target=_child_main,
@@ -231,29 +278,64 @@ class EpisodeProcess:
         )
         process.start()
         child_end.close()  # else the parent's copy keeps the pipe open and a dead child is never noticed
-        self._process, self._conn = process, parent_end
         self.generation += 1
+        self.started += 1
+        self._current = _Child(process, parent_end, self.generation)
         log.info("%s: started simulator process pid %d", self.name, process.pid)
 
-    def _reap(self, stopping: bool = False) -> None:
-        """Forget a dead (or stopped) child, remembering how it ended."""
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
-        process, self._process = self._process, None
-        if process is None:
+    def _retire(self, child: _Child) -> None:
+        """``child`` takes no new episode; stopped at once if it holds none, else when its last goes."""
+        self._current = None
+        if not child.episodes:
+            self._stop(child, "retired")
             return
+        self._retiring[child.generation] = child
+        log.info(
+            "%s: simulator process pid %d retires after %d resets; %d episode(s) stay until they "
+            "end or reset",
+            self.name,
+            child.process.pid,
+            child.resets,
+            len(child.episodes),
+        )
+
+    def _stop(self, child: _Child, how: str) -> None:
+        """Ask ``child`` to close its episodes and exit; terminate it if it does not."""
+        try:
+            child.conn.send(None)
+        except (OSError, EOFError):
+            pass
+        process = child.process
+        process.join(_STOP_GRACE_S)
+        if process.is_alive():
+            log.warning(
+                "%s (pid %d) did not exit in %.0f s; terminating it", self.name, process.pid, _STOP_GRACE_S
+            )
+            process.terminate()
+            process.join(2.0)
+        if process.is_alive():
+            process.kill()
+            process.join()
+        if how == "retired":
+            log.info("%s: retired simulator process pid %d stopped", self.name, process.pid)
+        self._reap(child, how)
+
+    def _reap(self, child: _Child, stopped: str | None = None) -> None:
+        """Forget a dead (or ``stopped``: "was stopped", "retired") child, remembering how it ended."""
+        child.conn.close()
+        if self._current is child:
+            self._current = None
+        self._retiring.pop(child.generation, None)
+        process = child.process
         process.join(1.0)
         if process.is_alive():  # its pipe broke but it runs on: it can serve nobody now
             process.kill()
             process.join()
         code = process.exitcode
         how = f"killed by {_signal_name(-code)}" if code < 0 else f"exit code {code}"
-        self._deaths[self.generation] = f"{self.name} (pid {process.pid}) " + (
-            "was stopped" if stopping else f"died: {how}"
-        )
-        if not stopping:
-            log.error("simulator process %s", self._deaths[self.generation])
+        self._deaths[child.generation] = f"{self.name} (pid {process.pid}) " + (stopped or f"died: {how}")
+        if stopped is None:
+            log.error("simulator process %s", self._deaths[child.generation])
         process.close()
 
     def _died_error(self, generation: int) -> EpisodeProcessDied:
@@ -265,7 +347,7 @@ class EpisodeProcess:
 
 
 class RemoteEpisode:
-    """``EpisodeLike`` for an episode that lives in an :class:`EpisodeProcess`."""
+    """``EpisodeLike`` for an episode that lives in a child of an :class:`EpisodeProcess`."""
 
     def __init__(self, process: EpisodeProcess, episode_id: int, generation: int, renderer: str) -> None:
         self.process = process
@@ -275,8 +357,10 @@ class RemoteEpisode:
         self.pid = process.pid
 
     def reset(self, spec: EpisodeSpec, session: str = "local", ground_truth: bool = False) -> Observation:
-        if self.generation != self.process.generation or not self.process.alive:
-            self._reopen()  # its child died: start over in a fresh one, as a reset starts over anyway
+        if not self.process.takes(self.generation):
+            # Its child died or retired: start over in the current one, as a reset starts over anyway.
+            self.close()
+            self._reopen()
         return self._call("reset", spec, session=session, ground_truth=ground_truth)
 
     def step(self, action: Action, ground_truth: bool = False) -> Observation:
@@ -289,11 +373,10 @@ class RemoteEpisode:
         return self._call("state")
 
     def close(self) -> None:
-        if self.generation == self.process.generation and self.process.alive:
-            try:
-                self._call("close")
-            except EpisodeProcessDied:
-                pass
+        try:
+            self._call("close")
+        except EpisodeProcessDied:
+            pass
 
     def _call(self, op: str, *args: Any, **kwargs: Any) -> Any:
         return self.process.call(self.generation, op, self.episode_id, *args, **kwargs)
@@ -312,8 +395,9 @@ class EpisodeProcesses:
     """The server's child processes: ``open(i)`` makes an episode in process ``i``.
 
     Processes start lazily, on their first episode, so a server sized for every core costs
-    nothing until sessions arrive. ``make_episode``: see :class:`EpisodeProcess` (tests pass a
-    fake episode class here to run the process machinery without physics).
+    nothing until sessions arrive. ``make_episode`` and ``recycle_after``: see
+    :class:`EpisodeProcess` (tests pass a fake episode class here to run the process machinery
+    without physics).
     """
 
     def __init__(
@@ -322,11 +406,13 @@ class EpisodeProcesses:
         renderer: str = "tiny",
         make_episode: EpisodeMaker | None = None,
         name: str = "tidee-sim",
+        recycle_after: int = 0,
     ) -> None:
         if processes < 1:
             raise ValueError(f"processes must be >= 1, got {processes}")
         self.processes = [
-            EpisodeProcess(renderer, make_episode, name=f"{name}-{i}") for i in range(processes)
+            EpisodeProcess(renderer, make_episode, name=f"{name}-{i}", recycle_after=recycle_after)
+            for i in range(processes)
         ]
 
     def __len__(self) -> int:
@@ -340,6 +426,7 @@ class EpisodeProcesses:
 
     @property
     def pids(self) -> list[int | None]:
+        """Per slot, the child that takes new episodes (None: none running)."""
         return [p.pid for p in self.processes]
 
 

@@ -63,6 +63,16 @@ def non_negative_float(text: str) -> float:
     return value
 
 
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"expected a number > 0, got {text!r}") from None
+    if not 0 < value < float("inf"):  # also refuses nan
+        raise ValueError(f"expected a finite number > 0, got {text}")
+    return value
+
+
 def host(text: str) -> str:
     """An address to serve on: an IP address or a name this machine resolves (no binding here)."""
     try:

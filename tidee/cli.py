@@ -20,7 +20,7 @@ from typing import NoReturn
 
 from tidee.agent.config import LIVE_RUN_SKIP, AgentProcessConfig, LiveRunConfig
 from tidee.agent.evaluation import config as ec
-from tidee.launch import RouterConfig
+from tidee.launch import RouterConfig, SignalsBenchConfig
 from tidee.options import add_command, to_argv
 from tidee.paths import PROJECT_DIR, bench_out
 from tidee.protocol.messages import EpisodeSpec
@@ -134,10 +134,28 @@ def _cmd_bench_transport(cfg: sc.TransportBenchConfig) -> int:
 def _cmd_bench_soak(cfg: sc.SoakBenchConfig) -> int:
     from tidee.server.bench_soak import run_soak_bench
 
-    run_soak_bench(
-        cfg.sessions, cfg.rooms, cfg.steps, cfg.resolution, cfg.processes, bench_out(cfg.out, "soak.json")
-    )
+    out = bench_out(cfg.out, "soak.json")
+    run_soak_bench(cfg, out)
+    print(out.with_suffix(".md").read_text())
     return 0
+
+
+def _cmd_bench_fuzz(cfg: sc.FuzzBenchConfig) -> int:
+    from tidee.server.bench_fuzz import run_fuzz_bench
+
+    out = bench_out(cfg.out, "fuzz.json")
+    result = run_fuzz_bench(cfg, out)
+    print(out.with_suffix(".md").read_text())
+    return 0 if result["targets_met"] else 1
+
+
+def _cmd_bench_signals(cfg: SignalsBenchConfig) -> int:
+    from tidee.bench_signals import run_signals_bench
+
+    out = bench_out(cfg.out, "signals.json")
+    result = run_signals_bench(cfg, out)
+    print(out.with_suffix(".md").read_text())
+    return 0 if result["targets_met"] else 1
 
 
 def _cmd_bench_scale_server(cfg: sc.ScaleServerBenchConfig) -> int:
@@ -152,6 +170,13 @@ def _cmd_bench_scale_server(cfg: sc.ScaleServerBenchConfig) -> int:
             renderer=cfg.renderer,
         )
     )
+
+
+def _cmd_bench_deployment(cfg: sc.DeploymentBenchConfig) -> int:
+    from tidee.server.bench_deployment import run_deployment_bench
+
+    out = str(bench_out(cfg.out, "deployment.json"))
+    return _print_json(run_deployment_bench(out, cfg.steps, cfg.resolution, cfg.renderer))
 
 
 def _cmd_bench_episode(cfg: ec.EpisodeBenchConfig) -> int:
@@ -181,6 +206,7 @@ def _cmd_bench_scale(cfg: ec.ScaleBenchConfig) -> int:
             variants=",".join(cfg.variants),
             repeats=cfg.repeats,
             split=cfg.split,
+            backends=cfg.backends,
         )
     )
 
@@ -204,7 +230,9 @@ def _cmd_gen_cache(cfg: sc.CacheConfig) -> int:
     from tidee.server.bench_reset import fill_cache
 
     directory = str(cfg.cache_dir) if cfg.cache_dir is not None else None
-    return _print_json(fill_cache(cfg.split, workers=cfg.workers, directory=directory, limit=cfg.limit))
+    return _print_json(
+        fill_cache(cfg.split, workers=cfg.workers, directory=directory, limit=cfg.limit, backend=cfg.batch)
+    )
 
 
 # --- the agent -----------------------------------------------------------------------------
@@ -318,7 +346,13 @@ def _cmd_gen_stats(cfg: ec.StatsGenConfig) -> int:
                 f"--seeds {cfg.seeds!r}: {part!r} is not a seed or a range; expected e.g. 0-19,10000-10179"
             )
         seeds += list(range(int(lo), int(hi or lo) + 1))
-    data = build_stats(seeds, cfg.out or DEFAULT_PATH, command=f"tidee gen stats --seeds {cfg.seeds}")
+    data = build_stats(
+        seeds,
+        cfg.out or DEFAULT_PATH,
+        command=f"tidee gen stats --seeds {cfg.seeds}",
+        workers=cfg.workers,
+        backend=cfg.batch,
+    )
     return _print_json(data["meta"])
 
 
@@ -385,7 +419,7 @@ def build_parser() -> argparse.ArgumentParser:
         "scale",
         ec.ScaleBenchConfig,
         _cmd_bench_scale,
-        "tidy episodes per minute with 1 vs 2 worker processes, side by side",
+        "tidy episodes per hour with 1 vs 2 workers, local processes and Ray actors, side by side",
     )
     add_command(
         bench, "transport", sc.TransportBenchConfig, _cmd_bench_transport, "in-process vs Zenoh step latency"
@@ -399,10 +433,33 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_command(
         bench,
+        "deployment",
+        sc.DeploymentBenchConfig,
+        _cmd_bench_deployment,
+        "step latency peer-to-peer vs through a tidee router, side by side on one server",
+    )
+    add_command(
+        bench,
         "soak",
         sc.SoakBenchConfig,
         _cmd_bench_soak,
         "server memory while many sessions open and close over many rooms",
+    )
+    add_command(
+        bench,
+        "fuzz",
+        sc.FuzzBenchConfig,
+        _cmd_bench_fuzz,
+        "malformed, mutated and oversized requests of every op against a real server: crashes, "
+        "hangs, internal errors",
+    )
+    add_command(
+        bench,
+        "signals",
+        SignalsBenchConfig,
+        _cmd_bench_signals,
+        "SIGTERM and SIGINT to tidee run, SIGTERM to tidee server: orphaned processes, open ports, "
+        "tracebacks",
     )
     add_command(
         bench,

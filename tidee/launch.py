@@ -22,6 +22,7 @@ import urllib.error
 import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 from tidee import argtypes
 from tidee.options import option
@@ -82,6 +83,31 @@ class RunConfig:
     zenoh_config: str | None = option(None, "Zenoh config file for the server and viewer", cli=False)
 
 
+@dataclass
+class SignalsBenchConfig:
+    """``tidee bench signals`` (tidee/bench_signals.py)."""
+
+    tries: int = option(
+        20, "tidee run tries per signal (SIGTERM and SIGINT, in turn)", type=argtypes.non_negative_int
+    )
+    server_tries: int = option(
+        20, "tidee server tries, one SIGTERM each", type=argtypes.non_negative_int, metavar="N"
+    )
+    seed: int = option(0, "draws the delay before each signal", type=argtypes.non_negative_int)
+    resolution: int = option(64, "the episode's image side, pixels", type=argtypes.resolution)
+    max_steps: int = option(
+        300, "the episode's step budget (it must outlast the signal)", type=argtypes.max_steps
+    )
+    exit_timeout_s: float = option(
+        60.0,
+        "what of a try's process session is still alive this long after the signal is orphaned",
+        flag="--exit-timeout",
+        type=argtypes.positive_float,
+        metavar="S",
+    )
+    out: Path | None = option(None, "report path (default: bench/signals.json)", type=argtypes.output_path)
+
+
 # = tidee.protocol.zenoh_config.DEFAULT_ENDPOINT (this module imports no Zenoh)
 ROUTER_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -131,15 +157,15 @@ def run_router(cfg: RouterConfig) -> int:
 
 
 def wait_for_signal() -> None:
-    """Block until SIGINT or SIGTERM (a service's main thread), then restore the handlers."""
+    """Block until SIGINT or SIGTERM (a service's main thread). The handlers stay: a signal that
+    comes while the service shuts down (Ctrl-C reaches the whole group, and ``tidee run`` then
+    signals each child it started) is absorbed rather than raised inside the shutdown; every
+    step of a shutdown is bounded, and ``end_process`` kills a process that outstays its grace."""
     stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        while not stop.wait(0.2):  # a bounded wait: the handler runs within 0.2 s of any signal
-            pass
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    while not stop.wait(0.2):  # a bounded wait: the handler runs within 0.2 s of any signal
+        pass
 
 
 def _tidee(*args: str) -> list[str]:

@@ -7,7 +7,9 @@ other: on 2 cores a one-episode eval took 6 times longer with another process on
 core. The rule: a process gets ``cores // busy processes`` threads, at least one.
 
 Call :func:`use_threads` before the process does any numeric work (it also sets the
-environment variables that a child process or a late ``import torch`` reads).
+environment variables that a child process or a late ``import torch`` reads, and limits the
+OpenMP and BLAS pools already loaded: a spawned batch worker has imported numpy, and so started
+OpenBLAS with a thread per core, before it is told its share).
 """
 
 from __future__ import annotations
@@ -43,6 +45,9 @@ def use_threads(n: int) -> int:
     torch = sys.modules.get("torch")
     if torch is not None:  # imported already; otherwise torch reads OMP_NUM_THREADS when imported
         torch.set_num_threads(n)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(n)  # the native pools loaded already (numpy's OpenBLAS, torch's OpenMP)
     return n
 
 

@@ -16,28 +16,10 @@ from tidee.agent.config import (
     PerceptionMode,
 )
 from tidee.agent.evaluation.conditions import CONDITIONS, Condition, check_condition
+from tidee.batch import BACKENDS, Backend, BackendConfig, BatchConfig
 from tidee.options import option
 from tidee.protocol.vocab import HeldOutSplit, Renderer, RoomType
 from tidee.server.config import RENDERER_HELP, TRAINED_RENDERER
-
-
-@dataclass
-class BatchConfig:
-    """Where a batch evaluation's episodes run, and whether it goes on from an interrupted run."""
-
-    backend: Literal["local", "ray"] = option(
-        "local",
-        "local: worker processes on this machine | ray: one Ray actor per worker "
-        "(needs pip install -e '.[cluster]')",
-    )
-    ray_address: str | None = option(
-        None, "a running Ray cluster's HOST:PORT for --backend ray (default: start Ray on this machine)"
-    )
-    resume: bool = option(False, "skip the episodes OUT/episodes.jsonl already holds (an interrupted run)")
-
-    def __post_init__(self) -> None:
-        if self.ray_address is not None and self.backend != "ray":
-            raise ValueError("--ray-address is for --backend ray")
 
 
 @dataclass
@@ -183,13 +165,21 @@ class EpisodeBenchConfig:
 
 @dataclass
 class ScaleBenchConfig:
-    """``tidee bench scale``: tidy episodes per minute with 1 vs 2 worker processes."""
+    """``tidee bench scale``: tidy episodes per hour with 1 vs 2 workers, local and on Ray."""
 
-    configs: int = option(4, "test configurations (spread over the room types)", type=argtypes.positive_int)
+    configs: int = option(8, "test configurations (spread over the room types)", type=argtypes.positive_int)
     variants: tuple[str, ...] = option(("TIDEE",), "comma list of agents")
     repeats: int = option(1, "runs of each", type=argtypes.positive_int)
     split: HeldOutSplit = option("test", "held-out rooms only")
+    backends: tuple[Backend, ...] = option(("local", "ray"), "comma list: local, ray")
     out: Path | None = option(None, "report path (default: bench/scale.json)", type=argtypes.output_path)
+
+    def __post_init__(self) -> None:
+        for backend in self.backends:
+            if backend not in BACKENDS:
+                raise ValueError(f"--backends must be among {', '.join(BACKENDS)}, got {backend!r}")
+        if not self.backends:
+            raise ValueError("give at least one backend")
 
 
 @dataclass
@@ -200,6 +190,8 @@ class StatsGenConfig:
     out: Path | None = option(
         None, "default: agent/data/placement_stats.json (the shipped file)", type=argtypes.output_path
     )
+    workers: int = option(1, "worker processes (local) or Ray actors", type=argtypes.positive_int)
+    batch: BackendConfig = option(default_factory=BackendConfig)
 
 
 @dataclass
@@ -230,6 +222,8 @@ class PreferenceEvalConfig:
     workers: int = option(1, "parallel simulator processes", type=argtypes.positive_int)
     renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
     seed: int = option(0, "the scripted preferences' random choices", type=argtypes.non_negative_int)
+    keep_logs: bool = option(False, "write every episode's log under OUT/logs/without and OUT/logs/with")
+    batch: BatchConfig = option(default_factory=BatchConfig)
     progress: bool = option(True, "a progress bar", cli=False)
 
 

@@ -13,8 +13,10 @@ evaluation may read it; the agent never does) a scripted profile of three senten
 
 Then the same episodes run with the profile (``--preferences``). Reported per agent: the share of
 the asked and never objects placed as asked; the share of the group's unnamed members placed as
-asked; and the side effects: the share of the other objects (named by no preference) whose final
-receptacle differs between the two runs. JSON, Markdown and PNG.
+asked; the side effects: the share of the other objects (named by no preference) whose final
+receptacle differs between the two runs; and how many of the asked objects the agent found and
+picked up (an object never picked is lost to perception or approach, not to the preference).
+JSON, Markdown and PNG; ``--keep-logs`` keeps every episode's log to read why.
 """
 
 from __future__ import annotations
@@ -30,8 +32,9 @@ import numpy as np
 from tidee.agent.classes import PLACEABLE_RECEPTACLES
 from tidee.agent.evaluation.config import PreferenceEvalConfig
 from tidee.agent.evaluation.judge import plausible
-from tidee.agent.evaluation.tidy_eval import TidyJob, run_jobs, select_configs
+from tidee.agent.evaluation.tidy_eval import EPISODES_FILE, TidyJob, run_jobs, select_configs
 from tidee.agent.reasoning.relations import words
+from tidee.batch import import_ray
 from tidee.protocol.messages import EpisodeSpec
 
 # Group phrases a household might use; each configuration takes the first whose members include
@@ -115,13 +118,17 @@ def score(
     base = {(r["variant"], _key(r)): r for r in without}
     per: dict[str, dict[str, list[bool]]] = {}
     for rec in with_:
-        acc = per.setdefault(rec["variant"], {"asked": [], "never": [], "group": [], "side": [], "found": []})
+        acc = per.setdefault(
+            rec["variant"], {"asked": [], "never": [], "group": [], "side": [], "found": [], "picked": []}
+        )
         prof = profiles[_key(rec)]
         named: set[str] = set()
         if prof["asked"]:
             a = prof["asked"]
             acc["asked"] += _placed(rec["objects"], a["category"], a["receptacle"], True)
-            acc["found"] += [o["found"] for o in rec["objects"] if o["moved"] and o["type"] == a["category"]]
+            mine = [o for o in rec["objects"] if o["moved"] and o["type"] == a["category"]]
+            acc["found"] += [o["found"] for o in mine]
+            acc["picked"] += [o["picked"] for o in mine]
             named.add(a["category"])
         if prof["never"]:
             n = prof["never"]
@@ -154,7 +161,8 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
     agent = cfg.agent
     spec = {"resolution": cfg.resolution, "max_steps": cfg.max_steps}
 
-    def jobs(preferences: Mapping[Any, str | None]) -> list[TidyJob]:
+    def jobs(preferences: Mapping[Any, str | None], logs: str) -> list[TidyJob]:
+        log_dir = out / "logs" / logs if cfg.keep_logs else None
         return [
             TidyJob(
                 agent=replace(
@@ -166,12 +174,29 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
                 spec=EpisodeSpec(room_type=c.room_type, seed=c.seed, mess_index=c.mess_index, **spec),
                 split=cfg.split,
                 renderer=cfg.renderer,
+                log_dir=log_dir,
             )
             for c in configs
             for v in cfg.variants
         ]
 
-    without = run_jobs(jobs({}), cfg.workers, cfg.renderer, cfg.progress)
+    batch = cfg.batch
+    if batch.backend == "ray":
+        import_ray()  # not installed: say how, before any episode
+
+    def run(todo: list[TidyJob], resume: bool) -> list[dict[str, Any]]:
+        return run_jobs(
+            todo,
+            cfg.workers,
+            cfg.renderer,
+            cfg.progress,
+            backend=batch.backend,
+            ray_address=batch.ray_address,
+            out_jsonl=out / EPISODES_FILE,
+            resume=resume,
+        )
+
+    without = run(jobs({}, "without"), batch.resume)
     members = {p: group_members(p) for p in GROUP_PHRASES}
     profiles: dict[Any, Any] = {}
     files: dict[Any, str] = {}
@@ -185,7 +210,8 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
         sentences = [p["text"] for p in prof.values() if p]
         path.write_text(json.dumps({"household": path.stem, "preferences": sentences}, indent=1))
         files[_key(rec)] = str(path)
-    with_ = run_jobs(jobs(files), cfg.workers, cfg.renderer, cfg.progress)
+    # the same records file: this run's episodes without preferences are in it (resumed or not)
+    with_ = run(jobs(files, "with"), True)
     result: dict[str, Any] = {
         "command": command,
         "config": {
@@ -223,13 +249,13 @@ def _markdown(r: Mapping[str, Any]) -> str:
         "name. Side effects: other objects whose final receptacle changed.",
         "",
         "| Agent | Asked, placed as asked | Never, obeyed | Group, unnamed members placed as asked "
-        "| Side effects | Asked objects found |",
-        "|---|---:|---:|---:|---:|---:|",
+        "| Side effects | Asked objects found | Asked objects picked |",
+        "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for v, m in r["metrics"].items():
         lines.append(
             f"| {v} | {_pct(m['asked'])} | {_pct(m['never'])} | {_pct(m['group'])} | {_pct(m['side'])} "
-            f"| {_pct(m['found'])} |"
+            f"| {_pct(m['found'])} | {_pct(m['picked'])} |"
         )
     lines += ["", "Group phrases and the categories MiniLM carried them to:", ""]
     lines += [f"- {p}: {', '.join(m)}" for p, m in r["groups"].items()]

@@ -31,10 +31,10 @@ from typing import Any
 import numpy as np
 
 from tidee.agent.config import AgentConfig
-from tidee.agent.evaluation.backends import run_jobs, worker_models, worker_transport
 from tidee.agent.evaluation.config import RearrangeEvalConfig
 from tidee.agent.evaluation.rearrange_fates import OPENABLE_FATES, PICKUPABLE_FATES, sum_counts
 from tidee.agent.evaluation.rearrange_metrics import aggregate, episode_metrics
+from tidee.batch import run_jobs, worker_transport
 from tidee.protocol.episode_log import write_atomic
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
 
@@ -129,7 +129,7 @@ def _run_one(job: RearrangeJob) -> dict[str, Any]:
             "rearrange": episode_metrics(goal["objects"], start["objects"], transport.state()["objects"]),
         }
     else:
-        from tidee.agent.runner import EpisodeRunner
+        from tidee.agent.runner import EpisodeRunner, worker_models
 
         runner = EpisodeRunner(
             job.agent, transport, session="eval", log_dir=job.log_dir, models=worker_models(job.agent)
@@ -309,7 +309,7 @@ def _plot(report: dict[str, Any]) -> bytes:
 
 
 def run_rearrange_eval(cfg: RearrangeEvalConfig) -> dict[str, Any]:
-    from tidee.agent.evaluation.tidy_eval import select_configs
+    from tidee.agent.evaluation.tidy_eval import episode_cost, select_configs
 
     agent = cfg.agent
     out = Path(cfg.out)
@@ -350,6 +350,7 @@ def run_rearrange_eval(cfg: RearrangeEvalConfig) -> dict[str, Any]:
         out_jsonl=out / "episodes.jsonl",
         resume=cfg.batch.resume,
         desc="rearrangement episodes",
+        cost=lambda job: episode_cost(job.spec),
     )
     wall = time.time() - t0
     rows = {row: row_summary([r for r in records if r["row"] == row]) for row in cfg.rows}

@@ -25,7 +25,7 @@ def run_gen_detection(cfg: GenDetectionConfig) -> int:
 
     print(describe(cfg.gen), file=sys.stderr)
     command = "tidee gen detection " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else "tidee gen detection"
-    manifest = generate(cfg.gen, cfg.out_dir, command=command, workers=cfg.workers)
+    manifest = generate(cfg, command=command)
     print(
         json.dumps({k: v for k, v in manifest.items() if k not in ("shards", "rooms", "classes")}, indent=1)
     )

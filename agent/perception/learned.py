@@ -12,6 +12,7 @@ centroid is the object's and not the wall behind it.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from tidee.agent.perception.detector.model import (
     RawDetection,
     check_peaks,
     decode,
+    fold_batchnorm,
     preprocess,
 )
 from tidee.agent.perception.reclassifier.config import DEFAULT_RECLASSIFIER
@@ -97,7 +99,10 @@ class LearnedPerception:
     has native bf16 (AVX512-BF16/AMX; about 1.6x faster per frame), fp32 elsewhere.
     ``classes_per_peak``, ``peaks``: see ``detector.model.decode`` (1 and "class-max" for the agent).
     ``reclassifier``: the crop classifier that renames detections (``reclassifier.model.fuse`` with
-    ``alpha``, ``beta``), or None for the detector's own classes and scores.
+    ``alpha``, ``beta``), or None for the detector's own classes and scores. ``gate``: detections
+    whose detector score is at least this keep the detector's class and score without a crop
+    (None: every detection is reclassified); chosen on the validation rooms with the fusion
+    (``tidee eval reclassifier --gates ... --record``).
     """
 
     name = "learned"
@@ -118,6 +123,7 @@ class LearnedPerception:
         reclassifier_manifest: dict | None = None,
         alpha: float = 1.0,
         beta: float = 1.0,
+        gate: float | None = None,
     ) -> None:
         self.peaks = check_peaks(peaks)
         if reclassifier is not None and reclassifier.cfg.num_classes != model.cfg.num_classes:
@@ -125,13 +131,19 @@ class LearnedPerception:
                 f"the reclassifier knows {reclassifier.cfg.num_classes} classes, the detector "
                 f"{model.cfg.num_classes}: retrain it"
             )
+        # Copies with batch norm folded into the convolutions (``fold_batchnorm``): the caller's
+        # modules stay trainable, and inference skips one pass over every feature map.
         self.reclassifier = (
-            reclassifier.eval().to(memory_format=torch.channels_last) if reclassifier else None
+            fold_batchnorm(copy.deepcopy(reclassifier).eval()).to(memory_format=torch.channels_last)
+            if reclassifier
+            else None
         )
         self.reclassifier_manifest = reclassifier_manifest or {}
         self.alpha, self.beta = float(alpha), float(beta)
+        self.gate = gate
+        self.stats = {"reclassified": 0, "gated": 0}  # detections the crop classifier saw / skipped
         self.precision = resolve_precision(precision, "cpu")
-        self.model = model.eval().to(memory_format=torch.channels_last)
+        self.model = fold_batchnorm(copy.deepcopy(model).eval()).to(memory_format=torch.channels_last)
         self.classes_per_peak = classes_per_peak
         self.path = path  # the weights file (its manifest is beside it)
         self.cfg = model.cfg
@@ -151,7 +163,8 @@ class LearnedPerception:
     ) -> LearnedPerception:
         """``reclassifier``: "default" loads the shipped crop classifier when it is there, a path
         loads that one (it must exist), None runs the detector alone. Its fusion weights
-        (``alpha``, ``beta``) come from its manifest's ``fusion`` (``tidee eval reclassifier --record``)."""
+        (``alpha``, ``beta``) and its gate come from its manifest's ``fusion`` (``tidee eval
+        reclassifier --record``)."""
         path = Path(path) if path else DEFAULT_WEIGHTS
         manifest = read_manifest(path, verify=verify)
         blob = torch.load(path, map_location="cpu", weights_only=False)
@@ -179,6 +192,7 @@ class LearnedPerception:
             reclassifier_manifest=rc_manifest,
             alpha=fusion.get("alpha", 1.0),
             beta=fusion.get("beta", 1.0),
+            gate=fusion.get("gate"),
         )
 
     def _reclassify(
@@ -193,7 +207,13 @@ class LearnedPerception:
         those whose score falls under ``threshold`` are dropped, the rest sorted best first."""
         rc = self.reclassifier
         assert rc is not None  # detect_batch asks for this only when there is a second stage
-        flat = [(i, d) for i, dets in enumerate(raw) for d in dets]
+        gate = self.gate if self.gate is not None else float("inf")
+        out: list[list[RawDetection]] = [[d for d in dets if d.score >= gate] for dets in raw]
+        flat = [(i, d) for i, dets in enumerate(raw) for d in dets if d.score < gate]
+        self.stats["reclassified"] += len(flat)
+        self.stats["gated"] += sum(map(len, out))
+        if not flat:
+            return out
         fidx = torch.tensor([i for i, _ in flat])
         boxes = torch.tensor([d.box for _, d in flat], dtype=torch.float32)
         crops, side = crop_inputs(frame_tensor(rgb, depth), fidx, boxes, rc.cfg)
@@ -204,13 +224,15 @@ class LearnedPerception:
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
             logits = rc(crops.contiguous(memory_format=torch.channels_last), side, det)
         cls, score = fuse(logits, cell_heat, peak, self.alpha, self.beta)
-        out: list[list[RawDetection]] = [[] for _ in raw]
         for (i, d), c, s in zip(flat, cls.tolist(), score.tolist()):
             if s >= threshold:
                 out[i].append(dataclasses.replace(d, cls=int(c), score=float(s)))
         for dets in out:
             dets.sort(key=lambda d: -d.score)
         return out
+
+    def reset_stats(self) -> None:
+        self.stats = {"reclassified": 0, "gated": 0}
 
     @property
     def sha256(self) -> str | None:

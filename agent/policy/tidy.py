@@ -10,7 +10,9 @@ pseudo code::
         if one is in the object memory: navigate there, PutObject (open it first if closed)
         else: search for it (exploration / visual search network), PutObject
               (missing_top="search": the top-ranked class is searched for before the others,
-               as in the paper's Algorithm S1; "skip": only after the classes in memory)
+               as in the paper's Algorithm S1; "skip": only after the classes in memory; a
+               class a household's preference asks for: always first, and every mapped
+               instance of it is tried before the next class)
         after m failed tries per class: drop the object where the agent stands
     Done
 
@@ -392,14 +394,17 @@ class TidyPolicy:
         ranked = (
             self.placement.predict(obj, self.body.mapper.memory, self.room_type) if self.placement else []
         )
+        asked: list[str] = []  # receptacles a household asked for: searched for and tried to the end
         if self.preferences is not None:
             ranked = self.preferences.rank(obj.label, ranked)
+            asked = self.preferences.asked(obj.label)
         st.predictions = ranked[:5]
         self.event("predicted", label=obj.label, top=[[r, round(p, 3)] for r, p in ranked[:5]])
         searched = None  # the class already searched for (Algorithm S1), not tried again
         top = ranked[0][0] if ranked else FLOOR
-        if self.p.missing_top == "search" and top != FLOOR and not self._instances(top):
-            # Algorithm S1: the model's best receptacle is not in memory: search for it first
+        if (self.p.missing_top == "search" or top in asked) and top != FLOOR and not self._instances(top):
+            # Algorithm S1 (and always for an asked receptacle): the best receptacle is not in
+            # memory: search for it first
             searched = top
             if (yield from self.search_and_put(obj.label, top)):
                 return True
@@ -423,9 +428,12 @@ class TidyPolicy:
                 continue
             tried += 1
             st.target_receptacle = label
-            for rec in instances[:2]:
+            for rec in instances if label in asked else instances[:2]:
                 if (yield from self.put_on(rec)):
                     return self._placed(obj.label, label)
+            if label in asked:  # every mapped one failed (a stray track, full): look for another
+                if (yield from self.search_and_put(obj.label, label)):
+                    return True
         # Receptacles the model wants but the memory lacks: search for them.
         for label in missing[: self.p.max_receptacle_classes]:
             if (yield from self.search_and_put(obj.label, label)):

@@ -17,7 +17,9 @@ OOP detector and placement model:
   in place (P = 0) when it rests where it asks; other objects keep their detector's score;
 * **where does it go?** the receptacle a preference asks for is ranked first, the ones it
   forbids are dropped, the rest keep the placement model's order (a variant without a
-  placement model ranks only what preferences ask for).
+  placement model ranks only what preferences ask for); the policy searches for an asked
+  receptacle it has not mapped before trying anything else, and tries every mapped one of it
+  (then searches for another) before the model's next choice (``TidyPolicy.put_away``).
 
 Sentences a person types in the viewer join the profile and, when it came from a file, are
 written back to it, so a household's preferences persist from one run to the next.
@@ -218,12 +220,20 @@ class PreferenceProfile:
                     out[t.id] = 0.0 if on == p.receptacle else 1.0
         return out
 
+    def asked(self, category: str) -> list[str]:
+        """The receptacles preferences ask ``category`` to go on, in the order they were said
+        (one a preference also forbids is not asked)."""
+        prefs = self.about(category)
+        never = {p.receptacle for p in prefs if p.polarity == OUT_OF_PLACE}
+        wanted = dict.fromkeys(p.receptacle for p in prefs if p.polarity == IN_PLACE)
+        return [r for r in wanted if r not in never]
+
     def rank(self, category: str, ranked: Iterable[tuple[str, float]]) -> list[tuple[str, float]]:
         """The placement model's ranking after the preferences."""
         prefs = self.about(category)
-        wanted = list(dict.fromkeys(p.receptacle for p in prefs if p.polarity == IN_PLACE))
+        wanted = {p.receptacle for p in prefs if p.polarity == IN_PLACE}
         never = {p.receptacle for p in prefs if p.polarity == OUT_OF_PLACE}
-        head = [(r, 1.0) for r in wanted if r not in never]
+        head = [(r, 1.0) for r in self.asked(category)]
         return head + [(r, s) for r, s in ranked if r not in never and r not in wanted]
 
 

@@ -17,7 +17,10 @@ import time
 from collections import Counter, defaultdict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from tidee.batch import BackendConfig
 
 DEFAULT_PATH = Path(__file__).resolve().parent.parent / "data" / "placement_stats.json"
 ALL_ROOMS = "*"
@@ -60,10 +63,31 @@ class PlacementStats:
         return sorted(((k, v / total) for k, v in t.items()), key=lambda kv: (-kv[1], kv[0])) if total else []
 
 
+def _room_placements(job: tuple[str, int]) -> dict[str, Any]:
+    """(category, receptacle type) of every pickupable object of one tidy room (a batch job, in
+    this worker's world)."""
+    from tidee.batch import worker_state
+    from tidee.server.rooms import generate_scene
+
+    state = worker_state()
+    if "stats_world" not in state:
+        from tidee.server.world import World
+
+        state["stats_world"] = World(renderer="tiny")
+    scene = generate_scene(*job, world=state["stats_world"])
+    return {"placements": [[o.type, o.parent_type] for o in scene.objects if o.pickupable and o.parent_type]}
+
+
 def build_stats(
-    seeds: list[int], out: str | Path = DEFAULT_PATH, progress: bool = True, command: str = "tidee gen stats"
+    seeds: list[int],
+    out: str | Path = DEFAULT_PATH,
+    progress: bool = True,
+    command: str = "tidee gen stats",
+    workers: int = 1,
+    backend: BackendConfig | None = None,
 ) -> dict[str, Any]:
-    """Generate the tidy training rooms for ``seeds`` (every room type) and count placements.
+    """Generate the tidy training rooms for ``seeds`` (every room type) and count placements, on
+    ``workers`` local processes or Ray actors (``tidee.batch``).
 
     ``seeds`` must be training seeds (the train split or the training pool); val and test
     rooms are refused so no statistic ever sees them.
@@ -77,25 +101,29 @@ def build_stats(
             f"seeds {bad[:5]} are val/test rooms; statistics may only use the train split "
             f"{SPLIT_SEEDS['train']} or the training pool {TRAIN_POOL}"
         )
-    from tqdm import tqdm
-
+    from tidee.batch import BackendConfig, import_ray, run_jobs
     from tidee.protocol.messages import ROOM_TYPES
-    from tidee.server.rooms import generate_scene
-    from tidee.server.world import World
 
+    backend = backend or BackendConfig()
+    if backend.backend == "ray":
+        import_ray()  # not installed: say how, before anything runs
     counts: dict[str, dict[str, Counter]] = defaultdict(lambda: defaultdict(Counter))
     t0 = time.time()
-    world = World(renderer="tiny")
-    try:
-        jobs = [(r, s) for r in ROOM_TYPES for s in seeds]
-        for room_type, seed in tqdm(jobs, desc="training rooms", disable=not progress):
-            scene = generate_scene(room_type, seed, world=world)
-            for o in scene.objects:
-                if o.pickupable and o.parent_type:
-                    counts[room_type][o.type][o.parent_type] += 1
-                    counts[ALL_ROOMS][o.type][o.parent_type] += 1
-    finally:
-        world.close()
+    jobs = [(r, s) for r in ROOM_TYPES for s in seeds]
+    records = run_jobs(
+        jobs,
+        _room_placements,
+        workers=workers,
+        renderer=None,
+        backend=backend.backend,
+        ray_address=backend.ray_address,
+        progress=progress,
+        desc="training rooms",
+    )
+    for (room_type, _), record in zip(jobs, records, strict=True):
+        for category, receptacle in record["placements"]:
+            counts[room_type][category][receptacle] += 1
+            counts[ALL_ROOMS][category][receptacle] += 1
     plain = {
         r: {c: dict(sorted(t.items())) for c, t in sorted(cats.items())} for r, cats in sorted(counts.items())
     }

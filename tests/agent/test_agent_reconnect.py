@@ -1,77 +1,33 @@
-"""An agent whose server disappears waits for it, and plays the episode again once it is back.
+"""An agent whose server disappears plays the episode again from the start: on the same server once
+it is back, or, when it chose its server (``--server-id auto``), on another live one.
 
 Loopback only: a real ``tidee server`` and ``tidee agent`` as subprocesses; the server is
-killed mid-episode (SIGKILL, no goodbye) and a new one started on the same endpoint.
+killed mid-episode (SIGKILL, no goodbye) and a new one started on the same endpoint. Moving to
+another server is tests/test_deployment.py's (a router and two servers); here, its decisions.
 """
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from tests.support import REPO as SUPPORT_REPO
+from tests.support.processes import OutputLines, kill_group, start_tidee
 from tidee.agent.config import AgentConfig
 from tidee.agent.process import AgentProcessConfig, _run_until_done
 from tidee.launch import free_port
 from tidee.protocol.client import RemoteError
 from tidee.protocol.messages import EpisodeSpec, ErrorCode
 
-REPO = SUPPORT_REPO
 
-
-def _start(*args: str, **kw: object) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "tidee.cli", *args], cwd=REPO, text=True, start_new_session=True, **kw
-    )  # type: ignore[call-overload]
-
-
-def _kill(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=10)
-
-
-class _Lines:
-    """Collects a process's output lines in a thread, so waiting for one never blocks on the pipe."""
-
-    def __init__(self, proc: subprocess.Popen) -> None:
-        self.lines: list[str] = []
-        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
-        self._thread.start()
-
-    def _read(self, proc: subprocess.Popen) -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-
-    def wait_for(self, text: str, deadline: float) -> str:
-        while time.monotonic() < deadline:
-            for line in self.lines:
-                if text in line:
-                    return line
-            time.sleep(0.1)
-        raise AssertionError(f"no line with {text!r} in time; output so far:\n" + "\n".join(self.lines))
-
-    @property
-    def text(self) -> str:
-        self._thread.join(timeout=5)
-        return "\n".join(self.lines)
-
-
-@pytest.mark.timeout(90)
+@pytest.mark.timeout(180)
 def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 150  # a loaded 2-core machine plays the episode twice
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     server_args = ("server", "--endpoint", endpoint, "--processes", "1")
-    server = _start(*server_args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    agent = _start(
+    server = start_tidee(*server_args, output=False)
+    agent = start_tidee(
         "agent",
         "--endpoint",
         endpoint,
@@ -82,22 +38,20 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
         "--oop",
         "relation_stats",
         "--max-steps",
-        "150",
+        "80",
         "--reconnect-timeout",
         "40",
         "--log-dir",
         str(tmp_path / "runs"),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
     )
     second = None
     try:
-        out = _Lines(agent)
+        out = OutputLines(agent)
         out.wait_for("agent: session", deadline)
         time.sleep(3)  # a few steps into the episode
         assert agent.poll() is None, out.text
-        _kill(server)
-        second = _start(*server_args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        kill_group(server)
+        second = start_tidee(*server_args, output=False)
         gone = out.wait_for("went away", deadline)
         assert gone.startswith("agent: server 'sim0' went away at step ")
         assert gone.endswith("; waiting up to 40 s for it to come back")
@@ -109,14 +63,16 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
         summaries = list((tmp_path / "runs").rglob("summary.json"))
         assert len(summaries) == 1, summaries  # the re-run's log is the finished one
     finally:
-        _kill(agent)
-        _kill(server)
+        kill_group(agent)
+        kill_group(server)
         if second is not None:
-            _kill(second)
+            kill_group(second)
 
 
 class _GoneClient:
     """A SimClient stand-in whose server never comes back."""
+
+    auto, server_id = False, "sim0"
 
     def __init__(self) -> None:
         self.waits: list[float] = []
@@ -165,3 +121,65 @@ def test_a_refused_episode_or_no_reconnect_fails_at_once() -> None:
 def test_reconnect_timeout_must_not_be_negative() -> None:
     with pytest.raises(ValueError, match="reconnect_timeout"):
         _cfg(-1)
+
+
+class _AutoClient:
+    """A SimClient stand-in that chose its server (``--server-id auto``); ``others``: where it may move."""
+
+    auto = True
+
+    def __init__(self, others: list[str]) -> None:
+        self.server_id, self.others = "sim1", others
+        self.chosen: list[tuple[float, set[str]]] = []
+
+    def choose_server(self, timeout: float, avoid: set[str] = frozenset()) -> str:  # type: ignore[assignment]
+        self.chosen.append((timeout, set(avoid)))
+        if not self.others:
+            raise TimeoutError("no live tidee server at tcp/router:7447 within 5 s")
+        self.server_id = self.others.pop(0)
+        return self.server_id
+
+
+class _FlakyRunner:
+    """Fails its first run with ``error`` (at step 12), then plays the episode."""
+
+    def __init__(self, error: Exception, step: dict[str, int]) -> None:
+        self.error, self.step, self.runs = error, step, 0
+
+    def run(self, spec: EpisodeSpec, evaluate: bool = False) -> str:
+        self.runs += 1
+        if self.runs == 1:
+            self.step["last"] = 12
+            raise self.error
+        return "finished"
+
+
+def test_an_agent_that_chose_its_server_moves_to_another_and_runs_again(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    cfg, step = _cfg(5), {"last": 0}
+    client, runner = _AutoClient(["sim0"]), _FlakyRunner(TimeoutError("no reply to step"), step)
+    assert _run_until_done(runner, client, cfg.spec, cfg, step) == "finished"  # type: ignore[arg-type]
+    assert runner.runs == 2 and client.chosen == [(5, {"sim1"})]  # a silent server: tried last
+    assert capsys.readouterr().out == (
+        "agent: server 'sim1' went away at step 12; moving to another live server "
+        "(waiting up to 5 s for one with room)\n"
+        "agent: on server 'sim0'; running LivingRoom seed 200 mess 0 again from the start\n"
+    )
+    # A server that restarted (it no longer knows the session) is as good as any other.
+    client, runner = _AutoClient(["sim1"]), _FlakyRunner(RemoteError(ErrorCode.unknown_session, "gone"), step)
+    assert _run_until_done(runner, client, cfg.spec, cfg, step) == "finished"  # type: ignore[arg-type]
+    assert client.chosen == [(5, set())]
+
+
+def test_an_agent_that_chose_its_server_gives_up_when_none_has_room(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    cfg, step = _cfg(5), {"last": 0}
+    client, runner = _AutoClient([]), _FlakyRunner(TimeoutError("no reply to step"), step)
+    with pytest.raises(TimeoutError) as info:
+        _run_until_done(runner, client, cfg.spec, cfg, step)  # type: ignore[arg-type]
+    assert str(info.value) == (
+        "after server 'sim1' went away: no live tidee server at tcp/router:7447 within 5 s"
+    )
+    assert runner.runs == 1

@@ -306,6 +306,43 @@ def test_the_top_receptacle_not_in_memory_is_searched_for_first_only_with_missin
         PolicyConfig(missing_top="later")
 
 
+def _more_counter_tops(mem):
+    for x in (5.0, 8.0):
+        mem.add_or_merge(
+            "CounterTop",
+            0.9,
+            np.array([x, 0.0, 0.45]),
+            np.array([x - 0.5, -0.3, 0.0]),
+            np.array([x + 0.5, 0.3, 0.9]),
+            1,
+        )
+
+
+def test_a_receptacle_a_household_asks_for_is_searched_for_first_and_every_instance_tried():
+    from tidee.agent.reasoning.preferences import PreferenceProfile, parse_preference
+
+    ranked = [("CounterTop", 0.6), ("Sink", 0.3)]
+    # the asked fridge is not in memory: searched for first even with missing_top "skip", then
+    # the model's ranking as without the preference
+    policy, tried, obj = _placing_policy("skip", ranked, puts_succeed=False)
+    policy.preferences = PreferenceProfile([parse_preference("the apple goes in the fridge")])
+    assert _drive(policy.put_away(obj)) is False
+    assert tried == ["search:Fridge", "put:CounterTop", "search:Sink"]
+    # an asked counter top in memory: every mapped one is tried (not only two), then another
+    # is searched for before the model's next choice
+    policy, tried, obj = _placing_policy("skip", [("Sink", 0.7), ("CounterTop", 0.3)], puts_succeed=False)
+    _more_counter_tops(policy.body.mapper.memory)
+    assert len(policy._instances("CounterTop")) == 3
+    policy.preferences = PreferenceProfile([parse_preference("the apple goes on the counter top")])
+    assert _drive(policy.put_away(obj)) is False
+    assert tried == ["put:CounterTop"] * 3 + ["search:CounterTop", "search:Sink"]
+    # without the preference: two instances of the model's choice, no second search for it
+    policy, tried, obj = _placing_policy("skip", [("CounterTop", 0.7), ("Sink", 0.3)], puts_succeed=False)
+    _more_counter_tops(policy.body.mapper.memory)
+    assert _drive(policy.put_away(obj)) is False
+    assert tried == ["put:CounterTop"] * 2 + ["search:Sink"]
+
+
 def test_the_missing_top_flag_reaches_the_agent_config():
     from tidee import cli
     from tidee.agent.config import MISSING_TOP, AgentProcessConfig

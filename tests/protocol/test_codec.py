@@ -35,6 +35,8 @@ from tidee.protocol.messages import (
     ReceptaclePrediction,
     ResetRequest,
     SearchHeatmap,
+    ServerInfo,
+    ServerInfoRequest,
     StateReply,
     StateRequest,
     StepRequest,
@@ -102,6 +104,9 @@ EXAMPLES: list[Any] = [
     StateReply("s1", {"objects": [{"id": "a", "size": [1, 2, 3]}], "agent": {"x": 1.5, "held": None}}),
     CloseRequest("s1"),
     CloseReply("s1", closed=True),
+    ServerInfoRequest("s1"),
+    ServerInfoRequest(),
+    ServerInfo("sim0", sessions=3, max_sessions=16, holds_session=True),
     ErrorReply(ErrorCode.server_busy, "full", session=None),
     ReceptaclePrediction("Desk", 0.4),
     AgentStatus(

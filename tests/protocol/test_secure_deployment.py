@@ -15,8 +15,13 @@ by a timeout, what their certificate may not do, and each is refused while the h
 * ``agent``, ``evaluator``, ``guest``: hear no telemetry and no observations (only ``viewer`` does),
   not even through a ``**`` subscriber; ``guest`` and ``viewer`` cannot publish telemetry;
 * ``agent``, ``evaluator``, ``guest``: cannot put agent commands (only ``viewer`` can);
-* ``guest``, ``viewer``, ``agent``: cannot serve the sim (a queryable on the server's keys, a
-  server liveliness token): only the server's replies reach clients.
+* ``guest``, ``viewer``, ``agent``: cannot serve the sim (a queryable on the server's keys or its
+  info key, a server liveliness token): only the server's replies reach clients;
+* ``viewer``, ``guest``: cannot ask the servers how full they are (``--server-id auto``, which the
+  honest agent uses); ``agent`` and ``evaluator`` can.
+
+The router and the server run exactly as ``deploy/secure/compose.yaml`` declares them
+(tests/support/deployment.py says how its addresses, ports and paths become this test's).
 """
 
 from __future__ import annotations
@@ -37,12 +42,14 @@ import pytest
 import zenoh
 
 from tests.support import REPO
+from tests.support.deployment import SECURE_COMPOSE, load_compose, loopback_argv
 from tests.support.net import wait_until
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.launch import free_port
 from tidee.protocol import keys
 from tidee.protocol.client import SimClient
 from tidee.protocol.codec import decode, encode
+from tidee.protocol.discovery import ask_servers
 from tidee.protocol.messages import (
     Action,
     ActionName,
@@ -160,15 +167,16 @@ def deployment(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Deployment]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     env.pop("TIDEE_ZENOH_CONFIG", None)
     tidee = [sys.executable, "-m", "tidee.cli"]
+    # The router and a server exactly as deploy/secure/compose.yaml runs them, on loopback
+    # (tests/support/deployment.py: the router's port, /secure -> this folder).
+    services = load_compose(SECURE_COMPOSE)["services"]
+
+    def command(service: str) -> list[str]:
+        argv = services[service]["command"]
+        return loopback_argv(argv, ports={7447: port}, paths={"/secure": folder}, service_host="localhost")
+
     router = subprocess.Popen(
-        [
-            *tidee,
-            "router",
-            "--listen",
-            f"tls/127.0.0.1:{port}",
-            "--zenoh-config",
-            str(folder / "router.json5"),
-        ],
+        [*tidee, *command("router")],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -180,23 +188,12 @@ def deployment(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Deployment]
     dep = Deployment(folder, f"tls/localhost:{port}")
     try:
         _wait_for_line(router_lines, "router: ready", START_S)
+        assert command("server0") == [
+            "server", "--router", dep.router, "--zenoh-config", dep.config("server"),
+            "--renderer", "tiny", "--server-id", SERVER_ID,
+        ]  # fmt: skip
         server = subprocess.Popen(
-            [
-                *tidee,
-                "server",
-                "--router",
-                dep.router,
-                "--zenoh-config",
-                dep.config("server"),
-                "--server-id",
-                SERVER_ID,
-                "--processes",
-                "1",
-                "--max-sessions",
-                "4",
-                "--renderer",
-                "tiny",
-            ],
+            [*tidee, *command("server0")],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             env=env,
@@ -216,14 +213,15 @@ def deployment(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Deployment]
 def honest(deployment: Deployment) -> Iterator[Honest]:
     """The honest agent: a real episode on the server, telemetry on one Zenoh session."""
     z = deployment.open("agent")
-    client = SimClient(
+    client = SimClient(  # as the compose file's agents: it asks the servers and takes the one there is
         router=deployment.router,
-        server_id=SERVER_ID,
+        server_id="auto",
         zsession=z,
         timeout=60.0,
         connect_timeout=START_S,
         zenoh_config=deployment.config("agent"),
     )
+    assert client.server_id == SERVER_ID
     publisher = TelemetryPublisher(z, client.session_id)
     agent = Honest(client, publisher, z)
     obs = client.reset(SPEC)
@@ -317,6 +315,17 @@ def test_only_the_evaluator_reads_the_scene_state(deployment: Deployment, honest
     _step(honest)
 
 
+def test_agents_may_ask_the_servers_how_full_they_are_and_no_one_else(
+    deployment: Deployment, honest: Honest
+) -> None:
+    session = honest.client.session_id
+    for role in ("agent", "evaluator"):
+        (info,) = ask_servers(deployment.open(role), session, timeout=REFUSED_S)
+        assert info.server_id == SERVER_ID and info.sessions >= 1 and info.holds_session, role
+    for role in ("viewer", "guest"):
+        assert ask_servers(deployment.open(role), session, timeout=REFUSED_S) == [], role
+
+
 # --- refused: telemetry, observations, commands ---------------------------------------------
 
 
@@ -370,8 +379,10 @@ def test_only_the_server_serves_the_sim(deployment: Deployment, honest: Honest) 
                 z.declare_queryable(keys.sim_op_wildcard(server_id), lambda q: q.reply(q.key_expr, b"FAKE"))
             )
         fakes.append(z.liveliness().declare_token(keys.alive_server("evil")))
+        fakes.append(z.declare_queryable(keys.server_info("evil"), lambda q: q.reply(q.key_expr, b"FAKE")))
     time.sleep(0.5)
     evaluator = deployment.open("evaluator")
+    assert [i.server_id for i in ask_servers(evaluator, timeout=REFUSED_S)] == [SERVER_ID]
     probe = f"probe-{os.getpid()}"  # closing a session the server does not hold changes nothing
     replies = _answers(evaluator, keys.sim_op(SERVER_ID, probe, "close"), encode(CloseRequest(probe)))
     assert [decode(r) for r in replies] == [CloseReply(probe, closed=False)], "one reply: the server's"

@@ -27,10 +27,13 @@ from tidee.protocol.messages import (
     ErrorReply,
     Observation,
     ResetRequest,
+    ServerInfo,
+    ServerInfoRequest,
+    StateRequest,
     StepRequest,
 )
 from tidee.protocol.zenoh_config import make_config
-from tidee.server.service import SimServer
+from tidee.server.service import ServerConfig, SimServer
 
 
 def test_episode_end_to_end(server: SimServer, raw_zenoh: zenoh.Session) -> None:
@@ -266,3 +269,49 @@ def test_real_episode_over_zenoh() -> None:
             assert "objects" in c.state()
     finally:
         srv.stop()
+
+
+def test_a_second_client_asking_for_a_held_session_id_is_refused_by_name(server: SimServer) -> None:
+    with client(server, session="shared-id") as first:
+        first.reset(SPEC)
+        first.step(Action(ActionName.MoveAhead))
+        second = client(server, session="shared-id")  # its own Zenoh session: another client
+        for call in (lambda: second.reset(SPEC), lambda: second.step(Action(ActionName.MoveAhead))):
+            with pytest.raises(RemoteError) as info:
+                call()
+            assert info.value.code == ErrorCode.invalid_field
+            assert info.value.message == (
+                f"field 'session': session 'shared-id' is held by another client on server "
+                f"{server.config.server_id!r}; use another session id (tidee agent --session)"
+            )
+        second.close()  # its close is refused too (and swallowed): the first's session stays
+        assert server.sessions == ("shared-id",)
+        assert first.step(Action(ActionName.MoveAhead)).step == 2, "the first client's episode went on"
+        assert first.reset(SPEC).step == 0, "its own client may still reset it"
+    assert wait_until(lambda: server.sessions == ())
+    with client(server, session="shared-id") as third:  # once freed, the id is anyone's again
+        assert third.reset(SPEC).step == 0
+
+
+def test_the_info_queryable_says_how_full_the_server_is(server: SimServer, raw_zenoh: zenoh.Session) -> None:
+    sid = server.config.server_id
+    key = keys.server_info(sid)
+
+    def info(session: str | None = None) -> ServerInfo:
+        return raw_request(raw_zenoh, key, encode(ServerInfoRequest(session)))
+
+    assert info() == ServerInfo(sid, sessions=0, max_sessions=3, holds_session=False)
+    with client(server) as c:
+        c.reset(SPEC)
+        assert info(c.session_id) == ServerInfo(sid, 1, 3, holds_session=True)
+        assert info("someone-else") == ServerInfo(sid, 1, 3, holds_session=False)
+    bad = raw_request(raw_zenoh, key, b"not a frame")
+    assert isinstance(bad, ErrorReply) and bad.code == ErrorCode.malformed
+    wrong = raw_request(raw_zenoh, key, encode(StateRequest("s1")))
+    assert wrong.code == ErrorCode.malformed and "expected ServerInfoRequest" in wrong.message
+    assert info().server_id == sid, "still answering after bad requests"
+
+
+def test_no_server_may_take_the_reserved_id_auto() -> None:
+    with pytest.raises(ValueError, match="server_id 'auto' is reserved"):
+        ServerConfig(server_id="auto")

@@ -151,6 +151,80 @@ def test_a_killed_child_fails_its_session_clearly_and_others_keep_working(
         c.close()
 
 
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def test_a_retired_child_takes_no_new_session_keeps_its_live_ones_and_stops_when_empty() -> None:
+    srv = start_server(EpisodeProcesses(1, make_episode=FakeEpisode, recycle_after=2), max_sessions=4)
+    slot = srv.processes.processes[0]  # type: ignore[union-attr]
+    reference = FakeEpisode()
+    try:
+        a, b, c = client(srv), client(srv), client(srv)
+        a.reset(SPEC)
+        b.reset(SPEC)  # the child's second reset: it retires, holding a and b
+        old = pid_of(srv, a.session_id)
+        assert slot.pid is None and slot.pids == [old]
+        c.reset(SPEC)  # a new session goes to a fresh child
+        fresh = pid_of(srv, c.session_id)
+        assert fresh != old and pid_alive(old) and slot.started == 2
+        # a lives on in the retired child, undisturbed: the same frames as an episode never moved
+        reference.reset(SPEC, session=a.session_id)
+        for action in (Action(ActionName.MoveAhead), Action(ActionName.RotateLeft)):
+            assert_same_observation(a.step(action), reference.step(action))
+        assert pid_of(srv, a.session_id) == old
+        # its next reset moves it to the fresh child; the retired one still holds b
+        assert_same_observation(a.reset(SPEC), reference.reset(SPEC, session=a.session_id))
+        assert pid_of(srv, a.session_id) == fresh and pid_alive(old)
+        b.close()  # the retired child's last session: it stops
+        assert not pid_alive(old)
+        assert (
+            a.step(Action(ActionName.MoveAhead)).step == 1 and c.step(Action(ActionName.MoveAhead)).step == 1
+        )
+        a.close()
+        c.close()
+    finally:
+        srv.stop()
+    assert slot.pids == []
+
+
+def test_recycling_off_keeps_one_child() -> None:
+    srv = start_server(EpisodeProcesses(1, make_episode=FakeEpisode, recycle_after=0))
+    try:
+        pids = set()
+        with client(srv) as c:
+            for _ in range(5):
+                c.reset(SPEC)
+                pids.add(pid_of(srv, c.session_id))
+        assert len(pids) == 1 and srv.processes.processes[0].started == 1  # type: ignore[union-attr]
+    finally:
+        srv.stop()
+    with pytest.raises(ValueError, match="recycle_after must be >= 0"):
+        ServerConfig(recycle_after=-1)
+
+
+def test_a_real_episode_gives_the_same_frames_after_its_child_is_recycled() -> None:
+    pytest.importorskip("pybullet")
+    spec = EpisodeSpec(room_type="Kitchen", seed=3, mess_index=None, resolution=48, max_steps=20)
+    actions = [Action(ActionName.RotateLeft), Action(ActionName.MoveAhead), Action(ActionName.LookDown)]
+    srv = start_server(None, renderer="tiny", processes=1, recycle_after=1)
+    try:
+        with client(srv) as c:
+            before = [c.reset(spec, ground_truth=True)] + [c.step(a, ground_truth=True) for a in actions]
+            first = pid_of(srv, c.session_id)  # retired after that reset; the steps still ran there
+            after = [c.reset(spec, ground_truth=True)] + [c.step(a, ground_truth=True) for a in actions]
+            assert pid_of(srv, c.session_id) != first and not pid_alive(first)
+        for x, y in zip(before, after):
+            assert_same_observation(x, y)
+    finally:
+        srv.stop()
+    assert srv.processes is not None and srv.processes.processes[0].started == 2
+
+
 def test_sigterm_to_tidee_server_leaves_no_process_behind() -> None:
     pytest.importorskip("pybullet")
     endpoint, sid = free_endpoint(), f"t{uuid.uuid4().hex[:8]}"

@@ -12,6 +12,7 @@ import socket
 import struct
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 
@@ -90,6 +91,20 @@ CASES: list[tuple[list[str], str]] = [
     ),
     (["viewer", "--router", "tcp/127.0.0.1:{free}", "--port", "0"], "--router tcp/127.0.0.1:{free}"),
     (["agent", "--router", "tcp/127.0.0.1:{free}"], "--router tcp/127.0.0.1:{free}: Zenoh could not connect"),
+    (
+        ["agent", "--router", "tcp/127.0.0.1:{free}", "--server-id", "auto"],
+        "--router tcp/127.0.0.1:{free}: Zenoh could not connect to it",
+    ),
+    (
+        ["agent", "--endpoint", "tcp/127.0.0.1:{free}", "--server-id", "auto", "--connect-timeout", "1"],
+        "no live tidee server at tcp/127.0.0.1:{free} within 1 s (start one with: tidee server --endpoint",
+    ),
+    (
+        ["agent", "--server-id", "no.dots"],
+        "server_id must be 1-128 characters of [A-Za-z0-9_-], got 'no.dots'",
+    ),
+    (["agent", "--session", "a/b"], "session must be 1-128 characters of [A-Za-z0-9_-], got 'a/b'"),
+    (["server", "--server-id", "auto"], "server_id 'auto' is reserved"),
     (
         ["agent", "--endpoint", "tcp/127.0.0.1:{free}", "--connect-timeout", "1"],
         "no tidee server 'sim0' at tcp/127.0.0.1:{free} within 1 s (start one with: tidee server --endpoint",
@@ -183,6 +198,20 @@ def test_a_bad_invocation_is_refused_in_one_line(
     errors = [ln for ln in r.stderr.splitlines() if "error:" in ln]
     assert len(errors) == 1, output
     assert expected.format(**places) in errors[0], output
+
+
+@pytest.mark.parametrize("server_id", ["sim0", "auto"])
+def test_an_agent_whose_router_is_unreachable_says_so_within_10_s(
+    places: dict[str, str], server_id: str
+) -> None:
+    router = f"tcp/127.0.0.1:{places['free']}"
+    start = time.monotonic()
+    r = _tidee(["agent", "--router", router, "--server-id", server_id])
+    took = time.monotonic() - start
+    assert r.returncode == 1 and "Traceback" not in r.stderr + r.stdout, r.stderr
+    assert r.stderr.startswith(f"agent: error: --router {router}: Zenoh could not connect to it: ")
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert took < 10, f"{took:.1f} s"
 
 
 def test_the_table_covers_at_least_thirty_cases() -> None:

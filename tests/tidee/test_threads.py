@@ -34,6 +34,20 @@ def test_use_threads_reaches_torch_whether_imported_before_or_after() -> None:
         use_threads(0)
 
 
+def test_use_threads_limits_the_blas_pool_numpy_started_before() -> None:
+    """A spawned batch worker imports numpy (unpickling its job function) before it is set up."""
+    code = (
+        "import numpy, threadpoolctl\n"
+        "from tidee.threads import use_threads\n"
+        "use_threads(1)\n"
+        "blas = [p for p in threadpoolctl.threadpool_info() if p['user_api'] == 'blas']\n"
+        "print(sorted({p['num_threads'] for p in blas}))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[1]"
+
+
 def test_tidee_run_gives_the_agent_the_cores_the_server_leaves(monkeypatch) -> None:
     import tidee.launch
     from tidee import cli

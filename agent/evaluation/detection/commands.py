@@ -50,6 +50,10 @@ def run_eval_detector(cfg: EvalDetectorConfig) -> int:
     return 0
 
 
+def _gated_map(report: dict) -> float:
+    return next(row["map50"] for row in report["gates"] if row["gate"] == report["gate"])
+
+
 def run_eval_reclassifier(cfg: EvalFusionConfig) -> int:
     from tidee.agent.evaluation.detection import eval as ev
     from tidee.agent.evaluation.detection.fusion import run_fusion_sweep
@@ -71,6 +75,9 @@ def run_eval_reclassifier(cfg: EvalFusionConfig) -> int:
                     "beta": b["beta"],
                     "val_map50": b["map50"],
                     "val_map50_detector_alone": r["rows"][0]["map50"],
+                    **(
+                        {"gate": r["gate"], "val_map50_gated": _gated_map(r)} if r["gate"] is not None else {}
+                    ),
                     "command": r["command"],
                 }
             },

@@ -19,6 +19,8 @@ EVAL_THRESHOLD = 0.05  # AP integrates over the whole precision/recall curve: ke
 SECOND_GUESSES = 3  # classes per heatmap peak in the report's second mAP (see run_detector_eval)
 FUSION_ALPHAS: tuple[float, ...] = (0.0, 1.0, 2.0, 3.0, 4.0)
 FUSION_BETAS: tuple[float, ...] = (0.0, 0.25, 0.5, 1.0)
+# A gate costs at most this much val mAP@0.5 (0.2 points) for the crops it saves.
+GATE_TOLERANCE = 0.002
 
 RECLASSIFIER_HELP = (
     "the crop classifier that renames detections: default (the shipped one when it is there), "
@@ -100,7 +102,19 @@ class EvalFusionConfig:
     betas: tuple[float, ...] = option(
         FUSION_BETAS, "exponents of the crop's class probability in the score to try (comma-separated)"
     )
-    record: bool = option(False, "write the best fusion into the reclassifier's manifest")
+    gates: tuple[float, ...] = option(
+        (),
+        "detector scores at and above which a detection skips the crop classifier, each tried "
+        "at the best fusion (comma-separated; none: every detection is reclassified)",
+    )
+    gate_tolerance: float = option(
+        GATE_TOLERANCE,
+        "the chosen gate is the lowest whose mAP@0.5 is within this of the ungated best's",
+        type=argtypes.non_negative_float,
+    )
+    record: bool = option(
+        False, "write the best fusion (and the chosen gate) into the reclassifier's manifest"
+    )
 
 
 @dataclass(kw_only=True)

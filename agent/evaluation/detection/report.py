@@ -290,6 +290,24 @@ def _fusion_markdown(report: Mapping[str, Any]) -> str:
             f"| {name[0]} | {name[1]} | {_pct(r['map50'])}{star} | {_pct(r['map'])} | {_pct(sz['small'])} | "
             f"{_pct(sz['medium'])} | {_pct(sz['large'])} | {r['n_detections']} |"
         )
+    gates = report.get("gates") or []
+    if gates:
+        lines += [
+            "",
+            f"Gates at the best fusion: a detection whose detector score is at least the gate keeps the "
+            f"detector's class and score and skips the crop classifier. Chosen: the lowest gate within "
+            f"the tolerance of the ungated mAP@0.5 (**{report.get('gate')}**).",
+            "",
+            "| gate | mAP@0.5 | mAP@[.5:.95] | crops classified | detections gated |",
+            "|---|---:|---:|---:|---:|",
+        ]
+        for r in gates:
+            gate = "none" if r["gate"] is None else f"{r['gate']:g}"
+            star = " **(chosen)**" if r["gate"] is not None and r["gate"] == report.get("gate") else ""
+            lines.append(
+                f"| {gate} | {_pct(r['map50'])}{star} | {_pct(r['map'])} | {r['reclassified']} | "
+                f"{r['gated']} |"
+            )
     return "\n".join(lines) + "\n"
 
 

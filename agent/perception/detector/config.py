@@ -17,6 +17,7 @@ from typing import Any, Literal
 from tidee import argtypes
 from tidee.agent.learning import WEIGHTS_DIR
 from tidee.agent.perception import TRAINED_RENDERER
+from tidee.batch import BatchConfig
 from tidee.options import option
 from tidee.paths import PROJECT_DIR, RUNS_DIR
 from tidee.protocol.vocab import ROOM_TYPES, Renderer, RoomType, Split
@@ -102,7 +103,9 @@ class GenConfig:
     stride: int = option(3, "keep every stride-th step of a walk", cli=False)
     resolution: int = option(256, "frame side in pixels", type=argtypes.resolution)
     seed: int = option(0, "seed of the walks", type=argtypes.non_negative_int)
-    shard_size: int = option(256, "frames per shard file", type=argtypes.positive_int)
+    shard_size: int = option(
+        256, "at most this many frames per shard file (whole configurations)", type=argtypes.positive_int
+    )
     room_types: tuple[RoomType, ...] = option(ROOM_TYPES, cli=False)
     oop_views_only: bool = option(
         False, "keep only messy frames with an out-of-place object in view", cli=False
@@ -121,7 +124,10 @@ class GenDetectionConfig:
         None, "directory of shards (default: data/detection in the checkout)", type=argtypes.output_path
     )
     gen: GenConfig = option(default_factory=GenConfig)
-    workers: int = option(2, "processes that render frames", type=argtypes.positive_int)
+    workers: int = option(
+        2, "worker processes (local) or Ray actors that render frames", type=argtypes.positive_int
+    )
+    batch: BatchConfig = option(default_factory=BatchConfig)
 
     @property
     def out_dir(self) -> Path:

@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Iterator
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +31,7 @@ import numpy as np
 
 from tidee.agent.classes import CLASS_INDEX, CLASSES
 from tidee.agent.perception import TRAINED_RENDERER
-from tidee.agent.perception.detector.config import GenConfig, room_seeds
+from tidee.agent.perception.detector.config import GenConfig, GenDetectionConfig, room_seeds
 from tidee.protocol.vocab import HELD_OUT_SPLITS, ROOM_TYPES, HeldOutSplit, Renderer
 from tidee.server.splits import MESSES_PER_ROOM, split_of
 
@@ -98,9 +98,13 @@ def frame_targets(
 
 
 def iter_frames(
-    cfg: GenConfig, jobs: list[tuple[str, int, int | None]] | None = None, progress: bool = True
+    cfg: GenConfig,
+    jobs: list[tuple[str, int, int | None]] | None = None,
+    progress: bool = True,
+    episode: Any = None,
 ) -> Iterator[dict]:
-    """Frames with targets, deterministic in ``cfg`` (one Episode, rooms in order)."""
+    """Frames with targets, deterministic in ``cfg`` (one Episode, rooms in order; ``episode``:
+    one to reuse, e.g. a batch worker's, left open; default: a new one, closed at the end)."""
     from tqdm import tqdm
 
     from tidee.protocol.messages import Action, EpisodeSpec
@@ -113,7 +117,7 @@ def iter_frames(
                 f"seed {seed} is a {split_of(seed)} room: detector training data only comes from "
                 "training rooms"
             )
-    ep = Episode(renderer=cfg.renderer)
+    ep = episode if episode is not None else Episode(renderer=cfg.renderer)
     try:
         for _j, (rt, seed, mess) in enumerate(
             tqdm(jobs, desc=f"{cfg.split} configurations", disable=not progress)
@@ -167,7 +171,8 @@ def iter_frames(
                     if (t + 1) % cfg.stride == cfg.stride - 1:
                         obs = ep.observe(ground_truth=True)
     finally:
-        ep.close()
+        if episode is None:
+            ep.close()
 
 
 def pack(frames: list[dict]) -> dict[str, np.ndarray]:
@@ -187,69 +192,100 @@ def pack(frames: list[dict]) -> dict[str, np.ndarray]:
     }
 
 
-def _generate_part(cfg: GenConfig, jobs: list, out: Path, prefix: str, progress: bool) -> dict:
-    buf: list[dict] = []
-    shards: list[str] = []
-    counts = {"frames": 0, "instances": 0, "oop_instances": 0}
-
-    def flush() -> None:
-        name = f"shard_{prefix}{len(shards):04d}.npz"
-        tmp = out / (name + ".tmp")
-        arrays: dict[str, Any] = pack(buf)
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
-        tmp.replace(out / name)
-        shards.append(name)
-        buf.clear()
-
-    for fr in iter_frames(cfg, jobs, progress=progress):
-        buf.append(fr)
-        counts["frames"] += 1
-        counts["instances"] += len(fr["objects"])
-        counts["oop_instances"] += sum(r["oop"] for r in fr["objects"])
-        if len(buf) >= cfg.shard_size:
-            flush()
-    if buf:
-        flush()
-    return {"shards": shards, **counts}
+def frames_per_config(cfg: GenConfig) -> int:
+    """The most frames one configuration gives."""
+    most = cfg.walks_per_config * cfg.frames_per_walk
+    return most if cfg.per_config is None else min(most, cfg.per_config)
 
 
-def _part_worker(a: tuple) -> dict:
-    cfg, jobs, out, prefix = a
-    return _generate_part(cfg, jobs, out, prefix, progress=prefix == "p0_")
+@dataclass(frozen=True)
+class ShardJob:
+    """One shard of ``tidee gen detection``: the frames of a fixed group of configurations, so
+    that the shards are the same whichever worker makes them, on either backend."""
+
+    gen: GenConfig
+    index: int
+    configs: tuple[tuple[str, int, int | None], ...]
+
+    @property
+    def name(self) -> str:
+        return f"shard_{self.index:05d}.npz"
+
+    def key(self) -> str:
+        from tidee.batch import config_digest
+
+        # every field: which configurations fall in a shard depends on them all
+        return f"{self.name}/{config_digest(self.gen)}"
 
 
-def generate(
-    cfg: GenConfig, out: str | Path, command: str = "", progress: bool = True, workers: int = 1
-) -> dict:
-    """Write shards + manifest.json under ``out`` (``workers`` processes); returns the manifest."""
-    if cfg.split != "train":
+def shard_jobs(cfg: GenConfig) -> list[ShardJob]:
+    """The configurations in order, cut into groups of at most ``shard_size`` frames."""
+    jobs = configs(cfg)
+    per_shard = max(1, cfg.shard_size // frames_per_config(cfg))
+    return [
+        ShardJob(cfg, k, tuple(jobs[start : start + per_shard]))
+        for k, start in enumerate(range(0, len(jobs), per_shard))
+    ]
+
+
+def _make_shard(job: ShardJob) -> dict[str, Any]:
+    """One shard's frames (a batch job, in this worker's simulator): its file and counts."""
+    from tidee.batch import npz_bytes, worker_transport
+
+    episode = worker_transport(job.gen.renderer).episode
+    frames = list(iter_frames(job.gen, list(job.configs), progress=False, episode=episode))
+    return {
+        "files": {job.name: npz_bytes(pack(frames))} if frames else {},
+        "frames": len(frames),
+        "instances": sum(len(f["objects"]) for f in frames),
+        "oop_instances": sum(r["oop"] for f in frames for r in f["objects"]),
+    }
+
+
+JOBS_FILE = "jobs.jsonl"  # in OUT: each shard's record and digest (--resume reads it)
+
+
+def generate(cfg: GenDetectionConfig, command: str = "", progress: bool = True) -> dict:
+    """Write shards + manifest.json under ``cfg.out_dir`` on local workers or Ray (``tidee.batch``;
+    with ``cfg.batch.resume`` the intact shards of an interrupted run are kept); returns the
+    manifest. Deterministic in ``cfg.gen``: the same shards, byte for byte, on either backend."""
+    from tidee.batch import import_ray, run_jobs
+
+    gen = cfg.gen
+    if gen.split != "train":
         raise ValueError(
             "tidee gen detection writes training data only (split train); evaluation builds "
             "its test frames itself"
         )
-    out = Path(out)
+    if cfg.batch.backend == "ray":
+        import_ray()  # not installed: say how, before anything runs
+    out = cfg.out_dir
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    jobs = configs(cfg)
-    if workers <= 1:
-        parts = [_generate_part(cfg, jobs, out, "p0_", progress)]
-    else:
-        import multiprocessing as mp
-
-        args = [(cfg, jobs[i::workers], out, f"p{i}_") for i in range(workers)]
-        with mp.get_context("spawn").Pool(workers) as pool:
-            parts = pool.map(_part_worker, args)
+    jobs = shard_jobs(gen)
+    records = run_jobs(
+        jobs,
+        _make_shard,
+        workers=cfg.workers,
+        renderer=gen.renderer,
+        backend=cfg.batch.backend,
+        ray_address=cfg.batch.ray_address,
+        progress=progress,
+        out_jsonl=out / JOBS_FILE,
+        resume=cfg.batch.resume,
+        desc="detection shards",
+        files_dir=out,
+    )
     manifest = {
         "command": command,
-        "config": asdict(cfg),
+        "config": asdict(gen),
         "classes": list(CLASSES),
-        "shards": [s for p in parts for s in p["shards"]],
-        "frames": sum(p["frames"] for p in parts),
-        "instances": sum(p["instances"] for p in parts),
-        "oop_instances": sum(p["oop_instances"] for p in parts),
-        "rooms": sorted({f"{rt}:{s}" for rt, s, _ in jobs}),
-        "configurations": len(jobs),
+        "shards": [name for r in records for name in r["files"]],
+        "frames": sum(r["frames"] for r in records),
+        "instances": sum(r["instances"] for r in records),
+        "oop_instances": sum(r["oop_instances"] for r in records),
+        "rooms": sorted({f"{rt}:{s}" for j in jobs for rt, s, _ in j.configs}),
+        "configurations": sum(len(j.configs) for j in jobs),
         "seconds": round(time.time() - t0, 1),
     }
     (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
@@ -385,6 +421,8 @@ __all__ = [
     "held_out_frames",
     "pack",
     "describe",
+    "shard_jobs",
+    "ShardJob",
     "MIN_PIXELS",
     "split_data_spec",
     "data_dirs",

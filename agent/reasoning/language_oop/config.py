@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from tidee.agent.config import PERCEPTIONS, PerceptionMode
 from tidee.agent.learning import WEIGHTS_DIR
 from tidee.argtypes import non_negative_float, non_negative_int, output_path, positive_int, resolution
+from tidee.batch import BatchConfig
 from tidee.options import option
 from tidee.paths import PROJECT_DIR, RUNS_DIR
 from tidee.protocol.vocab import HELD_OUT_SPLITS, SPLITS, HeldOutSplit, Split, check_choice
@@ -207,7 +208,8 @@ class MemoryGenConfig:
         type=non_negative_int,
     )
     perception: PerceptionMode = option("oracle")
-    workers: int = option(1, type=positive_int)
+    workers: int = option(1, "worker processes (local) or Ray actors", type=positive_int)
+    batch: BatchConfig = option(default_factory=BatchConfig)
     resolution: int = option(256, type=resolution)
     out: str = option(help="directory for samples.jsonl and meta.json", type=output_path)
 

@@ -20,9 +20,7 @@ both written atomically.
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import json
-import multiprocessing as mp
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -194,37 +192,35 @@ def _job_samples(transport: Any, job: dict[str, Any]) -> list[dict[str, Any]]:
     )
 
 
-# A pool worker's simulator: opened once by _init_worker (the pool's initializer), reused by
-# every configuration the worker samples.
-_WORKER_TRANSPORT: Any = None
+def _run_one(job: dict[str, Any]) -> dict[str, Any]:
+    """One configuration's samples (a batch job, in this worker's simulator)."""
+    from tidee.batch import worker_transport
+
+    return {"samples": _job_samples(worker_transport(job["renderer"]), job)}
 
 
-def _init_worker(renderer: str, threads: int) -> None:
-    global _WORKER_TRANSPORT
-    from tidee.protocol.transport import InProcessTransport
-    from tidee.threads import use_threads
-
-    use_threads(threads)
-    _WORKER_TRANSPORT = InProcessTransport(renderer=renderer)
+def _job_key(job: dict[str, Any]) -> str:
+    return "{room_type}/{seed}/mess{mess_index}/{perception}/{resolution}/{renderer}/{agent_seed}".format(
+        **job
+    )
 
 
-def _worker_job(job: dict[str, Any]) -> list[dict[str, Any]]:
-    if _WORKER_TRANSPORT is None:
-        raise RuntimeError("_worker_job runs in a pool whose initializer is _init_worker")
-    return _job_samples(_WORKER_TRANSPORT, job)
+JOBS_FILE = "jobs.jsonl"  # in OUT: each configuration's samples as it ends (--resume reads it)
 
 
 def gen_memory_samples(
     cfg: MemoryGenConfig, command: str = "tidee gen oop-memory", progress: bool = True
 ) -> dict[str, Any]:
-    """Memory paragraphs of ``rooms_per_type`` x 4 room types x ``messes`` configurations."""
-    from tqdm import tqdm
-
+    """Memory paragraphs of ``rooms_per_type`` x 4 room types x ``messes`` configurations, on
+    local workers or Ray (``tidee.batch``); ``samples.jsonl`` in configuration order."""
     from tidee.agent.perception import TRAINED_RENDERER
     from tidee.agent.perception.detector.config import room_seeds
     from tidee.agent.reasoning.stats import _ranges
+    from tidee.batch import import_ray, run_jobs
     from tidee.protocol.episode_log import write_json_atomic
 
+    if cfg.batch.backend == "ray":
+        import_ray()  # not installed: say how, before anything runs
     split, first_mess, messes = cfg.split, cfg.first_mess, cfg.messes
     seeds = room_seeds(split, cfg.rooms_per_type, cfg.skip_rooms)
     jobs = [
@@ -244,31 +240,20 @@ def gen_memory_samples(
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    rows: list[dict[str, Any]] = []
-    bar = tqdm(total=len(jobs), desc=f"mapping {split} configurations", disable=not progress)
-    if cfg.workers <= 1:
-        from tidee.protocol.transport import InProcessTransport
-
-        transport = InProcessTransport(renderer=TRAINED_RENDERER)
-        try:
-            for job in jobs:
-                rows += _job_samples(transport, job)
-                bar.update()
-        finally:
-            transport.close()
-    else:
-        from tidee.threads import threads_per_process
-
-        with cf.ProcessPoolExecutor(
-            cfg.workers,
-            mp_context=mp.get_context("spawn"),
-            initializer=_init_worker,
-            initargs=(TRAINED_RENDERER, threads_per_process(cfg.workers)),
-        ) as pool:
-            for part in pool.map(_worker_job, jobs):
-                rows += part
-                bar.update()
-    bar.close()
+    records = run_jobs(
+        jobs,
+        _run_one,
+        workers=cfg.workers,
+        renderer=TRAINED_RENDERER,
+        backend=cfg.batch.backend,
+        ray_address=cfg.batch.ray_address,
+        progress=progress,
+        out_jsonl=out / JOBS_FILE,
+        resume=cfg.batch.resume,
+        key=_job_key,
+        desc=f"mapping {split} configurations",
+    )
+    rows = [row for r in records for row in r["samples"]]
     tmp = out / "samples.jsonl.tmp"
     with tmp.open("w") as f:
         for r in rows:

@@ -48,6 +48,8 @@ def eval_search_command(cfg: SearchEvalConfig) -> int:
         + (f" --rooms {cfg.rooms}" if cfg.rooms else "")
         + (f" --explored-discount {cfg.explored_discount}" if cfg.explored_discount else "")
         + (f" --network-fallback {cfg.network_fallback}" if cfg.network_fallback != "random" else "")
+        + (f" --backend {cfg.batch.backend}" if cfg.batch.backend != "local" else "")
+        + (f" --ray-address {cfg.batch.ray_address}" if cfg.batch.ray_address else "")
     )
     print(markdown(run_search_eval(cfg, command=command)))
     return 0

@@ -11,6 +11,7 @@ from typing import Any, Literal, TypeAlias, get_args
 
 from tidee import argtypes
 from tidee.agent.config import EXPLORERS, PERCEPTIONS, Explorer, PerceptionMode
+from tidee.batch import BatchConfig
 from tidee.options import option
 from tidee.paths import PROJECT_DIR, RUNS_DIR
 from tidee.protocol.vocab import HELD_OUT_SPLITS, ROOM_TYPES, SPLITS, HeldOutSplit, RoomType, Split
@@ -23,7 +24,6 @@ METHODS: tuple[SearchMethod, ...] = get_args(SearchMethod)
 # frontier: the agent's two explorers.
 NetworkFallback: TypeAlias = Explorer
 NETWORK_FALLBACKS: tuple[NetworkFallback, ...] = EXPLORERS
-WORKERS = (1, 2)  # local worker processes this machine's budget allows
 
 
 def count_or_all(text: str) -> int | None:
@@ -36,7 +36,7 @@ class SearchGenConfig:
     """``tidee gen search``: map snapshots of explored rooms + ground-truth object positions."""
 
     out: str = option(
-        str(DEFAULT_DATA), "directory for the shards and manifest.json (resumable)", type=argtypes.output_path
+        str(DEFAULT_DATA), "directory for the shards and manifest.json", type=argtypes.output_path
     )
     split: Split = option("train", "train for training data; val/test only for held-out evaluation sets")
     rooms_per_type: int = option(
@@ -57,7 +57,8 @@ class SearchGenConfig:
     seed: int = option(
         0, "seed of the explorations and of the snapshot steps", type=argtypes.non_negative_int
     )
-    workers: int = option(2, "worker processes", choices=WORKERS)
+    workers: int = option(2, "worker processes (local) or Ray actors", type=argtypes.positive_int)
+    batch: BatchConfig = option(default_factory=BatchConfig)
     room_types: tuple[RoomType, ...] = option(ROOM_TYPES, cli=False)
 
     def __post_init__(self) -> None:
@@ -68,8 +69,6 @@ class SearchGenConfig:
                 f"need snapshots >= 1 and max_steps > 60 (half the snapshots are taken after step 60), "
                 f"got {self.snapshots}, {self.max_steps}"
             )
-        if self.workers not in WORKERS:
-            raise ValueError(f"workers must be 1 or 2 (this machine's budget), got {self.workers}")
 
 
 @dataclass
@@ -129,7 +128,8 @@ class SearchEvalConfig:
     radius: float = option(1.5, "success radius, metres")
     perception: PerceptionMode = option("learned", "detections that build the maps")
     resolution: int = option(256, cli=False)
-    workers: int = option(2, "worker processes", choices=WORKERS)
+    workers: int = option(2, "worker processes (local) or Ray actors", type=argtypes.positive_int)
+    batch: BatchConfig = option(default_factory=BatchConfig)
     seed: int = option(
         0, "seed of the sampled categories and of the random goals", type=argtypes.non_negative_int
     )
@@ -170,8 +170,6 @@ class SearchEvalConfig:
             raise ValueError(
                 f"--network-fallback must be one of {NETWORK_FALLBACKS}, got {self.network_fallback!r}"
             )
-        if self.workers not in WORKERS:
-            raise ValueError(f"--workers must be 1 or 2, got {self.workers}")
 
 
 __all__ = [

@@ -166,92 +166,87 @@ def snapshot_config(
     }
 
 
-_WORKER: dict[str, Any] = {}  # a pool worker's simulator and perception, set by _init_worker
-
-
-def _init_worker(perception: str, threads: int) -> None:
-    """Set up a worker process: its share of the cores, its own simulator and perception."""
+def worker_perception(mode: str) -> Any:
+    """This batch worker's perception for ``mode``, made once (``tidee.batch.worker_state``)."""
     from tidee.agent.perception import make_perception
-    from tidee.protocol.transport import InProcessTransport
-    from tidee.threads import use_threads
+    from tidee.batch import worker_state
 
-    use_threads(threads)
-    _WORKER["transport"] = InProcessTransport(renderer=TRAINED_RENDERER)
-    _WORKER["perception"] = make_perception(perception)
-
-
-def _gen_worker(args: tuple[tuple[str, int, int | None], SearchGenConfig]) -> dict[str, Any]:
-    job, cfg = args
-    if not _WORKER:
-        raise RuntimeError("a search-data worker needs _init_worker (the pool's initializer) first")
-    return snapshot_config(job, cfg, _WORKER["transport"], _WORKER["perception"])
+    made: dict[str, Any] = worker_state().setdefault("perception", {})
+    if mode not in made:
+        made[mode] = make_perception(mode)
+    return made[mode]
 
 
 def _shard_name(rt: str, seed: int, mess: int | None) -> str:
     return f"{rt}_{seed}_{'tidy' if mess is None else f'mess{mess}'}.npz"
 
 
+# What picks the configurations, not what is in their shards: left out of a job's key.
+_SELECTION = ("out", "split", "rooms_per_type", "messes_per_room", "room_types", "workers", "batch")
+
+
+def _job_key(args: tuple[tuple[str, int, int | None], SearchGenConfig]) -> str:
+    from tidee.batch import config_digest
+
+    return f"{_shard_name(*args[0])}/{config_digest(args[1], _SELECTION)}"
+
+
+def _gen_one(args: tuple[tuple[str, int, int | None], SearchGenConfig]) -> dict[str, Any]:
+    """One configuration's shard (a batch job: this worker's simulator and perception)."""
+    from tidee.batch import npz_bytes, worker_transport
+
+    job, cfg = args
+    res = snapshot_config(job, cfg, worker_transport(TRAINED_RENDERER), worker_perception(cfg.perception))
+    arrays = {
+        "x": res["x"],
+        "inst": res["inst"],
+        "steps": np.asarray(res["steps"], np.int32),
+        "seen": json.dumps(res["seen"]),
+        "room_type": res["room_type"],
+        "seed": res["seed"],
+        "mess_index": -1 if res["mess_index"] is None else res["mess_index"],
+    }
+    return {"files": {_shard_name(*job): npz_bytes(arrays)}, "snapshots": len(res["x"])}
+
+
+JOBS_FILE = "jobs.jsonl"  # in OUT: each configuration's record and its shard's digest (--resume reads it)
+
+
 def generate_search_data(cfg: SearchGenConfig, command: str = "", progress: bool = True) -> dict[str, Any]:
-    """Write one shard per room configuration to ``cfg.out`` (existing shards are kept: resumable)
-    and ``manifest.json``. Deterministic in ``cfg``."""
-    import concurrent.futures as cf
-    import multiprocessing as mp
-
-    from tqdm import tqdm
-
-    from tidee.agent.perception import make_perception
+    """Write one shard per room configuration to ``cfg.out`` and ``manifest.json`` (``tidee.batch``:
+    local workers or Ray; with ``cfg.batch.resume`` the intact shards of an interrupted run are
+    kept). Deterministic in ``cfg``: the same shards, byte for byte, on either backend."""
+    from tidee.batch import files_intact, import_ray, read_records, run_jobs
     from tidee.protocol.episode_log import write_json_atomic
-    from tidee.protocol.transport import InProcessTransport
-    from tidee.threads import threads_per_process
 
+    if cfg.batch.backend == "ray":
+        import_ray()  # not installed: say how, before anything runs
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = _jobs(cfg)
-    todo = [j for j in jobs if not (out / _shard_name(*j)).exists()]
+    jobs = [(j, cfg) for j in _jobs(cfg)]
+    stored = read_records(out / JOBS_FILE) if cfg.batch.resume else {}
+    before = {k for k, r in stored.items() if files_intact(out, r)}
     t0 = time.time()
-    n_snap = 0
-
-    def save(res: dict[str, Any]) -> None:
-        nonlocal n_snap
-        path = out / _shard_name(res["room_type"], res["seed"], res["mess_index"])
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez_compressed(
-            tmp,
-            x=res["x"],
-            inst=res["inst"],
-            steps=np.asarray(res["steps"], np.int32),
-            seen=json.dumps(res["seen"]),
-            room_type=res["room_type"],
-            seed=res["seed"],
-            mess_index=-1 if res["mess_index"] is None else res["mess_index"],
-        )
-        tmp.replace(path)
-        n_snap += len(res["x"])
-
-    bar = tqdm(total=len(todo), desc=f"search data ({cfg.split})", disable=not progress)
-    if cfg.workers > 1 and len(todo) > 1:
-        ctx = mp.get_context("spawn")
-        with cf.ProcessPoolExecutor(
-            cfg.workers,
-            mp_context=ctx,
-            initializer=_init_worker,
-            initargs=(cfg.perception, threads_per_process(cfg.workers)),
-        ) as pool:
-            for res in pool.map(_gen_worker, [(j, cfg) for j in todo]):
-                save(res)
-                bar.update()
-    else:
-        with InProcessTransport(renderer=TRAINED_RENDERER) as transport:
-            perception = make_perception(cfg.perception)
-            for j in todo:
-                save(snapshot_config(j, cfg, transport, perception))
-                bar.update()
-    bar.close()
+    records = run_jobs(
+        jobs,
+        _gen_one,
+        workers=cfg.workers,
+        renderer=TRAINED_RENDERER,
+        backend=cfg.batch.backend,
+        ray_address=cfg.batch.ray_address,
+        progress=progress,
+        out_jsonl=out / JOBS_FILE,
+        resume=cfg.batch.resume,
+        key=_job_key,
+        desc=f"search data ({cfg.split})",
+        files_dir=out,
+    )
+    n_snap = sum(r["snapshots"] for (j, r) in zip(jobs, records) if _job_key(j) not in before)
     manifest = {
         "command": command,
         "config": asdict(cfg),
         "configurations": len(jobs),
-        "seeds": sorted({s for _, s, _ in jobs}),
+        "seeds": sorted({s for (_, s, _), _ in jobs}),
         "perception": cfg.perception,
         "snapshots_written_now": n_snap,
         "seconds_now": round(time.time() - t0, 1),

@@ -17,8 +17,6 @@ at least ``MIN_VISIBLE_PIXELS`` pixels at 256^2). The agent's decisions never re
 
 from __future__ import annotations
 
-import concurrent.futures as cf
-import multiprocessing as mp
 import time
 from collections.abc import Sequence
 from dataclasses import asdict
@@ -46,6 +44,7 @@ PAPER = {
     "frontier": {"success_pct": 64.8, "mean_steps": 100.9},
 }
 MIN_VISIBLE_PIXELS = 12  # at 256 x 256 (scaled with the resolution)
+EPISODES_FILE = "episodes.jsonl"  # in OUT: each episode's record as it ends (--resume reads it)
 
 
 def episodes(cfg: SearchEvalConfig) -> list[dict[str, Any]]:
@@ -75,38 +74,39 @@ def episodes(cfg: SearchEvalConfig) -> list[dict[str, Any]]:
     return jobs
 
 
-def _worker_state(cfg: SearchEvalConfig) -> dict[str, Any]:
-    """What one process reuses for every episode it runs: a simulator, the perception and, when
-    the network is among the methods, the search network."""
-    from tidee.agent.perception import make_perception
-    from tidee.protocol.transport import InProcessTransport
+def _worker_search(cfg: SearchEvalConfig) -> Any:
+    """This batch worker's search network for ``cfg`` (weights and discount), loaded once."""
+    from tidee.batch import worker_state
 
-    state: dict[str, Any] = {
-        "transport": InProcessTransport(renderer=TRAINED_RENDERER),
-        "perception": make_perception(cfg.perception),
-    }
-    if "network" in cfg.methods:
-        state["search"] = VisualSearch.load(
-            cfg.weights or DEFAULT_WEIGHTS, explored_discount=cfg.explored_discount
-        )
-    return state
+    made: dict[Any, Any] = worker_state().setdefault("search", {})
+    key = (cfg.weights, cfg.explored_discount)
+    if key not in made:
+        made[key] = VisualSearch.load(cfg.weights or DEFAULT_WEIGHTS, explored_discount=cfg.explored_discount)
+    return made[key]
 
 
-_WORKER: dict[str, Any] = {}  # a pool worker's state (_worker_state), set by _init_worker
+def _run_one(args: tuple[dict[str, Any], SearchEvalConfig]) -> dict[str, Any]:
+    """One search episode (a batch job) in this worker's simulator with its perception and, for
+    the network, its search network."""
+    from tidee.agent.reasoning.search.data import worker_perception
+    from tidee.batch import worker_transport
+
+    job, cfg = args
+    state = {"transport": worker_transport(TRAINED_RENDERER), "perception": worker_perception(cfg.perception)}
+    if job["method"] == "network":
+        state["search"] = _worker_search(cfg)
+    return _one_episode(job, cfg, state)
 
 
-def _init_worker(cfg: SearchEvalConfig, threads: int) -> None:
-    """Set up a worker process: its share of the cores and its state."""
-    from tidee.threads import use_threads
-
-    use_threads(threads)
-    _WORKER.update(_worker_state(cfg))
+# What picks the episodes or where they run, not how one plays: left out of an episode's key.
+_SELECTION = ("out", "methods", "categories_per_room", "rooms", "examples", "workers", "batch")
 
 
-def _worker(args: tuple[dict[str, Any], SearchEvalConfig]) -> dict[str, Any]:
-    if not _WORKER:
-        raise RuntimeError("a search-eval worker needs _init_worker (the pool's initializer) first")
-    return _one_episode(*args, _WORKER)
+def _job_key(args: tuple[dict[str, Any], SearchEvalConfig]) -> str:
+    from tidee.batch import config_digest
+
+    job, cfg = args
+    return f"{job['method']}/{job['room_type']}/{job['seed']}/{job['label']}/{config_digest(cfg, _SELECTION)}"
 
 
 def _one_episode(job: dict[str, Any], cfg: SearchEvalConfig, w: dict[str, Any]) -> dict[str, Any]:
@@ -323,37 +323,30 @@ def save_examples(cfg: SearchEvalConfig, jobs: list[dict[str, Any]], path: Path)
 
 
 def run_search_eval(cfg: SearchEvalConfig, command: str = "", progress: bool = True) -> dict[str, Any]:
-    from tqdm import tqdm
-
+    from tidee.batch import import_ray, init_worker, run_jobs, worker_state
     from tidee.protocol.episode_log import write_json_atomic
-    from tidee.threads import threads_per_process, use_threads
 
+    if cfg.batch.backend == "ray":
+        import_ray()  # not installed: say how, before any episode
     t0 = time.time()
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = episodes(cfg)
-    records: list[dict[str, Any]] = []
-    bar = tqdm(total=len(jobs), desc="search episodes", disable=not progress)
-    if cfg.workers > 1 and len(jobs) > 1:
-        with cf.ProcessPoolExecutor(
-            cfg.workers,
-            mp_context=mp.get_context("spawn"),
-            initializer=_init_worker,
-            initargs=(cfg, threads_per_process(cfg.workers)),
-        ) as pool:
-            for rec in pool.map(_worker, [(j, cfg) for j in jobs]):
-                records.append(rec)
-                bar.update()
-    else:
-        use_threads(1)  # measured with one thread in process
-        state = _worker_state(cfg)
-        try:
-            for j in jobs:
-                records.append(_one_episode(j, cfg, state))
-                bar.update()
-        finally:
-            state["transport"].close()
-    bar.close()
+    if cfg.workers == 1 and cfg.batch.backend == "local" and "ready" not in worker_state():
+        init_worker(None, 1)  # in this process: one thread, as each of 2 workers on 2 cores
+    records = run_jobs(
+        [(j, cfg) for j in jobs],
+        _run_one,
+        workers=cfg.workers,
+        renderer=TRAINED_RENDERER,
+        backend=cfg.batch.backend,
+        ray_address=cfg.batch.ray_address,
+        progress=progress,
+        out_jsonl=out / EPISODES_FILE,
+        resume=cfg.batch.resume,
+        key=_job_key,
+        desc="search episodes",
+    )
     result = {
         "command": command,
         "config": asdict(cfg),

@@ -60,4 +60,40 @@ def test_obeyed_group_and_side_effects_are_counted_per_agent() -> None:
     m = score(without, with_, {key: prof})["A"]
     assert m["asked"] == {"n": 1, "share": 1.0} and m["never"] == {"n": 1, "share": 1.0}
     assert m["group"] == {"n": 1, "share": 1.0}
+    assert m["found"] == m["picked"] == {"n": 1, "share": 1.0}
     assert m["side"] == {"n": 1, "share": 1.0}  # the bowl, named by nothing, moved
+
+
+def test_keep_logs_gives_each_half_of_the_eval_its_own_log_folder(tmp_path, monkeypatch) -> None:
+    from tidee.agent.evaluation import preference_eval
+    from tidee.agent.evaluation.config import PreferenceEvalConfig
+    from tidee.agent.reasoning import preferences
+
+    seen = []
+
+    def run_jobs(jobs, workers, renderer, progress, **_batch):
+        seen.append([(j.log_dir, j.agent.preferences) for j in jobs])
+        return [
+            dict(
+                _rec(j.agent.variant, "CounterTop", "CounterTop", "Shelf"),
+                room_type=j.spec.room_type,
+                seed=j.spec.seed,
+                mess_index=j.spec.mess_index,
+            )
+            for j in jobs
+        ]
+
+    monkeypatch.setattr(preference_eval, "run_jobs", run_jobs)
+    monkeypatch.setattr(preferences, "group_members", lambda phrase: ())
+    for keep in (False, True):
+        seen.clear()
+        out = tmp_path / str(keep)
+        cfg = PreferenceEvalConfig(
+            out=out, episodes=2, variants=("CommonMemory",), keep_logs=keep, progress=False
+        )
+        result = preference_eval.run_preference_eval(cfg)
+        without, with_ = seen
+        assert all(p is None for _, p in without) and all(p for _, p in with_)
+        want = (out / "logs" / "without", out / "logs" / "with") if keep else (None, None)
+        assert {d for d, _ in without} == {want[0]} and {d for d, _ in with_} == {want[1]}
+        assert result["metrics"]["CommonMemory"]["asked"]["n"] == 2 and (out / "preferences.md").exists()

@@ -10,12 +10,12 @@ from pathlib import Path
 import pytest
 
 from tidee.agent.config import AgentConfig
-from tidee.agent.evaluation.backends import read_records
 from tidee.agent.evaluation.conditions import CONDITIONS, apply_condition, row_name
 from tidee.agent.evaluation.config import TidyEvalConfig
 from tidee.agent.evaluation.judge import REFERENCE_VARIANTS
 from tidee.agent.evaluation.rearrange_eval import row_setup
 from tidee.agent.evaluation.tidy_eval import build_jobs
+from tidee.batch import read_records
 from tidee.cli import build_parser, main
 from tidee.options import from_args, to_argv
 from tidee.protocol.messages import EpisodeSpec

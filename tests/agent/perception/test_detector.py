@@ -26,10 +26,11 @@ def test_generator_refuses_held_out_rooms_and_lists_training_rooms() -> None:
     assert len(jobs) == 22 * 4 * 2
     with pytest.raises(ValueError, match="training rooms"):
         list(iter_frames(GenConfig(), jobs=[("Kitchen", 200, 0)], progress=False))
+    from tidee.agent.perception.detector.config import GenDetectionConfig
     from tidee.agent.perception.detector.data import generate
 
     with pytest.raises(ValueError, match="training data only"):
-        generate(GenConfig(split="test"), "/nonexistent")
+        generate(GenDetectionConfig(out="/nonexistent", gen=GenConfig(split="test")))
 
 
 def test_instance_masks_match_the_rendered_geometry() -> None:
@@ -312,6 +313,35 @@ def test_model_outputs_have_the_documented_shapes() -> None:
     assert out["heat"].shape == (2, len(CLASSES), 64, 64)
     assert out["size"].shape == out["off"].shape == (2, 2, 64, 64)
     assert out["oop"].shape == (2, 1, 64, 64) and out["feat"].shape == (2, cfg.neck, 64, 64)
+
+
+def test_folded_batch_norm_computes_what_the_trained_model_does() -> None:
+    """The agent's copy of the detector has every batch norm folded into its convolution: the same
+    outputs to float rounding, no BatchNorm2d left, and the trained module itself untouched."""
+    import copy
+
+    from tidee.agent.perception.detector.model import fold_batchnorm
+
+    torch.manual_seed(0)
+    m = CenterDetector(DetectorConfig(extra_blocks=(1, 1, 1), head_conv=True, extra_s4=1))
+    m.train()
+    with torch.no_grad():  # running statistics and affine weights far from their initial values
+        for _ in range(3):
+            m(torch.randn(2, 4, 128, 128) * 2 + 0.5)
+        for bn in (x for x in m.modules() if isinstance(x, torch.nn.BatchNorm2d)):
+            bn.weight.uniform_(0.5, 1.5)
+            bn.bias.uniform_(-0.2, 0.2)
+    m.eval()
+    with pytest.raises(ValueError, match="eval"):
+        fold_batchnorm(copy.deepcopy(m).train())
+    folded = fold_batchnorm(copy.deepcopy(m))
+    assert not any(isinstance(x, torch.nn.BatchNorm2d) for x in folded.modules())
+    assert any(isinstance(x, torch.nn.BatchNorm2d) for x in m.modules())
+    x = torch.randn(2, 4, 128, 128)
+    with torch.inference_mode():
+        a, b = m(x), folded(x)
+    for k in a:
+        torch.testing.assert_close(b[k], a[k], rtol=1e-4, atol=1e-4)
 
 
 # ------------------------------------------------------------------ the shipped weights

@@ -235,3 +235,59 @@ def test_detector_boxes_train_a_learned_fusion(tmp_path) -> None:
     losses = [h["total"] for h in r["history"]]
     assert len(losses) == 3 and losses[-1] < 0.8 * losses[0], losses
     assert (tmp_path / "run" / "detector_boxes.npz").exists()
+
+
+def test_a_gate_keeps_confident_detections_from_the_crop_classifier(test_room_frames) -> None:
+    """Detections at or above the gate keep the detector's own class and score and never reach the
+    crop classifier; those below are reclassified exactly as without a gate."""
+    from tidee.agent.perception.learned import LearnedPerception
+
+    rgb, depth = test_room_frames["rgb"], test_room_frames["depth"].astype(np.float32)
+    alone = LearnedPerception.load(threshold=0.05, reclassifier=None)
+    ungated = LearnedPerception.load(threshold=0.05)
+    ungated.gate = None
+    gated = LearnedPerception.load(threshold=0.05)
+    gated.gate = 0.6
+
+    def key(d):  # a detection's identity across the three runs: its box
+        return d.box
+
+    d_alone, d_ungated, d_gated = (p.detect_batch(rgb, depth) for p in (alone, ungated, gated))
+    n_confident = 0
+    for fa, fu, fg in zip(d_alone, d_ungated, d_gated):
+        confident = {key(d): d for d in fa if d.score >= 0.6}
+        n_confident += len(confident)
+        by_box = {key(d): d for d in fg}
+        for box, d in confident.items():
+            assert by_box[box].label == d.label and by_box[box].score == d.score
+        reclassified = {key(d): d for d in fu}
+        for box, d in by_box.items():
+            if box not in confident:  # below the gate: what the ungated run made of it
+                assert reclassified[box].label == d.label and reclassified[box].score == d.score
+    assert n_confident > 0
+    # the stats count raw detections (before NMS): each is either gated or reclassified
+    assert gated.stats["gated"] >= n_confident and ungated.stats["gated"] == 0
+    assert gated.stats["gated"] + gated.stats["reclassified"] == ungated.stats["reclassified"]
+
+    everything = LearnedPerception.load(threshold=0.05)
+    everything.gate = 0.0  # every detection gated: the detector alone, and no crop is classified
+    d_all = everything.detect_batch(rgb, depth)
+    assert everything.stats["reclassified"] == 0
+    assert [[(d.label, d.score) for d in f] for f in d_all] == [
+        [(d.label, d.score) for d in f] for f in d_alone
+    ]
+
+
+def test_the_gate_chosen_is_the_lowest_that_keeps_the_map() -> None:
+    from tidee.agent.evaluation.detection.fusion import choose_gate
+
+    rows = [
+        {"gate": None, "map50": 0.700},
+        {"gate": 0.5, "map50": 0.690},
+        {"gate": 0.6, "map50": 0.6985},
+        {"gate": 0.7, "map50": 0.699},
+        {"gate": 0.9, "map50": 0.701},
+    ]
+    assert choose_gate(rows, 0.002) == 0.6
+    assert choose_gate(rows, 0.0) == 0.9
+    assert choose_gate(rows[:2], 0.002) is None

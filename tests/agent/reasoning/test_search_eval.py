@@ -76,7 +76,7 @@ def test_gen_and_train_commands_build_their_configs_from_the_flags():
         ["--methods", "network,random"],
         ["--categories-per-room", "-1"],
         ["--categories-per-room", "two"],
-        ["--workers", "8"],
+        ["--workers", "0"],
         [],  # --out is required
     ],
 )

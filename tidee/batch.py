@@ -1,7 +1,9 @@
-"""Run a batch of episode jobs on local worker processes or on Ray actors, records in job order.
+"""Run a batch of jobs on local worker processes or on Ray actors, records in job order.
 
-An eval describes its episodes as jobs (any picklable object) and gives a module-level
-``run_one(job) -> record`` (a JSON-serialisable dict). :func:`run_jobs` runs every job once:
+Every batch command (``tidee eval tidy|rearrange|preferences|search``, ``tidee gen ...``)
+describes its work as jobs (any picklable object: an episode, a room configuration, a group of
+them) and gives a module-level ``run_one(job) -> record`` (a JSON-serialisable dict).
+:func:`run_jobs` runs every job once:
 
 * ``backend="local"``: in this process when ``workers`` is 1, else in ``workers`` spawned
   processes; a free worker takes the next job.
@@ -9,12 +11,13 @@ An eval describes its episodes as jobs (any picklable object) and gives a module
   (``ray_address`` None, ``num_cpus=workers``) or on a running cluster (``ray.init(address=...)``);
   a free actor takes the next job.
 
-Each worker (process or actor) keeps a context across its episodes: its simulator and the
-models it loaded (:func:`worker_state`, set up by :func:`init_worker`), so the same jobs give
-the same records on either backend. A worker that dies mid-job (killed, out of memory, a
-node lost) is replaced and its job runs again on another worker, up to ``max_retries`` times;
-each record carries ``retries``. An exception raised by ``run_one`` is not retried: it ends
-the run, as it would in one process.
+Each worker (process or actor) keeps a context across its jobs: its simulator and the models it
+loaded (:func:`worker_state`, set up by :func:`init_worker`), so the same jobs give the same
+records on either backend. A worker that dies mid-job (killed, out of memory, a node lost) is
+replaced and its job runs again on another worker, up to ``max_retries`` times; each record
+carries ``retries``. An exception raised by ``run_one`` is not retried: it ends the run, as it
+would in one process. ``cost``: an estimate of each job's run time; jobs start longest first,
+so that a long one does not start last and hold the run while the other workers idle.
 
 ``out_jsonl``: each record is appended as it finishes, one line ``<crc32 8 hex> TAB <JSON>``
 (the episode log's format) holding the job's key and its record, flushed and synced. With
@@ -22,12 +25,21 @@ the run, as it would in one process.
 are returned. A torn or damaged line (a crash mid-write) is ignored and dropped from the file.
 A job's key is its ``key()`` method, or the ``key`` function given to :func:`run_jobs`.
 
+``files_dir``: a job that makes files (data shards, cached scenes) returns them in its record
+as ``"files": {relative path: bytes}``; this process writes them under ``files_dir`` (atomically)
+as the job finishes and keeps ``{relative path: sha256}`` in the record. So the files land where
+the command runs whichever machine made them, and with ``resume`` a stored record counts only
+while each of its files is there with that digest (a missing or damaged file is made again).
+:func:`npz_bytes` makes an ``.npz`` whose bytes depend only on its arrays.
+
 Ray is optional (``pip install -e .[cluster]``) and imported only by a ``backend="ray"`` run.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import io
 import json
 import multiprocessing as mp
 import os
@@ -38,11 +50,13 @@ import tempfile
 import traceback
 import zlib
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
+from tidee.options import option
 from tidee.threads import threads_per_process
 
 Backend = Literal["local", "ray"]
@@ -50,6 +64,40 @@ BACKENDS: tuple[Backend, ...] = ("local", "ray")
 INSTALL_RAY = "pip install -e '.[cluster]'"
 J = TypeVar("J")
 Record = dict[str, Any]
+
+
+# --- the options every batch command shares --------------------------------------------------
+
+
+@dataclass
+class BackendConfig:
+    """Where a batch command's jobs run (a field ``batch`` of its config: one declaration)."""
+
+    backend: Backend = option(
+        "local",
+        "local: worker processes on this machine | ray: one Ray actor per worker "
+        "(needs pip install -e '.[cluster]')",
+    )
+    ray_address: str | None = option(
+        None, "a running Ray cluster's HOST:PORT for --backend ray (default: start Ray on this machine)"
+    )
+
+    def __post_init__(self) -> None:
+        if self.ray_address is not None and self.backend != "ray":
+            raise ValueError("--ray-address is for --backend ray")
+
+
+@dataclass
+class BatchConfig(BackendConfig):
+    """Where a batch command's jobs run, and whether it goes on from an interrupted run (for
+    commands whose output is one record or file per job)."""
+
+    resume: bool = option(
+        False,
+        "go on from an interrupted run: the jobs whose records and files OUT already holds intact "
+        "are not run again",
+    )
+
 
 # --- the worker context ----------------------------------------------------------------------
 
@@ -59,8 +107,8 @@ _WORKER: dict[str, Any] = {}  # this process's simulator ("transport") and loade
 def worker_state() -> dict[str, Any]:
     """This process's worker context: a dict kept across every job the process runs.
 
-    ``"transport"``: its simulator (set by :func:`init_worker`); ``"models"``: loaded models by
-    key (:func:`worker_models`); an eval may keep more of its own under other keys.
+    ``"transport"``: its simulator (set by :func:`init_worker`); ``"models"``: loaded agent models
+    by key (``tidee.agent.runner.worker_models``); a command may keep more of its own under other keys.
     """
     return _WORKER
 
@@ -88,17 +136,6 @@ def worker_transport(renderer: str) -> Any:
     return transport
 
 
-def worker_models(config: Any) -> Any:
-    """The ``AgentModels`` for an ``AgentConfig``, loaded once per worker and key."""
-    from tidee.agent.runner import AgentModels
-
-    models: dict[Any, Any] = _WORKER.setdefault("models", {})
-    key = AgentModels.key_of(config)
-    if key not in models:
-        models[key] = AgentModels.load(config)
-    return models[key]
-
-
 # --- keys and the records file ---------------------------------------------------------------
 
 
@@ -108,6 +145,15 @@ def job_key(job: Any) -> str:
     if not callable(key):
         raise TypeError(f"{type(job).__name__} has no key() method: give run_jobs key=")
     return str(key())
+
+
+def config_digest(config: Any, skip: Sequence[str] = ()) -> str:
+    """10 hex digits of a config dataclass's fields but ``skip``: part of a job's key, so that a
+    resumed run with other settings runs the job again instead of keeping a stale record."""
+    from dataclasses import asdict
+
+    fields = {k: v for k, v in asdict(config).items() if k not in skip}
+    return hashlib.sha1(json.dumps(fields, sort_keys=True, default=str).encode()).hexdigest()[:10]
 
 
 def _json_default(x: Any) -> Any:
@@ -219,12 +265,15 @@ def run_jobs(
     max_retries: int = 2,
     key: Callable[[J], str] | None = None,
     desc: str = "episodes",
+    files_dir: str | os.PathLike | None = None,
+    cost: Callable[[J], float] | None = None,
 ) -> list[Record]:
     """Every job's record (``run_one(job)`` plus ``retries``), in job order (see the module doc).
 
     ``run_one`` must be a module-level function (it is pickled to the workers). ``renderer``:
     the simulator each worker opens (None: none). ``key``: a job's key (default: its ``key()`` method),
-    needed only with ``out_jsonl``.
+    needed only with ``out_jsonl``. ``files_dir``: where the files a record carries are written.
+    ``cost``: each job's estimated run time; the most costly start first.
     """
     from tqdm import tqdm
 
@@ -240,10 +289,15 @@ def run_jobs(
     keys = [keyf(j) for j in jobs] if out_jsonl is not None else []
     records: list[Record | None] = [None] * len(jobs)
     stored: dict[str, Record] = read_records(out_jsonl) if out_jsonl is not None and resume else {}
+    if files_dir is not None:  # a record whose files are gone or damaged is not done
+        stored = {k: r for k, r in stored.items() if files_intact(files_dir, r)}
     for i, k in enumerate(keys):
         if k in stored:
             records[i] = stored[k]
     todo = [i for i, r in enumerate(records) if r is None]
+    if cost is not None:  # longest first (stable: equal estimates keep the job order)
+        estimates = {i: float(cost(jobs[i])) for i in todo}
+        todo.sort(key=lambda i: -estimates[i])
     # Ray first: an unreachable cluster is refused before a bar or a file is touched
     ray: Any = None
     connected = False
@@ -254,6 +308,8 @@ def run_jobs(
 
     def done(i: int, record: Record, retries: int) -> None:
         record = dict(record, retries=retries)
+        if files_dir is not None and "files" in record:
+            record["files"] = write_files(files_dir, record["files"])
         records[i] = record
         if sink is not None:
             sink.append(keys[i], record)
@@ -280,6 +336,56 @@ def run_jobs(
         if connected:
             ray.shutdown()
     return [r for r in records if r is not None]
+
+
+# --- files a job makes -----------------------------------------------------------------------
+
+
+def _relative(name: str) -> Path:
+    path = Path(name)
+    if path.is_absolute() or ".." in path.parts or not path.parts:
+        raise ValueError(f"a job's file must be a relative path inside the output folder, got {name!r}")
+    return path
+
+
+def write_files(root: str | os.PathLike, files: Mapping[str, bytes]) -> dict[str, str]:
+    """Write ``files`` (relative path: bytes) under ``root``, each atomically; their sha256 by path."""
+    from tidee.protocol.episode_log import write_atomic
+
+    digests = {}
+    for name, data in files.items():
+        path = Path(root) / _relative(name)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(path, data)
+        digests[name] = hashlib.sha256(data).hexdigest()
+    return digests
+
+
+def files_intact(root: str | os.PathLike, record: Record) -> bool:
+    """Whether each file a stored record names (``"files": {path: sha256}``) is under ``root`` with
+    that digest (a record without files is intact)."""
+    files = record.get("files") or {}
+    if not isinstance(files, dict):
+        return False
+    for name, digest in files.items():
+        try:
+            data = (Path(root) / _relative(name)).read_bytes()
+        except (OSError, ValueError):
+            return False
+        if hashlib.sha256(data).hexdigest() != digest:
+            return False
+    return True
+
+
+def npz_bytes(arrays: Mapping[str, Any]) -> bytes:
+    """``arrays`` as the bytes of a compressed ``.npz``. numpy writes each member through
+    ``ZipFile.open``, which stamps 1980-01-01 rather than the time, so the bytes depend only on
+    the arrays: the same shard is the same file whichever worker or backend made it."""
+    import numpy as np
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
 
 
 # --- local worker processes ------------------------------------------------------------------
@@ -555,15 +661,20 @@ def _run_ray(
 __all__ = [
     "BACKENDS",
     "Backend",
+    "BackendConfig",
+    "BatchConfig",
     "WorkerLost",
+    "config_digest",
     "connect_ray",
+    "files_intact",
     "import_ray",
     "init_worker",
     "job_key",
+    "npz_bytes",
     "read_records",
     "record_line",
     "run_jobs",
-    "worker_models",
     "worker_state",
     "worker_transport",
+    "write_files",
 ]

@@ -1,10 +1,11 @@
-"""backends.run_jobs: local processes and Ray actors give the same records in job order; resume
+"""tidee.batch.run_jobs: local processes and Ray actors give the same records in job order; resume
 skips finished jobs; a worker that dies mid-job is replaced and its job retried; torn lines in
 the records file are ignored; ``tidee eval tidy --backend ray`` (local Ray and a two-node
 cluster on loopback) matches the local backend."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import secrets
@@ -21,9 +22,18 @@ from typing import Any
 
 import pytest
 
-from tidee.agent.evaluation.backends import WorkerLost, read_records, record_line, run_jobs, worker_state
+from tidee.batch import (
+    WorkerLost,
+    files_intact,
+    npz_bytes,
+    read_records,
+    record_line,
+    run_jobs,
+    worker_state,
+    write_files,
+)
 
-REPO = Path(__file__).resolve().parents[3]
+REPO = Path(__file__).resolve().parents[2]
 TIDEE = str(Path(sys.executable).with_name("tidee"))
 RAY = str(Path(sys.executable).with_name("ray"))
 needs_ray = pytest.mark.skipif(
@@ -152,11 +162,68 @@ def _cube(n: int) -> dict[str, Any]:
     return {"cube": n**3}
 
 
+def test_the_costliest_jobs_start_first_and_records_stay_in_job_order(tmp_path: Path) -> None:
+    calls = tmp_path / "calls"
+    calls.mkdir()
+    jobs = [Sq(n, str(calls)) for n in (2, 0, 5, 3)]
+    recs = _run(jobs, workers=1, cost=lambda j: j.n)
+    started = [
+        int(p.name.split("-")[0]) for p in sorted(calls.iterdir(), key=lambda p: int(p.name.split("-")[2]))
+    ]
+    assert started == [5, 3, 2, 0] and [r["n"] for r in recs] == [2, 0, 5, 3]
+
+
+def _file_job(n: int) -> dict[str, Any]:
+    return {"files": {f"part/{n}.bin": bytes([n]) * (n + 1)}, "n": n}
+
+
+def test_a_jobs_files_are_written_here_and_a_damaged_one_is_made_again_on_resume(tmp_path: Path) -> None:
+    out, records = tmp_path / "out", tmp_path / "out" / "jobs.jsonl"
+    run = lambda resume: run_jobs(  # noqa: E731
+        [0, 1, 2],
+        _file_job,
+        workers=2,
+        renderer=None,
+        progress=False,
+        out_jsonl=records,
+        key=lambda n: f"f/{n}",
+        files_dir=out,
+        resume=resume,
+    )
+    first = run(False)
+    assert (out / "part" / "2.bin").read_bytes() == b"\x02\x02\x02"
+    assert [r["files"] for r in first] == [
+        {f"part/{n}.bin": hashlib.sha256(bytes([n]) * (n + 1)).hexdigest()} for n in range(3)
+    ]
+    assert files_intact(out, first[1])
+    (out / "part" / "1.bin").write_bytes(b"damaged")
+    (out / "part" / "2.bin").unlink()
+    stamp = (out / "part" / "0.bin").stat().st_mtime_ns
+    again = run(True)
+    assert again == first and (out / "part" / "1.bin").read_bytes() == b"\x01\x01"
+    assert (out / "part" / "2.bin").exists() and (out / "part" / "0.bin").stat().st_mtime_ns == stamp
+    with pytest.raises(ValueError, match="relative path inside"):
+        write_files(out, {"../escape.bin": b"x"})
+
+
+def test_npz_bytes_depend_only_on_the_arrays() -> None:
+    import io
+
+    import numpy as np
+
+    arrays = {"a": np.arange(12, dtype=np.int16).reshape(3, 4), "s": "Kitchen"}
+    one = npz_bytes(arrays)
+    time.sleep(1.1)  # a writer that stamped the time would differ now
+    assert npz_bytes(arrays) == one
+    with np.load(io.BytesIO(one)) as z:
+        assert np.array_equal(z["a"], arrays["a"]) and str(z["s"]) == "Kitchen"
+
+
 def test_importing_tidee_and_building_the_cli_loads_no_ray() -> None:
     code = (
         "import sys, tidee, tidee.cli\n"
         "tidee.cli.build_parser()\n"
-        "import tidee.agent.evaluation.backends, tidee.agent.evaluation.tidy_eval\n"
+        "import tidee.batch, tidee.agent.evaluation.tidy_eval\n"
         "assert 'ray' not in sys.modules, 'ray imported'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
