@@ -83,7 +83,7 @@ from tidee.protocol.transport import EpisodeLike
 from tidee.protocol.zenoh_config import make_config
 from tidee.server.config import ServerConfig
 from tidee.server.splits import check_mess_index
-from tidee.server.workers import EpisodeProcesses
+from tidee.server.workers import EncodedObservation, EpisodeProcesses, RemoteEpisode, Wire
 
 log = logging.getLogger("tidee.server")
 
@@ -438,7 +438,12 @@ class SimServer:
                 raw_depth = wire_depth()
                 # One join into bytes, one copy into Zenoh (ZBytes cannot wrap a Python buffer);
                 # the reply and the feed then share that ZBytes (put/reply take a reference).
-                payload = zenoh.ZBytes(encode(reply, encoding, raw_depth=raw_depth))
+                frame = (
+                    reply.frame
+                    if isinstance(reply, EncodedObservation)
+                    else encode(reply, encoding, raw_depth=raw_depth)
+                )
+                payload = zenoh.ZBytes(frame)
             except Exception as e:  # e.g. an episode returned a depth map of the wrong dtype
                 log.exception("session %s: cannot encode the %s reply", job.session, job.op)
                 reply = ErrorReply(ErrorCode.internal, f"cannot encode the reply: {e}", job.session)
@@ -449,6 +454,8 @@ class SimServer:
                 query.reply(query.key_expr, payload)  # congestion control: the query's (BLOCK)
             if isinstance(reply, Observation):
                 self._publish(job.session, reply, payload, encoding, raw_depth)  # type: ignore[arg-type]
+            elif isinstance(reply, EncodedObservation):
+                self._publish_encoded(job.session, reply, payload)  # type: ignore[arg-type]
         except Exception:
             log.exception("session %s: could not reply to %s", job.session, job.op)
         finally:
@@ -470,27 +477,63 @@ class SimServer:
             frame = zenoh.ZBytes(encode(stripped, encoding, raw_depth=raw_depth))
         entry.publisher.put(frame)
 
+    def _publish_encoded(self, session: str, obs: EncodedObservation, frame: zenoh.ZBytes) -> None:
+        """The viewer feed of an observation a child encoded: the same frame, or its copy without
+        ground truth (none when no viewer listened as it was made)."""
+        with self._lock:
+            entry = self._sessions.get(session)
+        if entry is None or entry.publisher is None:
+            return
+        if obs.private:
+            if obs.feed is None:
+                return
+            frame = zenoh.ZBytes(obs.feed)
+        entry.publisher.put(frame)
+
     # --- requests (on the session's worker) ----------------------------------------------
     # Each takes the request and its client (client_of): a reset may open a session for it, and
     # only the client that opened a session may reset, step, advance or close it (state is read
     # by evaluators too; a router's access control decides who may ask).
-    def _reset(self, request: ResetRequest, client: str) -> Observation:
+    def _observe(
+        self, request: Any, episode: EpisodeLike, op: str, *args: Any, **kwargs: Any
+    ) -> Observation | EncodedObservation:
+        """``op`` on the episode; one in a child process encodes its observation there, in the
+        form the request asked for (``tidee.server.workers``, Frames)."""
+        kwargs["ground_truth"] = request.ground_truth
+        if not isinstance(episode, RemoteEpisode):
+            return getattr(episode, op)(*args, **kwargs)
+        wire = Wire(
+            request.encoding,
+            wire_depth(),
+            feed=request.ground_truth and self._viewer_listens(request.session),
+        )
+        return episode.encoded(wire, op, *args, **kwargs)
+
+    def _viewer_listens(self, session: str) -> bool:
+        with self._lock:
+            entry = self._sessions.get(session)
+        if entry is None or entry.publisher is None:
+            return False
+        status: Any = entry.publisher.matching_status  # a MatchingStatus (zenoh's stubs say bool)
+        return bool(status.matching)
+
+    def _reset(self, request: ResetRequest, client: str) -> Observation | EncodedObservation:
         for name in ("mess_index", "rearrange_index"):
             try:
                 check_mess_index(request.spec.seed, getattr(request.spec, name))
             except ValueError as e:
                 raise ProtocolError(ErrorCode.invalid_field, f"field 'spec.{name}': {e}") from None
         episode = self._episode(request.session, client, create=True)
-        return episode.reset(request.spec, session=request.session, ground_truth=request.ground_truth)
+        return self._observe(request, episode, "reset", request.spec, session=request.session)
 
-    def _step(self, request: StepRequest, client: str) -> Observation:
+    def _step(self, request: StepRequest, client: str) -> Observation | EncodedObservation:
         episode = self._episode(request.session, client)
-        return episode.step(request.action, ground_truth=request.ground_truth)
+        return self._observe(request, episode, "step", request.action)
 
-    def _phase(self, request: PhaseRequest, client: str) -> Observation:
+    def _phase(self, request: PhaseRequest, client: str) -> Observation | EncodedObservation:
         episode = self._episode(request.session, client)
         try:
-            return episode.begin_unshuffle(ground_truth=request.ground_truth)
+            return self._observe(request, episode, "begin_unshuffle")
         except ValueError as e:  # not a rearrangement, or the unshuffle already begun
             raise ProtocolError(ErrorCode.invalid_field, f"field 'phase': {e}") from None
 

@@ -21,6 +21,15 @@ over anyway, from the same deterministic spec, so the frames are the same), and 
 once its last episode is closed or has moved. An episode that is only stepped is never moved:
 a live session is not disturbed, its child just lives on until that session resets or ends.
 
+Frames: the server asks for an observation *encoded* (``RemoteEpisode.encoded``: the op, and
+the wire form its client asked for). The child encodes it itself (the protocol codec; also the
+viewer feed's copy without ground truth when one is wanted) into a shared-memory block it owns
+(``multiprocessing.shared_memory``; a bigger one replaces it when a frame does not fit) and
+sends only the block's name and the frames' lengths down the pipe; the parent copies the bytes
+out before its next request. A 256² frame is 450 KB: through the pipe it took several
+round trips of the socket's buffer between the two processes, and a pickle and an encode in the
+parent. The parent unlinks a dead child's block; a child unlinks its own when it exits.
+
 Errors: an exception raised in the child is pickled and raised again in the parent with its
 type and message (the child's traceback rides along as its ``__cause__``, as in
 ``concurrent.futures``); one that cannot make the trip becomes a :class:`RemoteEpisodeError`
@@ -46,8 +55,11 @@ import pickle
 import signal
 import traceback
 from collections.abc import Callable
+from dataclasses import dataclass, replace
+from multiprocessing import shared_memory
 from typing import Any
 
+from tidee.protocol.codec import encode
 from tidee.protocol.messages import Action, EpisodeSpec, Observation
 
 log = logging.getLogger("tidee.server")
@@ -56,6 +68,8 @@ EpisodeMaker = Callable[[], Any]  # picklable (a module-level class or function,
 _CONTEXT = multiprocessing.get_context("spawn")
 _STOP_GRACE_S = 5.0
 _OPS = ("reset", "step", "begin_unshuffle", "state")
+_OBSERVING = ("reset", "step", "begin_unshuffle")  # the ops ``RemoteEpisode.encoded`` may run
+MIN_FRAME_AREA = 1 << 20  # bytes: the smallest shared-memory block for encoded frames
 
 
 class EpisodeProcessDied(RuntimeError):
@@ -75,6 +89,99 @@ class _RemoteTraceback(Exception):
 
     def __str__(self) -> str:
         return self.text
+
+
+@dataclass(frozen=True)
+class Wire:
+    """How the server wants an observation encoded (``tidee.protocol.codec.encode``'s
+    ``encoding`` and ``raw_depth``), and whether the viewer feed's copy without ground truth is
+    wanted too (a viewer listens and the observation carries ground truth)."""
+
+    encoding: str = "raw"
+    raw_depth: str = "f32"
+    feed: bool = False
+
+
+@dataclass(frozen=True)
+class EncodedObservation:
+    """An observation as the child encoded it: ``frame`` for the client; ``private``: it holds
+    ground truth, so the viewer feed gets ``feed`` (the same without it; None when not asked
+    for) instead."""
+
+    frame: bytes
+    private: bool
+    feed: bytes | None = None
+
+
+@dataclass(frozen=True)
+class _Frames:
+    """The child's answer to an ``observe``: where the encoded frames lie (block, lengths)."""
+
+    area: str
+    lengths: tuple[int, ...]
+    private: bool
+
+
+class _FrameArea:
+    """The child's shared memory for encoded frames (module docstring, Frames)."""
+
+    def __init__(self) -> None:
+        self.shm: shared_memory.SharedMemory | None = None
+
+    def put(self, obs: Observation, wire: Wire) -> _Frames:
+        private = obs.ground_truth is not None
+        frames = [encode(obs, wire.encoding, raw_depth=wire.raw_depth)]
+        if private and wire.feed:
+            frames.append(encode(replace(obs, ground_truth=None), wire.encoding, raw_depth=wire.raw_depth))
+        need = sum(len(f) for f in frames)
+        if self.shm is None or self.shm.size < need:
+            self.close()
+            self.shm = shared_memory.SharedMemory(create=True, size=max(MIN_FRAME_AREA, need + need // 4))
+        buf, at = self.shm.buf, 0
+        assert buf is not None
+        for f in frames:
+            buf[at : at + len(f)] = f
+            at += len(f)
+        return _Frames(self.shm.name, tuple(len(f) for f in frames), private)
+
+    def close(self) -> None:
+        if self.shm is not None:
+            self.shm.close()
+            self.shm.unlink()
+            self.shm = None
+
+
+class _FrameReader:
+    """The parent's view of one child's frame area: attached by name, re-attached when the child
+    replaced it; ``read`` copies the frames out."""
+
+    def __init__(self) -> None:
+        self.shm: shared_memory.SharedMemory | None = None
+
+    def read(self, frames: _Frames) -> EncodedObservation:
+        if self.shm is None or self.shm.name != frames.area:
+            self.close()
+            # Attaching registers the name with the resource tracker the child already told (one
+            # set of names per tracker): the child's unlink unregisters it for both.
+            self.shm = shared_memory.SharedMemory(name=frames.area)
+        buf, at, out = self.shm.buf, 0, []
+        assert buf is not None
+        for n in frames.lengths:
+            out.append(bytes(buf[at : at + n]))
+            at += n
+        return EncodedObservation(out[0], frames.private, out[1] if len(out) > 1 else None)
+
+    def close(self, unlink: bool = False) -> None:
+        """Detach; ``unlink``: remove the block too (its child died without doing it)."""
+        if self.shm is None:
+            return
+        self.shm.close()
+        if unlink:
+            try:
+                self.shm.unlink()
+            except FileNotFoundError:
+                pass
+        self.shm = None
 
 
 # --- the child ------------------------------------------------------------------------------
@@ -97,6 +204,7 @@ def _child_main(
             return Episode(renderer=renderer, library=library)
 
     episodes: dict[int, Any] = {}
+    frames = _FrameArea()
     while True:
         try:
             request = conn.recv()
@@ -116,6 +224,11 @@ def _child_main(
                     spares.append(episode)
                 elif episode is not None:
                     value = episode.close()
+            elif op == "observe":  # args: (Wire, the op, its arguments...)
+                wire, op, *args = args
+                if op not in _OBSERVING:
+                    raise ValueError(f"cannot observe {op!r}; expected one of {_OBSERVING}")
+                value = frames.put(getattr(episodes[episode_id], op)(*args, **kwargs), wire)
             elif op in _OPS:
                 value = getattr(episodes[episode_id], op)(*args, **kwargs)
             else:
@@ -140,6 +253,7 @@ def _child_main(
             episode.close()
         except Exception:
             pass
+    frames.close()
 
 
 def _portable(e: Exception) -> Exception:
@@ -163,6 +277,7 @@ class _Child:
         self.generation = generation
         self.episodes: set[int] = set()
         self.resets = 0
+        self.frames = _FrameReader()
 
     @property
     def alive(self) -> bool:
@@ -245,14 +360,16 @@ class EpisodeProcess:
             child.episodes.discard(episode_id)
             if child.generation in self._retiring and not child.episodes:
                 self._stop(child, "retired")
-        elif op == "reset" and ok:
+        if not ok:
+            value.__cause__ = _RemoteTraceback(child_traceback[0])
+            raise value
+        if isinstance(value, _Frames):  # copied out before the child's next frame overwrites them
+            value = child.frames.read(value)
+        if op == "reset" or (op == "observe" and args[1] == "reset"):
             child.resets += 1
             if child is self._current and 0 < self.recycle_after <= child.resets:
                 self._retire(child)
-        if ok:
-            return value
-        value.__cause__ = _RemoteTraceback(child_traceback[0])
-        raise value
+        return value
 
     def stop(self) -> None:
         """Ask every child to close its episodes and exit; terminate one that does not."""
@@ -332,6 +449,7 @@ class EpisodeProcess:
             process.kill()
             process.join()
         code = process.exitcode
+        child.frames.close(unlink=code != 0)  # a child that did not exit cleanly left its block behind
         how = f"killed by {_signal_name(-code)}" if code < 0 else f"exit code {code}"
         self._deaths[child.generation] = f"{self.name} (pid {process.pid}) " + (stopped or f"died: {how}")
         if stopped is None:
@@ -371,6 +489,14 @@ class RemoteEpisode:
 
     def state(self) -> dict[str, Any]:
         return self._call("state")
+
+    def encoded(self, wire: Wire, op: str, *args: Any, **kwargs: Any) -> EncodedObservation:
+        """``op`` (reset, step or begin_unshuffle) with its arguments, its observation encoded by
+        the child as ``wire`` says (module docstring, Frames)."""
+        if op == "reset" and not self.process.takes(self.generation):
+            self.close()
+            self._reopen()
+        return self._call("observe", wire, op, *args, **kwargs)
 
     def close(self) -> None:
         try:

@@ -17,9 +17,18 @@ import pytest
 from tests.support.fakes import FakeEpisode
 from tests.support.net import REPO, SPEC, client, free_endpoint, start_server, wait_until
 from tidee.protocol.client import RemoteError, SimClient
+from tidee.protocol.codec import decode
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec, ErrorCode, Observation
 from tidee.server.service import ServerConfig, SimServer
-from tidee.server.workers import EpisodeProcesses, RemoteEpisodeError, _portable
+from tidee.server.workers import (
+    MIN_FRAME_AREA,
+    EncodedObservation,
+    EpisodeProcess,
+    EpisodeProcesses,
+    RemoteEpisodeError,
+    Wire,
+    _portable,
+)
 
 
 @pytest.fixture
@@ -82,6 +91,42 @@ def test_real_episode_in_a_child_process_matches_one_in_this_process() -> None:
         local.close()
         srv.stop()
     assert srv.processes.pids == [None]  # stop() ended the child
+
+
+def test_encoded_frames_come_through_shared_memory_and_a_dead_childs_block_is_removed() -> None:
+    process = EpisodeProcess(make_episode=FakeEpisode)
+    here = FakeEpisode()
+    try:
+        remote = process.open()
+        small = dataclasses.replace(SPEC, resolution=32)
+        got = remote.encoded(Wire(), "reset", small, session="s", ground_truth=False)
+        assert isinstance(got, EncodedObservation) and not got.private and got.feed is None
+        assert_same_observation(decode(got.frame), here.reset(small, session="s"))
+        area = process._current.frames.shm  # type: ignore[union-attr]
+        assert area is not None and area.size == MIN_FRAME_AREA
+        # ground truth, and a viewer listening: the feed's copy without it rides along
+        action = Action(ActionName.MoveAhead)
+        got = remote.encoded(Wire(feed=True), "step", action, ground_truth=True)
+        want = here.step(action, ground_truth=True)
+        assert got.private and got.feed is not None
+        assert_same_observation(decode(got.frame), want)
+        assert_same_observation(decode(got.feed), dataclasses.replace(want, ground_truth=None))
+        # a frame bigger than the block: the child makes a bigger one, the parent follows it
+        big = dataclasses.replace(SPEC, resolution=512)  # 512² rgb + float32 depth: 1.75 MB
+        got = remote.encoded(Wire(raw_depth="mm"), "reset", big, session="s")
+        back = decode(got.frame)
+        assert back.depth.shape == (512, 512) and back.step == 0
+        grown = process._current.frames.shm  # type: ignore[union-attr]
+        assert grown is not None and grown.name != area.name and grown.size > MIN_FRAME_AREA
+        assert not os.path.exists(f"/dev/shm/{area.name.lstrip('/')}")  # the child removed the old one
+        with pytest.raises(ValueError, match="cannot observe 'state'"):
+            remote.encoded(Wire(), "state")
+        os.kill(remote.pid, signal.SIGKILL)  # type: ignore[arg-type]
+        with pytest.raises(Exception, match="gone"):
+            remote.encoded(Wire(), "step", action)
+        assert not os.path.exists(f"/dev/shm/{grown.name.lstrip('/')}")  # the parent removed it
+    finally:
+        process.stop()
 
 
 def test_new_sessions_go_to_the_least_loaded_process(two_process_server: SimServer) -> None:
