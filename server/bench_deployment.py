@@ -33,10 +33,9 @@ import zenoh
 from tidee.launch import end_process, free_port
 from tidee.protocol.client import SimClient
 from tidee.protocol.episode_log import write_atomic, write_json_atomic
-from tidee.protocol.messages import EpisodeSpec
 from tidee.protocol.zenoh_config import merged_config, tidee_defaults
 from tidee.server.bench_sim import spread
-from tidee.server.bench_transport import WARMUP_STEPS, interleaved_latencies
+from tidee.server.bench_transport import bench_spec, interleaved_latencies
 
 TARGET_RATIO = 1.2  # through a router / peer-to-peer, median step latency
 PATHS = ("peer-to-peer", "through a router")
@@ -51,13 +50,7 @@ def run_deployment_bench(
     seed: int = 200,
     mess_index: int = 0,
 ) -> dict:
-    spec = EpisodeSpec(
-        room_type=room_type,
-        seed=seed,
-        mess_index=mess_index,
-        resolution=resolution,
-        max_steps=steps + WARMUP_STEPS + 10,
-    )
+    spec = bench_spec(steps, resolution, room_type, seed, mess_index)
     load_before = os.getloadavg()
     links: dict[str, dict[str, int]] = {}
     with _both_ways(renderer, links) as clients:

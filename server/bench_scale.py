@@ -27,15 +27,15 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from tidee.launch import end_process, free_port
+from tidee.launch import end_process
 from tidee.protocol.client import SimClient
 from tidee.protocol.episode_log import write_atomic, write_json_atomic
 from tidee.protocol.messages import Action, EpisodeSpec
 from tidee.server.bench_sim import ACTIONS
+from tidee.server.bench_transport import WARMUP_STEPS, bench_spec, loopback_endpoint, server_command
 from tidee.server.workers import available_cores
 
 SESSIONS = (1, 2)
-WARMUP_STEPS = 10
 
 
 def run_scale_server_bench(
@@ -48,13 +48,7 @@ def run_scale_server_bench(
     seed: int = 200,
     mess_index: int = 0,
 ) -> dict:
-    spec = EpisodeSpec(
-        room_type=room_type,
-        seed=seed,
-        mess_index=mess_index,
-        resolution=resolution,
-        max_steps=steps + WARMUP_STEPS + 10,
-    )
+    spec = bench_spec(steps, resolution, room_type, seed, mess_index)
     load_before = os.getloadavg()
     runs = []
     for count in processes:
@@ -86,24 +80,11 @@ def run_scale_server_bench(
 @contextmanager
 def _server(processes: int, renderer: str, max_sessions: int) -> Iterator[tuple[str, str]]:
     """A ``tidee server`` subprocess; its log is shown only if it fails."""
-    endpoint, server_id = _free_loopback_endpoint(), f"scale{uuid.uuid4().hex[:6]}"
+    endpoint, server_id = loopback_endpoint(), f"scale{uuid.uuid4().hex[:6]}"
     with tempfile.TemporaryFile() as log:
-        command = [
-            sys.executable,
-            "-m",
-            "tidee.cli",
-            "server",
-            "--endpoint",
-            endpoint,
-            "--server-id",
-            server_id,
-            "--renderer",
-            renderer,
-            "--processes",
-            str(processes),
-            "--max-sessions",
-            str(max_sessions),
-        ]
+        command = server_command(
+            endpoint, server_id, renderer, "--processes", str(processes), "--max-sessions", str(max_sessions)
+        )
         proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
         try:
             yield endpoint, server_id
@@ -202,7 +183,3 @@ def _write(out_path: str, result: dict) -> None:
 
 def _triple(xs: list[float]) -> str:
     return " / ".join(f"{x:.2f}" for x in xs)
-
-
-def _free_loopback_endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"

@@ -16,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import os
 import platform
-import socket
 import subprocess
 import sys
 import time
@@ -25,6 +24,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from tidee.launch import free_port
 from tidee.protocol.client import SimClient
 from tidee.protocol.codec import RAW_DEPTH_FORMS, WIRE_DEPTH_ENV, decode, encode
 from tidee.protocol.messages import Action, EpisodeSpec, Observation
@@ -32,6 +32,34 @@ from tidee.protocol.transport import InProcessTransport, SimTransport
 from tidee.server.bench_sim import ACTIONS, spread, write_report
 
 WARMUP_STEPS = 10
+
+
+def bench_spec(steps: int, resolution: int, room_type: str, seed: int, mess_index: int = 0) -> EpisodeSpec:
+    """The episode a step benchmark walks: long enough for its warm-up and ``steps`` timed steps."""
+    return EpisodeSpec(
+        room_type=room_type,
+        seed=seed,
+        mess_index=mess_index,
+        resolution=resolution,
+        max_steps=steps + WARMUP_STEPS + 10,
+    )
+
+
+def server_command(endpoint: str, server_id: str, renderer: str, *flags: str) -> list[str]:
+    """``tidee server`` on ``endpoint`` as a subprocess's command line, with more ``flags``."""
+    return [
+        sys.executable,
+        "-m",
+        "tidee.cli",
+        "server",
+        "--endpoint",
+        endpoint,
+        "--server-id",
+        server_id,
+        "--renderer",
+        renderer,
+        *flags,
+    ]
 
 
 def run_transport_bench(
@@ -42,13 +70,7 @@ def run_transport_bench(
     room_type: str = "LivingRoom",
     seed: int = 200,
 ) -> dict:
-    spec = EpisodeSpec(
-        room_type=room_type,
-        seed=seed,
-        mess_index=0,
-        resolution=resolution,
-        max_steps=steps + WARMUP_STEPS + 10,
-    )
+    spec = bench_spec(steps, resolution, room_type, seed)
     load_before = os.getloadavg()
     with contextlib.ExitStack() as stack:
         inproc = stack.enter_context(InProcessTransport(renderer=renderer))
@@ -125,22 +147,9 @@ def _median_us(fn, repeats: int) -> float:  # type: ignore[no-untyped-def]
 @contextlib.contextmanager
 def _server_client(renderer: str, form: str) -> Iterator[SimClient]:
     """A client of a fresh server process that sends depth as ``form``; the server stops after."""
-    endpoint, server_id = _free_loopback_endpoint(), f"bench{uuid.uuid4().hex[:6]}"
+    endpoint, server_id = loopback_endpoint(), f"bench{uuid.uuid4().hex[:6]}"
     server = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "tidee.cli",
-            "server",
-            "--endpoint",
-            endpoint,
-            "--server-id",
-            server_id,
-            "--renderer",
-            renderer,
-            "--max-sessions",
-            "1",
-        ],
+        server_command(endpoint, server_id, renderer, "--max-sessions", "1"),
         env={**os.environ, WIRE_DEPTH_ENV: form},
     )
     try:
@@ -173,7 +182,6 @@ def interleaved_latencies(
     return out
 
 
-def _free_loopback_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+def loopback_endpoint() -> str:
+    """A TCP endpoint on a free loopback port."""
+    return f"tcp/127.0.0.1:{free_port()}"
