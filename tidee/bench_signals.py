@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from tidee.launch import SignalsBenchConfig, free_port
+from tidee.launch import OutputLines, SignalsBenchConfig, free_port
 
 STARTUP_TIMEOUT_S = (
     300.0  # a loaded machine imports torch, loads models and binds the viewer well within this
@@ -67,36 +67,6 @@ def listening(port: int) -> bool:
     with socket.socket() as s:
         s.settimeout(1.0)
         return s.connect_ex(("127.0.0.1", port)) == 0
-
-
-class Output:
-    """A child's stdout and stderr, read on a thread (a full pipe would stall the child)."""
-
-    def __init__(self, proc: subprocess.Popen) -> None:
-        self.lines: list[str] = []
-        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
-        self._thread.start()
-
-    def _read(self, proc: subprocess.Popen) -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            self.lines.append(line)
-
-    def text(self) -> str:
-        return "".join(self.lines)
-
-    def wait_for(self, prefix: str, proc: subprocess.Popen, deadline: float) -> str | None:
-        while time.monotonic() < deadline:
-            for line in list(self.lines):
-                if line.startswith(prefix):
-                    return line.strip()
-            if proc.poll() is not None:
-                return None
-            time.sleep(0.1)
-        return None
-
-    def close(self) -> None:
-        self._thread.join(5.0)
 
 
 def end_try(proc: subprocess.Popen, sig: int, exit_timeout: float) -> dict[str, Any]:
@@ -138,18 +108,18 @@ def run_try(cfg: SignalsBenchConfig, sig: int, delay: float, log_dir: str) -> di
     proc = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
     )
-    out = Output(proc)
+    out = OutputLines(proc)
     result: dict[str, Any] = {"signal": signal.Signals(sig).name, "delay_s": round(delay, 2)}
     z = None
     try:
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
-        server_line = out.wait_for("run: server on ", proc, deadline)
+        server_line = out.first("run: server on ", deadline)
         endpoint = server_line.split()[-1] if server_line else None
         frames = threading.Semaphore(0)
         if endpoint is not None:
             z = zenoh.open(make_config(False, endpoint))
             z.declare_subscriber(keys.observations_wildcard("sim0"), lambda _sample: frames.release())
-        viewer = out.wait_for("run: viewer at ", proc, deadline)
+        viewer = out.first("run: viewer at ", deadline)
         stepping = viewer is not None and all(
             frames.acquire(timeout=max(0.0, deadline - time.monotonic())) for _ in range(FRAMES_BEFORE_SIGNAL)
         )
@@ -165,8 +135,7 @@ def run_try(cfg: SignalsBenchConfig, sig: int, delay: float, log_dir: str) -> di
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-        out.close()
-    text = out.text()
+    text = out.text
     result["traceback"] = "Traceback" in text
     result["ok"] = _clean(result) and result["started"]
     if not result["ok"]:
@@ -189,7 +158,7 @@ def server_try(cfg: SignalsBenchConfig, delay: float, serving: bool) -> dict[str
     proc = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
     )
-    out = Output(proc)
+    out = OutputLines(proc)
     stop, served = threading.Event(), threading.Event()
     spec = EpisodeSpec(
         room_type="LivingRoom", seed=200, mess_index=0, resolution=cfg.resolution, max_steps=50
@@ -220,9 +189,8 @@ def server_try(cfg: SignalsBenchConfig, delay: float, serving: bool) -> dict[str
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-        out.close()
     client.join(1.0)  # a client still waiting for a server killed in its start-up gives up on its own
-    text = out.text()
+    text = out.text
     result["traceback"] = "Traceback" in text
     result["ok"] = _clean(result) and result.get("started", True)
     if not result["ok"]:

@@ -182,6 +182,47 @@ def _interrupt_on_sigterm() -> Callable[[], object]:
     return lambda: signal.signal(signal.SIGTERM, previous)
 
 
+class OutputLines:
+    """A child's output lines (stdout, and stderr when it goes to the same pipe; text mode), read on
+    a thread as they come: a full pipe would stall the child, and waiting for a line never blocks."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.proc = proc
+        self.lines: list[str] = []
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    def first(self, text: str, deadline: float) -> str | None:
+        """The first line holding ``text``, waiting until ``deadline`` (``time.monotonic()``); None
+        when the deadline passes or the child has ended without one."""
+        while True:
+            ended = self.proc.poll() is not None  # before the look: its last lines are in by then
+            for line in list(self.lines):
+                if text in line:
+                    return line
+            if ended and not self._thread.is_alive() or time.monotonic() >= deadline:
+                return None
+            time.sleep(0.1)
+
+    def wait_for(self, text: str, deadline: float) -> str:
+        """``first``, or a ``TimeoutError`` that shows the output so far."""
+        line = self.first(text, deadline)
+        if line is None:
+            raise TimeoutError(f"no line with {text!r} in time; output so far:\n{self.text}")
+        return line
+
+    @property
+    def text(self) -> str:
+        """Every line so far (all of them once the child has ended and closed its output)."""
+        self._thread.join(timeout=5)
+        return "\n".join(self.lines)
+
+
 def end_process(proc: subprocess.Popen, sig: int = signal.SIGTERM, grace: float = 30.0) -> None:
     """Send ``sig`` and wait up to ``grace`` seconds, then kill: the process is gone on return."""
     if proc.poll() is None:

@@ -6,10 +6,11 @@ import os
 import signal
 import subprocess
 import sys
-import threading
-import time
 
 from tests.support import REPO
+from tidee.launch import OutputLines
+
+__all__ = ["OutputLines", "kill_group", "start_tidee"]
 
 
 def start_tidee(*args: str, output: bool = True, **kw: object) -> subprocess.Popen:
@@ -42,31 +43,3 @@ def kill_group(proc: subprocess.Popen, sig: int = signal.SIGKILL, grace: float =
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(timeout=30)
-
-
-class OutputLines:
-    """Collects a process's output lines in a thread, so waiting for one never blocks on the pipe."""
-
-    def __init__(self, proc: subprocess.Popen) -> None:
-        self.lines: list[str] = []
-        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
-        self._thread.start()
-
-    def _read(self, proc: subprocess.Popen) -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-
-    def wait_for(self, text: str, deadline: float) -> str:
-        """The first line holding ``text``, waiting until ``deadline`` (``time.monotonic()``)."""
-        while time.monotonic() < deadline:
-            for line in list(self.lines):
-                if text in line:
-                    return line
-            time.sleep(0.1)
-        raise AssertionError(f"no line with {text!r} in time; output so far:\n" + "\n".join(self.lines))
-
-    @property
-    def text(self) -> str:
-        self._thread.join(timeout=5)
-        return "\n".join(self.lines)
