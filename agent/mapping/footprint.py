@@ -7,9 +7,12 @@ for a 10 cm object), so the rearrangement agent estimates each view's *footprint
 object: its depth points standing above the lowest ones (the surface that a depth-cut box mask
 also covers), of those its top face (the sides a camera sees would pull the axis), their
 principal axes in (x, y) and the heading of the long one; and the mean colour of its points,
-which tells two apples apart when the shuffle moved both. ``FootprintVotes`` pools the views
-of one tracked object, each weighted by its point count (a nearer view has more), the heading
-also by how elongated the view was (a round thing has none).
+which tells two apples apart when the shuffle moved both; and the middle of its top face's
+extent in (x, y) (trimmed of stray pixels), which says where it stood better than the tracked
+box, whose corners any one view's stray points stretch. ``FootprintVotes`` pools the views of
+one tracked object, each weighted by its point count (a nearer view has more), the heading
+also by how elongated the view was (a round thing has none), the middle by the weighted median
+of the views' middles (x and y each; one view's bad mask does not drag it).
 """
 
 from __future__ import annotations
@@ -29,12 +32,14 @@ TRIM = (2.0, 98.0)  # percentiles that bound an extent (stray pixels at a mask's
 class Footprint:
     """One view's estimate: the long axis's heading in degrees ([0, 180): an axis has no
     direction), its elongation (0 round or square .. 1 a line) and the number of points it
-    rests on; ``colour``: the mean RGB (0-1) of its points, when given."""
+    rests on; ``colour``: the mean RGB (0-1) of its points, when given; ``middle``: the middle
+    (x, y) of its top face's trimmed extent, start frame, metres."""
 
     axis_deg: float
     elongation: float
     n: int
     colour: np.ndarray | None = None
+    middle: tuple[float, float] | None = None
 
 
 def footprint(
@@ -66,11 +71,12 @@ def footprint(
     xy = xy[np.all((xy >= lo) & (xy <= hi), axis=1)]
     if len(xy) < min_points:
         return None
+    middle = (float(lo[0] + hi[0]) / 2.0, float(lo[1] + hi[1]) / 2.0)
     evals, evecs = np.linalg.eigh(np.cov((xy - xy.mean(axis=0)).T))
     major = evecs[:, 1]
     axis = math.degrees(math.atan2(major[1], major[0])) % 180.0
     elongation = 1.0 - math.sqrt(max(float(evals[0]), 0.0) / max(float(evals[1]), 1e-12))
-    return Footprint(axis, float(np.clip(elongation, 0.0, 1.0)), len(xy), colour)
+    return Footprint(axis, float(np.clip(elongation, 0.0, 1.0)), len(xy), colour, middle)
 
 
 def axis_gap(a: float, b: float) -> float:
@@ -78,11 +84,20 @@ def axis_gap(a: float, b: float) -> float:
     return (a - b + 90.0) % 180.0 - 90.0
 
 
+def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    """The smallest value at which the sorted values' cumulative weight reaches half the total
+    (the lower weighted median)."""
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(np.asarray(weights, np.float64)[order])
+    return float(np.asarray(values)[order][int(np.searchsorted(cum, cum[-1] / 2.0))])
+
+
 class FootprintVotes:
-    """The views of one tracked object pooled: long-axis heading and colour."""
+    """The views of one tracked object pooled: long-axis heading, colour and middle."""
 
     def __init__(self) -> None:
         self.weight = 0.0
+        self._middles: list[tuple[float, float, float]] = []  # (x, y, weight) per view with a middle
         self._axis = np.zeros(2)  # sum of weight * (cos 2θ, sin 2θ): an axis's doubled angle
         self._axis_weight = 0.0
         self._colour = np.zeros(3)
@@ -91,6 +106,8 @@ class FootprintVotes:
     def add(self, fp: Footprint) -> None:
         w = float(fp.n)
         self.weight += w
+        if fp.middle is not None:
+            self._middles.append((fp.middle[0], fp.middle[1], w))
         if fp.colour is not None:
             self._colour += w * fp.colour
             self._colour_weight += w
@@ -102,6 +119,14 @@ class FootprintVotes:
     @property
     def colour(self) -> np.ndarray | None:
         return self._colour / self._colour_weight if self._colour_weight > 0 else None
+
+    def middle(self) -> tuple[float, float] | None:
+        """The weighted median (weights: the views' point counts) of the views' middles, x and y
+        each (``weighted_median``); None when no view had one."""
+        if not self._middles:
+            return None
+        m = np.array(self._middles)
+        return weighted_median(m[:, 0], m[:, 2]), weighted_median(m[:, 1], m[:, 2])
 
     def axis_deg(self, min_agreement: float = 0.5, min_elongation: float = 0.15) -> float | None:
         """The pooled long-axis heading, or None when the views do not agree on one (resultant

@@ -6,20 +6,25 @@ put the shuffled room back.
     walkthrough  look around, map the room (the tidy agent's mapping; pickupables merge only
                  within 25 cm), survey it (waypoints, then a second round with steps to spare),
                  remember every object it tracked, with each small object's footprint pooled
-                 over its views (long axis, mean colour); Done (the runner switches to the
-                 unshuffle phase and starts a fresh map in the same start frame)
+                 over its views (long axis, mean colour, top face's middle); Done (the runner
+                 switches to the unshuffle phase and starts a fresh map in the same start frame)
     unshuffle    look around, map the room again, the same survey for as many steps
                  match the two memories class by class (Hungarian on centroid distance and
-                 colour):
+                 colour; every track takes part, but tracks seen ``MIN_OBS`` times pair with
+                 each other first):
                    a pickupable now more than ``stay_m`` (and a third of its size) from its
-                   match has moved;
-                   an openable whose box grew or shrank by ``open_m`` changed openness
+                   match, both seen ``MIN_OBS`` times, has moved;
+                   an openable whose box grew or shrank by ``open_m`` changed openness (on the
+                   floor: when obstacle cells appeared or vanished beside it, each cell counted
+                   for the nearest matched openable only)
                  each changed openable, nearest first: walk there, Close it (Open it when its
-                   box shrank); the other one when the server says it already is
+                   box shrank), not at a pixel nearer another tracked openable (try the next
+                   standpoint); left as it is when the server says it already is
                  each moved object, nearest first: walk there, pick it up, walk to its
-                   walkthrough place, reach to the point there (``Action.reach``) and put it
-                   down turned onto the walkthrough's long axis (``Action.yaw``); else on the
-                   receptacle tracked under it
+                   walkthrough place (the weighted median of its views' top-face middles),
+                   reach to the point there (``Action.reach``) and put it down turned onto
+                   the walkthrough's long axis (``Action.yaw``); else on the receptacle
+                   tracked under it
     Done
 
 Only the agent's own maps and detections decide; ``--perception oracle`` feeds it the
@@ -28,6 +33,7 @@ simulator's segmentation instead (a named variant in every report).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -60,6 +66,8 @@ COLOUR_M = 2.0  # metres of matching cost per unit of mean-colour difference (RG
 OPEN_M = 0.15  # an openable's box growing (or shrinking) by this much changed its openness
 SMALL_MERGE_M = 0.25  # the memory merges detections of a pickupable class this close (``map_config``)
 MIN_OBS = 2  # tracks seen fewer times are not trusted to say that something moved
+UNSURE_COST = 100.0  # matching cost (metres) added to a pair with a track seen fewer than MIN_OBS times
+SAME_PIECE_M = 1.2  # two tracks of an openable class this close are one piece of furniture
 DOOR_CELLS = 8  # obstacle cells (5 cm) that must appear or vanish beside a floor-standing openable
 FLOOR_STANDING_Z = 0.3  # an openable whose box starts below this stands on the floor
 FLOOR_Z = 0.08  # a remembered object whose box starts this low stood on the floor
@@ -77,7 +85,8 @@ class WalkthroughOver(Exception):
 class Seen:
     """What a phase remembers of one tracked object (start frame, metres); for a pickupable
     also its footprint pooled over the views (``tidee.agent.mapping.footprint``): the long
-    axis's heading (degrees, None when it showed none) and its mean colour."""
+    axis's heading (degrees, None when it showed none), its mean colour and the weighted
+    median of its top face's middles (x, y; None when no view had one)."""
 
     label: str
     centroid: np.ndarray
@@ -86,6 +95,7 @@ class Seen:
     n_obs: int
     axis_deg: float | None = None
     colour: np.ndarray | None = None  # mean RGB (0-1) of its points
+    middle: tuple[float, float] | None = None  # where its top face's middle was (x, y)
 
     @staticmethod
     def of(o: TrackedObject, votes: FootprintVotes | None = None) -> Seen:
@@ -99,6 +109,7 @@ class Seen:
             o.n_obs,
             votes.axis_deg(),
             votes.colour,
+            votes.middle(),
         )
 
 
@@ -128,12 +139,18 @@ def colour_gap(a: np.ndarray | None, b: np.ndarray | None) -> float:
 
 
 def _pairs(
-    then: list[Seen], now: list[TrackedObject], colours: dict[int, np.ndarray] | None = None
+    then: list[Seen],
+    now: list[TrackedObject],
+    colours: dict[int, np.ndarray] | None = None,
+    min_obs: int = 1,
 ) -> list[tuple[Seen, TrackedObject, float]]:
     """One-to-one matching of same-class tracks (Hungarian) on centroid distance plus
     ``COLOUR_M`` per unit of colour difference (``colours``: track id -> the unshuffle's mean
-    colour), so two mugs that both moved go back to their own places when they look different.
-    Each pair comes with its centroid distance."""
+    colour), so two mugs that both moved go back to their own places when they look different;
+    plus ``UNSURE_COST`` for a pair in which either track was seen fewer than ``min_obs``
+    times, so the matching pairs as many sure tracks with each other as it can before the
+    distances count (a glimpse nearer a sure track's match does not take it). Each pair comes
+    with its centroid distance."""
     colours = colours or {}
     out = []
     for label in sorted({s.label for s in then} & {o.label for o in now}):
@@ -144,7 +161,11 @@ def _pairs(
             axis=2,
         )
         look = np.array([[colour_gap(s.colour, colours.get(o.id)) for o in b] for s in a])
-        rows, cols = linear_sum_assignment(dist + COLOUR_M * look)
+        unsure = (
+            np.array([s.n_obs < min_obs for s in a])[:, None]
+            | np.array([o.n_obs < min_obs for o in b])[None, :]
+        )
+        rows, cols = linear_sum_assignment(dist + COLOUR_M * look + UNSURE_COST * unsure)
         out += [(a[r], b[c], float(dist[r, c])) for r, c in zip(rows, cols)]
     return out
 
@@ -157,15 +178,18 @@ def find_moves(
     colours: dict[int, np.ndarray] | None = None,
     other_m: float = OTHER_M,
 ) -> list[Move]:
-    """Pickupables matched across the phases that are now farther from where they were than
-    ``stay_m`` and than a third of their size (nearer, an object of that size still overlaps
-    its old box by IoU 0.5: the metric counts it in place), whose old place no other track of
-    their class now holds and whose new place none held in the walkthrough, within ``other_m``
-    (so a second instance or a stray track is not taken for a move)."""
-    sure_then = [s for s in then if s.label in PICKUPABLE and s.n_obs >= min_obs]
-    sure_now = [o for o in now if o.label in PICKUPABLE and o.n_obs >= min_obs]
+    """Pickupables matched across the phases (every track takes part, sure ones pair first:
+    ``_pairs``), both seen at least ``min_obs`` times, that are now farther from where they
+    were than ``stay_m`` and than a third of their size (nearer, an object of that size still
+    overlaps its old box by IoU 0.5: the metric counts it in place), whose old place no other
+    track of their class now holds and whose new place none held in the walkthrough, within
+    ``other_m`` (so a second instance or a stray track is not taken for a move)."""
+    then = [s for s in then if s.label in PICKUPABLE]
+    now = [o for o in now if o.label in PICKUPABLE]
     moves = []
-    for s, o, d in _pairs(sure_then, sure_now, colours):
+    for s, o, d in _pairs(then, now, colours, min_obs):
+        if s.n_obs < min_obs or o.n_obs < min_obs:
+            continue
         size = float(np.max(s.box_max[:2] - s.box_min[:2]))
         if d <= max(stay_m, size / 3):
             continue
@@ -208,14 +232,32 @@ class Occupancy:
 
 
 def door_evidence(
-    grid: Any, then: Occupancy, now: Occupancy, box_min: np.ndarray, box_max: np.ndarray, reach_m: float = 0.9
+    grid: Any,
+    then: Occupancy,
+    now: Occupancy,
+    box_min: np.ndarray,
+    box_max: np.ndarray,
+    reach_m: float = 0.9,
+    others: list[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[int, int]:
     """(appeared, vanished): cells within ``reach_m`` of a footprint, observed in both phases, that
     are obstacles now but were free then (a door swung open, a drawer pulled out) and the
-    other way round. The depth map decides, not the detector's boxes."""
-    xs = grid.origin[0] + (np.arange(grid.shape[0]) + 0.5) * grid.cell
-    ys = grid.origin[1] + (np.arange(grid.shape[1]) + 0.5) * grid.cell
-    near = footprint_gap(box_min, box_max, xs[:, None], ys[None, :]) <= reach_m
+    other way round. The depth map decides, not the detector's boxes. ``others``: the other
+    openables' footprints (box min, max corners); a cell nearer one of them than this footprint
+    counts for that one, not this one (a fridge door swinging open beside a cabinet); inside
+    two footprints, for the one whose centre is nearer."""
+    x = grid.origin[0] + (np.arange(grid.shape[0])[:, None] + 0.5) * grid.cell
+    y = grid.origin[1] + (np.arange(grid.shape[1])[None, :] + 0.5) * grid.cell
+
+    def nearness(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(gap to the footprint, distance to its centre) per cell."""
+        return footprint_gap(lo, hi, x, y), np.hypot(x - (lo[0] + hi[0]) / 2, y - (lo[1] + hi[1]) / 2)
+
+    gap, centre = nearness(box_min, box_max)
+    near = gap <= reach_m
+    for lo, hi in others or []:
+        other_gap, other_centre = nearness(lo, hi)
+        near &= (other_gap > gap) | ((other_gap == gap) & (other_centre >= centre))
     both = near & then.seen & now.seen
     return int((both & now.obstacle & ~then.obstacle).sum()), int(
         (both & then.obstacle & ~now.obstacle).sum()
@@ -233,21 +275,23 @@ def find_toggles(
     With ``maps`` (grid, walkthrough and unshuffle occupancy), a piece standing on the floor
     must also show at least ``min_cells`` obstacle cells appear (or vanish) beside it, and
     that decides the direction: a big piece's boxes differ between views far more than its
-    door does."""
+    door does. A cell counts only for the matched openable whose footprint (both phases' boxes)
+    is nearest it."""
     then = [s for s in then if s.label in OPENABLE]
     now = [o for o in now if o.label in OPENABLE]
+    pairs = [(s, o) for s, o, d in _pairs(then, now) if d <= 1.0]  # farther: not the same piece
+    spans = [(np.minimum(s.box_min, o.box_min), np.maximum(s.box_max, o.box_max)) for s, o in pairs]
     toggles = []
-    for s, o, d in _pairs(then, now):
-        if d > 1.0:  # not the same piece of furniture
-            continue
+    for k, (s, o) in enumerate(pairs):
         grown, shrunk = box_change(s, o)
         if max(grown, shrunk) <= open_m:
             continue
         opened = grown >= shrunk
         if maps is not None and min(float(s.box_min[2]), float(o.box_min[2])) < FLOOR_STANDING_Z:
             grid, before, after = maps
-            lo, hi = np.minimum(s.box_min, o.box_min), np.maximum(s.box_max, o.box_max)
-            appeared, vanished = door_evidence(grid, before, after, lo, hi)
+            lo, hi = spans[k]
+            others = spans[:k] + spans[k + 1 :]
+            appeared, vanished = door_evidence(grid, before, after, lo, hi, others=others)
             if max(appeared, vanished) < min_cells:
                 continue
             opened = appeared >= vanished
@@ -260,11 +304,36 @@ def find_toggles(
     kept: list[Toggle] = []
     for t in sorted(toggles, key=lambda t: -t.change_m):
         if all(
-            k.now.label != t.now.label or np.linalg.norm(k.now.centroid[:2] - t.now.centroid[:2]) > 1.2
+            k.now.label != t.now.label
+            or np.linalg.norm(k.now.centroid[:2] - t.now.centroid[:2]) > SAME_PIECE_M
             for k in kept
         ):
             kept.append(t)
     return kept
+
+
+def box_gap(box_min: np.ndarray, box_max: np.ndarray, point: np.ndarray) -> float:
+    """Metres from a 3D point to an axis-aligned box; 0 inside it."""
+    return float(np.linalg.norm(np.maximum(np.maximum(box_min - point, point - box_max), 0.0)))
+
+
+def neighbour_at(
+    point: np.ndarray, target: TrackedObject, tracks: Iterable[TrackedObject]
+) -> TrackedObject | None:
+    """Another tracked openable whose box is nearer the 3D ``point`` than ``target``'s (the
+    nearest such), or None. A track of the target's class within ``SAME_PIECE_M`` of it is
+    the same piece (its open door tracked apart), not another."""
+    own = box_gap(target.box_min, target.box_max, point)
+    best: tuple[float, TrackedObject] | None = None
+    for o in tracks:
+        if o is target or o.label not in OPENABLE:
+            continue
+        if o.label == target.label and np.linalg.norm(o.centroid[:2] - target.centroid[:2]) <= SAME_PIECE_M:
+            continue
+        gap = box_gap(o.box_min, o.box_max, point)
+        if gap < own and (best is None or gap < best[0]):
+            best = (gap, o)
+    return best[1] if best else None
 
 
 def put_turn(goal_axis: float | None, held: tuple[float, float] | None, heading: float) -> float | None:
@@ -362,6 +431,7 @@ class RearrangePolicy(TidyPolicy):
                     [s for s in self.walkthrough if s.label in PICKUPABLE],
                     [o for o in now if o.label in PICKUPABLE],
                     colours,
+                    MIN_OBS,
                 )
             ],
         )
@@ -446,16 +516,15 @@ class RearrangePolicy(TidyPolicy):
 
     # ------------------------------------------------------------------ openness
     def restore_openness(self, t: Toggle) -> Gen:
-        """Walk to the openable and set it back: Close when its box grew, Open when it shrank
-        (the other one if the server says it already is)."""
+        """Walk to the openable and set it back: Close when its box grew, Open when it shrank.
+        A pixel nearer another tracked openable than this one is not acted on (``neighbour_at``:
+        that would toggle the neighbour); the next standpoint is tried. When the server says it
+        already is, it is left so: either it is as the walkthrough saw it or the direction was
+        guessed wrong, and the other action was making things worse more often than not."""
         st = self.state
         st.target, st.phase, st.target_receptacle = t.now, "approaching", None
         shape = self.body.obs.depth.shape
-        first, second = (
-            (ActionName.CloseObject, ActionName.OpenObject)
-            if t.opened
-            else (ActionName.OpenObject, ActionName.CloseObject)
-        )
+        name = ActionName.CloseObject if t.opened else ActionName.OpenObject
         for radius in (0.6, 0.85):
             mask = goal_mask_near_box(self.body.mapper, t.now.box_min, t.now.box_max, radius)
             yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
@@ -463,20 +532,31 @@ class RearrangePolicy(TidyPolicy):
             sighting = find_in_view(self.body, t.now, max_pixel_gap=0.3)
             if sighting is None or sighting.distance > self.p.interact_m:
                 continue
+            other = neighbour_at(sighting.point, t.now, self.body.mapper.memory)
+            if other is not None:
+                self.event(
+                    "openness_neighbour",
+                    label=t.now.label,
+                    track_id=t.now.id,
+                    other=other.label,
+                    other_id=other.id,
+                )
+                continue
             st.phase = "opening"
-            for name in (first, second):
+            yield sighting.action(name, shape)
+            if self.body.obs.error == "blocked":  # the door would hit the agent: step back and retry
+                yield Action(ActionName.MoveBack)
                 yield sighting.action(name, shape)
-                if self.body.obs.error == "blocked":  # the door would hit the agent: step back and retry
-                    yield Action(ActionName.MoveBack)
-                    yield sighting.action(name, shape)
-                obs = self.body.obs
-                if obs.success:
-                    st.objects_fixed += 1
-                    self.event("openness_restored", label=t.now.label, action=name.value)
-                    st.target = None
-                    return True
-                if obs.error not in ("already_open", "already_closed"):
-                    break
+            obs = self.body.obs
+            if obs.success:
+                st.objects_fixed += 1
+                self.event("openness_restored", label=t.now.label, action=name.value)
+                st.target = None
+                return True
+            if obs.error in ("already_open", "already_closed"):
+                self.event("openness_unchanged", label=t.now.label, track_id=t.now.id, error=obs.error)
+                st.target = None
+                return False
         self.event("openness_failed", label=t.now.label, track_id=t.now.id)
         st.target = None
         return False
@@ -526,13 +606,15 @@ class RearrangePolicy(TidyPolicy):
         return best[1] if best else None
 
     def put_at(self, seen: Seen, held: tuple[float, float] | None = None) -> Gen:
-        """Put the held object at the remembered place: from beside it, reach to the point just
-        above its base (``Action.reach``: the spot need not be in sight, a counter top at eye
-        height never is), turned as it lay there (``held``: see ``put_turn``); then on the
-        receptacle tracked under it; on the floor where it stood on the floor."""
-        # The box's centre, not the centroid of the seen points: those lean towards the camera
+        """Put the held object at the remembered place (its top face's middle, ``Seen.middle``,
+        else its box's centre): from beside it, reach to the point just above its base
+        (``Action.reach``: the spot need not be in sight, a counter top at eye height never is),
+        turned as it lay there (``held``: see ``put_turn``); then on the receptacle tracked
+        under it; on the floor where it stood on the floor."""
+        # The weighted median of the views' top-face middles where the walkthrough had them, else
+        # the box's centre; not the centroid of the seen points: those lean towards the camera
         # (with the simulator's masks, 1 cm vs 5 cm median error from the true place).
-        centre = (seen.box_min + seen.box_max) / 2
+        centre = (seen.box_min + seen.box_max) / 2 if seen.middle is None else seen.middle
         target = np.array([centre[0], centre[1], max(float(seen.box_min[2]), 0.0) + REACH_LIFT_M])
         support = self.support_of(seen)
         self.state.target_receptacle = support.label if support is not None else "Floor"

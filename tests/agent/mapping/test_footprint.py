@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from tidee.agent.mapping.footprint import Footprint, FootprintVotes, axis_gap, footprint
+from tidee.agent.mapping.footprint import Footprint, FootprintVotes, axis_gap, footprint, weighted_median
 
 
 def box_view(
@@ -97,6 +97,41 @@ def test_no_axis_when_the_views_disagree_or_the_thing_is_round() -> None:
     round_ = FootprintVotes()
     round_.add(Footprint(33.0, 0.05, 500))
     assert round_.axis_deg() is None
+
+
+@pytest.mark.parametrize("heading", [0.0, 30.0, 100.0])
+def test_a_views_middle_is_that_of_the_top_face_not_of_the_side_or_the_table(heading: float) -> None:
+    # the side facing the camera and the table around it lie off to one side or all round; the
+    # top face's trimmed extent is centred on the box
+    fp = footprint(box_view((1.2, -0.4), (0.16, 0.05, 0.03), heading))
+    assert fp is not None and fp.middle is not None
+    assert np.allclose(fp.middle, (1.2, -0.4), atol=0.005)  # the points lie on a 4 mm grid
+    # a view that sees only part of the top (the mask cut 4 cm off its +x end): its middle moves 2 cm
+    pts = box_view((0.0, 0.0), (0.16, 0.05, 0.03), 0.0, surround=0.0)
+    part = footprint(pts[pts[:, 0] <= 0.04])
+    assert part is not None and part.middle is not None
+    assert np.allclose(part.middle, (-0.02, 0.0), atol=0.004)
+
+
+def test_weighted_median_is_where_half_the_weight_is_reached() -> None:
+    assert (
+        weighted_median(np.array([0.3, 0.1, 0.2]), np.array([150.0, 100.0, 100.0])) == 0.2
+    )  # 100, 200 >= 175
+    assert weighted_median(np.array([0.3, 0.1, 0.2]), np.array([400.0, 100.0, 100.0])) == 0.3
+    assert weighted_median(np.array([5.0]), np.array([1.0])) == 5.0
+
+
+def test_votes_give_the_weighted_median_of_the_views_middles() -> None:
+    v = FootprintVotes()
+    assert v.middle() is None
+    v.add(Footprint(0.0, 0.8, 300, middle=(0.10, 0.00)))  # a near view
+    v.add(Footprint(0.0, 0.8, 100, middle=(0.12, 0.05)))
+    v.add(Footprint(0.0, 0.8, 150, middle=(0.50, -0.30)))  # a bad mask, far off: no pull
+    v.add(Footprint(0.0, 0.8, 900))  # no middle: no say in it
+    # x: 0.10 (300) already reaches half of 550; y: -0.30 (150), 0.00 (450) reaches it
+    assert v.middle() == (0.10, 0.0)
+    v.add(Footprint(0.0, 0.8, 400, middle=(0.12, 0.05)))  # now 0.12 / 0.05 hold most of the weight
+    assert v.middle() == (0.12, 0.05)
 
 
 @pytest.mark.parametrize(

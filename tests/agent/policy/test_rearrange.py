@@ -5,10 +5,22 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from tidee.agent.mapping.geometry import GridSpec
 from tidee.agent.mapping.memory import TrackedObject
-from tidee.agent.policy.rearrange import Occupancy, Seen, box_change, find_moves, find_toggles, put_turn
+from tidee.agent.policy.rearrange import (
+    Occupancy,
+    Seen,
+    _pairs,
+    box_change,
+    door_evidence,
+    find_moves,
+    find_toggles,
+    neighbour_at,
+    put_turn,
+)
+from tidee.agent.policy.tidy import Gen
 
 
 def _track(
@@ -146,3 +158,145 @@ def test_the_rearrangement_agent_keeps_nearby_small_objects_apart_in_its_memory(
     assert other is not first
     shelf = memory.add_or_merge("Shelf", 0.9, c, c - 0.3, c + 0.3, step=0)
     assert memory.add_or_merge("Shelf", 0.9, c + [0.6, 0, 0], c - 0.3, c + 0.3, step=0) is shelf
+
+
+def test_a_glimpse_nearer_than_a_sure_tracks_match_does_not_take_it() -> None:
+    # a mug seen three times at the origin in the walkthrough, a glimpse of a mug at x = 3; now one
+    # sure mug at x = 2: nearer the glimpse, but the sure tracks pair first, and that is a move
+    then = [_seen("Mug", (0.0, 0.0, 0.9)), _seen("Mug", (3.0, 0.0, 0.9), n_obs=1)]
+    now = [_track(1, "Mug", (2.0, 0.0, 0.9))]
+    ((s, o, d),) = _pairs(then, now, min_obs=1)  # without the preference: the glimpse takes it
+    assert s.n_obs == 1 and np.isclose(d, 1.0)
+    ((s, o, d),) = _pairs(then, now, min_obs=2)
+    assert s.n_obs == 3 and np.isclose(d, 2.0)
+    (m,) = find_moves(then, now)
+    assert m.now.id == 1 and np.allclose(m.then.centroid, [0.0, 0.0, 0.9]) and np.isclose(m.distance, 2.0)
+
+
+def test_glimpses_take_part_in_the_matching_but_never_count_as_moves() -> None:
+    # two sure mugs then; now one sure mug at the first's place and a glimpse far from both: the
+    # glimpse pairs with the second (the only one left), but a pair with a glimpse is no move
+    then = [_seen("Mug", (0.0, 0.0, 0.9)), _seen("Mug", (1.0, 0.0, 0.9))]
+    now = [_track(1, "Mug", (0.0, 0.02, 0.9)), _track(2, "Mug", (3.0, 2.0, 0.9), n_obs=1)]
+    pairs = {o.id: tuple(s.centroid) for s, o, _ in _pairs(then, now, min_obs=2)}
+    assert pairs == {1: (0.0, 0.0, 0.9), 2: (1.0, 0.0, 0.9)}
+    assert find_moves(then, now) == []
+
+
+def test_door_cells_between_two_openables_count_for_the_nearest() -> None:
+    grid = GridSpec((0.0, 0.0), 0.05, (60, 40))  # 3 x 2 m
+    a = (np.array([0.0, 0.0, 0.0]), np.array([1.0, 1.0, 1.0]))  # footprints 1 m apart along x
+    b = (np.array([2.0, 0.0, 0.0]), np.array([3.0, 1.0, 1.0]))
+    seen = np.ones(grid.shape, bool)
+    free = np.zeros(grid.shape, bool)
+    cells = free.copy()
+    cells[20:40, 10] = True  # 20 cells at y 0.525, x 1.025 .. 1.975: 10 nearer each footprint
+    before, after = Occupancy(free, seen), Occupancy(cells, seen)
+    assert door_evidence(grid, before, after, *a) == (18, 0)  # alone: the 18 within 0.9 m of it
+    assert door_evidence(grid, before, after, *a, others=[b]) == (10, 0)
+    assert door_evidence(grid, before, after, *b, others=[a]) == (10, 0)
+    assert door_evidence(grid, after, before, *b, others=[a]) == (0, 10)  # vanished, the same way
+
+
+def test_a_fridge_door_opening_beside_a_cabinet_toggles_the_fridge_only() -> None:
+    grid = GridSpec((-2.0, -2.0), 0.05, (100, 80))
+    then = [_seen("Fridge", (1.0, 0.0, 0.45), half=0.4), _seen("Cabinet", (1.75, 0.0, 0.3), half=0.25)]
+    fridge = _track(1, "Fridge", (1.0, 0.0, 0.45), half=0.4)
+    fridge.box_min = fridge.box_min - np.array([0.0, 0.3, 0.0])  # the door swung out towards -y
+    cabinet = _track(2, "Cabinet", (1.75, 0.0, 0.3), half=0.25)
+    cabinet.box_min = cabinet.box_min - np.array([0.0, 0.2, 0.0])  # the door's points stretched it too
+    seen = np.ones(grid.shape, bool)
+    free = np.zeros(grid.shape, bool)
+    door = free.copy()
+    door[52:68, 29] = True  # 16 cells at y -0.525, x 0.625 .. 1.375: in the fridge's box now
+    # all of them lie within 0.9 m of the cabinet too: enough to toggle it were they counted for it
+    lo, hi = np.array([1.5, -0.45, 0.05]), np.array([2.0, 0.25, 0.55])
+    assert door_evidence(grid, Occupancy(free, seen), Occupancy(door, seen), lo, hi) == (16, 0)
+    (t,) = find_toggles(then, [fridge, cabinet], maps=(grid, Occupancy(free, seen), Occupancy(door, seen)))
+    assert t.now.label == "Fridge" and t.opened and t.cells == (16, 0)
+
+
+def test_a_pixel_nearer_another_openable_is_that_ones() -> None:
+    cabinet = _track(1, "Cabinet", (0.0, 0.0, 0.4), half=0.3)  # x -0.3 .. 0.3
+    fridge = _track(2, "Fridge", (0.75, 0.0, 0.9), half=0.4)  # x 0.35 .. 1.15
+    door = _track(3, "Cabinet", (0.2, -0.5, 0.4), half=0.1)  # the cabinet's own door, tracked apart
+    mug = _track(4, "Mug", (0.4, 0.0, 0.9))  # not an openable
+    tracks = [cabinet, fridge, door, mug]
+    assert neighbour_at(np.array([0.6, 0.0, 0.9]), cabinet, tracks) is fridge  # on the fridge
+    assert neighbour_at(np.array([0.1, 0.0, 0.6]), cabinet, tracks) is None  # on the cabinet
+    assert (
+        neighbour_at(np.array([0.32, 0.0, 0.5]), cabinet, tracks) is None
+    )  # 2 cm from it, 3 cm from the fridge
+    assert neighbour_at(np.array([0.2, -0.5, 0.4]), cabinet, tracks) is None  # its door: the same piece
+    assert neighbour_at(np.array([0.1, 0.0, 0.6]), fridge, tracks) is cabinet
+
+
+def _restore(
+    monkeypatch: pytest.MonkeyPatch, points: list[np.ndarray], replies: list[str | None]
+) -> tuple[list[str], list[str], bool]:
+    """Run ``restore_openness`` for a fridge that was opened (its box grew), beside a cabinet,
+    with the walk and the turn stubbed out: each standpoint's sighting is at the next of
+    ``points``, and the server answers the agent's actions with the next of ``replies`` (None:
+    done). Returns the actions, the events and the skill's result."""
+    from types import SimpleNamespace
+
+    from tidee.agent.classes import CLASSES
+    from tidee.agent.config import AgentConfig
+    from tidee.agent.mapping.config import MapConfig
+    from tidee.agent.mapping.maps import SemanticMapper
+    from tidee.agent.policy import rearrange
+    from tidee.agent.policy.skills import Body, Sighting
+
+    mapper = SemanticMapper(MapConfig(), CLASSES)
+    c = np.array([1.0, 0.0, 0.9])
+    fridge = mapper.memory.add_or_merge("Fridge", 0.9, c, c - 0.4, c + 0.4, step=0)
+    c = np.array([1.7, 0.0, 0.4])
+    mapper.memory.add_or_merge("Cabinet", 0.9, c, c - 0.25, c + 0.25, step=0)
+    body = Body(mapper)
+    body.obs = SimpleNamespace(depth=np.zeros((8, 8)), success=True, error=None)
+    events: list[str] = []
+    policy = rearrange.RearrangePolicy(
+        AgentConfig(), body, None, None, "Kitchen", lambda **kw: events.append(kw["kind"])
+    )
+    views = iter(points)
+
+    def stay(*args: object, **kwargs: object) -> Gen:
+        return True
+        yield
+
+    monkeypatch.setattr(rearrange, "navigate", stay)
+    monkeypatch.setattr(rearrange, "face_point", stay)
+    monkeypatch.setattr(rearrange, "find_in_view", lambda *a, **k: Sighting(None, 4, 4, 0.8, next(views)))
+    toggle = rearrange.Toggle(fridge, Seen.of(fridge), opened=True, change_m=0.5)
+    run, answers, actions = policy.restore_openness(toggle), iter(replies), []
+    try:
+        action = next(run)
+        while True:
+            actions.append(action.name.value)
+            error = next(answers)
+            body.obs = SimpleNamespace(depth=np.zeros((8, 8)), success=error is None, error=error)
+            action = run.send(None)
+    except StopIteration as stop:
+        return actions, events, stop.value
+
+
+def test_an_openable_already_as_wanted_is_left_alone(monkeypatch: pytest.MonkeyPatch) -> None:
+    on_fridge = np.array([0.7, -0.4, 0.9])
+    actions, events, done = _restore(monkeypatch, [on_fridge], ["already_closed"])
+    assert actions == ["CloseObject"] and not done  # no Open to make up for it
+    assert events == ["openness_unchanged"]
+
+
+def test_a_pixel_on_the_neighbour_is_skipped_and_a_blocked_door_retried(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    on_cabinet, on_fridge = np.array([1.6, -0.2, 0.5]), np.array([0.8, -0.4, 1.0])
+    actions, events, done = _restore(monkeypatch, [on_cabinet, on_fridge], ["blocked", None, None])
+    assert events == ["openness_neighbour", "openness_restored"] and done
+    assert actions == ["CloseObject", "MoveBack", "CloseObject"]
+    actions, events, done = _restore(monkeypatch, [on_cabinet, on_cabinet], [])
+    assert (
+        actions == []
+        and events == ["openness_neighbour", "openness_neighbour", "openness_failed"]
+        and not done
+    )
