@@ -508,7 +508,7 @@ class TidyPolicy:
                 if (yield from self.put_on(rec)):
                     return self._placed(obj.label, label)
             if label in asked:  # every mapped one failed (a stray track, full): look for another
-                if (yield from self.search_and_put(obj.label, label, asked=True, tried=done)):
+                if (yield from self.search_and_put(obj.label, label, asked=True, skip=done)):
                     return True
         # Receptacles the model wants but the memory lacks: search for them.
         for label in missing[: self.p.max_receptacle_classes]:
@@ -516,19 +516,17 @@ class TidyPolicy:
                 return True
         return False
 
-    def search_and_put(
-        self, held: str, label: str, asked: bool = False, tried: set[int] | None = None
-    ) -> Gen:
+    def search_and_put(self, held: str, label: str, asked: bool = False, skip: set[int] | None = None) -> Gen:
         """Walk to search goals for receptacle class ``label`` (the visual search network's
         points, else unexplored space) until one is mapped; put the held object on it.
 
         ``asked``: a household's preference asks for ``label``: ``ASKED_SEARCH_FACTOR`` times
         the goals, and every instance mapped is tried (the search goes on after they all
-        failed) before it gives up. ``tried``: ids of instances already tried in vain."""
+        failed) before it gives up. ``skip``: ids of instances already tried in vain."""
         st = self.state
         st.phase, st.target_receptacle = "searching_receptacle", label
         goals = self.p.search_goals * (ASKED_SEARCH_FACTOR if asked else 1)
-        tried = set() if tried is None else tried
+        tried = set() if skip is None else set(skip)
         while True:
             fresh = [r for r in self._instances(label) if r.id not in tried]
             for rec in fresh if asked else fresh[:1]:
