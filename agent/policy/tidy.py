@@ -283,7 +283,7 @@ class TidyPolicy:
             yield from self.tidy_object(obj)
             return
         self._asked_searched.add(category)
-        self.state.phase = "searching_object"
+        self.state.phase = "searching"
         self.event("asked_object", label=category, track_id=None)
         for _ in range(self.p.search_goals):
             if self.body.mapper.memory.of_label(category) or self.body.steps_left() <= self.p.reserve_steps:
