@@ -653,3 +653,29 @@ def test_after_tidying_the_objects_a_household_names_are_visited_or_searched_for
     del stray.meta["give_up"]
     policy.placed.append(("Mug", np.array([5.0, 5.0])))
     assert policy.asked_object_goal() is None
+
+
+def test_a_named_category_not_mapped_is_searched_for_until_one_is(monkeypatch):
+    from tidee.protocol.messages import PHASES
+
+    policy, events = _policy(variant="CommonMemory")
+    mem = policy.body.mapper.memory
+    phases: list[str] = []
+
+    def clock_seen(n):
+        phases.append(policy.state.phase)
+        if n == 2:
+            mem.add_or_merge(
+                "AlarmClock",
+                0.9,
+                np.array([1.0, 0, 0.7]),
+                np.array([0.9, -0.1, 0.6]),
+                np.array([1.1, 0.1, 0.8]),
+                1,
+            )
+
+    goals = _stub_walks(monkeypatch, policy, clock_seen)
+    _drive(policy.tidy_asked("AlarmClock", None))
+    assert len(goals) == 2 and "AlarmClock" in policy._asked_searched  # stops once one is mapped
+    assert set(phases) <= set(PHASES)  # a phase the telemetry knows
+    assert [e["kind"] for e in events] == ["asked_object"]
