@@ -28,6 +28,9 @@ Skill = Generator[Action, None, bool]
 AGENT_RADIUS = 0.2  # metres (the server's collision radius)
 PITCHES = (-30.0, 0.0, 30.0, 60.0)
 MOVE_M = 0.25
+RETRY_AWAY_M = 0.5  # a retried approach stands at least this far from the spots already tried, metres
+EDGE_MARGIN = 0.05  # share of the frame's width / height at each border that a put never aims at
+AIM_MIN_SHARE = 0.2  # other receptacles' pixels are avoided only while this share of the target's remains
 
 
 @dataclass
@@ -74,6 +77,26 @@ def goal_mask_near_box(
     xs = g.origin[0] + (np.arange(g.shape[0]) + 0.5) * g.cell
     ys = g.origin[1] + (np.arange(g.shape[1]) + 0.5) * g.cell
     return footprint_gap(box_min, box_max, xs[:, None], ys[None, :]) <= radius
+
+
+def mask_away_from(
+    mask: np.ndarray,
+    grid,
+    tried_xy: list[np.ndarray] | list[tuple[float, float]],
+    min_m: float = RETRY_AWAY_M,
+) -> np.ndarray:
+    """``mask`` (bool nav grid) without the cells whose centre is within ``min_m`` of one of
+    the (x, y) positions ``tried_xy``: the goal region of a retry from another side of a
+    target, after the spots already tried saw nothing or could not reach it. Empty when every
+    cell is near a tried spot (the caller decides whether to fall back on ``mask``)."""
+    if not len(tried_xy):
+        return mask.copy()
+    xs = grid.origin[0] + (np.arange(grid.shape[0]) + 0.5) * grid.cell
+    ys = grid.origin[1] + (np.arange(grid.shape[1]) + 0.5) * grid.cell
+    near = np.zeros(mask.shape, bool)
+    for p in tried_xy:
+        near |= np.hypot(xs[:, None] - float(p[0]), ys[None, :] - float(p[1])) < min_m
+    return mask & ~near
 
 
 STUCK_TURNS = 4  # 90-degree turns on the spot before a stuck walk gives up
@@ -393,6 +416,8 @@ def sighting_of(
     avoid_m: float = 0.4,
     within: tuple[np.ndarray, np.ndarray] | None = None,
     within_m: float = 0.15,
+    others: np.ndarray | None = None,
+    edge: float = 0.0,
 ) -> Sighting | None:
     """The pixel of a detection to act on: its region's most central pixel with valid depth.
 
@@ -405,11 +430,15 @@ def sighting_of(
     pixels within ``avoid_m`` of them are skipped while others remain, first in the top band,
     then (when the whole top band was tried: a full top board) among the other reachable points,
     again preferring the highest.
+    ``others``, ``edge``: pixels not to aim at while the region has others (``aim_region``).
     """
     obs = body.obs
     assert obs is not None
     h, w = obs.depth.shape
-    pts, index = unproject(obs.depth, obs.intrinsics, obs.camera_pose, mask=det.region((h, w)))
+    region = det.region((h, w))
+    if others is not None or edge > 0:
+        region = aim_region(region, others, edge)
+    pts, index = unproject(obs.depth, obs.intrinsics, obs.camera_pose, mask=region)
     if len(index) == 0:
         return None
     ys, xs = np.divmod(index, w)
@@ -435,6 +464,41 @@ def sighting_of(
         weight = np.where(keep, np.hypot(xs - cx, ys - cy), np.inf)
     k = int(np.argmin(weight))
     return Sighting(det, int(xs[k]), int(ys[k]), float(dist[k]), pts[k])
+
+
+def aim_region(region: np.ndarray, others: np.ndarray | None = None, edge: float = EDGE_MARGIN) -> np.ndarray:
+    """The pixels of a receptacle's ``region`` (bool HxW) a put may aim at: not within ``edge``
+    (a share of the width / height) of the frame's border, where the depth and the detector's
+    mask are least sure, and not on ``others`` (bool HxW: other receptacles' detections, so
+    that a put aimed at a side table does not land on the bed beside it, whose mask the table's
+    box overlaps). The border rule is dropped when it would leave no pixel; the other
+    receptacles' rule when it would leave less than ``AIM_MIN_SHARE`` of the region (masks of
+    neighbours at one depth can cover the whole target: a sliver left over would be its edge)."""
+    h, w = region.shape
+    inner = np.zeros_like(region)
+    mh, mw = int(math.ceil(edge * h)), int(math.ceil(edge * w))
+    inner[mh : h - mh, mw : w - mw] = True
+    keep = region & inner if (region & inner).any() else region
+    if others is not None:
+        free = keep & ~others
+        if free.any() and free.sum() >= AIM_MIN_SHARE * keep.sum():
+            keep = free
+    return keep
+
+
+def other_receptacles(body: Body, det: Detection, labels: frozenset[str]) -> np.ndarray | None:
+    """bool HxW: the pixels of the frame's detections of ``labels`` other than ``det`` (None
+    when there is none)."""
+    obs = body.obs
+    assert obs is not None
+    shape = obs.depth.shape
+    out = None
+    for d in body.detections:
+        if d is det or d.label not in labels:
+            continue
+        r = d.region(shape)
+        out = r.copy() if out is None else out | r
+    return out
 
 
 def _top_band(pts: np.ndarray, among: np.ndarray, band_m: float = 0.08) -> np.ndarray:

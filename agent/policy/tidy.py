@@ -14,7 +14,13 @@ pseudo code::
                class a household's preference asks for: always first, and every mapped
                instance of it is tried before the next class)
         after m failed tries per class: drop the object where the agent stands
+    with a household's preferences, when no OOP object is left: each object a category
+        preference names and the agent has not handled: walk up to it (mapped) or search
+        for it (not mapped) and put it where asked if it is not there
     Done
+
+Approaching an object or a receptacle that is not in view or not within reach from the spot
+reached: the neighbouring pitch, then another spot at least ``RETRY_AWAY_M`` from those tried.
 
 Every decision reads the agent's own maps and detections; events go to ``on_event``.
 """
@@ -39,7 +45,9 @@ from tidee.agent.navigation.explore import (
     unexplored_fraction,
 )
 from tidee.agent.policy.skills import (
+    EDGE_MARGIN,
     MOVE_M,
+    PITCHES,
     Body,
     Sighting,
     face_point,
@@ -47,7 +55,9 @@ from tidee.agent.policy.skills import (
     frontier_goal,
     goal_mask_near_box,
     look_around,
+    mask_away_from,
     navigate,
+    other_receptacles,
     pitch_to,
     planner_and_reach,
     projected_sighting,
@@ -65,6 +75,8 @@ if TYPE_CHECKING:  # the profile module loads the text encoder; the policy only 
 
 Gen = Generator[Action, None, Any]
 FLOOR = "Floor"
+APPROACH_TRIES = 4  # walks to get an object or a receptacle in view and within reach
+ASKED_SEARCH_FACTOR = 2  # a receptacle a preference asks for gets this many times the search goals
 
 
 class Searcher(Protocol):
@@ -135,6 +147,7 @@ class TidyPolicy:
         self.frontier = FrontierExplorer(body.mapper.grid)
         self._rescore = True
         self._last_put_xy = np.zeros(2)
+        self._asked_searched: set[str] = set()  # named categories searched for after the tidying
 
     @staticmethod
     def map_config(config: MapConfig) -> MapConfig:
@@ -212,6 +225,11 @@ class TidyPolicy:
                 self.state.phase = "searching"
                 continue
             if empty_goals >= self.p.k_empty_goals:
+                asked = self.asked_object_goal()
+                if asked is not None:  # an object a preference names, not handled yet
+                    yield from self.tidy_asked(*asked)
+                    self.state.phase = "searching"
+                    continue
                 self.state.end_reason = f"no out-of-place object found after {empty_goals} search goals"
                 break
             goal = sample_reachable_goal(
@@ -227,6 +245,54 @@ class TidyPolicy:
         self.state.phase = "done"
         self.event("done", reason=self.state.end_reason, fixed=self.state.objects_fixed)
         yield Action(ActionName.Done)
+
+    def asked_object_goal(self) -> tuple[str, TrackedObject | None] | None:
+        """After the usual tidying, the next object a category preference names that the agent
+        has not handled: (category, track) for a mapped one not visited for it yet (its OOP
+        score left it alone, or an approach gave up on it: from up close the agent judges it
+        again), (category, None) for a category it has not mapped, to search for like a
+        receptacle; None when every named category is handled (one of it put away by the
+        agent, its mapped ones visited, or searched for in vain)."""
+        if self.preferences is None:
+            return None
+        memory, xy = self.body.mapper.memory, self.body.xy
+        for cat in self.preferences.named_categories():
+            if cat not in PICKUPABLE or any(lbl == cat for lbl, _ in self.placed):
+                continue
+            tracks = [
+                o
+                for o in memory.of_label(cat)
+                if not o.meta.get("asked_visit")
+                and not self._is_placed(o)
+                and (not o.meta.get("give_up") or o.n_obs >= 2)
+            ]
+            if tracks:
+                return cat, min(tracks, key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
+            if cat not in self._asked_searched and not memory.of_label(cat):
+                return cat, None
+        return None
+
+    def tidy_asked(self, category: str, obj: TrackedObject | None) -> Gen:
+        """Handle what ``asked_object_goal`` chose: walk up to the mapped object and tidy it if
+        it is not where the preferences want it; or search for the category (the search
+        network's points for it, else unexplored space) until one is mapped."""
+        if obj is not None:
+            obj.meta["asked_visit"] = True
+            obj.meta.pop("give_up", None)
+            self.event("asked_object", label=category, track_id=obj.id)
+            yield from self.tidy_object(obj)
+            return
+        self._asked_searched.add(category)
+        self.state.phase = "searching"
+        self.event("asked_object", label=category, track_id=None)
+        for _ in range(self.p.search_goals):
+            if self.body.mapper.memory.of_label(category) or self.body.steps_left() <= self.p.reserve_steps:
+                break
+            goal = self.search_goal(category)
+            if goal is None:
+                break
+            yield from navigate(self.body, goal_xy=goal, budget=self.p.goal_step_budget)
+            yield from look_around(self.body, pitches=(30.0,))
 
     def explore_randomly(self, planner: Any, reachable: np.ndarray) -> tuple[float, float] | None:
         """--explorer random: a random reachable cell not yet explored."""
@@ -336,11 +402,17 @@ class TidyPolicy:
         the eye-to-object distance can be within ``interact_m`` (a floor object is ~0.9 m
         below the camera, so it must be nearer in (x, y) than a table top). Seen but too far:
         the next try walks 0.25 m closer; not seen or no way there: the next try widens the
-        ring instead (another side of the object).
+        ring and stands at least ``RETRY_AWAY_M`` from every spot already tried (another side
+        of the object), up to ``APPROACH_TRIES`` walks.
         """
         radius = min(radius, self._reach_xy(obj))
-        for _attempt in range(3):
+        tried: list[np.ndarray] = []  # spots stood on without the object within reach
+        closer = False
+        for _attempt in range(APPROACH_TRIES):
             mask = goal_mask_near_box(self.body.mapper, obj.box_min, obj.box_max, radius)
+            if tried and not closer:  # not seen or no way there: from another side
+                away = mask_away_from(mask, self.body.mapper.grid, tried)
+                mask = away if away.any() else mask
             arrived = yield from navigate(
                 self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget
             )
@@ -361,7 +433,9 @@ class TidyPolicy:
                     )
             if self.body.steps_left() <= 2:
                 break
-            radius = max(radius - MOVE_M, 0.25) if seen_far and arrived else radius + 0.15
+            tried.append(self.body.xy.copy())
+            closer = seen_far and arrived
+            radius = max(radius - MOVE_M, 0.25) if closer else radius + 0.15
         return None
 
     def _pick_unseen(self, obj: TrackedObject) -> bool:
@@ -406,7 +480,7 @@ class TidyPolicy:
             # Algorithm S1 (and always for an asked receptacle): the best receptacle is not in
             # memory: search for it first
             searched = top
-            if (yield from self.search_and_put(obj.label, top)):
+            if (yield from self.search_and_put(obj.label, top, asked=top in asked)):
                 return True
         st.phase = "placing"
         tried = 0
@@ -428,36 +502,47 @@ class TidyPolicy:
                 continue
             tried += 1
             st.target_receptacle = label
+            done: set[int] = set()
             for rec in instances if label in asked else instances[:2]:
+                done.add(rec.id)
                 if (yield from self.put_on(rec)):
                     return self._placed(obj.label, label)
             if label in asked:  # every mapped one failed (a stray track, full): look for another
-                if (yield from self.search_and_put(obj.label, label)):
+                if (yield from self.search_and_put(obj.label, label, asked=True, skip=done)):
                     return True
         # Receptacles the model wants but the memory lacks: search for them.
         for label in missing[: self.p.max_receptacle_classes]:
-            if (yield from self.search_and_put(obj.label, label)):
+            if (yield from self.search_and_put(obj.label, label, asked=label in asked)):
                 return True
         return False
 
-    def search_and_put(self, held: str, label: str) -> Gen:
+    def search_and_put(self, held: str, label: str, asked: bool = False, skip: set[int] | None = None) -> Gen:
         """Walk to search goals for receptacle class ``label`` (the visual search network's
-        points, else unexplored space) until one is mapped; put the held object on it."""
+        points, else unexplored space) until one is mapped; put the held object on it.
+
+        ``asked``: a household's preference asks for ``label``: ``ASKED_SEARCH_FACTOR`` times
+        the goals, and every instance mapped is tried (the search goes on after they all
+        failed) before it gives up. ``skip``: ids of instances already tried in vain."""
         st = self.state
         st.phase, st.target_receptacle = "searching_receptacle", label
-        for _ in range(self.p.search_goals):
-            if self._instances(label) or self.body.steps_left() <= self.p.reserve_steps:
-                break
+        goals = self.p.search_goals * (ASKED_SEARCH_FACTOR if asked else 1)
+        tried = set() if skip is None else set(skip)
+        while True:
+            fresh = [r for r in self._instances(label) if r.id not in tried]
+            for rec in fresh if asked else fresh[:1]:
+                tried.add(rec.id)
+                st.phase = "placing"
+                if (yield from self.put_on(rec)):
+                    return self._placed(held, label)
+            if (fresh and not asked) or goals <= 0 or self.body.steps_left() <= self.p.reserve_steps:
+                return False
             goal = self.search_goal(label)
             if goal is None:
-                break
+                return False
+            goals -= 1
+            st.phase = "searching_receptacle"
             yield from navigate(self.body, goal_xy=goal, budget=self.p.goal_step_budget)
             yield from look_around(self.body, pitches=(30.0,))
-        for rec in self._instances(label)[:1]:
-            st.phase = "placing"
-            if (yield from self.put_on(rec)):
-                return self._placed(held, label)
-        return False
 
     def search_goal(self, label: str) -> tuple[float, float] | None:
         """Where to look for a class not in memory: the visual search network's best point not
@@ -542,15 +627,25 @@ class TidyPolicy:
         return True
 
     def put_on(self, rec: TrackedObject) -> Gen:
-        """Go to a receptacle and put the held object on/in it (opening it first if needed)."""
+        """Go to a receptacle and put the held object on/in it (opening it first if needed).
+
+        Up to ``APPROACH_TRIES`` walks and ``m_place_tries`` puts. From each spot reached the
+        agent faces the receptacle's top; not detected there, it tries the neighbouring
+        pitches before walking on. A spot from which it was not seen or not within reach is
+        not stood on again: the next goal region keeps ``RETRY_AWAY_M`` from it; a put that
+        found no free space sends the next walk to another side. The aim pixel keeps off the
+        frame's border and off other receptacles' pixels (``aim_region``). A door that would
+        hit the agent when opened ("blocked"): one step back and one more try.
+        """
         shape = self.body.obs.depth.shape
-        no_room: list[
-            np.ndarray
-        ] = []  # points where a put found no free space or no receptacle: aim elsewhere
+        no_room: list[np.ndarray] = []  # points where a put found no free space or no receptacle
+        tried: list[np.ndarray] = []  # spots from which it was not seen, or not within reach
         seen = False
-        for attempt in range(self.p.m_place_tries):
-            if self.body.steps_left() <= 2:
-                return False
+        puts = 0
+        for attempt in range(max(APPROACH_TRIES, self.p.m_place_tries)):
+            if self.body.steps_left() <= 2 or puts >= self.p.m_place_tries:
+                break
+            grid = self.body.mapper.grid
             mask = goal_mask_near_box(
                 self.body.mapper, rec.box_min, rec.box_max, (0.5, 0.35, 0.75)[attempt % 3]
             )
@@ -560,39 +655,37 @@ class TidyPolicy:
                 )
                 other = mask & ~near
                 mask = other if other.any() else mask
+            if tried:
+                away = mask_away_from(mask, grid, tried)
+                mask = away if away.any() else mask
             yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
             top = rec.centroid.copy()
             top[2] = rec.box_max[2]
             yield from face_point(self.body, top)
             det = self._detection_of(rec)
-            if det is None:
-                continue
-            seen = True
-            sighting = sighting_of(
-                self.body,
-                det,
-                prefer_top=True,
-                reach=self.p.interact_m,
-                avoid=no_room,
-                within=(rec.box_min, rec.box_max),
-            )
+            if det is None:  # the neighbouring pitches before another spot
+                pitch = self.body.pose[3]
+                for q in sorted(PITCHES, key=lambda q: abs(q - pitch)):
+                    if abs(abs(q - pitch) - 30.0) > 1.0 or self.body.steps_left() <= 2:
+                        continue
+                    yield from pitch_to(self.body, q)
+                    det = self._detection_of(rec)
+                    if det is not None:
+                        break
+            sighting = self._aim(rec, det, no_room) if det is not None else None
+            seen = seen or det is not None
             if sighting is None or sighting.distance > self.p.interact_m + 0.1:
-                continue  # not within reach from here: walk again, closer
+                tried.append(self.body.xy.copy())
+                continue  # not seen, or not within reach from here: walk again, elsewhere
+            puts += 1
             yield sighting.action(ActionName.PutObject, shape)
             obs = self.body.obs
             if obs.success:
                 self._last_put_xy = sighting.point[:2].copy()
                 return True
             if obs.error == "receptacle_closed":
-                yield sighting.action(ActionName.OpenObject, shape)
-                if self.body.obs.success:
-                    yield sighting.action(ActionName.PutObject, shape)
-                    if self.body.obs.success:
-                        self._last_put_xy = sighting.point[:2].copy()
-                        yield sighting.action(ActionName.CloseObject, shape)
-                        return True
-                elif self.body.obs.error == "blocked":
-                    yield Action(ActionName.MoveBack)
+                if (yield from self._open_and_put(rec, sighting, top, no_room)):
+                    return True
             elif obs.error in ("no_free_space", "not_receptacle"):  # aim elsewhere next time (not_receptacle:
                 no_room.append(sighting.point)  # a wall or window above a shelf)
                 if obs.error == "no_free_space":
@@ -607,8 +700,49 @@ class TidyPolicy:
                 "put_failed",
                 receptacle=rec.label,
                 error="not_in_view",
-                message=f"no {rec.label} detected from beside track {rec.id} in {self.p.m_place_tries} tries",
+                message=f"no {rec.label} detected from beside track {rec.id} in {attempt + 1} walks",
             )
+        return False
+
+    def _aim(self, rec: TrackedObject, det: Any, no_room: list[np.ndarray]) -> Sighting | None:
+        """Where on ``det`` (a detection of ``rec``) to put: its top within the mapped box, away
+        from points already tried, the frame's border and other receptacles' pixels."""
+        return sighting_of(
+            self.body,
+            det,
+            prefer_top=True,
+            reach=self.p.interact_m,
+            avoid=no_room,
+            within=(rec.box_min, rec.box_max),
+            others=other_receptacles(self.body, det, PLACEABLE_RECEPTACLES),
+            edge=EDGE_MARGIN,
+        )
+
+    def _open_and_put(
+        self, rec: TrackedObject, sighting: Sighting, top: np.ndarray, no_room: list[np.ndarray]
+    ) -> Gen:
+        """Open a closed receptacle, put the held object in and close it again. An opening
+        refused as "blocked" (the door would hit the agent): step back, aim again, retry once."""
+        shape = self.body.obs.depth.shape
+        for retry in range(2):
+            yield sighting.action(ActionName.OpenObject, shape)
+            if self.body.obs.success:
+                yield sighting.action(ActionName.PutObject, shape)
+                if self.body.obs.success:
+                    self._last_put_xy = sighting.point[:2].copy()
+                    yield sighting.action(ActionName.CloseObject, shape)
+                    return True
+                return False
+            if self.body.obs.error != "blocked" or retry or self.body.steps_left() <= 4:
+                return False
+            self.event("open_blocked", receptacle=rec.label)
+            yield Action(ActionName.MoveBack)
+            yield from face_point(self.body, top)
+            det = self._detection_of(rec)
+            again = self._aim(rec, det, no_room) if det is not None else None
+            if again is None or again.distance > self.p.interact_m + 0.1:
+                return False
+            sighting = again
         return False
 
     def _detection_of(self, rec: TrackedObject):

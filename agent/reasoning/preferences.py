@@ -19,7 +19,12 @@ OOP detector and placement model:
   forbids are dropped, the rest keep the placement model's order (a variant without a
   placement model ranks only what preferences ask for); the policy searches for an asked
   receptacle it has not mapped before trying anything else, and tries every mapped one of it
-  (then searches for another) before the model's next choice (``TidyPolicy.put_away``).
+  (then searches for another, with twice the usual search goals) before the model's next
+  choice (``TidyPolicy.put_away``);
+* **did it find them?** after its usual tidying the policy looks for the objects the category
+  preferences name (``named_categories``) that it has not handled: it walks up to a mapped
+  one its OOP score left alone (it judges again from up close) and searches, like for a
+  receptacle, for one it has not seen (``TidyPolicy.asked_object_goal``).
 
 Sentences a person types in the viewer join the profile and, when it came from a file, are
 written back to it, so a household's preferences persist from one run to the next.
@@ -198,6 +203,11 @@ class PreferenceProfile:
 
     def about(self, category: str) -> list[Preference]:
         return [p for p in self.preferences if category in p.categories]
+
+    def named_categories(self) -> list[str]:
+        """The categories the category preferences name (not the groups' members), in the
+        order they were said: the objects the policy makes sure of after its usual tidying."""
+        return list(dict.fromkeys(p.categories[0] for p in self.preferences if p.group is None))
 
     # ------------------------------------------------------------------ the two questions
     def adjust_oop(

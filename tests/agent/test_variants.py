@@ -273,8 +273,10 @@ def _placing_policy(missing_top, ranked, puts_succeed):
         return puts_succeed
         yield  # unreachable: makes this a generator like the real put_on
 
-    def search_and_put(held, label):
-        tried.append(f"search:{label}")
+    def search_and_put(held, label, asked=False, skip=None):
+        tried.append(f"search:{label}" + (" (asked)" if asked else ""))
+        if skip is not None:
+            tried.append(f"skipping {len(skip)}")
         return False
         yield  # noqa
 
@@ -327,7 +329,7 @@ def test_a_receptacle_a_household_asks_for_is_searched_for_first_and_every_insta
     policy, tried, obj = _placing_policy("skip", ranked, puts_succeed=False)
     policy.preferences = PreferenceProfile([parse_preference("the apple goes in the fridge")])
     assert _drive(policy.put_away(obj)) is False
-    assert tried == ["search:Fridge", "put:CounterTop", "search:Sink"]
+    assert tried == ["search:Fridge (asked)", "put:CounterTop", "search:Sink"]
     # an asked counter top in memory: every mapped one is tried (not only two), then another
     # is searched for before the model's next choice
     policy, tried, obj = _placing_policy("skip", [("Sink", 0.7), ("CounterTop", 0.3)], puts_succeed=False)
@@ -335,7 +337,8 @@ def test_a_receptacle_a_household_asks_for_is_searched_for_first_and_every_insta
     assert len(policy._instances("CounterTop")) == 3
     policy.preferences = PreferenceProfile([parse_preference("the apple goes on the counter top")])
     assert _drive(policy.put_away(obj)) is False
-    assert tried == ["put:CounterTop"] * 3 + ["search:CounterTop", "search:Sink"]
+    # (the search for another is told which three were tried)
+    assert tried == ["put:CounterTop"] * 3 + ["search:CounterTop (asked)", "skipping 3", "search:Sink"]
     # without the preference: two instances of the model's choice, no second search for it
     policy, tried, obj = _placing_policy("skip", [("CounterTop", 0.7), ("Sink", 0.3)], puts_succeed=False)
     _more_counter_tops(policy.body.mapper.memory)
@@ -401,20 +404,43 @@ def test_a_receptacle_whose_track_is_off_is_still_found_by_its_class_in_view():
     assert policy._detection_of(track) is None
 
 
-def test_a_receptacle_never_seen_from_beside_its_track_is_marked_and_reported(monkeypatch):
+def test_a_receptacle_not_seen_is_looked_for_at_the_next_pitches_then_from_spots_apart(monkeypatch):
     from tidee.agent.policy import tidy
 
     def nothing(*a, **kw):
         return
         yield
 
-    monkeypatch.setattr(tidy, "navigate", nothing)
-    monkeypatch.setattr(tidy, "face_point", nothing)
     policy, events = _policy(variant="CommonMemory")
+    grid = policy.body.mapper.grid
+    walks: list[tuple[np.ndarray, np.ndarray]] = []  # (goal region, the spot reached)
+    pitches: list[float] = []
+
+    def walk(body, goal_mask=None, **kw):  # arrives at the goal cell nearest the shelf
+        cells = grid.cell_to_world(np.argwhere(goal_mask))
+        spot = cells[np.argmin(np.hypot(cells[:, 0] - 1.0, cells[:, 1] - 2.0))]
+        walks.append((cells, spot))
+        body.obs.agent_pose = (float(spot[0]), float(spot[1]), 0.0, 30.0)
+        return True
+        yield
+
+    def pitch(body, target):
+        pitches.append(target)
+        return True
+        yield
+
+    monkeypatch.setattr(tidy, "navigate", walk)
+    monkeypatch.setattr(tidy, "face_point", nothing)
+    monkeypatch.setattr(tidy, "pitch_to", pitch)
     policy.body.obs.depth = np.ones((8, 8), np.float32)
     policy._detection_of = lambda rec: None
     shelf = _shelf(policy.body.mapper.memory, 1.0)
     assert _drive(policy.put_on(shelf)) is False
+    # four walks; from each spot the two pitches beside the one facing the shelf (30 degrees)
+    assert len(walks) == tidy.APPROACH_TRIES and pitches == [0.0, 60.0] * tidy.APPROACH_TRIES
+    for k, (cells, _) in enumerate(walks):  # each goal region keeps 0.5 m from the spots stood on
+        for _, spot in walks[:k]:
+            assert np.hypot(*(cells - spot).T).min() >= 0.5 - 1e-6
     assert shelf.meta["unseen"] is True and shelf.id not in [o.id for o in policy._instances("Shelf")]
     failed = [e for e in events if e["kind"] == "put_failed"]
     assert (
@@ -467,3 +493,189 @@ def test_a_put_aims_at_the_receptacle_not_the_window_above_it_then_below_a_tried
     # a mapped box that misses every point (a track that is off) is ignored rather than emptying the aim
     off = (np.array([5.0, 5.0, 0.0]), np.array([6.0, 6.0, 1.0]))
     assert sighting_of(body, det, prefer_top=True, reach=2.0, within=off).point[2] == pytest.approx(2.0)
+
+
+# ----------------------------------------------------------------------------- what a household asks for
+def _stub_walks(monkeypatch, policy, on_goal=None):
+    """navigate / look_around that yield nothing; search goals at fixed points, counted."""
+    from tidee.agent.policy import tidy
+
+    goals: list[tuple[float, float]] = []
+
+    def nothing(*a, **kw):
+        return True
+        yield
+
+    def walk(body, goal_xy=None, **kw):
+        if on_goal is not None:
+            on_goal(len(goals))
+        return True
+        yield
+
+    monkeypatch.setattr(tidy, "navigate", walk)
+    monkeypatch.setattr(tidy, "look_around", nothing)
+
+    def search_goal(label):
+        goals.append((float(len(goals)), 0.0))
+        return goals[-1]
+
+    policy.search_goal = search_goal
+    return goals
+
+
+def test_an_asked_receptacle_is_searched_for_twice_as_long_and_every_instance_found_is_tried(monkeypatch):
+    from tidee.agent.policy import tidy
+
+    policy, _ = _policy(variant="CommonMemory")
+    tried: list[int] = []
+
+    def put_on(rec):
+        tried.append(rec.id)
+        return False
+        yield
+
+    policy.put_on = put_on
+    # nothing found: the usual goals, and twice as many for an asked receptacle
+    goals = _stub_walks(monkeypatch, policy)
+    assert _drive(policy.search_and_put("Apple", "Fridge")) is False
+    assert len(goals) == policy.p.search_goals
+    goals.clear()
+    assert _drive(policy.search_and_put("Apple", "Fridge", asked=True)) is False
+    assert len(goals) == tidy.ASKED_SEARCH_FACTOR * policy.p.search_goals
+    # two counter tops turn up after the second goal: without a preference only the first is
+    # tried and the search ends; asked, both are tried (not the one skipped) and the search goes on
+    mem = policy.body.mapper.memory
+
+    def counter_tops(n):
+        if n == 2 and not mem.of_label("CounterTop"):
+            _more_counter_tops(mem)
+
+    goals = _stub_walks(monkeypatch, policy, counter_tops)
+    assert _drive(policy.search_and_put("Apple", "CounterTop")) is False
+    assert len(goals) == 2 and len(tried) == 1
+    tried.clear()
+    for o in mem.of_label("CounterTop"):
+        mem.remove(o.id)
+    goals = _stub_walks(monkeypatch, policy, counter_tops)
+    assert _drive(policy.search_and_put("Apple", "CounterTop", asked=True)) is False
+    assert sorted(tried) == sorted(o.id for o in mem.of_label("CounterTop"))
+    assert len(goals) == tidy.ASKED_SEARCH_FACTOR * policy.p.search_goals
+    # one that takes the object: placed; instances already tried in vain are skipped
+    tried.clear()
+
+    def takes(rec):
+        tried.append(rec.id)
+        return True
+        yield
+
+    policy.put_on = takes
+    first, second = (o.id for o in policy._instances("CounterTop"))
+    assert _drive(policy.search_and_put("Apple", "CounterTop", asked=True, skip={first})) is True
+    assert tried == [second]
+
+
+def test_a_door_that_would_hit_the_agent_is_opened_again_after_a_step_back(monkeypatch):
+    from tidee.agent.policy import tidy
+    from tidee.agent.policy.skills import Sighting
+
+    def nothing(*a, **kw):
+        return True
+        yield
+
+    monkeypatch.setattr(tidy, "face_point", nothing)
+    policy, events = _policy(variant="CommonMemory")
+    policy.body.obs.depth = np.ones((8, 8), np.float32)
+    fridge = _shelf(policy.body.mapper.memory, 1.0)
+    aim = Sighting(None, 4, 4, 1.0, np.array([1.0, 2.0, 1.0]))
+    policy._detection_of = lambda rec: "a detection"
+    policy._aim = lambda rec, det, no_room: aim
+
+    def run(results):
+        """Drive _open_and_put, answering each action with the next (success, error)."""
+        gen, done, answers = policy._open_and_put(fridge, aim, np.zeros(3), []), [], iter(results)
+        try:
+            action = next(gen)
+            while True:
+                done.append(action.name.value)
+                ok, err = next(answers)
+                policy.body.obs.success, policy.body.obs.error = ok, err
+                action = gen.send(None)
+        except StopIteration as stop:
+            return stop.value, done
+
+    ok, done = run([(False, "blocked"), (True, ""), (True, ""), (True, ""), (True, "")])
+    assert ok and done == ["OpenObject", "MoveBack", "OpenObject", "PutObject", "CloseObject"]
+    assert [e["kind"] for e in events] == ["open_blocked"]
+    ok, done = run([(False, "blocked"), (True, ""), (False, "blocked")])  # retried once only
+    assert not ok and done == ["OpenObject", "MoveBack", "OpenObject"]
+    ok, done = run([(False, "not_openable")])  # another refusal: no step back
+    assert not ok and done == ["OpenObject"]
+
+
+def test_after_tidying_the_objects_a_household_names_are_visited_or_searched_for():
+    from tidee.agent.reasoning.preferences import PreferenceProfile, parse_preference
+
+    policy, _ = _policy(variant="CommonMemory")
+    assert policy.asked_object_goal() is None  # no preferences: nothing asked
+    policy.preferences = PreferenceProfile(
+        [
+            parse_preference("the alarm clock goes on the desk"),
+            parse_preference("never put the mug on the floor"),
+        ]
+    )
+    mem = policy.body.mapper.memory
+    # neither mapped: the first named category is searched for, then (searched in vain) the next
+    assert policy.asked_object_goal() == ("AlarmClock", None)
+    policy._asked_searched.add("AlarmClock")
+    assert policy.asked_object_goal() == ("Mug", None)
+    policy._asked_searched.add("Mug")
+    assert policy.asked_object_goal() is None
+    # two clocks mapped (scored in place, or given up on): the nearer first, each visited once
+    far = mem.add_or_merge(
+        "AlarmClock", 0.9, np.array([3.0, 0.0, 0.7]), np.array([2.9, -0.1, 0.6]), np.array([3.1, 0.1, 0.8]), 1
+    )
+    near = mem.add_or_merge(
+        "AlarmClock", 0.9, np.array([1.0, 0.0, 0.7]), np.array([0.9, -0.1, 0.6]), np.array([1.1, 0.1, 0.8]), 1
+    )
+    near.meta["give_up"], near.n_obs = "could not get it in view within reach", 3
+    assert policy.asked_object_goal() == ("AlarmClock", near)
+    near.meta["asked_visit"] = True
+    assert policy.asked_object_goal() == ("AlarmClock", far)
+    far.meta["asked_visit"] = True
+    assert policy.asked_object_goal() is None
+    # a stray track seen once and given up on is not worth a walk
+    stray = mem.add_or_merge(
+        "Mug", 0.9, np.array([0.0, 3.0, 0.7]), np.array([-0.1, 2.9, 0.6]), np.array([0.1, 3.1, 0.8]), 1
+    )
+    stray.meta["give_up"] = "pickup failed"
+    assert policy.asked_object_goal() is None
+    # a category the agent already put away is handled
+    del stray.meta["give_up"]
+    policy.placed.append(("Mug", np.array([5.0, 5.0])))
+    assert policy.asked_object_goal() is None
+
+
+def test_a_named_category_not_mapped_is_searched_for_until_one_is(monkeypatch):
+    from tidee.protocol.messages import PHASES
+
+    policy, events = _policy(variant="CommonMemory")
+    mem = policy.body.mapper.memory
+    phases: list[str] = []
+
+    def clock_seen(n):
+        phases.append(policy.state.phase)
+        if n == 2:
+            mem.add_or_merge(
+                "AlarmClock",
+                0.9,
+                np.array([1.0, 0, 0.7]),
+                np.array([0.9, -0.1, 0.6]),
+                np.array([1.1, 0.1, 0.8]),
+                1,
+            )
+
+    goals = _stub_walks(monkeypatch, policy, clock_seen)
+    _drive(policy.tidy_asked("AlarmClock", None))
+    assert len(goals) == 2 and "AlarmClock" in policy._asked_searched  # stops once one is mapped
+    assert set(phases) <= set(PHASES)  # a phase the telemetry knows
+    assert [e["kind"] for e in events] == ["asked_object"]

@@ -112,3 +112,16 @@ def test_a_profile_loads_names_its_bad_entry_and_keeps_what_is_typed(tmp_path) -
     path.write_text(json.dumps(["a list"]))
     with pytest.raises(ValueError, match="'preferences' list"):
         PreferenceProfile.load(path)
+
+
+def test_named_categories_are_the_category_preferences_in_the_order_said() -> None:
+    profile = PreferenceProfile(
+        [
+            parse_preference("the alarm clock goes on the desk"),
+            parse_preference("salt things go in the box", WordsEncoder()),  # a group: not named
+            parse_preference("never put the mug on the floor"),
+            parse_preference("the alarm clock never goes on the side table"),
+        ]
+    )
+    assert profile.named_categories() == ["AlarmClock", "Mug"]
+    assert PreferenceProfile().named_categories() == []
