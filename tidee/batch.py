@@ -17,7 +17,8 @@ records on either backend. A worker that dies mid-job (killed, out of memory, a 
 replaced and its job runs again on another worker, up to ``max_retries`` times; each record
 carries ``retries``. An exception raised by ``run_one`` is not retried: it ends the run, as it
 would in one process. ``cost``: an estimate of each job's run time; jobs start longest first,
-so that a long one does not start last and hold the run while the other workers idle.
+so that a long one does not start last and hold the run while the other workers idle. A local
+worker whose command was killed ends within ``PARENT_CHECK_S`` instead of finishing its job.
 
 ``out_jsonl``: each record is appended as it finishes, one line ``<crc32 8 hex> TAB <JSON>``
 (the episode log's format) holding the job's key and its record, flushed and synced. With
@@ -47,6 +48,8 @@ import pickle
 import socket
 import sys
 import tempfile
+import threading
+import time
 import traceback
 import zlib
 from collections import deque
@@ -391,10 +394,28 @@ def npz_bytes(arrays: Mapping[str, Any]) -> bytes:
 # --- local worker processes ------------------------------------------------------------------
 
 
+PARENT_CHECK_S = 1.0  # how often a local worker looks whether its parent is still there
+
+
+def _exit_with(parent: int) -> None:
+    """End this process (at once, from a daemon thread) when ``parent`` is no longer its parent: a
+    killed or crashed ``tidee`` command leaves no worker finishing an episode nobody will read."""
+    while os.getppid() == parent:
+        time.sleep(PARENT_CHECK_S)
+    os._exit(0)
+
+
 def _local_worker(
-    conn: Connection, run_one: Callable[[Any], Record], renderer: str | None, threads: int
+    conn: Connection,
+    run_one: Callable[[Any], Record],
+    renderer: str | None,
+    threads: int,
+    parent: int | None = None,
 ) -> None:
-    """A worker process: set up once, then run the jobs it is sent until told to stop."""
+    """A worker process: set up once, then run the jobs it is sent until told to stop, or until
+    ``parent`` (a pid) is gone."""
+    if parent is not None:
+        threading.Thread(target=_exit_with, args=(parent,), daemon=True, name="parent-watch").start()
     init_worker(renderer, threads)
     while True:
         try:
@@ -414,7 +435,10 @@ def _local_worker(
             except Exception:
                 error = RuntimeError(f"{type(e).__name__}: {e}")
             reply = (i, False, (error, tb))
-        conn.send(reply)
+        try:
+            conn.send(reply)
+        except OSError:  # the parent is gone (BrokenPipeError)
+            return
 
 
 class _Proc:
@@ -423,7 +447,9 @@ class _Proc:
     ) -> None:
         self.conn, child = ctx.Pipe()
         self.process = ctx.Process(
-            target=_local_worker, args=(child, run_one, renderer, threads), name="tidee-eval-worker"
+            target=_local_worker,
+            args=(child, run_one, renderer, threads, os.getpid()),
+            name="tidee-eval-worker",
         )
         self.process.start()
         child.close()

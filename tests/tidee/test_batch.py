@@ -50,6 +50,7 @@ class Sq:
     die_once: str | None = None  # a marker file: the first attempt creates it and kills its worker
     die_always: bool = False
     fail: bool = False
+    sleep: float = 0.0  # seconds the job takes
 
     def key(self) -> str:
         return f"sq/{self.n}"
@@ -65,6 +66,7 @@ def square(job: Sq) -> dict[str, Any]:
         os._exit(3)
     if job.fail:
         raise ValueError(f"job {job.n} refuses")
+    time.sleep(job.sleep)
     state = worker_state()
     state["jobs"] = state.get("jobs", 0) + 1  # the context lives across a worker's jobs
     return {"n": job.n, "square": job.n * job.n, "wall_s": time.time()}
@@ -141,6 +143,42 @@ def test_a_job_whose_worker_always_dies_gives_up_after_max_retries(tmp_path: Pat
     with pytest.raises(WorkerLost, match=r"job sq/1: its worker died 2 times"):
         _run([Sq(0), Sq(1, str(calls), die_always=True)], max_retries=1)
     assert _calls(calls) == [1, 1]
+
+
+def test_workers_end_soon_after_their_command_is_killed(tmp_path: Path) -> None:
+    pids = tmp_path / "pids"
+    script = f"""
+import sys, time
+sys.path.insert(0, {str(REPO)!r})
+from tests.tidee.test_batch import Sq, _run
+_run([Sq(n, calls={str(pids)!r}, sleep=60.0) for n in range(2)])
+"""
+    pids.mkdir()
+    parent = subprocess.Popen([sys.executable, "-c", script], cwd=REPO)
+    try:
+        deadline = time.monotonic() + 60
+        while len(list(pids.iterdir())) < 2 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        workers = [int(p.name.split("-")[1]) for p in pids.iterdir()]
+        assert len(workers) == 2, "the workers never started their jobs"
+    finally:
+        parent.kill()
+        parent.wait()
+    deadline = time.monotonic() + 10  # each was 60 s from the end of its job
+    while any(_alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(pid) for pid in workers)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (exited, not yet reaped by init) is not running
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except FileNotFoundError:
+        return False
 
 
 def test_an_exception_in_run_one_ends_the_run_as_in_one_process() -> None:
