@@ -50,7 +50,6 @@ class Sq:
     die_once: str | None = None  # a marker file: the first attempt creates it and kills its worker
     die_always: bool = False
     fail: bool = False
-    sleep: float = 0.0  # seconds the job takes
 
     def key(self) -> str:
         return f"sq/{self.n}"
@@ -66,7 +65,6 @@ def square(job: Sq) -> dict[str, Any]:
         os._exit(3)
     if job.fail:
         raise ValueError(f"job {job.n} refuses")
-    time.sleep(job.sleep)
     state = worker_state()
     state["jobs"] = state.get("jobs", 0) + 1  # the context lives across a worker's jobs
     return {"n": job.n, "square": job.n * job.n, "wall_s": time.time()}
@@ -148,10 +146,12 @@ def test_a_job_whose_worker_always_dies_gives_up_after_max_retries(tmp_path: Pat
 def test_workers_end_soon_after_their_command_is_killed(tmp_path: Path) -> None:
     pids = tmp_path / "pids"
     script = f"""
-import sys, time
+import sys
 sys.path.insert(0, {str(REPO)!r})
-from tests.tidee.test_batch import Sq, _run
-_run([Sq(n, calls={str(pids)!r}, sleep=60.0) for n in range(2)])
+from tests.support.jobs import mark_and_sleep
+from tidee.batch import run_jobs
+jobs = [({str(pids)!r}, n, 60.0) for n in range(2)]
+run_jobs(jobs, mark_and_sleep, workers=2, renderer=None, progress=False)
 """
     pids.mkdir()
     parent = subprocess.Popen([sys.executable, "-c", script], cwd=REPO)
