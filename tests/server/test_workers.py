@@ -7,7 +7,6 @@ import functools
 import os
 import signal
 import subprocess
-import sys
 import uuid
 from collections.abc import Iterator
 
@@ -19,6 +18,7 @@ from tests.support.net import REPO, SPEC, client, free_endpoint, start_server, w
 from tidee.protocol.client import RemoteError, SimClient
 from tidee.protocol.codec import decode
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec, ErrorCode, Observation
+from tidee.server.bench_transport import server_command
 from tidee.server.service import ServerConfig, SimServer
 from tidee.server.workers import (
     MIN_FRAME_AREA,
@@ -274,20 +274,7 @@ def test_sigterm_to_tidee_server_leaves_no_process_behind() -> None:
     pytest.importorskip("pybullet")
     endpoint, sid = free_endpoint(), f"t{uuid.uuid4().hex[:8]}"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    command = [
-        sys.executable,
-        "-m",
-        "tidee.cli",
-        "server",
-        "--endpoint",
-        endpoint,
-        "--server-id",
-        sid,
-        "--renderer",
-        "tiny",
-        "--processes",
-        "2",
-    ]
+    command = server_command(endpoint, sid, "tiny", "--processes", "2")
     # Its own process group: what must be empty at the end.
     proc = subprocess.Popen(command, cwd=REPO, env=env, start_new_session=True)
     group = proc.pid
