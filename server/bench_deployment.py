@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from tidee.launch import end_process, free_port
+from tidee.launch import end_process, free_port, tidee_command
 from tidee.protocol.client import SimClient
 from tidee.protocol.episode_log import write_atomic, write_json_atomic
 from tidee.protocol.zenoh_config import merged_config, tidee_defaults
@@ -84,7 +84,7 @@ def _both_ways(renderer: str, links: dict[str, dict[str, int]]) -> Iterator[dict
     clients' links go into ``links``. Everything is stopped afterwards, the router last."""
     router_ep, server_ep = (f"tcp/127.0.0.1:{free_port()}" for _ in range(2))
     server_id = f"bench{uuid.uuid4().hex[:6]}"
-    tidee = [sys.executable, "-m", "tidee.cli"]
+    tidee = tidee_command()
     with (
         tempfile.TemporaryDirectory(prefix="tidee-bench-deployment-") as tmp,
         contextlib.ExitStack() as stack,

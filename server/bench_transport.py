@@ -17,14 +17,13 @@ import contextlib
 import os
 import platform
 import subprocess
-import sys
 import time
 import uuid
 from collections.abc import Iterator
 
 import numpy as np
 
-from tidee.launch import free_port
+from tidee.launch import free_port, tidee_command
 from tidee.protocol.client import SimClient
 from tidee.protocol.codec import RAW_DEPTH_FORMS, WIRE_DEPTH_ENV, decode, encode
 from tidee.protocol.messages import Action, EpisodeSpec, Observation
@@ -47,19 +46,9 @@ def bench_spec(steps: int, resolution: int, room_type: str, seed: int, mess_inde
 
 def server_command(endpoint: str, server_id: str, renderer: str, *flags: str) -> list[str]:
     """``tidee server`` on ``endpoint`` as a subprocess's command line, with more ``flags``."""
-    return [
-        sys.executable,
-        "-m",
-        "tidee.cli",
-        "server",
-        "--endpoint",
-        endpoint,
-        "--server-id",
-        server_id,
-        "--renderer",
-        renderer,
-        *flags,
-    ]
+    return tidee_command(
+        "server", "--endpoint", endpoint, "--server-id", server_id, "--renderer", renderer, *flags
+    )
 
 
 def run_transport_bench(

@@ -452,43 +452,47 @@ class SimServer:
                 query.reply_err(payload)
             else:
                 query.reply(query.key_expr, payload)  # congestion control: the query's (BLOCK)
-            if isinstance(reply, Observation):
+            if isinstance(reply, (Observation, EncodedObservation)):
                 self._publish(job.session, reply, payload, encoding, raw_depth)  # type: ignore[arg-type]
-            elif isinstance(reply, EncodedObservation):
-                self._publish_encoded(job.session, reply, payload)  # type: ignore[arg-type]
         except Exception:
             log.exception("session %s: could not reply to %s", job.session, job.op)
         finally:
             query.drop()  # sends the final answer now rather than when Python collects the query
 
-    def _publish(
-        self, session: str, obs: Observation, frame: zenoh.ZBytes, encoding: str, raw_depth: str = "f32"
-    ) -> None:
-        """The viewer feed: the same frame, minus any privileged ground truth."""
+    def _feed(self, session: str) -> Any:
+        """The session's viewer-feed publisher (None when it has none)."""
         with self._lock:
             entry = self._sessions.get(session)
-        if entry is None or entry.publisher is None:
-            return
-        if obs.ground_truth is not None:
-            status: Any = entry.publisher.matching_status  # a MatchingStatus (zenoh's stubs say bool)
-            if not status.matching:
-                return  # no viewer listens: spare the second encode (and its copies)
-            stripped = dataclasses.replace(obs, ground_truth=None)
-            frame = zenoh.ZBytes(encode(stripped, encoding, raw_depth=raw_depth))
-        entry.publisher.put(frame)
+        return None if entry is None else entry.publisher
 
-    def _publish_encoded(self, session: str, obs: EncodedObservation, frame: zenoh.ZBytes) -> None:
-        """The viewer feed of an observation a child encoded: the same frame, or its copy without
-        ground truth (none when no viewer listened as it was made)."""
-        with self._lock:
-            entry = self._sessions.get(session)
-        if entry is None or entry.publisher is None:
+    @staticmethod
+    def _listened(publisher: Any) -> bool:
+        status: Any = publisher.matching_status  # a MatchingStatus (zenoh's stubs say bool)
+        return bool(status.matching)
+
+    def _publish(
+        self,
+        session: str,
+        obs: Observation | EncodedObservation,
+        frame: zenoh.ZBytes,
+        encoding: str,
+        raw_depth: str = "f32",
+    ) -> None:
+        """The viewer feed: the same frame, minus any privileged ground truth (encoded here, or
+        by the child that made it when a viewer listened then; none when no viewer listens)."""
+        publisher = self._feed(session)
+        if publisher is None:
             return
-        if obs.private:
+        if isinstance(obs, EncodedObservation) and obs.private:
             if obs.feed is None:
                 return
             frame = zenoh.ZBytes(obs.feed)
-        entry.publisher.put(frame)
+        elif isinstance(obs, Observation) and obs.ground_truth is not None:
+            if not self._listened(publisher):
+                return  # no viewer listens: spare the second encode (and its copies)
+            stripped = dataclasses.replace(obs, ground_truth=None)
+            frame = zenoh.ZBytes(encode(stripped, encoding, raw_depth=raw_depth))
+        publisher.put(frame)
 
     # --- requests (on the session's worker) ----------------------------------------------
     # Each takes the request and its client (client_of): a reset may open a session for it, and
@@ -510,12 +514,8 @@ class SimServer:
         return episode.encoded(wire, op, *args, **kwargs)
 
     def _viewer_listens(self, session: str) -> bool:
-        with self._lock:
-            entry = self._sessions.get(session)
-        if entry is None or entry.publisher is None:
-            return False
-        status: Any = entry.publisher.matching_status  # a MatchingStatus (zenoh's stubs say bool)
-        return bool(status.matching)
+        publisher = self._feed(session)
+        return publisher is not None and self._listened(publisher)
 
     def _reset(self, request: ResetRequest, client: str) -> Observation | EncodedObservation:
         for name in ("mess_index", "rearrange_index"):

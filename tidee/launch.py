@@ -168,7 +168,8 @@ def wait_for_signal() -> None:
         pass
 
 
-def _tidee(*args: str) -> list[str]:
+def tidee_command(*args: str) -> list[str]:
+    """``tidee ARGS`` as a subprocess's command line, with this interpreter."""
     return [sys.executable, "-m", "tidee.cli", *args]
 
 
@@ -302,7 +303,9 @@ def run_all(cfg: RunConfig) -> int:
             (
                 "server",
                 subprocess.Popen(
-                    _tidee("server", "--endpoint", endpoint, "--renderer", cfg.renderer, *zenoh_config),
+                    tidee_command(
+                        "server", "--endpoint", endpoint, "--renderer", cfg.renderer, *zenoh_config
+                    ),
                     env=env,
                 ),
             )
@@ -313,7 +316,7 @@ def run_all(cfg: RunConfig) -> int:
                 (
                     "viewer",
                     subprocess.Popen(
-                        _tidee(
+                        tidee_command(
                             "viewer",
                             "--endpoint",
                             endpoint,
@@ -328,7 +331,7 @@ def run_all(cfg: RunConfig) -> int:
                     ),
                 )
             )
-        agent = subprocess.Popen(_tidee("agent", "--endpoint", endpoint, *cfg.agent_args), env=env)
+        agent = subprocess.Popen(tidee_command("agent", "--endpoint", endpoint, *cfg.agent_args), env=env)
         procs.append(("agent", agent))
         if cfg.viewer:
             viewer = procs[1][1]

@@ -160,6 +160,13 @@ class GridSpec:
         x0, y0 = self.origin
         return x0, x0 + self.shape[0] * self.cell, y0, y0 + self.shape[1] * self.cell
 
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """The cells' centres in metres, broadcasting to the grid: x as a column (shape[0] x 1),
+        y as a row (1 x shape[1])."""
+        x = self.origin[0] + (np.arange(self.shape[0])[:, None] + 0.5) * self.cell
+        y = self.origin[1] + (np.arange(self.shape[1])[None, :] + 0.5) * self.cell
+        return x, y
+
     def world_to_cell(self, xy: np.ndarray) -> np.ndarray:
         """int64 Nx2 cell indices (i, j) of start-frame points xy (Nx2 or Nx3, metres).
 

@@ -246,8 +246,7 @@ def door_evidence(
     openables' footprints (box min, max corners); a cell nearer one of them than this footprint
     counts for that one, not this one (a fridge door swinging open beside a cabinet); inside
     two footprints, for the one whose centre is nearer."""
-    x = grid.origin[0] + (np.arange(grid.shape[0])[:, None] + 0.5) * grid.cell
-    y = grid.origin[1] + (np.arange(grid.shape[1])[None, :] + 0.5) * grid.cell
+    x, y = grid.centres()
 
     def nearness(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(gap to the footprint, distance to its centre) per cell."""

@@ -73,10 +73,8 @@ def goal_mask_near_box(
     mapper: SemanticMapper, box_min: np.ndarray, box_max: np.ndarray, radius: float
 ) -> np.ndarray:
     """bool grid: cells whose centre is within ``radius`` of the box's (x, y) footprint."""
-    g = mapper.grid
-    xs = g.origin[0] + (np.arange(g.shape[0]) + 0.5) * g.cell
-    ys = g.origin[1] + (np.arange(g.shape[1]) + 0.5) * g.cell
-    return footprint_gap(box_min, box_max, xs[:, None], ys[None, :]) <= radius
+    x, y = mapper.grid.centres()
+    return footprint_gap(box_min, box_max, x, y) <= radius
 
 
 def mask_away_from(
@@ -91,11 +89,10 @@ def mask_away_from(
     cell is near a tried spot (the caller decides whether to fall back on ``mask``)."""
     if not len(tried_xy):
         return mask.copy()
-    xs = grid.origin[0] + (np.arange(grid.shape[0]) + 0.5) * grid.cell
-    ys = grid.origin[1] + (np.arange(grid.shape[1]) + 0.5) * grid.cell
+    x, y = grid.centres()
     near = np.zeros(mask.shape, bool)
     for p in tried_xy:
-        near |= np.hypot(xs[:, None] - float(p[0]), ys[None, :] - float(p[1])) < min_m
+        near |= np.hypot(x - float(p[0]), y - float(p[1])) < min_m
     return mask & ~near
 
 
