@@ -245,7 +245,7 @@ def test_tidee_run_stops_when_the_server_dies_at_start_up(monkeypatch: pytest.Mo
         )
         return [sys.executable, "-c", code]
 
-    monkeypatch.setattr(launch, "_tidee", fake)
+    monkeypatch.setattr(launch, "tidee_command", fake)
     rc = launch.run_all(launch.RunConfig(viewer=False, linger=0))
     assert rc == 1
     assert "run: error: the server exited with status 3" in capsys.readouterr().err
