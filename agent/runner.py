@@ -53,7 +53,7 @@ from tidee.protocol.messages import (
     TrackedObjectMsg,
     WalkthroughMemoryMsg,
 )
-from tidee.protocol.transport import SimTransport
+from tidee.protocol.transport import SimTransport, send_step
 
 log = logging.getLogger("tidee.agent")
 
@@ -102,6 +102,8 @@ def episode_summary(
         **counts,
     )
 
+
+LOG_EVERY = 10  # an episode log keeps frames, maps and memory of every 10th step (and the last)
 
 REARRANGE_SUMMARY = (
     "success",
@@ -341,9 +343,19 @@ class EpisodeRunner:
                 timings["perception_ms"].append((t1 - t0) * 1e3)
                 timings["mapping_ms"].append((t2 - t1) * 1e3)
                 timings["planning_ms"].append((t3 - t2) * 1e3)
-                self._emit(obs, dets, body, policy, info, trajectory, writer)
-                aborted = self._handle_commands(body, policy, info, trajectory, writer)
+                emitted = False
+
+                def emit(
+                    obs: Observation = obs, dets: list = dets
+                ) -> None:  # this step's telemetry and log, once
+                    nonlocal emitted
+                    if not emitted:
+                        emitted = True
+                        self._emit(obs, dets, body, policy, info, trajectory, writer)
+
+                aborted = self._handle_commands(body, policy, info, trajectory, writer, before_wait=emit)
                 if aborted is not None or action is None:
+                    emit()
                     break
                 if writer:
                     writer.event(
@@ -356,6 +368,8 @@ class EpisodeRunner:
                     )
                 t4 = time.perf_counter()
                 if walkthrough and action.name == ActionName.Done:
+                    emit()
+                    t4 = time.perf_counter()
                     self._emit_walkthrough(body.obs, policy, writer)
                     obs = self.transport.begin_unshuffle(ground_truth=gt)
                     mapper.reset()  # a fresh map of the shuffled room, in the same start frame
@@ -364,7 +378,12 @@ class EpisodeRunner:
                         unshuffle_start = self.transport.state()
                     on_event(kind="unshuffle_started", walkthrough_steps=int(body.obs.step))
                 else:
-                    obs = self.transport.step(action, ground_truth=gt)
+                    # Over Zenoh the server acts while this step's telemetry is built and logged.
+                    observe = send_step(self.transport, action, ground_truth=gt)
+                    te = time.perf_counter()
+                    emit()
+                    t4 += time.perf_counter() - te  # sim_ms: the wait for the server, not the telemetry
+                    obs = observe()
                 t5 = time.perf_counter()
                 timings["sim_ms"].append((t5 - t4) * 1e3)
                 timings["step_ms"].append((t3 - t0) * 1e3)
@@ -584,13 +603,10 @@ class EpisodeRunner:
             msg = None
             if self.publisher is not None:
                 msg = self.publisher.offer(kind, build, force=final or kind == "search")
-            if writer is not None:
-                # The log keeps every status and every new search heatmap, and the other kinds
-                # at most every 10th step.
-                if msg is None and (kind in ("status", "search") or obs.step % 10 == 0 or final):
-                    msg = build()
-                if msg is not None:
-                    writer.message(kind, msg)
+            # The log keeps every status and every new search heatmap, and the other kinds every
+            # LOG_EVERY-th step only (viewers get more, rate-limited: a log of each would be 8x larger).
+            if writer is not None and (kind in ("status", "search") or obs.step % LOG_EVERY == 0 or final):
+                writer.message(kind, msg if msg is not None else build())
 
     def _emit_walkthrough(self, obs: Observation, policy: Any, writer: LogWriter | None) -> None:
         """The walkthrough's memory, once, as the walkthrough ends (telemetry kind ``walkthrough``)."""
@@ -617,8 +633,16 @@ class EpisodeRunner:
 
     # ------------------------------------------------------------------ commands
     def _handle_commands(
-        self, body: Body, policy: TidyPolicy, info: dict, trajectory: list, writer: LogWriter | None
+        self,
+        body: Body,
+        policy: TidyPolicy,
+        info: dict,
+        trajectory: list,
+        writer: LogWriter | None,
+        before_wait: Callable[[], None] = lambda: None,
     ) -> AgentCommand | None:
+        """The viewer's commands since the last step; while paused, waits here (``before_wait``
+        first: the viewer shows the step the agent waits at)."""
         if self.publisher is None:
             return None
         while True:
@@ -654,6 +678,7 @@ class EpisodeRunner:
             if self._single_steps > 0:
                 self._single_steps -= 1
                 return None
+            before_wait()
             self.publisher.offer(
                 "status", lambda: self._status(body.obs, body, policy, info, trajectory), force=True
             )

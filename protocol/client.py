@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
 import threading
 import time
 import uuid
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from typing import Any, cast
 
 import zenoh
@@ -129,8 +130,13 @@ class SimClient:
             self._move_to(untried[0])
 
     def step(self, action: Action, ground_truth: bool = False) -> Observation:
+        return self.send_step(action, ground_truth)()
+
+    def send_step(self, action: Action, ground_truth: bool = False) -> Callable[[], Observation]:
+        """Send a step now; the returned function waits for its observation (the agent does
+        other work, its telemetry, while the server acts)."""
         request = StepRequest(self.session_id, action, ground_truth, self.encoding)
-        return self._call("step", request, Observation)
+        return self._send("step", request, Observation)
 
     def begin_unshuffle(self, ground_truth: bool = False) -> Observation:
         """A rearrangement (reset with ``spec.rearrange_index``): end the walkthrough and start
@@ -161,6 +167,12 @@ class SimClient:
 
     # --- plumbing ---------------------------------------------------------------------
     def _call(self, op: str, request: Any, reply_type: type, timeout: float | None = None) -> Any:
+        return self._send(op, request, reply_type, timeout)()
+
+    def _send(
+        self, op: str, request: Any, reply_type: type, timeout: float | None = None
+    ) -> Callable[[], Any]:
+        """Send ``request``; returns the function that waits for (and decodes) its reply."""
         if self._z is None:
             raise RuntimeError(f"session {self.session_id} is closed")
         key = keys.sim_op(self.server_id, self.session_id, op)
@@ -173,6 +185,9 @@ class SimClient:
             congestion_control=zenoh.CongestionControl.BLOCK,  # the reply inherits it
             source_info=zenoh.SourceInfo(self._z.id, next(self._sequence)),
         )
+        return functools.partial(self._receive, replies, op, key, reply_type, timeout)
+
+    def _receive(self, replies: Any, op: str, key: str, reply_type: type, timeout: float) -> Any:
         try:
             reply = replies.recv()
         except zenoh.ZError:  # the query finished with no reply: nobody serves that key

@@ -201,8 +201,17 @@ def _encode_dataclass(obj: Any, path: str, buffers: _Buffers, encoding: str, qua
     return out
 
 
+_JSON_SCALARS = frozenset({bool, int, float, str, type(None)})  # exact types: an enum is not one
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}  # a dataclass's field names, by its type
+
+
 def _plain(value: Any, path: str) -> Any:
     """A JSON-able copy of a plain value (enums, numpy scalars and small arrays unwrapped)."""
+    t = type(value)
+    if t in _JSON_SCALARS:
+        return value
+    if t is tuple or t is list:  # checked first: most values in a message are numbers or lists of them
+        return [v if type(v) in _JSON_SCALARS else _plain(v, f"{path}[{i}]") for i, v in enumerate(value)]
     if isinstance(value, enum.Enum):
         return value.value
     if value is None or isinstance(value, (bool, int, float, str)):
@@ -212,16 +221,21 @@ def _plain(value: Any, path: str) -> Any:
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, (list, tuple)):
-        return [_plain(v, f"{path}[{i}]") for i, v in enumerate(value)]
+        return [v if type(v) in _JSON_SCALARS else _plain(v, f"{path}[{i}]") for i, v in enumerate(value)]
     if isinstance(value, dict):
         for k in value:
             if not isinstance(k, str):
                 raise TypeError(f"field '{path}' has a non-string key {k!r}; JSON objects need string keys")
         return {k: _plain(v, _join(path, k)) for k, v in value.items()}
     if dataclasses.is_dataclass(value):
-        return {
-            f.name: _plain(getattr(value, f.name), _join(path, f.name)) for f in dataclasses.fields(value)
-        }
+        out = {}
+        names = _FIELD_NAMES.get(t)
+        if names is None:
+            names = _FIELD_NAMES[t] = tuple(f.name for f in dataclasses.fields(value))
+        for name in names:
+            v = getattr(value, name)
+            out[name] = v if type(v) in _JSON_SCALARS else _plain(v, _join(path, name))
+        return out
     raise TypeError(f"field '{path}' holds a {type(value).__name__}, which has no wire form")
 
 
@@ -348,92 +362,20 @@ def _parse_header(raw: memoryview) -> dict:
 
 
 class _Decoder:
-    """Type-directed conversion of header JSON into message objects, against one frame."""
+    """Type-directed conversion of header JSON into message objects, against one frame.
+
+    Each (type hint, array spec) gets a conversion plan once (:func:`_plan`); decoding a message
+    runs its plans, so a memory of a hundred tracked objects is not re-inspected field by field.
+    """
 
     def __init__(self, body: memoryview, max_bytes: int) -> None:
         self.body, self.max_bytes = body, max_bytes
 
     def value(self, value: Any, hint: Any, path: str, array_spec: ArraySpec | None = None) -> Any:
-        origin, args = typing.get_origin(hint), typing.get_args(hint)
-        if hint is Any:
-            return value
-        if origin in (typing.Union, types.UnionType):
-            if value is None:
-                if type(None) in args:
-                    return None
-                raise _invalid(path, "a value, not null", value)
-            arms = [a for a in args if a is not type(None)]
-            if len(arms) == 1:
-                return self.value(value, arms[0], path, array_spec)
-            raise TypeError(f"unsupported union {hint} at '{path}'")  # not in messages.py
-        if value is None:
-            raise _invalid(path, f"{_describe(hint)}, not null", value)
-        if hint is np.ndarray:
-            return self.array(value, path, array_spec)
-        if origin is typing.Literal:  # one of a vocabulary (protocol/vocab.py), e.g. a room type
-            if value in args and type(value) is type(args[0]):
-                return value
-            raise _invalid(path, f"one of {list(args)}", value)
-        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
-            if not isinstance(value, dict):
-                raise _invalid(path, f"an object ({hint.__name__})", value)
-            return self.dataclass(value, hint, path)
-        if isinstance(hint, type) and issubclass(hint, enum.Enum):
-            try:
-                return hint(value)
-            except ValueError:
-                raise _invalid(path, f"one of {[e.value for e in hint]}", value) from None
-        if hint is bool:
-            if isinstance(value, bool):
-                return value
-            raise _invalid(path, "a boolean", value)
-        if hint is int:
-            if isinstance(value, int) and not isinstance(value, bool) and _INT64[0] <= value < _INT64[1]:
-                return value
-            raise _invalid(path, "a 64-bit integer", value)
-        if hint is float:
-            if isinstance(value, (int, float)) and not isinstance(value, bool):
-                return float(value)
-            raise _invalid(path, "a number", value)
-        if hint is str:
-            if isinstance(value, str):
-                return value
-            raise _invalid(path, "a string", value)
-        if origin is tuple:
-            if not isinstance(value, list) or len(value) != len(args):
-                raise _invalid(path, f"a list of {len(args)} items", value)
-            return tuple(self.value(v, a, f"{path}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
-        if origin is list:
-            if not isinstance(value, list):
-                raise _invalid(path, "a list", value)
-            return [self.value(v, args[0], f"{path}[{i}]") for i, v in enumerate(value)]
-        if origin is dict:
-            if not isinstance(value, dict):
-                raise _invalid(path, "an object", value)
-            return {k: self.value(v, args[1], _join(path, k)) for k, v in value.items()}
-        raise TypeError(f"unsupported field type {hint} at '{path}'")  # not in messages.py
+        return _plan(hint, array_spec)(self, value, path)
 
     def dataclass(self, obj: dict, cls: type, path: str) -> Any:
-        hints = _hints(cls)
-        unknown = sorted(set(obj) - set(hints))
-        if unknown:
-            raise ProtocolError(
-                ErrorCode.invalid_field,
-                f"unknown field '{_join(path, unknown[0])}' in {cls.__name__} (fields: {', '.join(hints)})",
-            )
-        kwargs = {}
-        for f in dataclasses.fields(cls):
-            fpath = _join(path, f.name)
-            if f.name not in obj:
-                if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                    raise ProtocolError(ErrorCode.invalid_field, f"field '{fpath}' is required")
-                continue
-            kwargs[f.name] = self.value(obj[f.name], hints[f.name], fpath, ARRAY_FIELDS.get((cls, f.name)))
-        try:
-            return cls(**kwargs)
-        except (ValueError, TypeError) as e:
-            where = f"field '{path}'" if path else cls.__name__
-            raise ProtocolError(ErrorCode.invalid_field, f"invalid {where}: {e}") from None
+        return _plan(cls, None)(self, obj, path)
 
     def array(self, desc: Any, path: str, spec: ArraySpec | None) -> np.ndarray:
         want = {"dtype", "shape", "encoding", "offset", "nbytes"}
@@ -539,6 +481,192 @@ def _image_dims(buf: memoryview) -> tuple[int, int] | None:
                 return height, width
             i += 2 + seg_len
     return None
+
+
+# --- decoding plans -----------------------------------------------------------------------
+
+_Plan = typing.Callable[["_Decoder", Any, str], Any]
+
+
+@functools.cache
+def _plan(hint: Any, spec: ArraySpec | None) -> _Plan:
+    """How to check and convert a header value of type ``hint``: built once per hint."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is Any:
+        return lambda d, v, p: v
+    if origin in (typing.Union, types.UnionType):
+        arms = [a for a in args if a is not type(None)]
+        nullable = type(None) in args
+        if len(arms) != 1:
+
+            def unsupported(d: _Decoder, v: Any, p: str) -> Any:
+                if v is None and nullable:
+                    return None
+                if v is None:
+                    raise _invalid(p, "a value, not null", v)
+                raise TypeError(f"unsupported union {hint} at '{p}'")  # not in messages.py
+
+            return unsupported
+        inner = _plan(arms[0], spec)
+
+        def union(d: _Decoder, v: Any, p: str) -> Any:
+            if v is None:
+                if nullable:
+                    return None
+                raise _invalid(p, "a value, not null", v)
+            return inner(d, v, p)
+
+        return union
+    plan = _plan_of(hint, origin, args, spec)
+    not_null = f"{_describe(hint)}, not null"
+
+    def checked(d: _Decoder, v: Any, p: str) -> Any:
+        if v is None:
+            raise _invalid(p, not_null, v)
+        return plan(d, v, p)
+
+    return checked
+
+
+def _plan_of(hint: Any, origin: Any, args: tuple, spec: ArraySpec | None) -> _Plan:
+    """The plan for a non-null value of ``hint`` (not a union)."""
+    if hint is np.ndarray:
+        return lambda d, v, p: d.array(v, p, spec)
+    if origin is typing.Literal:  # one of a vocabulary (protocol/vocab.py), e.g. a room type
+        vocabulary, kind = set(args), type(args[0])
+
+        def literal(d: _Decoder, v: Any, p: str) -> Any:
+            if type(v) is kind and v in vocabulary:
+                return v
+            raise _invalid(p, f"one of {list(args)}", v)
+
+        return literal
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+        return _dataclass_plan(hint)
+    if isinstance(hint, type) and issubclass(hint, enum.Enum):
+
+        def member(d: _Decoder, v: Any, p: str) -> Any:
+            try:
+                return hint(v)
+            except ValueError:
+                raise _invalid(p, f"one of {[e.value for e in hint]}", v) from None
+
+        return member
+    if hint is bool:
+
+        def boolean(d: _Decoder, v: Any, p: str) -> Any:
+            if isinstance(v, bool):
+                return v
+            raise _invalid(p, "a boolean", v)
+
+        return boolean
+    if hint is int:
+
+        def integer(d: _Decoder, v: Any, p: str) -> Any:
+            if type(v) is int and _INT64[0] <= v < _INT64[1]:
+                return v
+            raise _invalid(p, "a 64-bit integer", v)
+
+        return integer
+    if hint is float:
+
+        def number(d: _Decoder, v: Any, p: str) -> Any:
+            t = type(v)
+            if t is float:
+                return v
+            if t is int:
+                return float(v)
+            raise _invalid(p, "a number", v)
+
+        return number
+    if hint is str:
+
+        def string(d: _Decoder, v: Any, p: str) -> Any:
+            if type(v) is str:
+                return v
+            raise _invalid(p, "a string", v)
+
+        return string
+    if origin is tuple:
+        items = [_plan(a, None) for a in args]
+        n = len(args)
+
+        def fixed(d: _Decoder, v: Any, p: str) -> Any:
+            if type(v) is not list or len(v) != n:
+                raise _invalid(p, f"a list of {n} items", v)
+            return tuple(f(d, x, f"{p}[{i}]") for i, (f, x) in enumerate(zip(items, v)))
+
+        if all(a is float for a in args):  # a point or a box corner: the common case, checked at once
+
+            def floats(d: _Decoder, v: Any, p: str) -> Any:
+                if type(v) is list and len(v) == n and all(type(x) is float for x in v):
+                    return tuple(v)
+                return fixed(d, v, p)
+
+            return floats
+        return fixed
+    if origin is list:
+        item = _plan(args[0], None)
+
+        def sequence(d: _Decoder, v: Any, p: str) -> Any:
+            if type(v) is not list:
+                raise _invalid(p, "a list", v)
+            return [item(d, x, f"{p}[{i}]") for i, x in enumerate(v)]
+
+        return sequence
+    if origin is dict:
+        item = _plan(args[1], None)
+
+        def mapping(d: _Decoder, v: Any, p: str) -> Any:
+            if type(v) is not dict:
+                raise _invalid(p, "an object", v)
+            return {k: item(d, x, _join(p, k)) for k, x in v.items()}
+
+        return mapping
+
+    def unsupported(d: _Decoder, v: Any, p: str) -> Any:
+        raise TypeError(f"unsupported field type {hint} at '{p}'")  # not in messages.py
+
+    return unsupported
+
+
+def _dataclass_plan(cls: type) -> _Plan:
+    hints = _hints(cls)
+    names = frozenset(hints)
+    fields: list[tuple[str, bool, _Plan]] = []
+
+    def build(d: _Decoder, obj: Any, path: str) -> Any:
+        if not fields:  # planned on first use, not when planned: a message type may refer to itself
+            fields[:] = [  # one assignment: a second thread planning at the same time changes nothing
+                (
+                    f.name,
+                    f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING,
+                    _plan(hints[f.name], ARRAY_FIELDS.get((cls, f.name))),
+                )
+                for f in dataclasses.fields(cls)
+            ]
+        if type(obj) is not dict:
+            raise _invalid(path, f"an object ({cls.__name__})", obj)
+        if not names.issuperset(obj):
+            unknown = sorted(set(obj) - names)
+            raise ProtocolError(
+                ErrorCode.invalid_field,
+                f"unknown field '{_join(path, unknown[0])}' in {cls.__name__} (fields: {', '.join(hints)})",
+            )
+        kwargs = {}
+        for name, required, plan in fields:
+            if name not in obj:
+                if required:
+                    raise ProtocolError(ErrorCode.invalid_field, f"field '{_join(path, name)}' is required")
+                continue
+            kwargs[name] = plan(d, obj[name], _join(path, name))
+        try:
+            return cls(**kwargs)
+        except (ValueError, TypeError) as e:
+            where = f"field '{path}'" if path else cls.__name__
+            raise ProtocolError(ErrorCode.invalid_field, f"invalid {where}: {e}") from None
+
+    return build
 
 
 # --- helpers ----------------------------------------------------------------------------

@@ -7,6 +7,8 @@ env and evaluation never care which one they hold. The in-process transport impo
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from typing import Any, Protocol, runtime_checkable
 
 from tidee.protocol.client import SimClient
@@ -86,6 +88,18 @@ class InProcessTransport:
         if self.episode is None:
             raise RuntimeError("the transport is closed")
         return self.episode
+
+
+def send_step(
+    transport: SimTransport, action: Action, ground_truth: bool = False
+) -> Callable[[], Observation]:
+    """Start a step; the returned function waits for its observation. Over Zenoh the request
+    leaves at once, so the agent can spend the server's time on its own work (telemetry, logs);
+    in process the step runs when its observation is asked for."""
+    send = getattr(transport, "send_step", None)
+    if send is not None:
+        return send(action, ground_truth)
+    return functools.partial(transport.step, action, ground_truth=ground_truth)
 
 
 def make_transport(kind: str, **kwargs: Any) -> SimTransport:

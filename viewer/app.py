@@ -59,6 +59,7 @@ HISTORY_POINTS = 600  # live plot: (step, fixed, OOP found) rows kept
 SESSION_REFRESH_S = 1.0
 DRAW_ORDER = ("maps", "memory", "walkthrough", "search", "frame", OBSERVATION, "status", "ack", "summary")
 REPLAY_FUSE_MAX = 150  # replay: frames fused into the coloured cloud when jumping ahead, at most
+MAP_POSE_PERIOD_S = 0.25  # live: a status alone (the agent moved) redraws the 2D map at most this often
 STOP_NOTE_S = 0.3  # on stop: time for the "viewer stopped" note to reach the browsers
 
 
@@ -87,6 +88,7 @@ class ViewerApp:
         )
         self._session_shown: str | None = None
         self._camera_aimed = False  # at the first map of each session
+        self._map_drawn = 0.0  # when the 2D map was last drawn (monotonic s)
         self._latest: dict[str, Any] = {}  # the newest message of each kind on screen
         self._agent_frames = False  # this session sends AgentFrames (else observations fill in)
         self._oracle_on = False
@@ -217,8 +219,14 @@ class ViewerApp:
                     continue
                 self._apply(kind, msg)
                 self.stats.applied[kind] += 1
-            if "maps" in msgs or "status" in msgs or "search" in msgs:
+            status_due = "status" in msgs and (
+                self.replay is not None
+                or msgs["status"].done
+                or time.monotonic() - self._map_drawn >= MAP_POSE_PERIOD_S
+            )
+            if "maps" in msgs or "search" in msgs or status_due:
                 self._draw_map()
+                self._map_drawn = time.monotonic()
         self.stats.updates += 1
         self.panels.show_title(self._title())
 
@@ -260,7 +268,7 @@ class ViewerApp:
             if not self._history or msg.step > self._history[-1][0]:
                 self._history.append((float(msg.step), float(msg.objects_fixed), float(msg.oop_found)))
             if self.replay is None:
-                self.panels.show_plot(np.array(self._history))
+                self.panels.show_plot(np.array(self._history), final=bool(msg.done))
 
     def _show_legend(self, msg: MapSnapshot) -> None:
         labels = np.asarray(msg.point_labels)
@@ -372,7 +380,7 @@ class ViewerApp:
             self.stats.last_step = self.replay.step_of("status", current["status"])
         with self.server.atomic():
             self.scene.push_cloud(force=True)
-        self.panels.show_plot(self.replay.history(step))
+        self.panels.show_plot(self.replay.history(step), final=True)  # exact at every slider position
         trunc = f" · **log truncated** ({self.replay.corrupt_message})" if self.replay.truncated else ""
         status: AgentStatus | None = self._latest.get("status")
         local = ""

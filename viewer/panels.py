@@ -24,6 +24,7 @@ from tidee.viewer.phases import WALKTHROUGH, rearrangement_phase
 from tidee.viewer.scene_view import COLOUR_MODES, LAYERS
 
 AUTO_SESSION = "(follow newest)"
+PLOT_STEP_STRIDE = 10  # the progress plot follows the steps in strides; a count that changes shows at once
 LAYER_LABELS = {
     "voxels": "3D map",
     "objects": "Object memory",
@@ -275,13 +276,25 @@ class Panels:
         if self.phase.visible != bool(content):
             self.phase.visible = bool(content)
 
-    def show_plot(self, history: np.ndarray) -> None:
-        """Redraw the progress plot when its data changed (``K x 3``: step, put away, found)."""
+    def show_plot(self, history: np.ndarray, final: bool = False) -> None:
+        """Redraw the progress plot when its data changed (``K x 3``: step, put away, found):
+        at once for new counts or a ``final`` row, every PLOT_STEP_STRIDE steps otherwise."""
         rows = np.asarray(history, np.float64).reshape(-1, 3)
         key = (len(rows), tuple(rows[-1]) if len(rows) else ())
-        if key != self._plot_key:
-            self._plot_key = key
-            self.plot.image = images.progress_plot(rows)
+        last = self._plot_key
+        if key == last:
+            return
+        if (
+            not final
+            and last is not None
+            and len(rows) > last[0]
+            and last[1]
+            and key[1][1:] == last[1][1:]  # the same counts: only the steps moved on
+            and key[1][0] - last[1][0] < PLOT_STEP_STRIDE
+        ):
+            return  # redrawn (and re-encoded) every PLOT_STEP_STRIDE steps, not every step
+        self._plot_key = key
+        self.plot.image = images.progress_plot(rows)
 
     def show_summary(self, summary: EpisodeSummary | None) -> None:
         """The "Episode finished" panel (None hides it: a new episode began, or a replay slid back)."""

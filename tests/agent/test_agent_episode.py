@@ -10,7 +10,7 @@ import zenoh
 
 from tests.support.net import free_endpoint, wait_until
 from tidee.agent.config import AgentConfig, PolicyConfig
-from tidee.agent.runner import EpisodeRunner, format_summary
+from tidee.agent.runner import LOG_EVERY, EpisodeRunner, format_summary
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.protocol import codec, keys
 from tidee.protocol.client import SimClient
@@ -114,6 +114,11 @@ def test_tidy_episode_over_zenoh_with_telemetry_and_log(real_server: SimServer, 
     log = LogReader(tmp_path / "ep")
     kinds = [k for k, _ in log.messages()]
     assert kinds.count("status") == result.steps + 1 and not log.truncated
+    # Frames, maps and memory: every LOG_EVERY-th step and the last, however often viewers got them.
+    bulky = [(k, m.step) for k, m in log.messages() if k in ("frame", "maps", "memory")]
+    assert {k for k, _ in bulky} == {"frame", "maps", "memory"}
+    assert all(step % LOG_EVERY == 0 or step == result.steps for _, step in bulky), bulky
+    assert len(received["frame"]) > sum(k == "frame" for k, _ in bulky)
     summary = log.summary()
     assert summary is not None and summary["record"]["objects"] == rec["objects"]
     # The end-of-episode summary: counted from the record, sent to viewers, logged, and in summary.json.

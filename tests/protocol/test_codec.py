@@ -625,3 +625,40 @@ def test_agent_sees_the_same_points_within_a_millimetre() -> None:
     both, i, j = np.intersect1d(exact_pix, got_pix, return_indices=True)
     rays = np.linalg.norm(exact[i] - pose[:3, 3], axis=1) / obs.depth.ravel()[both]
     assert (np.linalg.norm(got[j] - exact[i], axis=1) <= 0.0005 * rays + 1e-5).all()
+
+
+def test_a_large_memory_decodes_alike_in_threads_planning_at_once() -> None:
+    import threading
+
+    from tidee.protocol import codec
+    from tidee.protocol.messages import ObjectMemoryMsg, TrackedObjectMsg
+
+    rng = np.random.default_rng(0)
+    objects = [
+        TrackedObjectMsg(
+            i,
+            "Mug",
+            float(rng.random()),
+            tuple(map(float, rng.random(3))),
+            tuple(map(float, rng.random(3) - 1)),
+            tuple(map(float, rng.random(3) + 1)),
+            float(rng.random()) if i % 2 else None,
+            bool(i % 3 == 0),
+            False,
+            tuple(map(float, rng.random(3))) if i % 4 == 0 else None,
+        )
+        for i in range(200)
+    ]
+    msg = ObjectMemoryMsg("s", 7, objects)
+    frame = encode(msg)
+    codec._plan.cache_clear()  # every thread below finds the plans unmade
+    out: list[Any] = []
+    threads = [threading.Thread(target=lambda: out.append(decode(frame))) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(out) == 4 and all(m == msg for m in out)
+    objects[3] = dataclasses.replace(objects[3], centroid=(1.0, 2.0))  # type: ignore[arg-type]
+    with pytest.raises(ProtocolError, match=r"field 'objects\[3\]\.centroid' must be a list of 3 items"):
+        decode(encode(ObjectMemoryMsg("s", 7, objects)))

@@ -102,3 +102,37 @@ def test_real_episode_in_process() -> None:
     )
     check_env(env.unwrapped, skip_render_check=True)
     env.close()
+
+
+def test_send_step_runs_in_process_when_asked_and_over_zenoh_at_once() -> None:
+    from tests.support.net import wait_until
+    from tidee.protocol.client import SimClient
+    from tidee.protocol.transport import send_step
+
+    episode = FakeEpisode()
+    transport = InProcessTransport(episode)
+    transport.reset(SPEC)
+    observe = send_step(transport, Action(ActionName.MoveAhead))
+    assert episode.steps == 0  # in process: the step runs when its observation is asked for
+    assert observe().step == 1 and episode.steps == 1
+    made: list[FakeEpisode] = []
+
+    def factory() -> FakeEpisode:
+        made.append(FakeEpisode())
+        return made[-1]
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    server = SimServer(ServerConfig(endpoint=endpoint, server_id=f"s{uuid.uuid4().hex[:8]}"), factory).start()
+    try:
+        with SimClient(endpoint, server_id=server.config.server_id, timeout=30, connect_timeout=30) as client:
+            client.reset(SPEC)
+            observe = send_step(client, Action(ActionName.MoveAhead))
+            # over Zenoh the request leaves at once: the server steps before anyone waits for it
+            assert wait_until(lambda: any(e.steps == 1 for e in made), timeout=10.0)
+            obs = observe()
+            assert obs.step == 1 and obs.success
+            assert client.step(Action(ActionName.MoveAhead)).step == 2
+    finally:
+        server.stop()

@@ -764,3 +764,32 @@ def test_annotated_screenshot_numbers_the_panels_found_and_names_them_below():
     assert not ink[250:400, 0:200].any()  # nothing where no panel is
     assert ink[400:].sum() > 3 * 100  # three numbered badges in the key
     assert {k for k, _ in PANELS} >= set(boxes) | {"map", "plot", "predictions", "controls"}
+
+
+def test_the_progress_plot_follows_steps_in_strides_and_counts_at_once() -> None:
+    from types import SimpleNamespace
+
+    from tidee.viewer.panels import PLOT_STEP_STRIDE, Panels
+
+    panel = SimpleNamespace(_plot_key=None, plot=SimpleNamespace(image=None))
+    drawn: list[float] = []
+
+    def show(rows: list[tuple[float, float, float]], final: bool = False) -> None:
+        before = panel.plot.image
+        Panels.show_plot(panel, np.array(rows, np.float64), final=final)  # type: ignore[arg-type]
+        if panel.plot.image is not before:
+            drawn.append(rows[-1][0])
+
+    rows = [(0.0, 0.0, 0.0)]
+    show(rows)
+    for step in range(1, 25):  # nothing found or put away: a redraw per stride
+        rows.append((float(step), 0.0, 0.0))
+        show(rows)
+    assert drawn == [0.0, float(PLOT_STEP_STRIDE), float(2 * PLOT_STEP_STRIDE)]
+    rows.append((25.0, 0.0, 1.0))  # an object found: drawn at once
+    show(rows)
+    rows.append((26.0, 0.0, 1.0))
+    show(rows, final=True)  # the episode's last status: drawn at once
+    assert drawn[-2:] == [25.0, 26.0]
+    show(rows[:3])  # a new episode (fewer rows): drawn at once
+    assert drawn[-1] == 2.0
