@@ -345,9 +345,9 @@ class EpisodeRunner:
                 timings["planning_ms"].append((t3 - t2) * 1e3)
                 emitted = False
 
-                def emit(
-                    obs: Observation = obs, dets: list = dets
-                ) -> None:  # this step's telemetry and log, once
+                # This step's telemetry and log records, once: before a pause's wait, or while
+                # the server acts on the step (send_step below).
+                def emit(obs: Observation = obs, dets: list = dets) -> None:
                     nonlocal emitted
                     if not emitted:
                         emitted = True
