@@ -6,7 +6,9 @@ in-process transport, as ``tidee eval tidy --workers 1`` does) and **live** (``t
 server, agent and viewer as three processes on embedded Zenoh, the viewer subscribed to the
 agent's telemetry; optionally a headless Chromium showing the viewer page). Both report the
 agent's own episode wall time (reset to end, from the episode record) and the steps; the
-live run also its whole command time (process start-up and model load included). Writes
+live run also its whole command time (process start-up and model load included) and the CPU
+seconds each of its processes used (agent, server, simulator, viewer: who competes for the
+cores). Writes
 JSON and Markdown with median, p90 and max, the live / in-process ratio of the medians, and
 the load average before and after.
 """
@@ -19,6 +21,7 @@ import platform
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -43,6 +46,70 @@ with InProcessTransport(renderer=TRAINED_RENDERER) as transport:
 print(json.dumps({"steps": res.steps, "episode_s": res.wall_s, "command_s": time.perf_counter() - t0,
                   "put_away": res.objects_fixed}))
 """
+
+
+# Which process of ``tidee run`` a command line belongs to (the first match names it).
+ROLES = (
+    ("agent", " agent "),
+    ("viewer", " viewer "),
+    ("server", " server "),
+    ("simulator", "multiprocessing.spawn"),
+)
+
+
+def _children() -> dict[int, list[int]]:
+    """Every process's children, from /proc (Linux)."""
+    out: dict[int, list[int]] = {}
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            try:
+                stat = Path(f"/proc/{name}/stat").read_text()
+            except OSError:  # gone meanwhile
+                continue
+            ppid = int(stat.rsplit(")", 1)[1].split()[1])
+            out.setdefault(ppid, []).append(int(name))
+    return out
+
+
+class CpuSampler(threading.Thread):
+    """The CPU seconds (user + system) of a process tree, by role (``ROLES``; others:
+    "other"), sampled every ``period`` s while the tree runs: a process's last sample counts."""
+
+    def __init__(self, root: int, period: float = 0.5) -> None:
+        super().__init__(daemon=True)
+        self.root, self.period = root, period
+        self._last: dict[int, tuple[str, float]] = {}
+        self._finished = threading.Event()
+        self._tick = os.sysconf("SC_CLK_TCK")
+
+    def sample(self) -> None:
+        kids, todo, seen = _children(), [self.root], []
+        while todo:
+            pid = todo.pop()
+            seen.append(pid)
+            todo.extend(kids.get(pid, []))
+        for pid in seen:
+            try:
+                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            except OSError:
+                continue
+            role = next((r for r, mark in ROLES if mark in f" {cmd} "), "other")
+            self._last[pid] = (role, (int(fields[11]) + int(fields[12])) / self._tick)
+
+    def run(self) -> None:
+        while not self._finished.is_set():
+            self.sample()
+            self._finished.wait(self.period)
+
+    def stop(self) -> dict[str, float]:
+        """Stop sampling; the CPU seconds by role."""
+        self._finished.set()
+        self.join(timeout=5)
+        out: dict[str, float] = {}
+        for role, cpu in self._last.values():
+            out[role] = round(out.get(role, 0.0) + cpu, 2)
+        return out
 
 
 def _inprocess(args: dict[str, Any]) -> dict[str, Any]:
@@ -86,6 +153,8 @@ def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
         ]
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        sampler = CpuSampler(proc.pid)
+        sampler.start()
         chromium = None
         try:
             if browser:
@@ -103,6 +172,7 @@ def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
                         time.sleep(0.5)
             rc = proc.wait(timeout=1800)
         finally:
+            cpu = sampler.stop()
             if chromium is not None:
                 chromium.close()
             if proc.poll() is None:
@@ -117,6 +187,7 @@ def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
         "episode_s": summary["wall_s"],
         "command_s": command_s,
         "put_away": summary["objects_fixed"],
+        "cpu_s": cpu,
     }
 
 
@@ -154,6 +225,9 @@ def run_episode_bench(
     for mode, rs in runs.items():
         result[f"{mode}_episode_s"] = spread([r["episode_s"] for r in rs])
         result[f"{mode}_command_s"] = spread([r["command_s"] for r in rs])
+    for role in sorted({r for run in runs["live"] for r in run["cpu_s"]}):
+        # where a live run's CPU went (samples every 0.5 s: the last half second may be missed)
+        result[f"live_cpu_s_{role}"] = spread([run["cpu_s"].get(role, 0.0) for run in runs["live"]])
     result["live_over_inprocess_episode"] = round(
         result["live_episode_s"]["median"] / result["inprocess_episode_s"]["median"], 3
     )
