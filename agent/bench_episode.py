@@ -57,20 +57,6 @@ ROLES = (
 )
 
 
-def _children() -> dict[int, list[int]]:
-    """Every process's children, from /proc (Linux)."""
-    out: dict[int, list[int]] = {}
-    for name in os.listdir("/proc"):
-        if name.isdigit():
-            try:
-                stat = Path(f"/proc/{name}/stat").read_text()
-            except OSError:  # gone meanwhile
-                continue
-            ppid = int(stat.rsplit(")", 1)[1].split()[1])
-            out.setdefault(ppid, []).append(int(name))
-    return out
-
-
 class CpuSampler(threading.Thread):
     """The CPU seconds (user + system) of a process tree, by role (``ROLES``; others:
     "other"), sampled every ``period`` s while the tree runs: a process's last sample counts."""
@@ -81,14 +67,12 @@ class CpuSampler(threading.Thread):
         self._last: dict[int, tuple[str, float]] = {}
         self._finished = threading.Event()
         self._tick = os.sysconf("SC_CLK_TCK")
+        from tidee.server.bench_soak import descendants  # imported now, not at the first sample
+
+        self._descendants = descendants
 
     def sample(self) -> None:
-        kids, todo, seen = _children(), [self.root], []
-        while todo:
-            pid = todo.pop()
-            seen.append(pid)
-            todo.extend(kids.get(pid, []))
-        for pid in seen:
+        for pid in [self.root, *self._descendants(self.root)]:
             try:
                 fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
                 cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")

@@ -97,7 +97,7 @@ def run_soak_bench(cfg: SoakBenchConfig, out_path: Path) -> dict:
                     t0 = time.perf_counter()
                     client.reset(spec)
                     reset_s.append(time.perf_counter() - t0)
-                    live = {p for p in _descendants(server.pid) if _is_simulator(p)}
+                    live = {p for p in descendants(server.pid) if _is_simulator(p)}
                     fresh.append(bool(live - simulators))
                     simulators |= live
                     for k in range(cfg.steps):
@@ -186,7 +186,7 @@ def _spread_where(xs: list[float], keep: list[bool]) -> dict[str, float] | None:
 def _tree_rss_mb(pid: int) -> dict:
     """VmRSS of ``pid`` and of all its descendants, in MB."""
     parent = _rss_kb(pid)
-    children = sum(_rss_kb(p) for p in _descendants(pid))
+    children = sum(_rss_kb(p) for p in descendants(pid))
     return {
         "server_mb": round(parent / 1024, 1),
         "children_mb": round(children / 1024, 1),
@@ -194,7 +194,8 @@ def _tree_rss_mb(pid: int) -> dict:
     }
 
 
-def _descendants(pid: int) -> list[int]:
+def descendants(pid: int) -> list[int]:
+    """Every live process below ``pid`` (children, theirs, ...), from /proc (Linux)."""
     found, todo = [], [pid]
     while todo:
         current = todo.pop()
