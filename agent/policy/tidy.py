@@ -721,17 +721,26 @@ class TidyPolicy:
     def _open_and_put(
         self, rec: TrackedObject, sighting: Sighting, top: np.ndarray, no_room: list[np.ndarray]
     ) -> Gen:
-        """Open a closed receptacle, put the held object in and close it again. An opening
-        refused as "blocked" (the door would hit the agent): step back, aim again, retry once."""
+        """Open a closed receptacle, put the held object in and close it again (also when the
+        put fails: the room is left as it was). An opening refused as "blocked" (the door would
+        hit the agent): step back, aim again, retry once; once it is open, step forward again if
+        the step back left the put out of reach."""
         shape = self.body.obs.depth.shape
         for retry in range(2):
             yield sighting.action(ActionName.OpenObject, shape)
             if self.body.obs.success:
-                yield sighting.action(ActionName.PutObject, shape)
+                put_at = sighting
+                if retry:
+                    put_at = (
+                        yield from self._closer_after_step_back(rec, sighting, top, no_room)
+                    ) or sighting
+                yield put_at.action(ActionName.PutObject, shape)
                 if self.body.obs.success:
-                    self._last_put_xy = sighting.point[:2].copy()
-                    yield sighting.action(ActionName.CloseObject, shape)
+                    self._last_put_xy = put_at.point[:2].copy()
+                    yield put_at.action(ActionName.CloseObject, shape)
                     return True
+                self.event("put_failed_closing", receptacle=rec.label)
+                yield put_at.action(ActionName.CloseObject, shape)
                 return False
             if self.body.obs.error != "blocked" or retry or self.body.steps_left() <= 4:
                 return False
@@ -744,6 +753,21 @@ class TidyPolicy:
                 return False
             sighting = again
         return False
+
+    def _closer_after_step_back(
+        self, rec: TrackedObject, sighting: Sighting, top: np.ndarray, no_room: list[np.ndarray]
+    ) -> Generator[Action, None, Sighting | None]:
+        """After a step back and an opening: step forward again when the put point is beyond
+        reach; the new aim, or None to put from here."""
+        if sighting.distance <= self.p.interact_m or self.body.steps_left() <= 4:
+            return None
+        yield Action(ActionName.MoveAhead)
+        if not self.body.obs.success:  # the open door (or anything else) is in the way
+            return None
+        self.event("put_step_forward", receptacle=rec.label)
+        yield from face_point(self.body, top)
+        det = self._detection_of(rec)
+        return self._aim(rec, det, no_room) if det is not None else None
 
     def _detection_of(self, rec: TrackedObject):
         """The detection of ``rec`` in the current frame; else the largest detection of its

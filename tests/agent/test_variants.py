@@ -610,6 +610,23 @@ def test_a_door_that_would_hit_the_agent_is_opened_again_after_a_step_back(monke
     assert not ok and done == ["OpenObject", "MoveBack", "OpenObject"]
     ok, done = run([(False, "not_openable")])  # another refusal: no step back
     assert not ok and done == ["OpenObject"]
+    events.clear()
+    ok, done = run([(True, ""), (False, "out_of_reach"), (True, "")])  # a failed put: closed again
+    assert not ok and done == ["OpenObject", "PutObject", "CloseObject"]
+    assert [e["kind"] for e in events] == ["put_failed_closing"]
+    # the step back left the put beyond reach: once the door is open, a step forward and a new aim
+    far = Sighting(None, 4, 4, policy.p.interact_m + 0.07, np.array([1.0, 2.0, 1.0]))
+    near = Sighting(None, 3, 3, 1.0, np.array([1.1, 2.0, 1.0]))
+    events.clear()
+    gen_aims = iter([far, near])
+    policy._aim = lambda rec, det, no_room: next(gen_aims)
+    ok, done = run([(False, "blocked"), (True, ""), (True, ""), (True, ""), (True, ""), (True, "")])
+    assert ok and done == ["OpenObject", "MoveBack", "OpenObject", "MoveAhead", "PutObject", "CloseObject"]
+    assert [e["kind"] for e in events] == ["open_blocked", "put_step_forward"]
+    assert policy._last_put_xy.tolist() == [1.1, 2.0]
+    gen_aims = iter([far])  # the open door stops the step forward: the put is tried from there
+    ok, done = run([(False, "blocked"), (True, ""), (True, ""), (False, "blocked"), (True, ""), (True, "")])
+    assert ok and done == ["OpenObject", "MoveBack", "OpenObject", "MoveAhead", "PutObject", "CloseObject"]
 
 
 def test_after_tidying_the_objects_a_household_names_are_visited_or_searched_for():
