@@ -222,7 +222,12 @@ class PreferenceEvalConfig:
     workers: int = option(1, "parallel simulator processes", type=argtypes.positive_int)
     renderer: Renderer = option(TRAINED_RENDERER, RENDERER_HELP)
     seed: int = option(0, "the scripted preferences' random choices", type=argtypes.non_negative_int)
-    keep_logs: bool = option(False, "write every episode's log under OUT/logs/without and OUT/logs/with")
+    keep_logs: bool = option(
+        False, "write every episode's log under OUT/logs/without, OUT/logs/with (and OUT/logs/reseeded)"
+    )
+    reseeded: bool = option(
+        True, "also run every episode without preferences under another agent seed: the run-to-run share"
+    )
     batch: BatchConfig = option(default_factory=BatchConfig)
     progress: bool = option(True, "a progress bar", cli=False)
 

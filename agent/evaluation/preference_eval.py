@@ -16,6 +16,12 @@ the asked and never objects placed as asked; the share of the group's unnamed me
 asked; the side effects: the share of the other objects (named by no preference) whose final
 receptacle differs between the two runs; and how many of the asked objects the agent found and
 picked up (an object never picked is lost to perception or approach, not to the preference).
+
+Side effects have a floor that no preference causes: any change of course (another walk, one
+more object looked at) changes what the learned detector sees for the rest of the episode, so
+other objects end elsewhere too. ``--reseeded`` (on by default) runs every episode once more
+without preferences under another agent seed (``RESEED_OFFSET``) and reports the same share
+between the two runs without a profile: the run-to-run variation beside the side effects.
 JSON, Markdown and PNG; ``--keep-logs`` keeps every episode's log to read why.
 """
 
@@ -50,6 +56,7 @@ GROUP_PHRASES = (
     "bathroom things",
     "sports equipment",
 )
+RESEED_OFFSET = 1000  # the reseeded run's agent seed: the configuration's index plus this
 SURFACES = sorted(PLACEABLE_RECEPTACLES - {"GarbageCan", "Toilet", "ToiletPaperHanger", "TowelHolder"})
 
 
@@ -111,15 +118,53 @@ def _placed(objs: Sequence[Mapping[str, Any]], category: str, receptacle: str, a
     ]
 
 
+def _changed(
+    rec: Mapping[str, Any], other: Mapping[str, Any], named: set[str], worse: bool = False
+) -> list[bool]:
+    """Per object named by no preference: whether its final receptacle differs between the
+    runs (``worse``: whether it ends where the catalog judge finds it implausible in ``rec``
+    but plausible in ``other``)."""
+    before = {o["id"]: o for o in other["objects"]}
+
+    def ok(o: Mapping[str, Any], r: Mapping[str, Any]) -> bool:
+        present = r["present_receptacles"]
+        return plausible(o["type"], o["variant"], r["room_type"], o["final_parent_type"], present)
+
+    return [
+        (not ok(o, rec) and ok(before[o["id"]], other))
+        if worse
+        else o["final_parent_type"] != before[o["id"]]["final_parent_type"]
+        for o in rec["objects"]
+        if o["type"] not in named and o["id"] in before
+    ]
+
+
 def score(
-    without: Sequence[Mapping[str, Any]], with_: Sequence[Mapping[str, Any]], profiles: Mapping[Any, Any]
+    without: Sequence[Mapping[str, Any]],
+    with_: Sequence[Mapping[str, Any]],
+    profiles: Mapping[Any, Any],
+    reseeded: Sequence[Mapping[str, Any]] = (),
 ) -> dict[str, Any]:
-    """Per variant: asked / never / group obeyed, side effects (see the module docstring)."""
+    """Per variant: asked / never / group obeyed, side effects, and (``reseeded``: the same
+    episodes without preferences under another agent seed) the run-to-run share ``side_rerun``
+    over the same objects (see the module docstring)."""
     base = {(r["variant"], _key(r)): r for r in without}
+    again = {(r["variant"], _key(r)): r for r in reseeded}
     per: dict[str, dict[str, list[bool]]] = {}
     for rec in with_:
         acc = per.setdefault(
-            rec["variant"], {"asked": [], "never": [], "group": [], "side": [], "found": [], "picked": []}
+            rec["variant"],
+            {
+                "asked": [],
+                "never": [],
+                "group": [],
+                "side": [],
+                "side_worse": [],
+                "side_rerun": [],
+                "side_rerun_worse": [],
+                "found": [],
+                "picked": [],
+            },
         )
         prof = profiles[_key(rec)]
         named: set[str] = set()
@@ -139,12 +184,13 @@ def score(
             for c in g["unnamed"]:
                 acc["group"] += _placed(rec["objects"], c, g["receptacle"], True)
             named |= set(g["categories"])
-        before = {o["id"]: o for o in base[(rec["variant"], _key(rec))]["objects"]}
-        acc["side"] += [
-            o["final_parent_type"] != before[o["id"]]["final_parent_type"]
-            for o in rec["objects"]
-            if o["type"] not in named and o["id"] in before
-        ]
+        first = base[(rec["variant"], _key(rec))]
+        acc["side"] += _changed(rec, first, named)
+        acc["side_worse"] += _changed(rec, first, named, worse=True)
+        second = again.get((rec["variant"], _key(rec)))
+        if second is not None:  # the reseeded run against the first, the same objects
+            acc["side_rerun"] += _changed(second, first, named)
+            acc["side_rerun_worse"] += _changed(second, first, named, worse=True)
     return {
         v: {k: {"n": len(xs), "share": float(np.mean(xs)) if xs else None} for k, xs in acc.items()}
         for v, acc in per.items()
@@ -161,14 +207,14 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
     agent = cfg.agent
     spec = {"resolution": cfg.resolution, "max_steps": cfg.max_steps}
 
-    def jobs(preferences: Mapping[Any, str | None], logs: str) -> list[TidyJob]:
+    def jobs(preferences: Mapping[Any, str | None], logs: str, seed_offset: int = 0) -> list[TidyJob]:
         log_dir = out / "logs" / logs if cfg.keep_logs else None
         return [
             TidyJob(
                 agent=replace(
                     agent,
                     variant=v,
-                    seed=c.index,
+                    seed=c.index + seed_offset,
                     preferences=preferences.get((c.room_type, c.seed, c.mess_index)),
                 ),
                 spec=EpisodeSpec(room_type=c.room_type, seed=c.seed, mess_index=c.mess_index, **spec),
@@ -212,6 +258,7 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
         files[_key(rec)] = str(path)
     # the same records file: this run's episodes without preferences are in it (resumed or not)
     with_ = run(jobs(files, "with"), True)
+    reseeded = run(jobs({}, "reseeded", RESEED_OFFSET), True) if cfg.reseeded else []
     result: dict[str, Any] = {
         "command": command,
         "config": {
@@ -221,9 +268,10 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
             "perception": agent.perception,
             "oop": agent.oop,
             "seed": cfg.seed,
+            "reseeded": cfg.reseeded,
         },
         "groups": {p: list(m) for p, m in members.items()},
-        "metrics": score(without, with_, profiles),
+        "metrics": score(without, with_, profiles, reseeded),
         "profiles": {"{}_{}_mess{}".format(*k): v for k, v in profiles.items()},
     }
     write_atomic(out / "preferences.json", json.dumps(result, indent=1).encode())
@@ -246,16 +294,24 @@ def _markdown(r: Mapping[str, Any]) -> str:
         "Asked: a moved category goes on another receptacle the room has, one the catalog finds "
         "plausible for it. Never: a moved category may not go where the agent put it without "
         "preferences. Group: a phrase whose MiniLM members include a moved category it does not "
-        "name. Side effects: other objects whose final receptacle changed.",
+        "name. Side effects: other objects whose final receptacle changed; for the worse: of all "
+        "the other objects, those that end where the catalog judge finds them implausible with the "
+        "profile and plausible without it. Run to run: the same two shares between the run without "
+        f"preferences and a second run without them under another agent seed (+{RESEED_OFFSET}): "
+        "what any change of course does to the other objects.",
         "",
         "| Agent | Asked, placed as asked | Never, obeyed | Group, unnamed members placed as asked "
-        "| Side effects | Asked objects found | Asked objects picked |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| Side effects | for the worse | Run to run, no profile | for the worse "
+        "| Asked objects found | Asked objects picked |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    none = {"n": 0, "share": None}
     for v, m in r["metrics"].items():
+        cells = [m.get(k, none) for k in ("side", "side_worse", "side_rerun", "side_rerun_worse")]
         lines.append(
-            f"| {v} | {_pct(m['asked'])} | {_pct(m['never'])} | {_pct(m['group'])} | {_pct(m['side'])} "
-            f"| {_pct(m['found'])} | {_pct(m['picked'])} |"
+            f"| {v} | {_pct(m['asked'])} | {_pct(m['never'])} | {_pct(m['group'])} | "
+            + " | ".join(_pct(c) for c in cells)
+            + f" | {_pct(m['found'])} | {_pct(m['picked'])} |"
         )
     lines += ["", "Group phrases and the categories MiniLM carried them to:", ""]
     lines += [f"- {p}: {', '.join(m)}" for p, m in r["groups"].items()]
@@ -268,14 +324,21 @@ def _plot(metrics: Mapping[str, Any]) -> bytes:
 
     from matplotlib.figure import Figure
 
-    keys = [("asked", "asked"), ("never", "never"), ("group", "group (unnamed)"), ("side", "side effects")]
+    keys = [
+        ("asked", "asked"),
+        ("never", "never"),
+        ("group", "group (unnamed)"),
+        ("side", "side effects"),
+        ("side_rerun", "run to run"),
+    ]
     names = list(metrics)
     fig = Figure(figsize=(max(6.0, 2.2 * len(names) + 2), 4.0))
     ax = fig.add_subplot(1, 1, 1)
     x = np.arange(len(names))
     w = 0.8 / len(keys)
     for k, (key, label) in enumerate(keys):
-        vals = [np.nan if metrics[n][key]["share"] is None else 100 * metrics[n][key]["share"] for n in names]
+        shares = [metrics[n].get(key, {"share": None})["share"] for n in names]
+        vals = [np.nan if s is None else 100 * s for s in shares]
         ax.bar(x + (k - (len(keys) - 1) / 2) * w, vals, w, label=label)
     ax.set_xticks(x)
     ax.set_xticklabels(names)

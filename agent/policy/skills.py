@@ -418,11 +418,12 @@ def sighting_of(
 ) -> Sighting | None:
     """The pixel of a detection to act on: its region's most central pixel with valid depth.
 
-    ``prefer_top``: for putting things on a receptacle, prefer pixels whose 3D point lies near
+    ``prefer_top``: for putting things on a receptacle (not in one: a cabinet's top is often
+    the counter over it), prefer pixels whose 3D point lies near
     the top of the region's points (the surface something can rest on), within ``reach`` metres.
-    ``within``: the receptacle's mapped box (min, max corners); with ``prefer_top``, only points
-    inside it grown by ``within_m`` count (a detection's box also covers the wall or window
-    behind and above a shelf), unless none is.
+    ``within``: the receptacle's mapped box (min, max corners); only points inside it grown by
+    ``within_m`` count (a detection's box also covers the wall or window behind and above a
+    shelf, a counter top above a cabinet), unless none is.
     ``avoid``: 3D points already tried (a put that found no free space or no receptacle there);
     pixels within ``avoid_m`` of them are skipped while others remain, first in the top band,
     then (when the whole top band was tried: a full top board) among the other reachable points,
@@ -441,6 +442,17 @@ def sighting_of(
     ys, xs = np.divmod(index, w)
     dist = np.linalg.norm(pts - obs.camera_pose[:3, 3], axis=1)
     weight = np.hypot(xs - xs.mean(), ys - ys.mean())
+    if not prefer_top and (within is not None or avoid):  # the body's centre: a door, a drawer front
+        keep = np.ones(len(xs), bool)
+        if within is not None:
+            lo, hi = np.asarray(within[0]) - within_m, np.asarray(within[1]) + within_m
+            inside = np.all((pts >= lo) & (pts <= hi), axis=1)
+            keep = inside if inside.any() else keep
+        if avoid:
+            far = np.min([np.linalg.norm(pts - a, axis=1) for a in avoid], axis=0) > avoid_m
+            keep = keep & far if (keep & far).any() else keep
+        cx, cy = xs[keep].mean(), ys[keep].mean()
+        weight = np.where(keep, np.hypot(xs - cx, ys - cy), np.inf)
     if prefer_top:
         near = dist <= reach
         if within is not None:

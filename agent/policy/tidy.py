@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from tidee.agent.classes import PICKUPABLE, PLACEABLE_RECEPTACLES
+from tidee.agent.classes import OPENABLE, PICKUPABLE, PLACEABLE_RECEPTACLES
 from tidee.agent.config import AgentConfig
 from tidee.agent.mapping.config import MapConfig
 from tidee.agent.mapping.memory import TrackedObject
@@ -52,6 +52,7 @@ from tidee.agent.policy.skills import (
     Sighting,
     face_point,
     find_in_view,
+    footprint_gap,
     frontier_goal,
     goal_mask_near_box,
     look_around,
@@ -635,20 +636,24 @@ class TidyPolicy:
         not stood on again: the next goal region keeps ``RETRY_AWAY_M`` from it; a put that
         found no free space sends the next walk to another side. The aim pixel keeps off the
         frame's border and off other receptacles' pixels (``aim_region``). A door that would
-        hit the agent when opened ("blocked"): one step back and one more try.
+        hit the agent when opened ("blocked"): one step back and one more try; still blocked,
+        the next spot is another one, at least 0.25 m farther from the box than this one.
         """
         shape = self.body.obs.depth.shape
         no_room: list[np.ndarray] = []  # points where a put found no free space or no receptacle
         tried: list[np.ndarray] = []  # spots from which it was not seen, or not within reach
+        door_gap = 0.0  # a door hit the agent this far from the box: stand farther off
         seen = False
         puts = 0
         for attempt in range(max(APPROACH_TRIES, self.p.m_place_tries)):
             if self.body.steps_left() <= 2 or puts >= self.p.m_place_tries:
                 break
             grid = self.body.mapper.grid
-            mask = goal_mask_near_box(
-                self.body.mapper, rec.box_min, rec.box_max, (0.5, 0.35, 0.75)[attempt % 3]
-            )
+            radius = max((0.5, 0.35, 0.75)[attempt % 3], door_gap + 0.35)
+            mask = goal_mask_near_box(self.body.mapper, rec.box_min, rec.box_max, radius)
+            if door_gap:
+                farther = mask & ~goal_mask_near_box(self.body.mapper, rec.box_min, rec.box_max, door_gap)
+                mask = farther if farther.any() else mask
             if no_room:  # no free space where it aimed: go round to another side of the receptacle
                 near = np.logical_or.reduce(
                     [goal_mask_near_box(self.body.mapper, q, q, 0.9) for q in no_room]
@@ -684,8 +689,13 @@ class TidyPolicy:
                 self._last_put_xy = sighting.point[:2].copy()
                 return True
             if obs.error == "receptacle_closed":
-                if (yield from self._open_and_put(rec, sighting, top, no_room)):
+                opened = yield from self._open_and_put(rec, sighting, top, no_room)
+                if opened is True:
                     return True
+                if opened == "blocked":  # from another spot, farther from the door's swing
+                    tried.append(self.body.xy.copy())
+                    gap = float(footprint_gap(rec.box_min, rec.box_max, *self.body.xy))
+                    door_gap = max(door_gap, gap) + 0.25
             elif obs.error in ("no_free_space", "not_receptacle"):  # aim elsewhere next time (not_receptacle:
                 no_room.append(sighting.point)  # a wall or window above a shelf)
                 if obs.error == "no_free_space":
@@ -705,12 +715,14 @@ class TidyPolicy:
         return False
 
     def _aim(self, rec: TrackedObject, det: Any, no_room: list[np.ndarray]) -> Sighting | None:
-        """Where on ``det`` (a detection of ``rec``) to put: its top within the mapped box, away
-        from points already tried, the frame's border and other receptacles' pixels."""
+        """Where on ``det`` (a detection of ``rec``) to put: its top within the mapped box (the
+        middle of its front for a cabinet, drawer, fridge or microwave: things go in, and the
+        top of a base cabinet is the counter over it), away from points already tried, the
+        frame's border and other receptacles' pixels."""
         return sighting_of(
             self.body,
             det,
-            prefer_top=True,
+            prefer_top=rec.label not in OPENABLE,
             reach=self.p.interact_m,
             avoid=no_room,
             within=(rec.box_min, rec.box_max),
@@ -724,7 +736,8 @@ class TidyPolicy:
         """Open a closed receptacle, put the held object in and close it again (also when the
         put fails: the room is left as it was). An opening refused as "blocked" (the door would
         hit the agent): step back, aim again, retry once; once it is open, step forward again if
-        the step back left the put out of reach."""
+        the step back left the put out of reach. True when put; "blocked" when the door still
+        hit the agent; else False."""
         shape = self.body.obs.depth.shape
         for retry in range(2):
             yield sighting.action(ActionName.OpenObject, shape)
@@ -743,7 +756,7 @@ class TidyPolicy:
                 yield put_at.action(ActionName.CloseObject, shape)
                 return False
             if self.body.obs.error != "blocked" or retry or self.body.steps_left() <= 4:
-                return False
+                return "blocked" if self.body.obs.error == "blocked" else False
             self.event("open_blocked", receptacle=rec.label)
             yield Action(ActionName.MoveBack)
             yield from face_point(self.body, top)

@@ -490,6 +490,14 @@ def test_a_put_aims_at_the_receptacle_not_the_window_above_it_then_below_a_tried
     assert lower.point[2] == pytest.approx(0.9) and 50 <= lower.v < 60
     # out of reach boards are never chosen: with 1.1 m of reach only the lower board is left
     assert sighting_of(body, det, prefer_top=True, reach=1.1, within=box).point[2] == pytest.approx(0.9)
+    # a cabinet under a counter: its body is aimed at, not the top of what the detection covers
+    cabinet = (np.array([0.8, -0.4, 0.0]), np.array([1.2, 0.4, 1.0]))
+    body_aim = sighting_of(body, det, prefer_top=False, reach=2.0, within=cabinet)
+    assert body_aim.point[2] == pytest.approx(0.9) and 50 <= body_aim.v < 60 and 28 <= body_aim.u <= 35
+    tried = sighting_of(
+        body, det, prefer_top=False, reach=2.0, within=cabinet, avoid=[body_aim.point], avoid_m=0.2
+    )
+    assert 50 <= tried.v < 60 and np.linalg.norm(tried.point - body_aim.point) > 0.2
     # a mapped box that misses every point (a track that is off) is ignored rather than emptying the aim
     off = (np.array([5.0, 5.0, 0.0]), np.array([6.0, 6.0, 1.0]))
     assert sighting_of(body, det, prefer_top=True, reach=2.0, within=off).point[2] == pytest.approx(2.0)
@@ -607,12 +615,12 @@ def test_a_door_that_would_hit_the_agent_is_opened_again_after_a_step_back(monke
     assert ok and done == ["OpenObject", "MoveBack", "OpenObject", "PutObject", "CloseObject"]
     assert [e["kind"] for e in events] == ["open_blocked"]
     ok, done = run([(False, "blocked"), (True, ""), (False, "blocked")])  # retried once only
-    assert not ok and done == ["OpenObject", "MoveBack", "OpenObject"]
+    assert ok == "blocked" and done == ["OpenObject", "MoveBack", "OpenObject"]
     ok, done = run([(False, "not_openable")])  # another refusal: no step back
-    assert not ok and done == ["OpenObject"]
+    assert ok is False and done == ["OpenObject"]
     events.clear()
     ok, done = run([(True, ""), (False, "out_of_reach"), (True, "")])  # a failed put: closed again
-    assert not ok and done == ["OpenObject", "PutObject", "CloseObject"]
+    assert ok is False and done == ["OpenObject", "PutObject", "CloseObject"]
     assert [e["kind"] for e in events] == ["put_failed_closing"]
     # the step back left the put beyond reach: once the door is open, a step forward and a new aim
     far = Sighting(None, 4, 4, policy.p.interact_m + 0.07, np.array([1.0, 2.0, 1.0]))
@@ -627,6 +635,60 @@ def test_a_door_that_would_hit_the_agent_is_opened_again_after_a_step_back(monke
     gen_aims = iter([far])  # the open door stops the step forward: the put is tried from there
     ok, done = run([(False, "blocked"), (True, ""), (True, ""), (False, "blocked"), (True, ""), (True, "")])
     assert ok and done == ["OpenObject", "MoveBack", "OpenObject", "MoveAhead", "PutObject", "CloseObject"]
+
+
+def test_a_door_still_blocked_sends_the_next_walk_to_another_spot_farther_from_the_box(monkeypatch):
+    from tidee.agent.policy import tidy
+    from tidee.agent.policy.skills import Sighting, footprint_gap
+
+    def nothing(*a, **kw):
+        return True
+        yield
+
+    policy, _ = _policy(variant="CommonMemory")
+    grid = policy.body.mapper.grid
+    fridge = _shelf(policy.body.mapper.memory, 1.0)  # footprint x 0.6-1.4, y 1.8-2.2
+    spots: list[np.ndarray] = []
+    regions: list[np.ndarray] = []
+
+    def walk(body, goal_mask=None, **kw):  # arrives at the goal cell nearest the box
+        cells = grid.cell_to_world(np.argwhere(goal_mask))
+        gaps = footprint_gap(fridge.box_min, fridge.box_max, cells[:, 0], cells[:, 1])
+        spot = cells[np.argmin(gaps)]
+        regions.append(cells)
+        spots.append(spot)
+        body.obs.agent_pose = (float(spot[0]), float(spot[1]), 0.0, 30.0)
+        return True
+        yield
+
+    monkeypatch.setattr(tidy, "navigate", walk)
+    monkeypatch.setattr(tidy, "face_point", nothing)
+    policy.body.obs.depth = np.ones((8, 8), np.float32)
+    policy._detection_of = lambda rec: "a detection"
+    policy._aim = lambda rec, det, no_room: Sighting(None, 4, 4, 1.0, np.array([1.0, 2.0, 1.0]))
+    opened = iter(["blocked", True])
+
+    def open_and_put(rec, sighting, top, no_room):
+        return next(opened)
+        yield
+
+    policy._open_and_put = open_and_put
+    gen, puts = policy.put_on(fridge), 0
+    try:
+        action = next(gen)
+        while True:  # every put: the fridge is closed
+            assert action.name.value == "PutObject"
+            puts += 1
+            policy.body.obs.success, policy.body.obs.error = False, "receptacle_closed"
+            policy.body.obs.message = "Shelf is closed; open it first"
+            action = gen.send(None)
+    except StopIteration as stop:
+        assert stop.value is True
+    assert puts == 2 and len(spots) == 2
+    blocked_gap = float(footprint_gap(fridge.box_min, fridge.box_max, *spots[0]))
+    gaps = footprint_gap(fridge.box_min, fridge.box_max, regions[1][:, 0], regions[1][:, 1])
+    assert gaps.min() >= blocked_gap + 0.25 - 1e-6  # the whole next region stands farther off
+    assert np.hypot(*(regions[1] - spots[0]).T).min() >= 0.5 - 1e-6  # and away from the blocked spot
 
 
 def test_after_tidying_the_objects_a_household_names_are_visited_or_searched_for():

@@ -62,6 +62,19 @@ def test_obeyed_group_and_side_effects_are_counted_per_agent() -> None:
     assert m["group"] == {"n": 1, "share": 1.0}
     assert m["found"] == m["picked"] == {"n": 1, "share": 1.0}
     assert m["side"] == {"n": 1, "share": 1.0}  # the bowl, named by nothing, moved
+    assert m["side_worse"] == {"n": 1, "share": 0.0}  # shelf to counter top: plausible both
+    assert m["side_rerun"] == {"n": 0, "share": None}  # no reseeded run
+    # a second run without preferences under another seed: the bowl ends where it did, on the
+    # same objects (the named ones are left out of both shares)
+    reseeded = [_rec("A", "CounterTop", "CounterTop", "Shelf", bowl="Shelf")]
+    m = score(without, with_, {key: prof}, reseeded)["A"]
+    assert m["side"] == {"n": 1, "share": 1.0} and m["side_rerun"] == {"n": 1, "share": 0.0}
+    moved_again = [_rec("A", "CounterTop", "CounterTop", "Shelf", bowl="Floor")]
+    m = score(without, with_, {key: prof}, moved_again)["A"]
+    assert m["side_rerun"] == m["side_rerun_worse"] == {"n": 1, "share": 1.0}  # a bowl on the floor
+    on_floor = [_rec("A", "DiningTable", "Fridge", "Shelf", bowl="Floor")]
+    assert score(without, on_floor, {key: prof})["A"]["side_worse"] == {"n": 1, "share": 1.0}
+    assert score(on_floor, with_, {key: prof})["A"]["side_worse"] == {"n": 1, "share": 0.0}  # better
 
 
 def test_keep_logs_gives_each_half_of_the_eval_its_own_log_folder(tmp_path, monkeypatch) -> None:
@@ -72,7 +85,7 @@ def test_keep_logs_gives_each_half_of_the_eval_its_own_log_folder(tmp_path, monk
     seen = []
 
     def run_jobs(jobs, workers, renderer, progress, **_batch):
-        seen.append([(j.log_dir, j.agent.preferences) for j in jobs])
+        seen.append([(j.log_dir, j.agent.preferences, j.agent.seed) for j in jobs])
         return [
             dict(
                 _rec(j.agent.variant, "CounterTop", "CounterTop", "Shelf"),
@@ -85,15 +98,25 @@ def test_keep_logs_gives_each_half_of_the_eval_its_own_log_folder(tmp_path, monk
 
     monkeypatch.setattr(preference_eval, "run_jobs", run_jobs)
     monkeypatch.setattr(preferences, "group_members", lambda phrase: ())
-    for keep in (False, True):
+    for keep, reseed in ((False, False), (True, True)):
         seen.clear()
         out = tmp_path / str(keep)
         cfg = PreferenceEvalConfig(
-            out=out, episodes=2, variants=("CommonMemory",), keep_logs=keep, progress=False
+            out=out, episodes=2, variants=("CommonMemory",), keep_logs=keep, reseeded=reseed, progress=False
         )
         result = preference_eval.run_preference_eval(cfg)
-        without, with_ = seen
-        assert all(p is None for _, p in without) and all(p for _, p in with_)
-        want = (out / "logs" / "without", out / "logs" / "with") if keep else (None, None)
-        assert {d for d, _ in without} == {want[0]} and {d for d, _ in with_} == {want[1]}
-        assert result["metrics"]["CommonMemory"]["asked"]["n"] == 2 and (out / "preferences.md").exists()
+        assert len(seen) == (3 if reseed else 2)
+        without, with_ = seen[:2]
+        assert all(p is None for _, p, _ in without) and all(p for _, p, _ in with_)
+        halves = ("without", "with", "reseeded") if keep else ()
+        for jobs, half in zip(seen, halves, strict=False):
+            assert {d for d, _, _ in jobs} == {out / "logs" / half}
+        if not keep:
+            assert {d for jobs in seen for d, _, _ in jobs} == {None}
+        if reseed:  # the same episodes, no profile, every agent seed moved by the offset
+            again = seen[2]
+            assert all(p is None for _, p, _ in again)
+            assert [s for _, _, s in again] == [s + preference_eval.RESEED_OFFSET for _, _, s in without]
+        m = result["metrics"]["CommonMemory"]
+        assert m["asked"]["n"] == 2 and (out / "preferences.md").exists()
+        assert (m["side_rerun"]["n"] > 0) == reseed
