@@ -345,7 +345,9 @@ def _plot(metrics: Mapping[str, Any]) -> bytes:
     ax.set_ylim(0, 100)
     ax.set_ylabel("%")
     ax.set_title("Preferences obeyed, and side effects")
-    ax.legend(frameon=False, fontsize="small", ncol=len(keys))
+    ax.legend(
+        frameon=False, fontsize="small", ncol=len(keys), loc="upper center", bbox_to_anchor=(0.5, -0.08)
+    )
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100, metadata={"Software": None})
