@@ -170,8 +170,19 @@ def test_version_2_rooms_are_deterministic_and_keep_the_furniture():
         assert receptacle_weights(o.type, o.variant, "Bedroom", present).get(o.parent_type, 0.0) > 0, o
 
 
-def test_survey_counts_every_object_once():
-    s = survey(1, version=1, progress=False)
+def test_survey_counts_every_object_once_and_a_second_survey_reads_the_scene_cache(tmp_path, monkeypatch):
+    from tidee.server import rooms
+    from tidee.server.scene_cache import SceneCache
+
+    s = survey(1, version=1, progress=False, cache=SceneCache(tmp_path, version=1))
     assert s["rooms"] == 4 and s["seeds"] == [10185, 10185]
     assert sum(sum(c.values()) for c in s["counts"].values()) == s["objects"] > 0
     assert 0.0 <= s["tv"] <= 1.0 and set(s["tv_by_room_type"]) <= set(ROOM_TYPES)
+
+    def no_physics(*a, **kw):
+        raise AssertionError("a cached room was generated again")
+
+    monkeypatch.setattr(rooms, "generate_scene", no_physics)
+    again = survey(1, version=1, progress=False, cache=SceneCache(tmp_path, version=1))
+    same = ("counts", "objects", "tv", "tv_by_room_type", "objects_per_room")
+    assert {k: again[k] for k in same} == {k: s[k] for k in same}
