@@ -442,29 +442,28 @@ def sighting_of(
     ys, xs = np.divmod(index, w)
     dist = np.linalg.norm(pts - obs.camera_pose[:3, 3], axis=1)
     weight = np.hypot(xs - xs.mean(), ys - ys.mean())
+    inside = far = None  # points within the mapped box; points away from those tried
+    if within is not None:
+        lo, hi = np.asarray(within[0]) - within_m, np.asarray(within[1]) + within_m
+        inside = np.all((pts >= lo) & (pts <= hi), axis=1)
+    if avoid:
+        far = np.min([np.linalg.norm(pts - a, axis=1) for a in avoid], axis=0) > avoid_m
     if not prefer_top and (within is not None or avoid):  # the body's centre: a door, a drawer front
         keep = np.ones(len(xs), bool)
-        if within is not None:
-            lo, hi = np.asarray(within[0]) - within_m, np.asarray(within[1]) + within_m
-            inside = np.all((pts >= lo) & (pts <= hi), axis=1)
-            keep = inside if inside.any() else keep
-        if avoid:
-            far = np.min([np.linalg.norm(pts - a, axis=1) for a in avoid], axis=0) > avoid_m
-            keep = keep & far if (keep & far).any() else keep
+        if inside is not None and inside.any():
+            keep = inside
+        if far is not None and (keep & far).any():
+            keep = keep & far
         cx, cy = xs[keep].mean(), ys[keep].mean()
         weight = np.where(keep, np.hypot(xs - cx, ys - cy), np.inf)
     if prefer_top:
         near = dist <= reach
-        if within is not None:
-            lo, hi = np.asarray(within[0]) - within_m, np.asarray(within[1]) + within_m
-            inside = np.all((pts >= lo) & (pts <= hi), axis=1)
-            if (inside & near).any():
-                near &= inside
+        if inside is not None and (inside & near).any():
+            near &= inside
         keep = _top_band(pts, near)
         if not keep.any():  # empty only when nothing is within reach
             keep = np.ones(len(xs), bool)
-        if avoid:
-            far = np.min([np.linalg.norm(pts - a, axis=1) for a in avoid], axis=0) > avoid_m
+        if far is not None:
             if (keep & far).any():
                 keep &= far
             elif (near & far).any():
