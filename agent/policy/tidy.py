@@ -16,7 +16,8 @@ pseudo code::
         after m failed tries per class: drop the object where the agent stands
     with a household's preferences, when no OOP object is left: each object a category
         preference names and the agent has not handled: walk up to it (mapped) or search
-        for it (not mapped) and put it where asked if it is not there
+        for it (not mapped) and put it where asked if it is not there (OOP objects met on
+        the way are tidied; they start no new round of search goals)
     Done
 
 Approaching an object or a receptacle that is not in view or not within reach from the spot
@@ -218,16 +219,21 @@ class TidyPolicy:
         self._rescore = True
         self.score_objects()
         empty_goals = 0
+        asking = False  # the usual tidying has ended; what is left is for the preferences
         while self.body.steps_left() > self.p.reserve_steps:
             candidates = self._candidates()
             if candidates:
-                empty_goals = 0
+                # objects met on the way to an asked one are tidied, but they do not start
+                # another round of search goals: that would move what the household never asked
+                # about, on walks the agent without preferences never takes
+                empty_goals = empty_goals if asking else 0
                 yield from self.tidy_object(candidates[0])
                 self.state.phase = "searching"
                 continue
             if empty_goals >= self.p.k_empty_goals:
                 asked = self.asked_object_goal()
                 if asked is not None:  # an object a preference names, not handled yet
+                    asking = True
                     yield from self.tidy_asked(*asked)
                     self.state.phase = "searching"
                     continue
@@ -442,8 +448,9 @@ class TidyPolicy:
     def _pick_unseen(self, obj: TrackedObject) -> bool:
         """Whether a track the detector does not see from up close may be picked at its projected
         centroid (when the depth there agrees): one seen twice, or once as surely out of place
-        (``sure_oop``). Small objects on the floor are often detected once from afar and missed
-        from above; one stray detection with a middling P(OOP) is not worth a pick."""
+        (``sure_oop``; a preference never makes a track seen once sure, see
+        ``PreferenceProfile.adjust_oop``). Small objects on the floor are often detected once from
+        afar and missed from above; one stray detection with a middling P(OOP) is not worth a pick."""
         return obj.n_obs >= 2 or (obj.oop_prob or 0.0) >= self.p.sure_oop
 
     def _reach_xy(self, obj: TrackedObject) -> float:

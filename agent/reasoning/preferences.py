@@ -14,7 +14,10 @@ OOP detector and placement model:
 
 * **is it out of place?** an object a preference names is out of place (P = 1) when it rests
   on a receptacle the preference forbids, or on another receptacle than the one it asks for, and
-  in place (P = 0) when it rests where it asks; other objects keep their detector's score;
+  in place (P = 0) when it rests where it asks; other objects keep their detector's score. A
+  preference moves only what the detector named at least ``SURE_OBSERVATIONS`` times: one
+  detection of a small object is often another one (a key chain read as a candle), and a
+  preference would carry it off where the detector's own score would have left it;
 * **where does it go?** the receptacle a preference asks for is ranked first, the ones it
   forbids are dropped, the rest keep the placement model's order (a variant without a
   placement model ranks only what preferences ask for); the policy searches for an asked
@@ -52,6 +55,7 @@ from tidee.agent.reasoning.language_oop.instructions import (
 )
 from tidee.agent.reasoning.relations import words
 
+SURE_OBSERVATIONS = 2  # detections of a track before a preference may call it out of place
 GROUP_SIMILARITY = 0.4  # a category joins a group at least this similar to the group's words...
 GROUP_MARGIN = 0.08  # ...and within this of the most similar category
 _FILLER = {
@@ -223,11 +227,14 @@ class PreferenceProfile:
         support = support_labels(list(named), list(objects))
         for t in named:
             on = support.get(t.id)
+            sure = t.n_obs >= SURE_OBSERVATIONS  # only then may a preference move it
             for p in self.about(t.label):
-                if p.polarity == OUT_OF_PLACE and on == p.receptacle:
+                if p.polarity == OUT_OF_PLACE and on == p.receptacle and sure:
                     out[t.id] = 1.0
-                elif p.polarity == IN_PLACE:
-                    out[t.id] = 0.0 if on == p.receptacle else 1.0
+                elif p.polarity == IN_PLACE and on == p.receptacle:
+                    out[t.id] = 0.0
+                elif p.polarity == IN_PLACE and sure:
+                    out[t.id] = 1.0
         return out
 
     def asked(self, category: str) -> list[str]:

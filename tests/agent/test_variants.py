@@ -188,6 +188,21 @@ def test_a_track_seen_once_is_picked_unseen_only_when_surely_out_of_place():
         "Knife", 0.4, np.array([2.0, 0.0, 0.01]), np.array([1.9, -0.02, 0.0]), np.array([2.1, 0.02, 0.02]), 2
     )
     assert knife.n_obs == 2 and policy._pick_unseen(knife)
+    # a preference does not make a track seen once sure (a key chain read once as the candle a
+    # household names keeps the detector's own P(OOP))
+    from tidee.agent.reasoning.preferences import PreferenceProfile, parse_preference
+
+    candle = mem.add_or_merge(
+        "Candle",
+        0.4,
+        np.array([0.0, 2.0, 0.7]),
+        np.array([-0.02, 1.98, 0.65]),
+        np.array([0.02, 2.02, 0.75]),
+        3,
+    )
+    profile = PreferenceProfile([parse_preference("the candle goes on the side table")])
+    candle.oop_prob = profile.adjust_oop({candle.id: 0.3}, [candle], list(mem))[candle.id]
+    assert candle.oop_prob == 0.3 and not policy._pick_unseen(candle)
     with pytest.raises(ValueError, match="sure_oop"):
         PolicyConfig(sure_oop=0.0)
 
@@ -758,3 +773,69 @@ def test_a_named_category_not_mapped_is_searched_for_until_one_is(monkeypatch):
     assert len(goals) == 2 and "AlarmClock" in policy._asked_searched  # stops once one is mapped
     assert set(phases) <= set(PHASES)  # a phase the telemetry knows
     assert [e["kind"] for e in events] == ["asked_object"]
+
+
+def test_objects_met_on_the_way_to_an_asked_one_start_no_new_round_of_search_goals(monkeypatch):
+    # The usual tidying ends after k empty search goals; then the search for an asked object
+    # meets an out-of-place mug. It is tidied, but the agent does not start k more goals: those
+    # walks (the agent without preferences never takes them) would move what nobody asked about.
+    from tidee.agent.policy import tidy
+    from tidee.agent.reasoning.preferences import PreferenceProfile, parse_preference
+    from tidee.protocol.messages import ActionName
+
+    policy, events = _policy(variant="CommonMemory")
+    policy.preferences = PreferenceProfile([parse_preference("the alarm clock goes on the desk")])
+    _stub_walks(monkeypatch, policy)
+    random_goals: list[int] = []
+    monkeypatch.setattr(tidy, "reachable_mask", lambda body: None)
+    monkeypatch.setattr(
+        tidy, "sample_reachable_goal", lambda *a: random_goals.append(1) or (float(len(random_goals)), 1.0)
+    )
+
+    def nothing(*a, **kw):
+        return None
+        yield
+
+    policy.map_room = nothing
+    policy.score_objects = lambda *a, **kw: None
+    mug = policy.body.mapper.memory.add_or_merge(
+        "Mug", 0.9, np.array([1.0, 1.0, 0.8]), np.array([0.9, 0.9, 0.75]), np.array([1.1, 1.1, 0.85]), 1
+    )
+    tidied: list[str] = []
+
+    def tidy_asked(category, obj):
+        policy._asked_searched.add(category)
+        mug.out_of_place = True  # met on the search
+        return
+        yield
+
+    def tidy_object(obj):
+        tidied.append(obj.label)
+        obj.out_of_place = False
+        return
+        yield
+
+    policy.tidy_asked, policy.tidy_object = tidy_asked, tidy_object
+    actions = list(policy.run())
+    assert [a.name for a in actions] == [ActionName.Done]
+    assert tidied == ["Mug"]
+    assert len(random_goals) == policy.p.k_empty_goals  # the usual round only, none after the mug
+    # without preferences an object found by a search goal starts the count again (Algorithm 1)
+    policy2, _ = _policy(variant="CommonMemory")
+    _stub_walks(monkeypatch, policy2)
+    policy2.map_room, policy2.score_objects = nothing, lambda *a, **kw: None
+    cup = policy2.body.mapper.memory.add_or_merge(
+        "Cup", 0.9, np.array([1.0, 1.0, 0.8]), np.array([0.9, 0.9, 0.75]), np.array([1.1, 1.1, 0.85]), 1
+    )
+    random_goals.clear()
+
+    def found_on_third(*a):
+        random_goals.append(1)
+        if len(random_goals) == 3:
+            cup.out_of_place = True
+        return (float(len(random_goals)), 1.0)
+
+    monkeypatch.setattr(tidy, "sample_reachable_goal", found_on_third)
+    policy2.tidy_object = tidy_object
+    list(policy2.run())
+    assert len(random_goals) == 3 + policy2.p.k_empty_goals

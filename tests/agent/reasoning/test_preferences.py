@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 
 from tidee.agent.mapping.memory import ObjectMemory
-from tidee.agent.reasoning.preferences import PreferenceProfile, group_members, parse_preference
+from tidee.agent.reasoning.preferences import (
+    SURE_OBSERVATIONS,
+    PreferenceProfile,
+    group_members,
+    parse_preference,
+)
 
 
 class WordsEncoder:
@@ -77,6 +82,7 @@ def _room():
 
 def test_preferences_decide_out_of_place_for_what_they_name_only() -> None:
     objects, clock, mug = _room()
+    clock.n_obs = mug.n_obs = SURE_OBSERVATIONS
     probs = {clock.id: 0.1, mug.id: 0.2}
     asked = PreferenceProfile([parse_preference("the alarm clock goes on the desk")])
     assert asked.adjust_oop(probs, [clock, mug], objects) == {clock.id: 1.0, mug.id: 0.2}
@@ -84,6 +90,21 @@ def test_preferences_decide_out_of_place_for_what_they_name_only() -> None:
     assert here.adjust_oop({mug.id: 0.9}, [mug], objects) == {mug.id: 0.0}
     never = PreferenceProfile([parse_preference("the mug never goes on the desk")])
     assert never.adjust_oop({mug.id: 0.2}, [mug], objects) == {mug.id: 1.0}
+
+
+def test_a_preference_moves_only_what_the_detector_named_more_than_once() -> None:
+    # One detection of a small object is often another object: a key chain read as a candle
+    # would be carried off by "the candle goes on the desk" where the detector left it alone.
+    objects, clock, mug = _room()
+    assert clock.n_obs == 1 and mug.n_obs == 1
+    asked = PreferenceProfile([parse_preference("the alarm clock goes on the desk")])
+    assert asked.adjust_oop({clock.id: 0.1}, [clock], objects) == {clock.id: 0.1}
+    never = PreferenceProfile([parse_preference("the mug never goes on the desk")])
+    assert never.adjust_oop({mug.id: 0.2}, [mug], objects) == {mug.id: 0.2}
+    here = PreferenceProfile([parse_preference("the mug goes on the desk")])
+    assert here.adjust_oop({mug.id: 0.9}, [mug], objects) == {mug.id: 0.0}  # leaving it is always safe
+    clock.n_obs = SURE_OBSERVATIONS  # seen again (from up close, say): now the preference decides
+    assert asked.adjust_oop({clock.id: 0.1}, [clock], objects) == {clock.id: 1.0}
 
 
 def test_preferences_rank_first_what_they_ask_and_drop_what_they_forbid() -> None:
