@@ -79,6 +79,8 @@ class CpuSampler(threading.Thread):
             except OSError:
                 continue
             role = next((r for r, mark in ROLES if mark in f" {cmd} "), "other")
+            if not cmd.strip() and pid in self._last:  # exited, not yet reaped: no command line left
+                role = self._last[pid][0]
             self._last[pid] = (role, (int(fields[11]) + int(fields[12])) / self._tick)
 
     def run(self) -> None:
