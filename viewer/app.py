@@ -91,6 +91,10 @@ class ViewerApp:
         self._map_drawn = 0.0  # when the 2D map was last drawn (monotonic s)
         self._latest: dict[str, Any] = {}  # the newest message of each kind on screen
         self._agent_frames = False  # this session sends AgentFrames (else observations fill in)
+        # Live, with no browser connected: the newest camera frame and whether the 2D map is due,
+        # drawn once one connects (nobody would see the images; encoding them costs a core's time).
+        self._camera_pending: Any = None
+        self._map_pending = False
         self._oracle_on = False
         self._oracle_thread: threading.Thread | None = None
         self._replay_step = self.replay.first_step if self.replay else 0
@@ -190,6 +194,8 @@ class ViewerApp:
             self._draw(msgs)
         with self.server.atomic():
             self.scene.push_cloud()  # the last frames' colours, once due (frames may have stopped)
+            if not msgs and (self._camera_pending is not None or self._map_pending):
+                self._draw_images()  # a browser connected since: the images kept for it
 
     def _switch_session(self, session: str | None) -> None:
         with self.server.atomic():
@@ -197,6 +203,7 @@ class ViewerApp:
             self.panels.show_summary(None)
             self.panels.show_phase(None)
         self._session_shown, self._latest, self._agent_frames = session, {}, False
+        self._camera_pending, self._map_pending = None, False
         self._camera_aimed = False
         self._history.clear()
         self.panels.show_title(self._title())
@@ -225,8 +232,9 @@ class ViewerApp:
                 or time.monotonic() - self._map_drawn >= MAP_POSE_PERIOD_S
             )
             if "maps" in msgs or "search" in msgs or status_due:
-                self._draw_map()
+                self._map_pending = True
                 self._map_drawn = time.monotonic()
+            self._draw_images()
         self.stats.updates += 1
         self.panels.show_title(self._title())
 
@@ -242,9 +250,7 @@ class ViewerApp:
             if self._agent_frames:
                 return  # the agent's own frames (with detections) take precedence
             self.scene.apply_frame(msg)
-            self.panels.show_camera(
-                images.upscale(np.asarray(msg.rgb), 512)[0], images.colorize_depth(msg.depth)
-            )
+            self._camera_pending = msg
             return
         self._latest[kind] = msg
         self.scene.apply(kind, msg)
@@ -256,9 +262,7 @@ class ViewerApp:
                 self._camera_aimed = True
         elif isinstance(msg, AgentFrame):
             self._agent_frames = True
-            self.panels.show_camera(
-                images.draw_detections(msg.rgb, msg.detections), images.colorize_depth(msg.depth)
-            )
+            self._camera_pending = msg
         elif isinstance(msg, AgentStatus):
             if self.replay is None:  # a replay counts steps on its own axis (_replay_tick)
                 self.stats.last_step = msg.step
@@ -269,6 +273,28 @@ class ViewerApp:
                 self._history.append((float(msg.step), float(msg.objects_fixed), float(msg.oop_found)))
             if self.replay is None:
                 self.panels.show_plot(np.array(self._history), final=bool(msg.done))
+
+    def _watched(self) -> bool:
+        """Whether the camera and map images are drawn now: always in a replay, live only while
+        a browser is connected (the newest ones are drawn when one connects)."""
+        return self.replay is not None or bool(self.server.get_clients())
+
+    def _draw_images(self) -> None:
+        """The camera panel (the newest frame) and the 2D map, when due and watched."""
+        if not self._watched():
+            return
+        msg, self._camera_pending = self._camera_pending, None
+        if isinstance(msg, AgentFrame):
+            self.panels.show_camera(
+                images.draw_detections(msg.rgb, msg.detections), images.colorize_depth(msg.depth)
+            )
+        elif msg is not None:
+            self.panels.show_camera(
+                images.upscale(np.asarray(msg.rgb), 512)[0], images.colorize_depth(msg.depth)
+            )
+        if self._map_pending:
+            self._map_pending = False
+            self._draw_map()
 
     def _show_legend(self, msg: MapSnapshot) -> None:
         labels = np.asarray(msg.point_labels)
@@ -335,6 +361,7 @@ class ViewerApp:
 
     def _on_client_connect(self, client: viser.ClientHandle) -> None:
         client.camera.on_update(self._camera_moved)
+        self._wake.set()  # draw the images kept while nobody watched
         if self.access.needs_token and self.replay is None:
             self.panels.add_token_input(client)
 

@@ -793,3 +793,31 @@ def test_the_progress_plot_follows_steps_in_strides_and_counts_at_once() -> None
     assert drawn[-2:] == [25.0, 26.0]
     show(rows[:3])  # a new episode (fewer rows): drawn at once
     assert drawn[-1] == 2.0
+
+
+def test_live_images_nobody_watches_are_drawn_when_a_browser_connects(tmp_path):
+    # Live with no browser connected, the camera and 2D map images are kept, not encoded (a
+    # core's time on a small machine); the newest ones are drawn once a browser connects.
+    from tidee.viewer.app import ViewerApp, ViewerConfig
+    from tidee.viewer.replay import ReplayLog
+
+    write_synthetic_log(str(tmp_path), steps=12)
+    msgs = ReplayLog(str(tmp_path)).at(11)
+    app = ViewerApp(ViewerConfig(replay=str(tmp_path), port=0))  # the worker is not started
+    try:
+        app.replay, app._title = None, lambda: "live"  # drawn as live messages (no feed to name)
+        clients: dict = {}
+        app.server.get_clients = lambda: clients  # type: ignore[method-assign]
+        camera, depth, plan = app.panels.rgb.image, app.panels.depth.image, app.panels.map.image
+        app._draw({k: msgs[k] for k in ("maps", "frame", "status")})
+        assert app.scene.counts["voxels"] > 0  # the 3D scene is kept up to date for a later browser
+        assert app.panels.rgb.image is camera and app.panels.depth.image is depth
+        assert app.panels.map.image is plan
+        assert app._camera_pending is msgs["frame"] and app._map_pending
+        clients[1] = object()  # a browser connects
+        app._draw_images()
+        assert app.panels.rgb.image is not camera and app.panels.depth.image is not depth
+        assert app.panels.map.image is not plan
+        assert app._camera_pending is None and not app._map_pending
+    finally:
+        app.server.stop()
