@@ -118,25 +118,62 @@ def _placed(objs: Sequence[Mapping[str, Any]], category: str, receptacle: str, a
     ]
 
 
+def _others(
+    rec: Mapping[str, Any], other: Mapping[str, Any], named: set[str]
+) -> list[tuple[Mapping[str, Any], Mapping[str, Any]]]:
+    """The objects named by no preference: (in ``rec``, the same object in ``other``)."""
+    before = {o["id"]: o for o in other["objects"]}
+    return [(o, before[o["id"]]) for o in rec["objects"] if o["type"] not in named and o["id"] in before]
+
+
+def _ok(o: Mapping[str, Any], r: Mapping[str, Any]) -> bool:
+    """Whether the catalog judge finds object ``o`` of run ``r`` plausibly placed."""
+    return plausible(
+        o["type"], o["variant"], r["room_type"], o["final_parent_type"], r["present_receptacles"]
+    )
+
+
 def _changed(
     rec: Mapping[str, Any], other: Mapping[str, Any], named: set[str], worse: bool = False
 ) -> list[bool]:
     """Per object named by no preference: whether its final receptacle differs between the
     runs (``worse``: whether it ends where the catalog judge finds it implausible in ``rec``
     but plausible in ``other``)."""
-    before = {o["id"]: o for o in other["objects"]}
-
-    def ok(o: Mapping[str, Any], r: Mapping[str, Any]) -> bool:
-        present = r["present_receptacles"]
-        return plausible(o["type"], o["variant"], r["room_type"], o["final_parent_type"], present)
-
     return [
-        (not ok(o, rec) and ok(before[o["id"]], other))
-        if worse
-        else o["final_parent_type"] != before[o["id"]]["final_parent_type"]
-        for o in rec["objects"]
-        if o["type"] not in named and o["id"] in before
+        (not _ok(o, rec) and _ok(b, other)) if worse else o["final_parent_type"] != b["final_parent_type"]
+        for o, b in _others(rec, other, named)
     ]
+
+
+def _named(prof: Mapping[str, Any]) -> set[str]:
+    """The categories a configuration's scripted profile names (its group: every member)."""
+    named = {prof[k]["category"] for k in ("asked", "never") if prof[k]}
+    return named | (set(prof["group"]["categories"]) if prof["group"] else set())
+
+
+def side_effect_list(
+    without: Sequence[Mapping[str, Any]], with_: Sequence[Mapping[str, Any]], profiles: Mapping[Any, Any]
+) -> list[dict[str, Any]]:
+    """Every side effect, object by object: the other objects whose final receptacle differs
+    between the runs without and with the profile (what ``--keep-logs`` episodes explain)."""
+    base = {(r["variant"], _key(r)): r for r in without}
+    out = []
+    for rec in with_:
+        first = base[(rec["variant"], _key(rec))]
+        for o, b in _others(rec, first, _named(profiles[_key(rec)])):
+            if o["final_parent_type"] != b["final_parent_type"]:
+                out.append(
+                    {
+                        "variant": rec["variant"],
+                        "configuration": "{}_{}_mess{}".format(*_key(rec)),
+                        "object": o["id"],
+                        "without": b["final_parent_type"],
+                        "with": o["final_parent_type"],
+                        "moved_by_mess": bool(o["moved"]),
+                        "worse": not _ok(o, rec) and _ok(b, first),
+                    }
+                )
+    return sorted(out, key=lambda d: (d["variant"], d["configuration"], d["object"]))
 
 
 def score(
@@ -167,23 +204,20 @@ def score(
             },
         )
         prof = profiles[_key(rec)]
-        named: set[str] = set()
+        named = _named(prof)
         if prof["asked"]:
             a = prof["asked"]
             acc["asked"] += _placed(rec["objects"], a["category"], a["receptacle"], True)
             mine = [o for o in rec["objects"] if o["moved"] and o["type"] == a["category"]]
             acc["found"] += [o["found"] for o in mine]
             acc["picked"] += [o["picked"] for o in mine]
-            named.add(a["category"])
         if prof["never"]:
             n = prof["never"]
             acc["never"] += _placed(rec["objects"], n["category"], n["receptacle"], False)
-            named.add(n["category"])
         if prof["group"]:
             g = prof["group"]
             for c in g["unnamed"]:
                 acc["group"] += _placed(rec["objects"], c, g["receptacle"], True)
-            named |= set(g["categories"])
         first = base[(rec["variant"], _key(rec))]
         acc["side"] += _changed(rec, first, named)
         acc["side_worse"] += _changed(rec, first, named, worse=True)
@@ -272,6 +306,7 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
         },
         "groups": {p: list(m) for p, m in members.items()},
         "metrics": score(without, with_, profiles, reseeded),
+        "side_effects": side_effect_list(without, with_, profiles),
         "profiles": {"{}_{}_mess{}".format(*k): v for k, v in profiles.items()},
     }
     write_atomic(out / "preferences.json", json.dumps(result, indent=1).encode())
@@ -313,6 +348,22 @@ def _markdown(r: Mapping[str, Any]) -> str:
             + " | ".join(_pct(c) for c in cells)
             + f" | {_pct(m['found'])} | {_pct(m['picked'])} |"
         )
+    effects = r.get("side_effects", [])
+    if effects:
+        lines += [
+            "",
+            "Side effects, object by object (the episode logs, kept with `--keep-logs`, say why):",
+            "",
+            "| Agent | Configuration | Object | Without the profile | With it "
+            "| Moved by the mess | For the worse |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {e['variant']} | {e['configuration']} | {e['object']} | {e['without'] or '–'} "
+            f"| {e['with'] or '–'} | {'yes' if e['moved_by_mess'] else 'no'} "
+            f"| {'yes' if e['worse'] else 'no'} |"
+            for e in effects
+        ]
     lines += ["", "Group phrases and the categories MiniLM carried them to:", ""]
     lines += [f"- {p}: {', '.join(m)}" for p, m in r["groups"].items()]
     lines += ["", f"Command: `{r['command']}`", ""]

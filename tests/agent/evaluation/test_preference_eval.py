@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
-from tidee.agent.evaluation.preference_eval import GROUP_PHRASES, score, script_profile
+from tidee.agent.evaluation.preference_eval import (
+    GROUP_PHRASES,
+    _markdown,
+    score,
+    script_profile,
+    side_effect_list,
+)
 
 
 def _obj(i, t, moved, orig, final, found=True):
@@ -75,6 +81,40 @@ def test_obeyed_group_and_side_effects_are_counted_per_agent() -> None:
     on_floor = [_rec("A", "DiningTable", "Fridge", "Shelf", bowl="Floor")]
     assert score(without, on_floor, {key: prof})["A"]["side_worse"] == {"n": 1, "share": 1.0}
     assert score(on_floor, with_, {key: prof})["A"]["side_worse"] == {"n": 1, "share": 0.0}  # better
+
+
+def test_the_report_lists_every_side_effect_object_by_object() -> None:
+    prof = {
+        "asked": {"category": "Mug", "receptacle": "DiningTable"},
+        "never": None,
+        "group": {"categories": ["Plate"], "unnamed": ["Plate"], "receptacle": "Shelf"},
+    }
+    key = ("Kitchen", 200, 0)
+    without = [_rec("A", "Shelf", "CounterTop", "CounterTop", bowl="Shelf")]
+    # the apple (named by nothing here) stays; the bowl goes to the floor: a side effect for the worse
+    with_ = [_rec("A", "DiningTable", "CounterTop", "Shelf", bowl="Floor")]
+    effects = side_effect_list(without, with_, {key: prof})
+    assert effects == [
+        {
+            "variant": "A",
+            "configuration": "Kitchen_200_mess0",
+            "object": "Bowl_0",
+            "without": "Shelf",
+            "with": "Floor",
+            "moved_by_mess": False,
+            "worse": True,
+        }
+    ]
+    m = score(without, with_, {key: prof})["A"]
+    assert m["side"] == {"n": 2, "share": 0.5}  # the same one of the two others the shares count
+    report = {
+        "config": {"configurations": 1, "split": "test", "perception": "learned", "oop": "visual"},
+        "metrics": {"A": m},
+        "side_effects": effects,
+        "groups": {},
+        "command": "tidee eval preferences",
+    }
+    assert "| A | Kitchen_200_mess0 | Bowl_0 | Shelf | Floor | no | yes |" in _markdown(report)
 
 
 def test_keep_logs_gives_each_half_of_the_eval_its_own_log_folder(tmp_path, monkeypatch) -> None:
