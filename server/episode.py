@@ -61,12 +61,19 @@ class SceneLibrary:
     generated (physics and all) only when neither has them.
 
     ``disk``: a SceneCache, or None for no disk cache; default: the user's cache directory.
+    ``version``: the room generator's (``rooms.rooms_version``; default 1).
     """
 
-    def __init__(self, capacity: int = 32, disk: SceneCache | None | Literal["default"] = "default") -> None:
+    def __init__(
+        self,
+        capacity: int = 32,
+        disk: SceneCache | None | Literal["default"] = "default",
+        version: int | None = None,
+    ) -> None:
         self.capacity = capacity
+        self.version = rooms_version(version)
         self._cache: OrderedDict[tuple, dict] = OrderedDict()
-        self._disk = SceneCache(version=rooms_version()) if disk == "default" else disk
+        self._disk = SceneCache(version=self.version) if disk == "default" else disk
 
     def disk(self) -> SceneCache | None:
         """The disk cache (None: disabled)."""
@@ -104,10 +111,7 @@ class SceneLibrary:
             scene = Scene.from_dict(cached)
             world.build(scene)
             return scene
-        tidy_cached = self._get((room_type, int(seed), None))
-        tidy = Scene.from_dict(tidy_cached) if tidy_cached else generate_scene(room_type, seed, world=world)
-        if tidy_cached is None:
-            self._put((room_type, int(seed), None), tidy)
+        tidy = self.tidy_scene(world, room_type, seed)
         if mess_index is None:
             scene = Scene.from_dict(self._cache[(room_type, int(seed), None)])
             world.build(scene)
@@ -121,6 +125,17 @@ class SceneLibrary:
         scene = Scene.from_dict(self._cache[key])
         world.build(scene)
         return scene
+
+    def tidy_scene(self, world: World, room_type: str, seed: int) -> Scene:
+        """The tidy room: from the caches (``world`` untouched), else generated in ``world``
+        (physics and all) and stored."""
+        key = (room_type, int(seed), None)
+        cached = self._get(key)
+        if cached is not None:
+            return Scene.from_dict(cached)
+        tidy = generate_scene(room_type, seed, world=world, version=self.version)
+        self._put(key, tidy)
+        return tidy
 
     def rearrangement(self, world: World, room_type: str, seed: int, index: int) -> Rearrangement:
         """Rearrangement configuration ``index`` of a room (``tidee.server.shuffle``): its goal

@@ -92,13 +92,13 @@ def survey(
 
     from tidee.protocol.messages import ROOM_TYPES
     from tidee.server.catalog import receptacle_weights
-    from tidee.server.rooms import generate_scene, rooms_version
-    from tidee.server.scene import Scene
+    from tidee.server.episode import SceneLibrary
+    from tidee.server.rooms import rooms_version
     from tidee.server.splits import TRAIN_POOL
     from tidee.server.world import World
 
     version = rooms_version(version)
-    disk = SceneCache(version=version) if cache == "default" else cache
+    library = SceneLibrary(capacity=1, disk=cache, version=version)
     if rooms_per_type < 1:
         raise ValueError(f"--rooms-per-type must be >= 1, got {rooms_per_type}")
     seeds = range(first_seed, first_seed + rooms_per_type)
@@ -113,15 +113,7 @@ def survey(
     try:
         jobs = [(rt, s) for rt in ROOM_TYPES for s in seeds]
         for rt, seed in tqdm(jobs, desc=f"survey rooms (generator {version})", disable=not progress):
-            stored = disk.load(rt, seed, None) if disk is not None else None
-            if stored is None:
-                # through JSON, as a later load from the cache gives it
-                stored = json.loads(
-                    json.dumps(generate_scene(rt, seed, world=world, version=version).to_dict())
-                )
-                if disk is not None:
-                    disk.store(rt, seed, None, stored)
-            scene = Scene.from_dict(stored)
+            scene = library.tidy_scene(world, rt, seed)
             present = sorted({o.type for o in scene.objects if o.receptacle and not o.pickupable})
             n = 0
             for o in scene.objects:
