@@ -136,3 +136,11 @@ class FootprintVotes:
         if float(np.linalg.norm(self._axis)) / self._axis_weight < min_agreement:
             return None
         return math.degrees(math.atan2(self._axis[1], self._axis[0])) / 2.0 % 180.0
+
+    def heading_guess(self) -> float | None:
+        """``axis_deg()``, else the pooled heading however weak (no agreement or elongation
+        asked): a put that is given no heading lays the object along the agent's, which is as
+        good as random (the rooms' objects lie at any yaw), so any guess the views lean to is
+        better. None only when no view showed any spread."""
+        strict = self.axis_deg()
+        return strict if strict is not None else self.axis_deg(min_agreement=0.0, min_elongation=0.0)

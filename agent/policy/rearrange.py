@@ -13,7 +13,9 @@ put the shuffled room back.
                  colour; every track takes part, but tracks seen ``MIN_OBS`` times pair with
                  each other first):
                    a pickupable now more than ``stay_m`` (and a third of its size) from its
-                   match, both seen ``MIN_OBS`` times, has moved;
+                   match, both seen ``MIN_OBS`` times, has moved, unless another track of
+                   its class holds its old place (one whose own match stayed with it is
+                   another object and does not count) or held its new one;
                    an openable whose box grew or shrank by ``open_m`` changed openness (on the
                    floor: when obstacle cells appeared or vanished beside it, each cell counted
                    for the nearest matched openable only)
@@ -75,6 +77,10 @@ FLOOR_Z = 0.08  # a remembered object whose box starts this low stood on the flo
 # counter top (0.92 m), so the ray to a point just over the top would meet the counter's front edge
 REACH_LIFT_M = 0.10
 REACH_SLACK = 0.05  # depth this much (relative) nearer than that point: something is in the way
+# a put's reach up to the protocol's limit (1.5 m): the server checks the reach the agent
+# sends, not the true distance, so no margin for pose error is needed (a pillow in the middle
+# of a bed is 1.4 m from the nearest place to stand)
+REACH_MAX_M = 1.5
 
 
 class WalkthroughOver(Exception):
@@ -107,7 +113,7 @@ class Seen:
             o.box_min.copy(),
             o.box_max.copy(),
             o.n_obs,
-            votes.axis_deg(),
+            votes.heading_guess(),
             votes.colour,
             votes.middle(),
         )
@@ -170,6 +176,21 @@ def _pairs(
     return out
 
 
+def _size(t: Seen | TrackedObject) -> float:
+    """A track's larger footprint side (m)."""
+    return float(np.max(t.box_max[:2] - t.box_min[:2]))
+
+
+def same_object(a: Seen | TrackedObject, b: Seen | TrackedObject) -> bool:
+    """Two tracks of one phase and class whose centres lie closer (x, y) than half the larger
+    one's size: one object tracked twice (two tracks of one basketball), not two objects."""
+    return (
+        a is not b
+        and a.label == b.label
+        and float(np.linalg.norm(a.centroid[:2] - b.centroid[:2])) < 0.5 * max(_size(a), _size(b))
+    )
+
+
 def find_moves(
     then: list[Seen],
     now: list[TrackedObject],
@@ -183,19 +204,43 @@ def find_moves(
     were than ``stay_m`` and than a third of their size (nearer, an object of that size still
     overlaps its old box by IoU 0.5: the metric counts it in place), whose old place no other
     track of their class now holds and whose new place none held in the walkthrough, within
-    ``other_m`` (so a second instance or a stray track is not taken for a move)."""
+    ``other_m`` (so a second instance or a stray track is not taken for a move). A track by the
+    old place does not count when it is explained: its own walkthrough match stayed with it (a
+    second apple that never moved, 30 cm from the first's old place) and is not the moved
+    object tracked twice (``same_object``). A walkthrough track by the new place always counts:
+    the walkthrough's memory merges two objects 25 cm apart into one track (two remotes on a
+    coffee table), which one of them, staying, would explain while the other is the "mover"."""
     then = [s for s in then if s.label in PICKUPABLE]
     now = [o for o in now if o.label in PICKUPABLE]
+    pairs = _pairs(then, now, colours, min_obs)
+    partner: dict[int, tuple[Seen | TrackedObject, float]] = {}
+    for s, o, d in pairs:
+        partner[id(s)], partner[id(o)] = (o, d), (s, d)
+
+    def stayed(a: Seen | TrackedObject, d: float) -> bool:
+        return d <= max(stay_m, _size(a) / 3)
+
+    def explained(track: TrackedObject, mover: Seen) -> bool:
+        """``track`` (an unshuffle track by ``mover``'s old place) is another object: its
+        walkthrough match stayed with it and is not ``mover`` or ``mover`` tracked twice."""
+        match = partner.get(id(track))
+        if match is None:
+            return False
+        other, d = match
+        return other is not mover and stayed(other, d) and not same_object(other, mover)
+
     moves = []
-    for s, o, d in _pairs(then, now, colours, min_obs):
+    for s, o, d in pairs:
         if s.n_obs < min_obs or o.n_obs < min_obs:
             continue
-        size = float(np.max(s.box_max[:2] - s.box_min[:2]))
-        if d <= max(stay_m, size / 3):
+        if stayed(s, d):
             continue
-        # every track counts against a move, those seen once too
+        # every track counts against a move, those seen once too (by the old place: unless explained)
         old_taken = any(
-            p.label == s.label and p is not o and np.linalg.norm(p.centroid - s.centroid) <= other_m
+            p.label == s.label
+            and p is not o
+            and np.linalg.norm(p.centroid - s.centroid) <= other_m
+            and not explained(p, s)
             for p in now
         )
         new_held = any(
@@ -572,7 +617,7 @@ class RearrangePolicy(TidyPolicy):
             st.target = None
             return False
         votes = self.votes.get(("unshuffle", m.now.id))
-        lay = votes.axis_deg() if votes is not None else None
+        lay = votes.heading_guess() if votes is not None else None
         heading = self.body.pose[2]
         if not (yield from self.pick(m.now, sighting)):
             st.target = None
@@ -647,7 +692,7 @@ class RearrangePolicy(TidyPolicy):
         if not z[0] > 0 or not (0 <= u[0] < w and 0 <= v[0] < h):
             return "not in view"
         reach = float(np.linalg.norm(point - obs.camera_pose[:3, 3]))
-        if reach > self.p.interact_m:
+        if reach > REACH_MAX_M:
             return f"{reach:.2f} m away"
         seen_at = float(obs.depth[int(v[0]), int(u[0])])
         if 0 < seen_at < float(z[0]) * (1 - REACH_SLACK):

@@ -99,6 +99,21 @@ def test_no_axis_when_the_views_disagree_or_the_thing_is_round() -> None:
     assert round_.axis_deg() is None
 
 
+def test_a_heading_guess_takes_what_the_views_lean_to_where_no_axis_is_sure() -> None:
+    weak = FootprintVotes()  # a towel seen at a grazing angle: a little longer than wide
+    weak.add(Footprint(33.0, 0.05, 500))
+    weak.add(Footprint(40.0, 0.1, 100))
+    assert weak.axis_deg() is None
+    guess = weak.heading_guess()
+    assert guess is not None and 33.0 < guess < 40.0
+    sure = FootprintVotes()
+    sure.add(Footprint(120.0, 0.8, 100))
+    assert sure.heading_guess() == pytest.approx(sure.axis_deg())
+    square = FootprintVotes()  # no view showed any spread: no guess
+    square.add(Footprint(0.0, 0.0, 100))
+    assert square.heading_guess() is None
+
+
 @pytest.mark.parametrize("heading", [0.0, 30.0, 100.0])
 def test_a_views_middle_is_that_of_the_top_face_not_of_the_side_or_the_table(heading: float) -> None:
     # the side facing the camera and the table around it lie off to one side or all round; the

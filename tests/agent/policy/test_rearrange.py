@@ -300,3 +300,47 @@ def test_a_pixel_on_the_neighbour_is_skipped_and_a_blocked_door_retried(
         and events == ["openness_neighbour", "openness_neighbour", "openness_failed"]
         and not done
     )
+
+
+def test_a_second_instance_that_stayed_near_the_old_place_does_not_hide_a_move() -> None:
+    # two apples 34 cm apart on a coffee table; one was carried to the dining table
+    then = [_seen("Apple", (1.2, 2.15, 0.45), half=0.04), _seen("Apple", (1.53, 2.12, 0.45), half=0.04)]
+    now = [
+        _track(1, "Apple", (0.05, 0.43, 0.8), half=0.04),
+        _track(2, "Apple", (1.54, 2.11, 0.45), half=0.04),
+    ]
+    (m,) = find_moves(then, now)
+    assert m.now.id == 1 and np.allclose(m.then.centroid, [1.2, 2.15, 0.45])
+    # an unshuffle track by the old place that matches nothing still counts against the move
+    stray = now + [_track(3, "Apple", (1.3, 2.3, 0.45), half=0.04, n_obs=1)]
+    assert find_moves(then, stray) == []
+
+
+def test_one_object_tracked_twice_in_the_walkthrough_is_not_a_move() -> None:
+    # one basketball left two walkthrough tracks 10 cm apart; one of them pairs with a second
+    # basketball elsewhere in the unshuffle, the other with the first one, still in its place
+    then = [
+        _seen("BasketBall", (-0.55, -1.45, 0.18), half=0.12),
+        _seen("BasketBall", (-0.66, -1.45, 0.11), half=0.12),
+    ]
+    now = [
+        _track(1, "BasketBall", (1.5, 1.7, 0.65), half=0.12),
+        _track(2, "BasketBall", (-0.6, -1.45, 0.18), half=0.12),
+    ]
+    assert find_moves(then, now) == []
+    # two basketballs 60 cm apart: the one whose place is empty now moved
+    apart = [
+        _seen("BasketBall", (0.0, -1.45, 0.12), half=0.12),
+        _seen("BasketBall", (-0.6, -1.45, 0.12), half=0.12),
+    ]
+    (m,) = find_moves(apart, now)
+    assert m.now.id == 1 and np.allclose(m.then.centroid, [0.0, -1.45, 0.12])
+
+
+def test_a_walkthrough_track_by_the_new_place_counts_even_when_its_match_stayed() -> None:
+    # the walkthrough merged two remotes 28 cm apart into one track; in the unshuffle both are
+    # tracked, one pairs with the merged track, the other with a third remote's old place: that
+    # third remote was moved where it was not seen, and the second remote did not move
+    then = [_seen("RemoteControl", (-0.84, 2.4, 0.5)), _seen("RemoteControl", (1.0, 2.25, 0.41))]
+    now = [_track(1, "RemoteControl", (1.02, 2.38, 0.42)), _track(2, "RemoteControl", (0.93, 2.13, 0.42))]
+    assert find_moves(then, now) == []
