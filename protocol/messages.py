@@ -47,6 +47,8 @@ class ActionName(str, Enum):
 
 
 # Actions that act on whatever is at a pixel: they need x and y in [0, 1].
+INTERACT_M = 1.5  # the server acts on things (and puts at a reach) up to this far from the eye, m
+
 PIXEL_ACTIONS = frozenset(
     {ActionName.PickupObject, ActionName.PutObject, ActionName.OpenObject, ActionName.CloseObject}
 )
@@ -57,7 +59,7 @@ class ActionError(str, Enum):
 
     blocked = "blocked"  # a move would collide with furniture or a wall
     look_limit = "look_limit"  # pitch would leave [-30, 60] degrees
-    too_far = "too_far"  # the thing at the pixel is beyond 1.5 m
+    too_far = "too_far"  # the thing at the pixel (or the reach) is beyond INTERACT_M
     nothing_there = "nothing_there"  # the ray hit nothing (or only wall/ceiling)
     not_pickupable = "not_pickupable"
     not_receptacle = "not_receptacle"

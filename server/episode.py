@@ -22,6 +22,7 @@ from typing import Literal
 import numpy as np
 
 from tidee.protocol.messages import (
+    INTERACT_M,
     PIXEL_ACTIONS,
     Action,
     ActionError,
@@ -42,7 +43,6 @@ MOVE_M = 0.25
 TURN_DEG = 90.0
 LOOK_DEG = 30.0
 PITCH_LIMITS = (-30.0, 60.0)  # AI2THOR's horizon limits, positive looking down
-INTERACT_M = 1.5
 REACH_DROP_M = 0.15  # a put at a point: the surface must lie this close under it
 REACH_SLACK_M = 0.05  # ... and nothing nearer along the ray than the point less this
 POSE_NOISE_M = 0.005

@@ -59,7 +59,7 @@ from tidee.agent.policy.skills import (
     reachable_mask,
 )
 from tidee.agent.policy.tidy import Gen, TidyPolicy
-from tidee.protocol.messages import Action, ActionName
+from tidee.protocol.messages import INTERACT_M, Action, ActionName
 
 SURVEY_SPACING_M = 1.2  # survey waypoints are at least this far apart
 STAY_M = 0.15  # a pickupable this close to its walkthrough match has not moved
@@ -77,10 +77,6 @@ FLOOR_Z = 0.08  # a remembered object whose box starts this low stood on the flo
 # counter top (0.92 m), so the ray to a point just over the top would meet the counter's front edge
 REACH_LIFT_M = 0.10
 REACH_SLACK = 0.05  # depth this much (relative) nearer than that point: something is in the way
-# a put's reach up to the protocol's limit (1.5 m): the server checks the reach the agent
-# sends, not the true distance, so no margin for pose error is needed (a pillow in the middle
-# of a bed is 1.4 m from the nearest place to stand)
-REACH_MAX_M = 1.5
 
 
 class WalkthroughOver(Exception):
@@ -213,21 +209,17 @@ def find_moves(
     then = [s for s in then if s.label in PICKUPABLE]
     now = [o for o in now if o.label in PICKUPABLE]
     pairs = _pairs(then, now, colours, min_obs)
-    partner: dict[int, tuple[Seen | TrackedObject, float]] = {}
-    for s, o, d in pairs:
-        partner[id(s)], partner[id(o)] = (o, d), (s, d)
+    match_of = {id(o): (s, d) for s, o, d in pairs}  # unshuffle track -> its walkthrough match
 
     def stayed(a: Seen | TrackedObject, d: float) -> bool:
         return d <= max(stay_m, _size(a) / 3)
 
     def explained(track: TrackedObject, mover: Seen) -> bool:
         """``track`` (an unshuffle track by ``mover``'s old place) is another object: its
-        walkthrough match stayed with it and is not ``mover`` or ``mover`` tracked twice."""
-        match = partner.get(id(track))
-        if match is None:
-            return False
-        other, d = match
-        return other is not mover and stayed(other, d) and not same_object(other, mover)
+        walkthrough match stayed with it and is not ``mover`` tracked twice (it is not ``mover``
+        itself: that is paired with the moved track)."""
+        match = match_of.get(id(track))
+        return match is not None and stayed(*match) and not same_object(match[0], mover)
 
     moves = []
     for s, o, d in pairs:
@@ -692,7 +684,10 @@ class RearrangePolicy(TidyPolicy):
         if not z[0] > 0 or not (0 <= u[0] < w and 0 <= v[0] < h):
             return "not in view"
         reach = float(np.linalg.norm(point - obs.camera_pose[:3, 3]))
-        if reach > REACH_MAX_M:
+        # up to the protocol's limit, not ``interact_m``: the server checks the reach the agent
+        # sends, not the true distance, so no margin for pose error is needed (a pillow in the
+        # middle of a bed is 1.4 m from the nearest place to stand)
+        if reach > INTERACT_M:
             return f"{reach:.2f} m away"
         seen_at = float(obs.depth[int(v[0]), int(u[0])])
         if 0 < seen_at < float(z[0]) * (1 - REACH_SLACK):
