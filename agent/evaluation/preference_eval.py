@@ -5,11 +5,14 @@ evaluation may read it; the agent never does) a scripted profile of three senten
 
 * **asked**: a category the mess-up moved goes on another receptacle the room has than where the
   tidy room kept it, one the catalog finds plausible for it ("the mug goes on the dining table",
-  never "the plate goes on the coffee machine");
+  never "the plate goes on the coffee machine"), and one where every object of that category fits
+  at once (:mod:`tidee.agent.evaluation.feasibility`: a box 48 cm long is never asked onto a side
+  table 40 cm wide);
 * **never**: a moved category may not go where the agent put it without preferences ("never put
   the apple on the counter top");
 * **group**: a group phrase whose MiniLM members include a moved category the sentence does not
-  name goes on a receptacle the room has ("dishes go on the shelf").
+  name goes on a receptacle the room has that holds all the group's objects in the room at once
+  ("dishes go on the shelf").
 
 Then the same episodes run with the profile (``--preferences``). Reported per agent: the share of
 the asked and never objects placed as asked; the share of the group's unnamed members placed as
@@ -28,7 +31,7 @@ JSON, Markdown and PNG; ``--keep-logs`` keeps every episode's log to read why.
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -56,22 +59,47 @@ GROUP_PHRASES = (
     "bathroom things",
     "sports equipment",
 )
+SENTENCES = ("asked", "never", "group")  # a profile's sentences, in this order
 RESEED_OFFSET = 1000  # the reseeded run's agent seed: the configuration's index plus this
 SURFACES = sorted(PLACEABLE_RECEPTACLES - {"GarbageCan", "Toilet", "ToiletPaperHanger", "TowelHolder"})
+
+
+def placement_check() -> Any:
+    """The simulator check that a scripted preference can be carried out (a seam for tests)."""
+    from tidee.agent.evaluation.feasibility import PlacementCheck
+
+    return PlacementCheck()
 
 
 def _key(rec: Mapping[str, Any]) -> tuple[Any, ...]:
     return (rec["room_type"], rec["seed"], rec["mess_index"])
 
 
-def script_profile(rec: Mapping[str, Any], members: Mapping[str, Sequence[str]], seed: int) -> dict[str, Any]:
-    """The three scripted preferences for one configuration, from an agent's run without them."""
+def script_profile(
+    rec: Mapping[str, Any],
+    members: Mapping[str, Sequence[str]],
+    seed: int,
+    fits: Callable[[str | tuple[str, ...], str], bool] | None = None,
+) -> dict[str, Any]:
+    """The three scripted preferences for one configuration, from an agent's run without them.
+    ``fits(categories, receptacle)``: whether the simulator can put every object of those
+    categories there (:mod:`tidee.agent.evaluation.feasibility`); a preference it cannot carry
+    out is not asked, and listed under ``"unfit"``. None: no check."""
     rng = np.random.default_rng([seed, rec["seed"], 0 if rec["mess_index"] is None else rec["mess_index"]])
     moved = [o for o in rec["objects"] if o["moved"]]
     cats = sorted({o["type"] for o in moved})
     present = sorted(set(rec["present_receptacles"]) & set(SURFACES))
-    out: dict[str, Any] = {"asked": None, "never": None, "group": None}
+    out: dict[str, Any] = {"asked": None, "never": None, "group": None, "unfit": []}
     used: set[str] = set()
+
+    def can(kind: str, cats: str | tuple[str, ...], r: str) -> bool:
+        ok = fits is None or fits(cats, r)
+        if not ok:
+            out["unfit"].append(
+                {"kind": kind, "categories": [cats] if isinstance(cats, str) else list(cats), "receptacle": r}
+            )
+        return ok
+
     for c in rng.permutation(cats).tolist():
         origin = {o["original_parent_type"] for o in moved if o["type"] == c}
         variant = next(o["variant"] for o in moved if o["type"] == c)
@@ -79,7 +107,9 @@ def script_profile(rec: Mapping[str, Any], members: Mapping[str, Sequence[str]],
         options = [
             r
             for r in present
-            if r not in origin and plausible(c, variant, rec["room_type"], r, rec["present_receptacles"])
+            if r not in origin
+            and plausible(c, variant, rec["room_type"], r, rec["present_receptacles"])
+            and can("asked", c, r)
         ]
         if options:
             r = options[int(rng.integers(len(options)))]
@@ -99,8 +129,9 @@ def script_profile(rec: Mapping[str, Any], members: Mapping[str, Sequence[str]],
             break
     for phrase in GROUP_PHRASES:
         unnamed = [c for c in members[phrase] if c in cats and c not in used]
-        if unnamed and present:
-            r = present[int(rng.integers(len(present)))]
+        options = [r for r in present if can(phrase, tuple(members[phrase]), r)] if unnamed else []
+        if options:
+            r = options[int(rng.integers(len(options)))]
             verb = "go" if phrase.endswith("s") else "goes"
             out["group"] = {
                 "text": f"{phrase} {verb} on the {words(r)}",
@@ -281,15 +312,15 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
     profiles: dict[Any, Any] = {}
     files: dict[Any, str] = {}
     first = cfg.variants[0]
-    for rec in without:  # one profile per configuration, scripted from the first agent's run
-        if rec["variant"] != first:
-            continue
-        prof = script_profile(rec, members, cfg.seed)
-        profiles[_key(rec)] = prof
-        path = out / "profiles" / "{}_{}_mess{}.json".format(*_key(rec))
-        sentences = [p["text"] for p in prof.values() if p]
+    with placement_check() as check:  # one profile per configuration, from the first agent's run
+        for rec in without:
+            if rec["variant"] == first:
+                profiles[_key(rec)] = script_profile(rec, members, cfg.seed, check.room(*_key(rec)))
+    for key, prof in profiles.items():
+        path = out / "profiles" / "{}_{}_mess{}.json".format(*key)
+        sentences = [prof[k]["text"] for k in SENTENCES if prof[k]]
         path.write_text(json.dumps({"household": path.stem, "preferences": sentences}, indent=1))
-        files[_key(rec)] = str(path)
+        files[key] = str(path)
     # the same records file: this run's episodes without preferences are in it (resumed or not)
     with_ = run(jobs(files, "with"), True)
     reseeded = run(jobs({}, "reseeded", RESEED_OFFSET), True) if cfg.reseeded else []
@@ -316,7 +347,9 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
 
 
 def _pct(m: Mapping[str, Any]) -> str:
-    return "–" if m["share"] is None else f"{100 * m['share']:.1f} % (n={m['n']})"
+    if m["share"] is None:
+        return "–"
+    return f"{100 * m['share']:.1f} % ({round(m['share'] * m['n'])} of {m['n']})"
 
 
 def _markdown(r: Mapping[str, Any]) -> str:
@@ -327,9 +360,11 @@ def _markdown(r: Mapping[str, Any]) -> str:
         f"{c['configurations']} {c['split']} configurations, each run without and with a scripted "
         f"profile of three sentences (perception {c['perception']}, OOP detector {c['oop']}). "
         "Asked: a moved category goes on another receptacle the room has, one the catalog finds "
-        "plausible for it. Never: a moved category may not go where the agent put it without "
+        "plausible for it and on which the simulator can put every object of the category at once. "
+        "Never: a moved category may not go where the agent put it without "
         "preferences. Group: a phrase whose MiniLM members include a moved category it does not "
-        "name. Side effects: other objects whose final receptacle changed; for the worse: of all "
+        "name, on a receptacle that holds all of the group's objects in the room at once. "
+        "Side effects: other objects whose final receptacle changed; for the worse: of all "
         "the other objects, those that end where the catalog judge finds them implausible with the "
         "profile and plausible without it. Run to run: the same two shares between the run without "
         f"preferences and a second run without them under another agent seed (+{RESEED_OFFSET}): "
@@ -363,6 +398,20 @@ def _markdown(r: Mapping[str, Any]) -> str:
             f"| {e['with'] or '–'} | {'yes' if e['moved_by_mess'] else 'no'} "
             f"| {'yes' if e['worse'] else 'no'} |"
             for e in effects
+        ]
+    unfit = [(k, u) for k, p in r.get("profiles", {}).items() for u in p.get("unfit", [])]
+    if unfit:
+        asked = [
+            f"{', '.join(u['categories'])} on the {u['receptacle']} ({k})"
+            for k, u in unfit
+            if u["kind"] == "asked"
+        ]
+        lines += [
+            "",
+            f"Not asked, because the objects do not fit there (the server's own placement, tried on "
+            f"the configuration's scene: evaluation only): {len(asked)} plausible asks"
+            + (f" ({'; '.join(asked)})" if asked else "")
+            + f" and {len(unfit) - len(asked)} group receptacles.",
         ]
     lines += ["", "Group phrases and the categories MiniLM carried them to:", ""]
     lines += [f"- {p}: {', '.join(m)}" for p, m in r["groups"].items()]

@@ -68,12 +68,15 @@ class TidyJob:
         """The episode's key in ``episodes.jsonl``: agent, room, seed, mess and a digest of every
         option that shapes the episode (a resumed run with other options runs it again; each
         condition changes the agent's depth or the episode's noise, so the digest)."""
-        shape = {
+        shape: dict[str, Any] = {
             "agent": asdict(self.agent),
             "spec": asdict(self.spec),
             "split": self.split,
             "renderer": self.renderer,
         }
+        if self.agent.preferences:  # a profile file written again with other sentences is another episode
+            prefs = Path(self.agent.preferences)
+            shape["preferences_text"] = prefs.read_text() if prefs.is_file() else None
         digest = hashlib.sha1(json.dumps(shape, sort_keys=True, default=str).encode()).hexdigest()[:10]
         s = self.spec
         return f"{self.agent.variant}/{s.room_type}/{s.seed}/mess{s.mess_index}/{digest}"

@@ -15,9 +15,11 @@ OOP detector and placement model:
 * **is it out of place?** an object a preference names is out of place (P = 1) when it rests
   on a receptacle the preference forbids, or on another receptacle than the one it asks for, and
   in place (P = 0) when it rests where it asks; other objects keep their detector's score. A
-  preference moves only what the detector named at least ``SURE_OBSERVATIONS`` times: one
-  detection of a small object is often another one (a key chain read as a candle), and a
-  preference would carry it off where the detector's own score would have left it;
+  preference moves only what the detector named at least ``SURE_OBSERVATIONS`` times, and
+  never a track whose box overlaps that of another pickupable label the detector was surer of
+  (``outvoted``): one detection of a small object is often another one (a key chain read as a
+  candle, and also tracked as the key chain it is), and a preference would carry it off where
+  the detector's own score would have left it;
 * **where does it go?** the receptacle a preference asks for is ranked first, the ones it
   forbids are dropped, the rest keep the placement model's order (a variant without a
   placement model ranks only what preferences ask for); the policy searches for an asked
@@ -40,6 +42,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from tidee.agent.classes import PICKUPABLE
 from tidee.agent.mapping.memory import TrackedObject
@@ -227,7 +231,7 @@ class PreferenceProfile:
         support = support_labels(list(named), list(objects))
         for t in named:
             on = support.get(t.id)
-            sure = t.n_obs >= SURE_OBSERVATIONS  # only then may a preference move it
+            sure = t.n_obs >= SURE_OBSERVATIONS and not outvoted(t, objects)  # only then may it move
             for p in self.about(t.label):
                 if p.polarity == OUT_OF_PLACE and on == p.receptacle and sure:
                     out[t.id] = 1.0
@@ -252,6 +256,18 @@ class PreferenceProfile:
         never = {p.receptacle for p in prefs if p.polarity == OUT_OF_PLACE}
         head = [(r, 1.0) for r in self.asked(category)]
         return head + [(r, s) for r, s in ranked if r not in never and r not in wanted]
+
+
+def outvoted(track: TrackedObject, objects: Sequence[TrackedObject]) -> bool:
+    """Whether another pickupable label claims the same spot with a higher detection score: a
+    track of another label whose 3D box overlaps this one's (two labels for one object; the
+    surer one is believed)."""
+    for o in objects:
+        if o.id == track.id or o.label == track.label or o.label not in PICKUPABLE or o.score <= track.score:
+            continue
+        if bool(np.all(o.box_min <= track.box_max) and np.all(track.box_min <= o.box_max)):
+            return True
+    return False
 
 
 def _parse_file(path: Path, raw: str) -> Any:

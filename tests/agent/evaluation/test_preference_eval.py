@@ -54,6 +54,30 @@ def test_the_profile_asks_for_another_place_forbids_the_agents_own_and_names_a_g
     assert script_profile(_rec("A", "CounterTop", "CounterTop", "Shelf"), members, seed=0) == prof
 
 
+def test_a_preference_the_simulator_cannot_carry_out_is_not_asked() -> None:
+    members = dict(MEMBERS, dishes=("Plate", "Bowl"))
+    rec = _rec("A", "CounterTop", "CounterTop", "Shelf")
+    calls = []
+
+    def nowhere(cats, r):
+        calls.append((cats, r))
+        return False
+
+    prof = script_profile(rec, members, seed=0, fits=nowhere)
+    assert prof["asked"] is None and prof["group"] is None and prof["never"] is not None
+    kinds = {u["kind"] for u in prof["unfit"]}
+    assert kinds == {"asked", "dishes"} and len(prof["unfit"]) == len(calls)
+    assert (("Plate", "Bowl"), "CounterTop") in calls  # a group is checked with all its members at once
+
+    def counter_only(cats, r):
+        return r == "CounterTop"
+
+    prof = script_profile(rec, members, seed=0, fits=counter_only)
+    assert prof["group"]["receptacle"] == "CounterTop"
+    assert prof["asked"] is None or prof["asked"]["receptacle"] == "CounterTop"
+    assert all(u["receptacle"] != "CounterTop" for u in prof["unfit"])
+
+
 def test_obeyed_group_and_side_effects_are_counted_per_agent() -> None:
     prof = {
         "asked": {"category": "Mug", "receptacle": "DiningTable"},
@@ -114,7 +138,9 @@ def test_the_report_lists_every_side_effect_object_by_object() -> None:
         "groups": {},
         "command": "tidee eval preferences",
     }
-    assert "| A | Kitchen_200_mess0 | Bowl_0 | Shelf | Floor | no | yes |" in _markdown(report)
+    md = _markdown(report)
+    assert "| A | Kitchen_200_mess0 | Bowl_0 | Shelf | Floor | no | yes |" in md
+    assert "| 50.0 % (1 of 2) |" in md  # the count beside the share: 10 of 496 is not "2.0 %" of a 2 % target
 
 
 def test_keep_logs_gives_each_half_of_the_eval_its_own_log_folder(tmp_path, monkeypatch) -> None:
@@ -138,6 +164,18 @@ def test_keep_logs_gives_each_half_of_the_eval_its_own_log_folder(tmp_path, monk
 
     monkeypatch.setattr(preference_eval, "run_jobs", run_jobs)
     monkeypatch.setattr(preferences, "group_members", lambda phrase: ())
+
+    class Anywhere:
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+        def room(self, *key):
+            return lambda cats, r: True
+
+    monkeypatch.setattr(preference_eval, "placement_check", Anywhere)
     for keep, reseed in ((False, False), (True, True)):
         seen.clear()
         out = tmp_path / str(keep)

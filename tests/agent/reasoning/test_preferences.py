@@ -107,6 +107,32 @@ def test_a_preference_moves_only_what_the_detector_named_more_than_once() -> Non
     assert asked.adjust_oop({clock.id: 0.1}, [clock], objects) == {clock.id: 1.0}
 
 
+def test_a_preference_leaves_a_track_another_label_claims_with_a_surer_detection() -> None:
+    # A key chain on the side table, tracked as a key chain (0.47) and, in a few weak views, as
+    # an alarm clock (0.33): "the alarm clock goes on the desk" must not carry the key chain off.
+    objects, clock, _ = _room()
+    clock.n_obs, clock.score = SURE_OBSERVATIONS, 0.33
+    mem = ObjectMemory(merge_distance=0.01)
+    keys = mem.add_or_merge(
+        "KeyChain",
+        0.47,
+        np.array([3.05, 0.0, 0.62]),
+        np.array([2.9, -0.2, 0.6]),
+        np.array([3.2, 0.1, 0.64]),
+        1,
+    )
+    asked = PreferenceProfile([parse_preference("the alarm clock goes on the desk")])
+    assert asked.adjust_oop({clock.id: 0.1}, [clock], objects + [keys]) == {clock.id: 0.1}
+    keys.score = 0.3  # the alarm clock is the surer label: the preference decides
+    assert asked.adjust_oop({clock.id: 0.1}, [clock], objects + [keys]) == {clock.id: 1.0}
+    keys.score = 0.47
+    keys.box_min, keys.box_max = keys.box_min + [1.0, 0, 0], keys.box_max + [1.0, 0, 0]  # elsewhere
+    assert asked.adjust_oop({clock.id: 0.1}, [clock], objects + [keys]) == {clock.id: 1.0}
+    # furniture under an object overlaps its box with a higher score: not another label for it
+    assert objects[1].score > clock.score and objects[1].label == "SideTable"
+    assert asked.adjust_oop({clock.id: 0.1}, [clock], objects) == {clock.id: 1.0}
+
+
 def test_preferences_rank_first_what_they_ask_and_drop_what_they_forbid() -> None:
     model = [("CounterTop", 0.6), ("Desk", 0.3), ("Floor", 0.1)]
     p = PreferenceProfile(
