@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-FLOOR = "Floor"  # room enough for anything a person carries
+from tidee.agent.reasoning.relations import FLOOR  # room enough for anything a person carries
+
 HIDDEN = [0.0, 0.0, -5.0]  # where a held object waits, out of the world
 AIM_SPACING_M = 0.6  # between the points aimed at on a long surface
 
