@@ -77,6 +77,12 @@ if TYPE_CHECKING:  # the profile module loads the text encoder; the policy only 
 
 Gen = Generator[Action, None, Any]
 FLOOR = "Floor"
+REAIM_AFTER_OPENING = (
+    "too_far",
+    "nothing_there",
+    "not_receptacle",
+    "not_openable",
+)  # errors of an aim gone stale
 APPROACH_TRIES = 4  # walks to get an object or a receptacle in view and within reach
 ASKED_SEARCH_FACTOR = 2  # a receptacle a preference asks for gets this many times the search goals
 
@@ -755,12 +761,24 @@ class TidyPolicy:
                         yield from self._closer_after_step_back(rec, sighting, top, no_room)
                     ) or sighting
                 yield put_at.action(ActionName.PutObject, shape)
-                if self.body.obs.success:
+                put, error = self.body.obs.success, self.body.obs.error
+                if not put and error in REAIM_AFTER_OPENING:
+                    # the pixel was aimed at the closed door: the open box's inside can lie
+                    # beyond reach along it. Aim again at what this frame shows, closer if need be
+                    again = yield from self._reaim_within_reach(rec, top, no_room)
+                    if again is not None:
+                        put_at = again
+                        yield put_at.action(ActionName.PutObject, shape)
+                        put, error = self.body.obs.success, self.body.obs.error
+                if put:
                     self._last_put_xy = put_at.point[:2].copy()
-                    yield put_at.action(ActionName.CloseObject, shape)
+                    yield from self._close(rec, put_at, top, no_room)
                     return True
+                if error == "no_free_space":  # counted as a put on an open one is
+                    rec.meta["full_tries"] = rec.meta.get("full_tries", 0) + 1
+                    rec.meta["full"] = rec.meta["full_tries"] >= 3
                 self.event("put_failed_closing", receptacle=rec.label)
-                yield put_at.action(ActionName.CloseObject, shape)
+                yield from self._close(rec, put_at, top, no_room)
                 return False
             if self.body.obs.error != "blocked" or retry or self.body.steps_left() <= 4:
                 return "blocked" if self.body.obs.error == "blocked" else False
@@ -773,6 +791,42 @@ class TidyPolicy:
                 return False
             sighting = again
         return False
+
+    def _reaim_within_reach(
+        self, rec: TrackedObject, top: np.ndarray, no_room: list[np.ndarray]
+    ) -> Generator[Action, None, Sighting | None]:
+        """An aim at ``rec`` from the current frame within reach: as it is, else after one step
+        towards it; None when there is none."""
+        det = self._detection_of(rec)
+        aim = self._aim(rec, det, no_room) if det is not None else None
+        if aim is not None and aim.distance <= self.p.interact_m:
+            return aim
+        if self.body.steps_left() <= 4:
+            return None
+        yield Action(ActionName.MoveAhead)
+        if not self.body.obs.success:
+            return None
+        yield from face_point(self.body, top)
+        det = self._detection_of(rec)
+        aim = self._aim(rec, det, no_room) if det is not None else None
+        return aim if aim is not None and aim.distance <= self.p.interact_m else None
+
+    def _close(self, rec: TrackedObject, at: Sighting, top: np.ndarray, no_room: list[np.ndarray]) -> Gen:
+        """Close ``rec`` again, at ``at``; when that pixel is out of reach (the open door swung
+        away from it), at a fresh aim within reach: a receptacle the agent opened is never left
+        open because its first aim missed."""
+        shape = self.body.obs.depth.shape
+        yield at.action(ActionName.CloseObject, shape)
+        if self.body.obs.success or self.body.obs.error not in REAIM_AFTER_OPENING:
+            return
+        error = self.body.obs.error
+        again = yield from self._reaim_within_reach(rec, top, no_room)
+        if again is not None:
+            yield again.action(ActionName.CloseObject, shape)
+            if self.body.obs.success:
+                return
+            error = self.body.obs.error
+        self.event("close_failed", receptacle=rec.label, error=error)
 
     def _closer_after_step_back(
         self, rec: TrackedObject, sighting: Sighting, top: np.ndarray, no_room: list[np.ndarray]

@@ -650,6 +650,32 @@ def test_a_door_that_would_hit_the_agent_is_opened_again_after_a_step_back(monke
     gen_aims = iter([far])  # the open door stops the step forward: the put is tried from there
     ok, done = run([(False, "blocked"), (True, ""), (True, ""), (False, "blocked"), (True, ""), (True, "")])
     assert ok and done == ["OpenObject", "MoveBack", "OpenObject", "MoveAhead", "PutObject", "CloseObject"]
+    # opened from there, the put's pixel (aimed at the closed door) now runs into the box beyond
+    # reach: aim again at what the frame shows, put there, and close there (never left open)
+    events.clear()
+    gen_aims = iter([near])
+    ok, done = run([(True, ""), (False, "too_far"), (True, ""), (True, "")])
+    assert ok and done == ["OpenObject", "PutObject", "PutObject", "CloseObject"]
+    assert policy._last_put_xy.tolist() == [1.1, 2.0] and events == []
+    # the fresh aim is beyond reach too: one step in, aim again
+    gen_aims = iter([far, near])
+    ok, done = run([(True, ""), (False, "too_far"), (True, ""), (True, ""), (True, "")])
+    assert ok and done == ["OpenObject", "PutObject", "MoveAhead", "PutObject", "CloseObject"]
+    # the put fails again: the close at the stale pixel is out of reach, so it is aimed again
+    gen_aims = iter([far, far, near])
+    ok, done = run([(True, ""), (False, "too_far"), (True, ""), (False, "too_far"), (True, "")])
+    assert ok is False and done == ["OpenObject", "PutObject", "MoveAhead", "CloseObject", "CloseObject"]
+    assert [e["kind"] for e in events] == ["put_failed_closing"]
+    events.clear()  # no aim within reach even a step in: said, not hidden
+    gen_aims = iter([far, far, far, far])
+    ok, done = run([(True, ""), (False, "too_far"), (True, ""), (False, "too_far"), (True, "")])
+    assert ok is False and done == ["OpenObject", "PutObject", "MoveAhead", "CloseObject", "MoveAhead"]
+    assert [e["kind"] for e in events] == ["put_failed_closing", "close_failed"]
+    # a box full inside counts towards giving up on it, as a full top does
+    fridge.meta.clear()
+    for _ in range(3):
+        run([(True, ""), (False, "no_free_space"), (True, "")])
+    assert fridge.meta["full_tries"] == 3 and fridge.meta["full"]
 
 
 def test_a_door_still_blocked_sends_the_next_walk_to_another_spot_farther_from_the_box(monkeypatch):
