@@ -41,6 +41,7 @@ import numpy as np
 from tidee.agent.classes import PLACEABLE_RECEPTACLES
 from tidee.agent.evaluation.config import PreferenceEvalConfig
 from tidee.agent.evaluation.judge import plausible
+from tidee.agent.evaluation.report import machine_note
 from tidee.agent.evaluation.tidy_eval import EPISODES_FILE, TidyJob, run_jobs, select_configs
 from tidee.agent.reasoning.relations import words
 from tidee.batch import import_ray
@@ -326,6 +327,7 @@ def run_preference_eval(cfg: PreferenceEvalConfig, command: str = "") -> dict[st
     reseeded = run(jobs({}, "reseeded", RESEED_OFFSET), True) if cfg.reseeded else []
     result: dict[str, Any] = {
         "command": command,
+        "machine": machine_note(),
         "config": {
             "split": cfg.split,
             "configurations": len(configs),
@@ -416,6 +418,8 @@ def _markdown(r: Mapping[str, Any]) -> str:
     lines += ["", "Group phrases and the categories MiniLM carried them to:", ""]
     lines += [f"- {p}: {', '.join(m)}" for p, m in r["groups"].items()]
     lines += ["", f"Command: `{r['command']}`", ""]
+    if r.get("machine"):
+        lines += [f"Ran on: {r['machine'].removeprefix('machine: ')}.", ""]
     return "\n".join(lines)
 
 

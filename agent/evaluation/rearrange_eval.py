@@ -34,7 +34,7 @@ from tidee.agent.config import AgentConfig
 from tidee.agent.evaluation.config import RearrangeEvalConfig
 from tidee.agent.evaluation.rearrange_fates import OPENABLE_FATES, PICKUPABLE_FATES, sum_counts
 from tidee.agent.evaluation.rearrange_metrics import aggregate, episode_metrics
-from tidee.batch import run_jobs, worker_transport
+from tidee.batch import read_records, run_jobs, worker_transport
 from tidee.protocol.episode_log import write_atomic
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
 
@@ -309,6 +309,7 @@ def _plot(report: dict[str, Any]) -> bytes:
 
 
 def run_rearrange_eval(cfg: RearrangeEvalConfig) -> dict[str, Any]:
+    from tidee.agent.evaluation.report import machine_note
     from tidee.agent.evaluation.tidy_eval import episode_cost, select_configs
 
     agent = cfg.agent
@@ -339,6 +340,8 @@ def run_rearrange_eval(cfg: RearrangeEvalConfig) -> dict[str, Any]:
                 )
             )
     t0 = time.time()
+    episodes_file = out / "episodes.jsonl"
+    resumed = len({j.key() for j in jobs} & set(read_records(episodes_file))) if cfg.batch.resume else 0
     records = run_jobs(
         jobs,
         _run_one,
@@ -347,7 +350,7 @@ def run_rearrange_eval(cfg: RearrangeEvalConfig) -> dict[str, Any]:
         backend=cfg.batch.backend,
         ray_address=cfg.batch.ray_address,
         progress=cfg.progress,
-        out_jsonl=out / "episodes.jsonl",
+        out_jsonl=episodes_file,
         resume=cfg.batch.resume,
         desc="rearrangement episodes",
         cost=lambda job: episode_cost(job.spec),
@@ -363,7 +366,9 @@ def run_rearrange_eval(cfg: RearrangeEvalConfig) -> dict[str, Any]:
     notes = [
         f"command: {command}",
         f"total wall time {wall:.0f} s with {cfg.workers} worker(s) ({cfg.batch.backend} backend), "
-        f"{sum(r.get('retries', 0) for r in records)} retried episode(s)",
+        f"{sum(r.get('retries', 0) for r in records)} retried episode(s)"
+        + (f"; {resumed} episode(s) resumed from episodes.jsonl (made by an earlier run)" if resumed else ""),
+        machine_note(),
         "configurations: `tidee.server.shuffle` (goal: the tidy room with 0-2 openables open; shuffled: "
         "0-3 openables toggled, 1-5 pickupables moved by placement or the mess-up's physics)",
         "the agent: `tidee.agent.policy.rearrange` (walkthrough, then unshuffle: match the two object "

@@ -84,6 +84,30 @@ Config = tuple[Any, str, Any, Any]
 # -------------------------------------------------------------------- validation
 
 
+def machine_note() -> str:
+    """What ran a report's episodes here, for its notes: the processor, its cores, torch and the
+    precision the learned networks run in ("auto": bf16 where the CPU has it natively). Records
+    made on another kind of processor, or another torch, can differ in a detection's last digits
+    and so in an episode's path."""
+    import platform
+
+    import torch
+
+    from tidee.agent.learning import resolve_precision
+    from tidee.threads import available_cores
+
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), model)
+    except OSError:
+        pass
+    return (
+        f"machine: {model} ({platform.machine()}), {os.cpu_count()} cores ({available_cores()} available), "
+        f"torch {torch.__version__}, networks in {resolve_precision('auto', 'cpu')}"
+    )
+
+
 def _describe(i: int, rec: Mapping[str, Any]) -> str:
     return (
         f"record {i} (variant {rec.get('variant')!r}, room {rec.get('room_type')!r}, "

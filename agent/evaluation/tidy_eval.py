@@ -200,7 +200,7 @@ def build_jobs(cfg: TidyEvalConfig, configs: list[Any] | None = None) -> list[Ti
 
 def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
 
-    from tidee.agent.evaluation.report import with_references, write_report
+    from tidee.agent.evaluation.report import machine_note, with_references, write_report
 
     agent = cfg.agent
     split, variants, workers, renderer = cfg.split, list(cfg.variants), cfg.workers, cfg.renderer
@@ -279,5 +279,6 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
         + (f" ({cfg.batch.ray_address})" if cfg.batch.ray_address else "")
         + f"; {retries} episode retries after a worker died"
         + (f"; {resumed} episodes resumed from {EPISODES_FILE}" if resumed else ""),
+        machine_note(),
     ]
     return write_report(all_records, out, title=f"Tidy evaluation ({split} rooms)", notes=notes)
