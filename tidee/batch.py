@@ -204,6 +204,13 @@ def read_records(path: str | os.PathLike) -> dict[str, Record]:
     return out
 
 
+def stored_jobs(jobs: Sequence[Any], path: str | os.PathLike) -> int:
+    """How many of ``jobs`` already have an intact record in ``path``: what ``resume`` will
+    take from it instead of running (for a report's notes)."""
+    stored = read_records(path)
+    return sum(job_key(j) in stored for j in jobs)
+
+
 class _RecordsFile:
     """``out_jsonl`` while a run appends to it (whole lines, flushed and synced)."""
 

@@ -34,7 +34,7 @@ from tidee.agent.config import AgentConfig
 from tidee.agent.evaluation.config import RearrangeEvalConfig
 from tidee.agent.evaluation.rearrange_fates import OPENABLE_FATES, PICKUPABLE_FATES, sum_counts
 from tidee.agent.evaluation.rearrange_metrics import aggregate, episode_metrics
-from tidee.batch import read_records, run_jobs, worker_transport
+from tidee.batch import run_jobs, stored_jobs, worker_transport
 from tidee.protocol.episode_log import write_atomic
 from tidee.protocol.messages import Action, ActionName, EpisodeSpec
 
@@ -341,7 +341,7 @@ def run_rearrange_eval(cfg: RearrangeEvalConfig) -> dict[str, Any]:
             )
     t0 = time.time()
     episodes_file = out / "episodes.jsonl"
-    resumed = len({j.key() for j in jobs} & set(read_records(episodes_file))) if cfg.batch.resume else 0
+    resumed = stored_jobs(jobs, episodes_file) if cfg.batch.resume else 0
     records = run_jobs(
         jobs,
         _run_one,

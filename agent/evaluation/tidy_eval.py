@@ -217,7 +217,7 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
     jobs = build_jobs(cfg, configs)
     t0 = time.time()
     episodes_file = out / EPISODES_FILE
-    resumed = len({j.key() for j in jobs} & set(batch.read_records(episodes_file))) if cfg.batch.resume else 0
+    resumed = batch.stored_jobs(jobs, episodes_file) if cfg.batch.resume else 0
     records = run_jobs(
         jobs,
         workers,

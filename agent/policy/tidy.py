@@ -711,11 +711,8 @@ class TidyPolicy:
                     door_gap = max(door_gap, gap) + 0.25
             elif obs.error in ("no_free_space", "not_receptacle"):  # aim elsewhere next time (not_receptacle:
                 no_room.append(sighting.point)  # a wall or window above a shelf)
-                if obs.error == "no_free_space":
-                    rec.meta["full_tries"] = rec.meta.get("full_tries", 0) + 1
-                    if rec.meta["full_tries"] >= 3:
-                        rec.meta["full"] = True
-                        return False
+                if obs.error == "no_free_space" and self._count_full(rec):
+                    return False
             self.event("put_failed", receptacle=rec.label, error=obs.error, message=obs.message)
         if not seen:
             rec.meta["unseen"] = True
@@ -775,8 +772,7 @@ class TidyPolicy:
                     yield from self._close(rec, put_at, top, no_room)
                     return True
                 if error == "no_free_space":  # counted as a put on an open one is
-                    rec.meta["full_tries"] = rec.meta.get("full_tries", 0) + 1
-                    rec.meta["full"] = rec.meta["full_tries"] >= 3
+                    self._count_full(rec)
                 self.event("put_failed_closing", receptacle=rec.label)
                 yield from self._close(rec, put_at, top, no_room)
                 return False
@@ -799,17 +795,32 @@ class TidyPolicy:
         towards it; None when there is none."""
         det = self._detection_of(rec)
         aim = self._aim(rec, det, no_room) if det is not None else None
-        if aim is not None and aim.distance <= self.p.interact_m:
-            return aim
+        if aim is None or aim.distance > self.p.interact_m:
+            aim = yield from self._step_in_and_aim(rec, top, no_room)
+        return aim if aim is not None and aim.distance <= self.p.interact_m else None
+
+    def _step_in_and_aim(
+        self, rec: TrackedObject, top: np.ndarray, no_room: list[np.ndarray], event: str | None = None
+    ) -> Generator[Action, None, Sighting | None]:
+        """One step towards ``rec`` (``event`` said once it is taken), face its top and aim again;
+        None when the step is refused (an open door, anything else in the way), steps are short
+        or it is not detected from there."""
         if self.body.steps_left() <= 4:
             return None
         yield Action(ActionName.MoveAhead)
         if not self.body.obs.success:
             return None
+        if event:
+            self.event(event, receptacle=rec.label)
         yield from face_point(self.body, top)
         det = self._detection_of(rec)
-        aim = self._aim(rec, det, no_room) if det is not None else None
-        return aim if aim is not None and aim.distance <= self.p.interact_m else None
+        return self._aim(rec, det, no_room) if det is not None else None
+
+    def _count_full(self, rec: TrackedObject) -> bool:
+        """One more put on ``rec`` found no free space; True (and marked full) at the third."""
+        rec.meta["full_tries"] = rec.meta.get("full_tries", 0) + 1
+        rec.meta["full"] = rec.meta["full_tries"] >= 3
+        return rec.meta["full"]
 
     def _close(self, rec: TrackedObject, at: Sighting, top: np.ndarray, no_room: list[np.ndarray]) -> Gen:
         """Close ``rec`` again, at ``at``; when that pixel is out of reach (the open door swung
@@ -833,15 +844,9 @@ class TidyPolicy:
     ) -> Generator[Action, None, Sighting | None]:
         """After a step back and an opening: step forward again when the put point is beyond
         reach; the new aim, or None to put from here."""
-        if sighting.distance <= self.p.interact_m or self.body.steps_left() <= 4:
+        if sighting.distance <= self.p.interact_m:
             return None
-        yield Action(ActionName.MoveAhead)
-        if not self.body.obs.success:  # the open door (or anything else) is in the way
-            return None
-        self.event("put_step_forward", receptacle=rec.label)
-        yield from face_point(self.body, top)
-        det = self._detection_of(rec)
-        return self._aim(rec, det, no_room) if det is not None else None
+        return (yield from self._step_in_and_aim(rec, top, no_room, event="put_step_forward"))
 
     def _detection_of(self, rec: TrackedObject):
         """The detection of ``rec`` in the current frame; else the largest detection of its
