@@ -23,7 +23,7 @@ put the shuffled room back.
                    box shrank), not at a pixel nearer another tracked openable (try the next
                    standpoint); left as it is when the server says it already is
                  each moved object, nearest first: walk there, pick it up, walk to its
-                   walkthrough place (the weighted median of its views' top-face middles),
+                   walkthrough place (where its views' rays to their top-face middles cross),
                    reach to the point there (``Action.reach``) and put it down turned onto
                    the walkthrough's long axis (``Action.yaw``); else on the receptacle
                    tracked under it
@@ -87,8 +87,9 @@ class WalkthroughOver(Exception):
 class Seen:
     """What a phase remembers of one tracked object (start frame, metres); for a pickupable
     also its footprint pooled over the views (``tidee.agent.mapping.footprint``): the long
-    axis's heading (degrees, None when it showed none), its mean colour and the weighted
-    median of its top face's middles (x, y; None when no view had one)."""
+    axis's heading (degrees, None when it showed none), its mean colour and where it stood,
+    from its views' top-face middles (``FootprintVotes.middle``; x, y; None when no view had
+    one)."""
 
     label: str
     centroid: np.ndarray
@@ -418,7 +419,7 @@ class RearrangePolicy(TidyPolicy):
             pts, pix = unproject(obs.depth, obs.intrinsics, obs.camera_pose, mask=region)
             fp = footprint(pts, np.asarray(obs.rgb).reshape(-1, 3)[pix])
             if fp is not None:
-                self.votes.setdefault((obs.phase, tid), FootprintVotes()).add(fp)
+                self.votes.setdefault((obs.phase, tid), FootprintVotes()).add(fp, obs.camera_pose[:2, 3])
 
     def seen(self, o: TrackedObject) -> Seen:
         """``o`` as this phase saw it, with its pooled footprint."""
@@ -647,9 +648,9 @@ class RearrangePolicy(TidyPolicy):
         (``Action.reach``: the spot need not be in sight, a counter top at eye height never is),
         turned as it lay there (``held``: see ``put_turn``); then on the receptacle tracked
         under it; on the floor where it stood on the floor."""
-        # The weighted median of the views' top-face middles where the walkthrough had them, else
-        # the box's centre; not the centroid of the seen points: those lean towards the camera
-        # (with the simulator's masks, 1 cm vs 5 cm median error from the true place).
+        # Where the walkthrough's views of its top face place it, else the box's centre; not the
+        # centroid of the seen points: those lean towards the camera (with the simulator's masks,
+        # 1 cm vs 5 cm median error from the true place).
         centre = (seen.box_min + seen.box_max) / 2 if seen.middle is None else seen.middle
         target = np.array([centre[0], centre[1], max(float(seen.box_min[2]), 0.0) + REACH_LIFT_M])
         support = self.support_of(seen)

@@ -7,7 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from tidee.agent.mapping.footprint import Footprint, FootprintVotes, axis_gap, footprint, weighted_median
+from tidee.agent.mapping.footprint import (
+    NEAR_SIDE_M,
+    Footprint,
+    FootprintVotes,
+    axis_gap,
+    footprint,
+    weighted_median,
+)
 
 
 def box_view(
@@ -147,6 +154,24 @@ def test_votes_give_the_weighted_median_of_the_views_middles() -> None:
     assert v.middle() == (0.10, 0.0)
     v.add(Footprint(0.0, 0.8, 400, middle=(0.12, 0.05)))  # now 0.12 / 0.05 hold most of the weight
     assert v.middle() == (0.12, 0.05)
+
+
+def test_votes_with_eyes_meet_where_the_views_rays_cross() -> None:
+    # an object at (1, 0): seen along x from (0, 0) and along y from (1, -1), each view's middle
+    # 3 cm short of it (the near side); a third view's bad mask lies 20 cm off its own ray
+    v = FootprintVotes()
+    v.add(Footprint(0.0, 0.8, 200, middle=(0.97, 0.0)), eye=(0.0, 0.0))
+    v.add(Footprint(0.0, 0.8, 200, middle=(1.0, -0.03)), eye=(1.0, -1.0))
+    v.add(Footprint(0.0, 0.8, 100, middle=(1.0, 0.2)), eye=(2.0, 0.2))
+    x, y = v.middle()  # type: ignore[misc]
+    # the rays cross at (1, 0); the bad view, its weight cut tenfold (20 cm / RAY_SLACK_M), pulls
+    # y by under a centimetre
+    assert abs(x - 1.0) < 0.004 and abs(y) < 0.01
+    # every view from one side: the middle moved NEAR_SIDE_M further along the ray, no more
+    one_way = FootprintVotes()
+    one_way.add(Footprint(0.0, 0.8, 200, middle=(0.97, 0.0)), eye=(0.0, 0.0))
+    one_way.add(Footprint(0.0, 0.8, 100, middle=(0.97, 0.0)), eye=(-0.5, 0.0))
+    assert one_way.middle() == pytest.approx((0.97 + NEAR_SIDE_M, 0.0))
 
 
 @pytest.mark.parametrize(
