@@ -14,8 +14,9 @@ put the shuffled room back.
                  each other first):
                    a pickupable now more than ``stay_m`` (and a third of its size) from its
                    match, both seen ``MIN_OBS`` times, has moved, unless another track of
-                   its class holds its old place (one whose own match stayed with it is
-                   another object and does not count) or held its new one;
+                   its class holds its old place or held its new one (one whose own match
+                   stayed with it is another object and does not count; by the new place,
+                   only when its box does not reach there either);
                    an openable whose box grew or shrank by ``open_m`` changed openness (on the
                    floor: when obstacle cells appeared or vanished beside it, each cell counted
                    for the nearest matched openable only)
@@ -25,8 +26,9 @@ put the shuffled room back.
                  each moved object, nearest first: walk there, pick it up, walk to its
                    walkthrough place (where its views' rays to their top-face middles cross),
                    reach to the point there (``Action.reach``) and put it down turned onto
-                   the walkthrough's long axis (``Action.yaw``); else on the receptacle
-                   tracked under it
+                   the walkthrough's long axis (``Action.yaw``); beyond reach from every
+                   spot (a pillow in the middle of a bed), as near it on the same surface as
+                   the arm goes; else on the receptacle tracked under it
     Done
 
 Only the agent's own maps and detections decide; ``--perception oracle`` feeds it the
@@ -77,6 +79,8 @@ FLOOR_Z = 0.08  # a remembered object whose box starts this low stood on the flo
 # counter top (0.92 m), so the ray to a point just over the top would meet the counter's front edge
 REACH_LIFT_M = 0.10
 REACH_SLACK = 0.05  # depth this much (relative) nearer than that point: something is in the way
+SURFACE_TOL_M = 0.05  # the surface a pulled-in put lands on is this close to the remembered base
+PULL_REACH_M = 1.45  # a put beyond reach is pulled in to this far from the eye (the limit: 1.5 m)
 
 
 class WalkthroughOver(Exception):
@@ -204,13 +208,17 @@ def find_moves(
     ``other_m`` (so a second instance or a stray track is not taken for a move). A track by the
     old place does not count when it is explained: its own walkthrough match stayed with it (a
     second apple that never moved, 30 cm from the first's old place) and is not the moved
-    object tracked twice (``same_object``). A walkthrough track by the new place always counts:
-    the walkthrough's memory merges two objects 25 cm apart into one track (two remotes on a
-    coffee table), which one of them, staying, would explain while the other is the "mover"."""
+    object tracked twice (``same_object``). A walkthrough track by the new place is explained
+    the same way (its unshuffle match stayed with it), and only when its box does not reach the
+    new place either: the walkthrough's memory merges two objects 25 cm apart into one track
+    (two remotes on a coffee table) whose box spans both, and one of them, staying, would
+    explain it while the other is the "mover"; a second soap bottle 20 cm from where the first
+    was put, still where it stood, has a box of its own and is another object."""
     then = [s for s in then if s.label in PICKUPABLE]
     now = [o for o in now if o.label in PICKUPABLE]
     pairs = _pairs(then, now, colours, min_obs)
     match_of = {id(o): (s, d) for s, o, d in pairs}  # unshuffle track -> its walkthrough match
+    now_of = {id(s): (o, d) for s, o, d in pairs}  # walkthrough track -> its unshuffle match
 
     def stayed(a: Seen | TrackedObject, d: float) -> bool:
         return d <= max(stay_m, _size(a) / 3)
@@ -221,6 +229,15 @@ def find_moves(
         itself: that is paired with the moved track)."""
         match = match_of.get(id(track))
         return match is not None and stayed(*match) and not same_object(match[0], mover)
+
+    def holds_elsewhere(track: Seen, mover: TrackedObject) -> bool:
+        """``track`` (a walkthrough track by ``mover``'s new place) is another object that is
+        still where it was: its unshuffle match stayed with it and is not ``mover`` tracked
+        twice, and its box does not reach ``mover``'s centre (x, y)."""
+        match = now_of.get(id(track))
+        if match is None or not stayed(track, match[1]) or same_object(match[0], mover):
+            return False
+        return box_gap(track.box_min[:2], track.box_max[:2], mover.centroid[:2]) > 0.0
 
     moves = []
     for s, o, d in pairs:
@@ -237,7 +254,10 @@ def find_moves(
             for p in now
         )
         new_held = any(
-            q.label == o.label and q is not s and np.linalg.norm(q.centroid - o.centroid) <= other_m
+            q.label == o.label
+            and q is not s
+            and np.linalg.norm(q.centroid - o.centroid) <= other_m
+            and not holds_elsewhere(q, o)
             for q in then
         )
         if not old_taken and not new_held:
@@ -672,9 +692,50 @@ class RearrangePolicy(TidyPolicy):
             self.event(
                 "put_failed", receptacle=self.state.target_receptacle, error=obs.error, message=obs.message
             )
+        # Still out of reach from the nearest spot (a pillow in the middle of a bed): as near it
+        # as the arm goes, on the same surface, rather than anywhere on the receptacle.
+        near = self.pulled_in(target)
+        if near is not None:
+            action = self.reach_action(near, put_turn(seen.axis_deg, held, self.body.pose[2]))
+            if not isinstance(action, str):
+                yield action
+                if self.body.obs.success:
+                    return self._put_back_done(seen, "as near as it reaches", near)
+                self.event(
+                    "put_failed",
+                    receptacle=self.state.target_receptacle,
+                    error=self.body.obs.error,
+                    message=self.body.obs.message,
+                )
         if support is not None and (yield from self.put_on(support)):
             return self._put_back_done(seen, "on its receptacle")
         return False
+
+    def pulled_in(self, point: np.ndarray) -> np.ndarray | None:
+        """``point`` moved level towards the agent until the arm reaches it (``PULL_REACH_M``
+        from the eye), when it is beyond reach, in view, and the frame shows a surface at that
+        height there (the same bed or table, not the floor beyond its edge); else None."""
+        obs = self.body.obs
+        eye = obs.camera_pose[:3, 3]
+        gap = point - eye
+        flat = float(np.linalg.norm(gap[:2]))
+        if float(np.linalg.norm(gap)) <= INTERACT_M or flat <= 0.0 or PULL_REACH_M <= abs(float(gap[2])):
+            return None
+        keep = float(np.sqrt(PULL_REACH_M**2 - gap[2] ** 2)) / flat
+        near = np.array([eye[0] + gap[0] * keep, eye[1] + gap[1] * keep, point[2]])
+        h, w = obs.depth.shape
+        u, v, z = project(near[None, :], obs.intrinsics, obs.camera_pose)
+        if not z[0] > 0 or not (0 <= u[0] < w and 0 <= v[0] < h):
+            return None
+        # the put's point is REACH_LIFT_M above the surface: the ray through it meets the surface
+        # a little beyond it, at the surface's height (the floor past an edge is far lower)
+        seen_at = float(obs.depth[int(v[0]), int(u[0])])
+        if not seen_at >= float(z[0]) * (1 - REACH_SLACK):
+            return None
+        hit = eye + (near - eye) * (seen_at / float(z[0]))
+        if abs(float(hit[2]) - (float(point[2]) - REACH_LIFT_M)) > SURFACE_TOL_M:
+            return None
+        return near
 
     def reach_action(self, point: np.ndarray, yaw: float | None) -> Action | str:
         """A put at a start-frame point: its pixel and its distance from the eye; or why not

@@ -341,6 +341,78 @@ def test_a_walkthrough_track_by_the_new_place_counts_even_when_its_match_stayed(
     # the walkthrough merged two remotes 28 cm apart into one track; in the unshuffle both are
     # tracked, one pairs with the merged track, the other with a third remote's old place: that
     # third remote was moved where it was not seen, and the second remote did not move
-    then = [_seen("RemoteControl", (-0.84, 2.4, 0.5)), _seen("RemoteControl", (1.0, 2.25, 0.41))]
+    # (the memory's box of a merged track is the union of its views: it spans both remotes)
+    merged = dataclasses.replace(
+        _seen("RemoteControl", (1.0, 2.25, 0.41)),
+        box_min=np.array([0.85, 2.08, 0.4]),
+        box_max=np.array([1.1, 2.43, 0.44]),
+    )
+    then = [_seen("RemoteControl", (-0.84, 2.4, 0.5)), merged]
     now = [_track(1, "RemoteControl", (1.02, 2.38, 0.42)), _track(2, "RemoteControl", (0.93, 2.13, 0.42))]
     assert find_moves(then, now) == []
+
+
+def test_a_second_instance_that_stayed_near_the_new_place_does_not_hide_a_move() -> None:
+    # two soap bottles 50 cm apart on a counter; the first was put 22 cm from the second, which
+    # stayed where it stood (its own track, whose box does not reach the new place)
+    then = [
+        _seen("SoapBottle", (0.75, 0.87, 0.9), half=0.04),
+        _seen("SoapBottle", (0.24, 1.02, 0.9), half=0.04),
+    ]
+    now = [
+        _track(1, "SoapBottle", (0.39, 1.18, 0.9), half=0.04),
+        _track(2, "SoapBottle", (0.24, 1.02, 0.9), half=0.04),
+    ]
+    (m,) = find_moves(then, now)
+    assert m.now.id == 1 and np.allclose(m.then.centroid, [0.75, 0.87, 0.9])
+    # the second bottle's walkthrough track reaching the new place: one track of both, no move
+    wide = dataclasses.replace(then[1], box_max=np.array([0.45, 1.25, 0.94]))
+    assert find_moves([then[0], wide], now) == []
+    # the second bottle not seen in the unshuffle: nothing says it still stands there, no move
+    assert find_moves(then, now[:1]) == []
+
+
+def _view_of_a_bed(bed_end_x: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 64x64 depth frame from an eye at 0.9 m looking along +x, 30 degrees down, at a bed
+    top at 0.6 m from x = 0.3 to ``bed_end_x`` with the floor beyond: (depth, K, pose)."""
+    k = np.array([[32.0, 0.0, 32.0], [0.0, 32.0, 32.0], [0.0, 0.0, 1.0]])
+    th = np.radians(30.0)
+    rot = np.stack(
+        [[0.0, -1.0, 0.0], [-np.sin(th), 0.0, -np.cos(th)], [np.cos(th), 0.0, -np.sin(th)]], axis=1
+    )
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = rot, [0.0, 0.0, 0.9]
+    v, u = np.mgrid[0:64, 0:64] + 0.5
+    rays = np.stack([(u - 32.0) / 32.0, (v - 32.0) / 32.0, np.ones_like(u)], axis=-1) @ rot.T
+    down = np.where(rays[..., 2] < 0, rays[..., 2], -1e-9)
+    on_bed = (0.6 - 0.9) / down  # depth (along the optical axis) where the ray meets z = 0.6
+    x_bed = rays[..., 0] * on_bed
+    depth = np.where((x_bed >= 0.3) & (x_bed <= bed_end_x), on_bed, (0.0 - 0.9) / down)
+    return depth, k, pose
+
+
+def test_a_put_beyond_reach_is_pulled_in_onto_the_same_surface() -> None:
+    from types import SimpleNamespace
+
+    from tidee.agent.classes import CLASSES
+    from tidee.agent.config import AgentConfig
+    from tidee.agent.mapping.config import MapConfig
+    from tidee.agent.mapping.maps import SemanticMapper
+    from tidee.agent.policy import rearrange
+    from tidee.agent.policy.skills import Body
+
+    body = Body(SemanticMapper(MapConfig(), CLASSES))
+    policy = rearrange.RearrangePolicy(AgentConfig(), body, None, None, "Bedroom", lambda **kw: None)
+    pillow = np.array([2.0, 0.0, 0.6 + rearrange.REACH_LIFT_M])  # the middle of a long bed, 2 m away
+    depth, k, pose = _view_of_a_bed(2.4)
+    body.obs = SimpleNamespace(depth=depth, intrinsics=k, camera_pose=pose)
+    near = policy.pulled_in(pillow)
+    assert near is not None
+    assert np.isclose(np.linalg.norm(near - pose[:3, 3]), rearrange.PULL_REACH_M)
+    assert np.isclose(near[2], pillow[2]) and np.isclose(near[1], 0.0) and 1.3 < near[0] < 1.5
+    # the bed ends before the pulled-in point: the floor is there, no put
+    depth, k, pose = _view_of_a_bed(1.2)
+    body.obs = SimpleNamespace(depth=depth, intrinsics=k, camera_pose=pose)
+    assert policy.pulled_in(pillow) is None
+    # within reach already: nothing to pull in
+    assert policy.pulled_in(np.array([1.0, 0.0, 0.7])) is None
