@@ -715,46 +715,54 @@ class RearrangePolicy(TidyPolicy):
         """``point`` moved level towards the agent until the arm reaches it (``PULL_REACH_M``
         from the eye), when it is beyond reach, in view, and the frame shows a surface at that
         height there (the same bed or table, not the floor beyond its edge); else None."""
-        obs = self.body.obs
-        eye = obs.camera_pose[:3, 3]
+        eye = self.body.obs.camera_pose[:3, 3]
         gap = point - eye
         flat = float(np.linalg.norm(gap[:2]))
         if float(np.linalg.norm(gap)) <= INTERACT_M or flat <= 0.0 or PULL_REACH_M <= abs(float(gap[2])):
             return None
         keep = float(np.sqrt(PULL_REACH_M**2 - gap[2] ** 2)) / flat
         near = np.array([eye[0] + gap[0] * keep, eye[1] + gap[1] * keep, point[2]])
-        h, w = obs.depth.shape
-        u, v, z = project(near[None, :], obs.intrinsics, obs.camera_pose)
-        if not z[0] > 0 or not (0 <= u[0] < w and 0 <= v[0] < h):
+        pixel = self._pixel_of(near)
+        if pixel is None:
             return None
+        _, _, z, seen_at = pixel
         # the put's point is REACH_LIFT_M above the surface: the ray through it meets the surface
         # a little beyond it, at the surface's height (the floor past an edge is far lower)
-        seen_at = float(obs.depth[int(v[0]), int(u[0])])
-        if not seen_at >= float(z[0]) * (1 - REACH_SLACK):
+        if not seen_at >= z * (1 - REACH_SLACK):
             return None
-        hit = eye + (near - eye) * (seen_at / float(z[0]))
+        hit = eye + (near - eye) * (seen_at / z)
         if abs(float(hit[2]) - (float(point[2]) - REACH_LIFT_M)) > SURFACE_TOL_M:
             return None
         return near
+
+    def _pixel_of(self, point: np.ndarray) -> tuple[float, float, float, float] | None:
+        """Where a start-frame point falls in the current frame: (u, v, its depth along the
+        optical axis, the depth the frame shows there); None when it is out of view."""
+        obs = self.body.obs
+        h, w = obs.depth.shape
+        u, v, z = project(point[None, :], obs.intrinsics, obs.camera_pose)
+        if not z[0] > 0 or not (0 <= u[0] < w and 0 <= v[0] < h):
+            return None
+        return float(u[0]), float(v[0]), float(z[0]), float(obs.depth[int(v[0]), int(u[0])])
 
     def reach_action(self, point: np.ndarray, yaw: float | None) -> Action | str:
         """A put at a start-frame point: its pixel and its distance from the eye; or why not
         (out of view, out of reach, something seen in front of it)."""
         obs = self.body.obs
         h, w = obs.depth.shape
-        u, v, z = project(point[None, :], obs.intrinsics, obs.camera_pose)
-        if not z[0] > 0 or not (0 <= u[0] < w and 0 <= v[0] < h):
+        pixel = self._pixel_of(point)
+        if pixel is None:
             return "not in view"
+        u, v, z, seen_at = pixel
         reach = float(np.linalg.norm(point - obs.camera_pose[:3, 3]))
         # up to the protocol's limit, not ``interact_m``: the server checks the reach the agent
         # sends, not the true distance, so no margin for pose error is needed (a pillow in the
         # middle of a bed is 1.4 m from the nearest place to stand)
         if reach > INTERACT_M:
             return f"{reach:.2f} m away"
-        seen_at = float(obs.depth[int(v[0]), int(u[0])])
-        if 0 < seen_at < float(z[0]) * (1 - REACH_SLACK):
+        if 0 < seen_at < z * (1 - REACH_SLACK):
             return f"something {seen_at:.2f} m away in front of it"
-        return Action(ActionName.PutObject, x=(u[0] + 0.5) / w, y=(v[0] + 0.5) / h, yaw=yaw, reach=reach)
+        return Action(ActionName.PutObject, x=(u + 0.5) / w, y=(v + 0.5) / h, yaw=yaw, reach=reach)
 
     def _put_back_done(self, seen: Seen, how: str, target: np.ndarray | None = None) -> bool:
         """Count a put; ``target``: the point it reached for (start frame; the evaluation splits
