@@ -169,6 +169,7 @@ class TransportBenchConfig:
 
     resolution: int = option(256, "image side, pixels", type=argtypes.resolution)
     steps: int = option(200, "timed steps", type=argtypes.positive_int)
+    renderer: Renderer = option("auto", "who draws the frames (tiny: what agents see by default)")
     out: Path | None = option(None, "report path (default: bench/transport.json)", type=argtypes.output_path)
 
 

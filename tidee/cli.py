@@ -127,7 +127,9 @@ def _cmd_bench_transport(cfg: sc.TransportBenchConfig) -> int:
     from tidee.server.bench_transport import run_transport_bench
 
     return _print_json(
-        run_transport_bench(cfg.resolution, cfg.steps, str(bench_out(cfg.out, "transport.json")))
+        run_transport_bench(
+            cfg.resolution, cfg.steps, str(bench_out(cfg.out, "transport.json")), renderer=cfg.renderer
+        )
     )
 
 

@@ -32,6 +32,7 @@ from tidee.agent.perception.detector.model import (
     fold_batchnorm,
     preprocess,
 )
+from tidee.agent.perception.graph import FrozenNet
 from tidee.agent.perception.reclassifier.config import DEFAULT_RECLASSIFIER
 from tidee.agent.perception.reclassifier.model import (
     CropClassifier,
@@ -95,8 +96,9 @@ def nms(boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray, iou: float) 
 class LearnedPerception:
     """The trained detector. ``threshold`` is the score below which detections are dropped.
 
-    ``precision``: "auto" runs the network under bf16 autocast, channels-last, where the CPU
-    has native bf16 (AVX512-BF16/AMX; about 1.6x faster per frame), fp32 elsewhere.
+    ``precision``: "auto" runs the networks in bf16, channels-last, where the CPU has native
+    bf16 (AVX512-BF16/AMX; about 1.6x faster per frame), fp32 elsewhere; each as a frozen graph
+    that gives the same outputs as the module under autocast (``graph.FrozenNet``).
     ``classes_per_peak``, ``peaks``: see ``detector.model.decode`` (1 and "class-max" for the agent).
     ``reclassifier``: the crop classifier that renames detections (``reclassifier.model.fuse`` with
     ``alpha``, ``beta``), or None for the detector's own classes and scores. ``gate``: detections
@@ -144,6 +146,9 @@ class LearnedPerception:
         self.stats = {"reclassified": 0, "gated": 0}  # detections the crop classifier saw / skipped
         self.precision = resolve_precision(precision, "cpu")
         self.model = fold_batchnorm(copy.deepcopy(model).eval()).to(memory_format=torch.channels_last)
+        # What runs them: frozen graphs where they give the same outputs (``graph.FrozenNet``).
+        self.net = FrozenNet(self.model, self.precision)
+        self.reclassifier_net = FrozenNet(self.reclassifier, self.precision) if self.reclassifier else None
         self.classes_per_peak = classes_per_peak
         self.path = path  # the weights file (its manifest is beside it)
         self.cfg = model.cfg
@@ -202,9 +207,11 @@ class LearnedPerception:
         depth: np.ndarray,
         heat: torch.Tensor,
         threshold: float,
+        normalised: torch.Tensor | None = None,
     ) -> list[list[RawDetection]]:
         """Each detection renamed and rescored by the crop classifier (``reclassifier.model.fuse``);
-        those whose score falls under ``threshold`` are dropped, the rest sorted best first."""
+        those whose score falls under ``threshold`` are dropped, the rest sorted best first.
+        ``normalised``: the detector's input (its first three channels are the normalised RGB)."""
         rc = self.reclassifier
         assert rc is not None  # detect_batch asks for this only when there is a second stage
         gate = self.gate if self.gate is not None else float("inf")
@@ -216,13 +223,15 @@ class LearnedPerception:
             return out
         fidx = torch.tensor([i for i, _ in flat])
         boxes = torch.tensor([d.box for _, d in flat], dtype=torch.float32)
-        crops, side = crop_inputs(frame_tensor(rgb, depth), fidx, boxes, rc.cfg)
+        frames = frame_tensor(rgb, depth, None if normalised is None else normalised[:, :3])
+        crops, side = crop_inputs(frames, fidx, boxes, rc.cfg)
         rows = torch.tensor([d.cell[0] for _, d in flat])
         cols = torch.tensor([d.cell[1] for _, d in flat])
         cell_heat, peak = heat[fidx, :, rows, cols], torch.tensor([d.score for _, d in flat])
         det = det_features(cell_heat, peak) if rc.cfg.det_inputs else None
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
-            logits = rc(crops.contiguous(memory_format=torch.channels_last), side, det)
+        assert self.reclassifier_net is not None
+        inputs = (crops.contiguous(memory_format=torch.channels_last), side)
+        logits = self.reclassifier_net(*inputs) if det is None else self.reclassifier_net(*inputs, det)
         cls, score = fuse(logits, cell_heat, peak, self.alpha, self.beta)
         for (i, d), c, s in zip(flat, cls.tolist(), score.tolist()):
             if s >= threshold:
@@ -247,10 +256,15 @@ class LearnedPerception:
     ) -> tuple[list[list[RawDetection]], dict[str, torch.Tensor]]:
         """The network alone on frames at its input size: each frame's decoded peaks (before the
         reclassifier and NMS) and the network's outputs (float32; ``heat``: class logits)."""
+        raw, out, _ = self._raw_detections(rgb, depth, threshold)
+        return raw, out
+
+    def _raw_detections(
+        self, rgb: np.ndarray, depth: np.ndarray, threshold: float
+    ) -> tuple[list[list[RawDetection]], dict[str, torch.Tensor], torch.Tensor]:
+        """``raw_detections`` and the network's input."""
         x = preprocess(rgb, depth, self.cfg.use_depth).contiguous(memory_format=torch.channels_last)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
-            out = self.model(x)
-        out = {k: v.float() for k, v in out.items()}
+        out = {k: v.float() for k, v in self.net(x).items()}
         raw = decode(
             out,
             k=self.max_detections,
@@ -259,7 +273,7 @@ class LearnedPerception:
             classes_per_peak=self.classes_per_peak,
             peaks=self.peaks,
         )
-        return raw, out
+        return raw, out, x
 
     @torch.inference_mode()
     def detect_batch(
@@ -281,10 +295,10 @@ class LearnedPerception:
         else:
             rgb_in, depth_in = rgbs, depths
         thr = self.threshold if threshold is None else threshold
-        raw, out = self.raw_detections(rgb_in, depth_in, thr)
+        raw, out, x = self._raw_detections(rgb_in, depth_in, thr)
         if self.reclassifier is not None and any(raw):
-            raw = self._reclassify(raw, rgb_in, depth_in, out["heat"], thr)
-        feat = torch.nn.functional.normalize(out["feat"], dim=1)
+            raw = self._reclassify(raw, rgb_in, depth_in, out["heat"], thr, x)
+        feat = out["feat"]
         sx, sy = w / size, h / size
         focal = (w / 2) / np.tan(np.radians(45.0))
         result: list[list[Detection]] = []
@@ -310,7 +324,10 @@ class LearnedPerception:
                         score=float(d.score),
                         box=box,
                         mask=depth_mask(depths[i], box, focal),
-                        feature=feat[i, :, d.cell[0], d.cell[1]].numpy().astype(np.float32),
+                        # L2-normalised where it is read, not over the whole map
+                        feature=torch.nn.functional.normalize(feat[i, :, d.cell[0], d.cell[1]], dim=0)
+                        .numpy()
+                        .astype(np.float32),
                         oop_prob=float(d.oop_prob),
                         source=self.name,
                     )

@@ -80,10 +80,15 @@ def det_features(heat: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
     )
 
 
-def frame_tensor(rgb: np.ndarray, depth: np.ndarray) -> torch.Tensor:
-    """uint8 BxHxWx3 + metres BxHxW -> B x 4 x H x W (normalised RGB, depth in metres)."""
-    x = torch.from_numpy(np.array(rgb, dtype=np.uint8)).permute(0, 3, 1, 2).float().div_(255.0)
-    x = (x - torch.tensor(RGB_MEAN).view(1, 3, 1, 1)) / torch.tensor(RGB_STD).view(1, 3, 1, 1)
+def frame_tensor(rgb: np.ndarray, depth: np.ndarray, normalised: torch.Tensor | None = None) -> torch.Tensor:
+    """uint8 BxHxWx3 + metres BxHxW -> B x 4 x H x W (normalised RGB, depth in metres).
+    ``normalised``: the B x 3 x H x W normalised RGB when it is already made (the detector's
+    input: ``detector.model.preprocess`` normalises alike), used instead of ``rgb``."""
+    if normalised is not None:
+        x = normalised
+    else:
+        x = torch.from_numpy(np.array(rgb, dtype=np.uint8)).permute(0, 3, 1, 2).float().div_(255.0)
+        x = (x - torch.tensor(RGB_MEAN).view(1, 3, 1, 1)) / torch.tensor(RGB_STD).view(1, 3, 1, 1)
     d = torch.from_numpy(np.array(depth, dtype=np.float32)).unsqueeze(1)
     return torch.cat([x, d], 1)
 
@@ -114,7 +119,11 @@ def crop_inputs(
     theta[:, 1, 1] = sy
     theta[:, 1, 2] = ty
     grid = F.affine_grid(theta, [n, 4, cfg.crop, cfg.crop], align_corners=False)
-    src = frames[frame_idx.long()]
+    frame_idx = frame_idx.long()
+    if n and bool((frame_idx == frame_idx[0]).all()):  # one frame (the agent's case): a view, not N copies
+        src = frames[frame_idx[0]].expand(n, -1, -1, -1)
+    else:
+        src = frames[frame_idx]
     crops = F.grid_sample(src, grid, mode="bilinear", padding_mode="border", align_corners=False)
     k = max(cfg.crop // 4, 1)
     c0 = (cfg.crop - k) // 2

@@ -291,3 +291,27 @@ def test_the_gate_chosen_is_the_lowest_that_keeps_the_map() -> None:
     assert choose_gate(rows, 0.002) == 0.6
     assert choose_gate(rows, 0.0) == 0.9
     assert choose_gate(rows[:2], 0.002) is None
+
+
+def test_crops_of_one_frame_are_those_of_the_same_frame_given_once_per_crop() -> None:
+    """The agent's case (every box from one frame, sampled from a view of it) against the batch
+    case (one copy of the frame per box): the same crops and side inputs."""
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (1, 64, 64, 3), dtype=np.uint8)
+    depth = rng.uniform(0.5, 4.0, (1, 64, 64)).astype(np.float32)
+    cfg = ReclassifierConfig(crop=16, context=1.2)
+    boxes = torch.tensor([[4.0, 6.0, 30.0, 20.0], [10.0, 10.0, 60.0, 62.0], [0.0, 0.0, 5.0, 9.0]])
+    one = crop_inputs(frame_tensor(rgb, depth), torch.zeros(3, dtype=torch.long), boxes, cfg)
+    frames = frame_tensor(np.repeat(rgb, 3, 0), np.repeat(depth, 3, 0))
+    each = crop_inputs(frames, torch.arange(3), boxes, cfg)
+    assert torch.equal(one[0], each[0]) and torch.equal(one[1], each[1])
+
+
+def test_the_detectors_normalised_input_makes_the_same_frame() -> None:
+    from tidee.agent.perception.detector.model import preprocess
+
+    rng = np.random.default_rng(1)
+    rgb = rng.integers(0, 256, (2, 32, 32, 3), dtype=np.uint8)
+    depth = rng.uniform(0.0, 12.0, (2, 32, 32)).astype(np.float32)  # beyond the detector's clamp too
+    x = preprocess(rgb, depth).contiguous(memory_format=torch.channels_last)
+    assert torch.equal(frame_tensor(rgb, depth, normalised=x[:, :3]), frame_tensor(rgb, depth))
