@@ -71,6 +71,30 @@ def valid_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
         return np.isfinite(depth) & (depth > MIN_DEPTH) & (depth <= max_depth)
 
 
+def column_percentiles(points: np.ndarray, lo_q: float, hi_q: float) -> tuple[np.ndarray, np.ndarray]:
+    """The ``lo_q`` and ``hi_q`` percentiles (0-100) of each column of an NxD float array:
+    the values of ``np.percentile(points, [lo_q, hi_q], axis=0)`` (its default linear method,
+    the same rounding) found by one partition of the transposed columns, in about half its
+    time for a few thousand points. NaNs are not handled (``np.percentile`` returns NaN)."""
+    n = points.shape[0]
+    if n == 0:
+        raise ValueError("column_percentiles needs at least one point")
+    cols = np.ascontiguousarray(points.T)
+    picks = []
+    for q in (lo_q, hi_q):
+        virtual = (q / 100.0) * (n - 1)
+        below = int(np.floor(virtual))
+        picks.append((below, min(below + 1, n - 1), virtual - below))
+    cols.partition(sorted({i for b, a, _ in picks for i in (b, a)}), axis=1)
+    out = []
+    for below, above, gamma in picks:
+        a, b = cols[:, below], cols[:, above]
+        diff = b - a
+        # numpy's _lerp: from the lower value below the midpoint, from the upper one from it on
+        out.append(b - diff * (1.0 - gamma) if gamma >= 0.5 else a + diff * gamma)
+    return out[0], out[1]
+
+
 def unproject(
     depth: np.ndarray,
     intrinsics: np.ndarray,

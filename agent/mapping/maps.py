@@ -35,7 +35,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from tidee.agent.mapping.config import MapConfig
-from tidee.agent.mapping.geometry import GridSpec, pixel_rays, valid_depth
+from tidee.agent.mapping.geometry import GridSpec, column_percentiles, pixel_rays, valid_depth
 from tidee.agent.mapping.memory import ObjectMemory, TrackedObject
 from tidee.agent.perception.base import Detection
 from tidee.protocol.messages import MapSnapshot, Observation
@@ -231,7 +231,7 @@ class SemanticMapper:
         nx, ny = self.grid.shape
         ij = self.grid.world_to_cell(pts[:, :2])
         inside = self.grid.in_bounds(ij)
-        flat = ij[inside, 0] * ny + ij[inside, 1]
+        flat = (ij[:, 0] * ny + ij[:, 1])[inside]
         z = pts[inside, 2]
         hit = np.zeros(nx * ny, bool)
         hit[flat] = True
@@ -271,13 +271,13 @@ class SemanticMapper:
         med = sel[np.argpartition(ds, n // 2)[n // 2]]
         if n > cfg.max_object_points:
             sel = sel[:: int(math.ceil(n / cfg.max_object_points))]
-        sel = np.append(sel, med)
+        sel = np.concatenate((sel, [med]))
         u = (sel % width).astype(np.float64)
         v = (sel // width).astype(np.float64)
         dd = depth_flat[sel].astype(np.float64)
         cam = np.stack([dd * (u - k[0, 2]) / k[0, 0], dd * (v - k[1, 2]) / k[1, 1], dd], axis=1)
         p = cam @ rot.T + trans
-        lo, hi = np.percentile(p[:-1] if p.shape[0] > 1 else p, [5.0, 95.0], axis=0)
+        lo, hi = column_percentiles(p[:-1] if p.shape[0] > 1 else p, 5.0, 95.0)
         return _ObjectStats(centroid=p[-1].copy(), box_min=lo, box_max=hi)
 
     def _label_voxels(

@@ -395,3 +395,32 @@ def test_labels_outside_classes_are_tracked_but_label_no_voxels() -> None:
     touched = m.update(obs, [Detection("Lamp", 0.7, (0, 0, 64, 64), mask=hit == 0)])
     assert [o.label for o in touched] == ["Lamp"]
     assert not (m.voxel_labels >= 0).any() and m.occupancy.any()
+
+
+# ----------------------------------------------------------------------------- percentiles
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 19, 20, 21, 100, 101, 4097])
+def test_column_percentiles_equal_numpy_bit_for_bit(n: int) -> None:
+    """The mapper's object boxes come from ``column_percentiles``: it must give exactly what
+    ``np.percentile(..., axis=0)`` gives, on spread values, ties and tiny samples alike."""
+    from tidee.agent.mapping.geometry import column_percentiles
+
+    rng = np.random.default_rng(n)
+    samples = [
+        rng.normal(size=(n, 3)) * rng.uniform(0.01, 10.0, size=3) + rng.uniform(-5, 5, size=3),
+        np.round(rng.uniform(0, 2, size=(n, 3)), 1),  # many ties
+        np.full((n, 3), 0.3),
+    ]
+    for pts in samples:
+        original = pts.copy()
+        for lo_q, hi_q in ((5.0, 95.0), (2.0, 98.0), (0.0, 100.0), (50.0, 50.0)):
+            lo, hi = column_percentiles(pts, lo_q, hi_q)
+            want_lo, want_hi = np.percentile(pts, [lo_q, hi_q], axis=0)
+            assert lo.tobytes() == want_lo.tobytes() and hi.tobytes() == want_hi.tobytes(), (n, lo_q, hi_q)
+        np.testing.assert_array_equal(pts, original)  # the input is left as it was
+
+
+def test_column_percentiles_refuse_no_points() -> None:
+    from tidee.agent.mapping.geometry import column_percentiles
+
+    with pytest.raises(ValueError, match="at least one point"):
+        column_percentiles(np.zeros((0, 3)), 5.0, 95.0)
