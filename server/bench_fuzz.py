@@ -378,25 +378,50 @@ class FuzzServer:
         self.z: zenoh.Session | None = None
         self.endpoint = ""
 
-    def start(self) -> None:
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        command = [
-            *(sys.executable, "-m", "tidee.cli", "server", "--endpoint", self.endpoint),
-            *("--server-id", self.server_id, "--processes", str(self.cfg.processes), "--renderer", "tiny"),
-        ]
-        self.proc = subprocess.Popen(command, stdout=self.log, stderr=subprocess.STDOUT)
-        self.z = zenoh.open(make_config(False, self.endpoint))
+    def start(self, tries: int = 3, wait_s: float = 120.0) -> None:
+        """Start the server and wait until it serves. A server that exits before it serves
+        (its port taken between ``free_port`` and its bind) is started again on another port,
+        up to ``tries`` times; one that neither serves nor exits within ``wait_s`` is an error."""
         self.starts += 1
-        with self.honest_client("probe"):  # waits until it serves
-            pass
+        for _ in range(tries):
+            self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+            command = [
+                *(sys.executable, "-m", "tidee.cli", "server", "--endpoint", self.endpoint),
+                *(
+                    "--server-id",
+                    self.server_id,
+                    "--processes",
+                    str(self.cfg.processes),
+                    "--renderer",
+                    "tiny",
+                ),
+            ]
+            self.proc = subprocess.Popen(command, stdout=self.log, stderr=subprocess.STDOUT)
+            deadline = time.monotonic() + wait_s
+            while not self.crashed:
+                try:
+                    with self.honest_client("probe", connect_timeout=5.0):  # waits until it serves
+                        pass
+                except TimeoutError:
+                    if time.monotonic() > deadline:
+                        raise TimeoutError(
+                            f"tidee server {self.server_id!r} at {self.endpoint} did not serve within "
+                            f"{wait_s:g} s; its log ends: {self.log_text()[-500:]!r}"
+                        ) from None
+                    continue
+                self.z = zenoh.open(make_config(False, self.endpoint))
+                return
+        raise RuntimeError(
+            f"tidee server exited before it served, {tries} times; its log ends: {self.log_text()[-500:]!r}"
+        )
 
-    def honest_client(self, name: str) -> SimClient:
+    def honest_client(self, name: str, connect_timeout: float = 120.0) -> SimClient:
         return SimClient(
             endpoint=self.endpoint,
             server_id=self.server_id,
             session=f"honest-{name}",
             timeout=self.cfg.reply_timeout_s,
-            connect_timeout=120.0,
+            connect_timeout=connect_timeout,
         )
 
     @property
