@@ -385,17 +385,9 @@ class FuzzServer:
         self.starts += 1
         for _ in range(tries):
             self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-            command = [
-                *(sys.executable, "-m", "tidee.cli", "server", "--endpoint", self.endpoint),
-                *(
-                    "--server-id",
-                    self.server_id,
-                    "--processes",
-                    str(self.cfg.processes),
-                    "--renderer",
-                    "tiny",
-                ),
-            ]
+            command = [sys.executable, "-m", "tidee.cli", "server", "--endpoint", self.endpoint]
+            command += ["--server-id", self.server_id, "--processes", str(self.cfg.processes)]
+            command += ["--renderer", "tiny"]
             self.proc = subprocess.Popen(command, stdout=self.log, stderr=subprocess.STDOUT)
             deadline = time.monotonic() + wait_s
             while not self.crashed:

@@ -31,7 +31,6 @@ class FrozenNet:
             raise ValueError(f"precision must be fp32 or bf16, not {precision!r}")
         self.module = module.eval()
         self.precision = precision
-        self.cfg = getattr(module, "cfg", None)
         self._graph: Any = None  # None: not built yet; False: the eager module is used
         self.frozen: bool | None = None  # after the first call: whether the graph runs
 
