@@ -19,6 +19,15 @@ where the views' eyes are known the middle is the point nearest all their rays (
 least squares across each ray, a view whose ray misses by more than ``RAY_SLACK_M`` counts
 less), held along each ray by a weak pull (``RAY_PULL``) towards the view's middle moved
 ``NEAR_SIDE_M`` further from the eye, which alone decides when every view looked one way.
+
+A thing whose top is at or above the eye (on a kitchen counter or a dresser: the camera is at
+0.9 m) shows no top face, only the sides facing the camera, and one view's side says little:
+seen end-on, a tissue box's short end is a line across its long axis. Such a view (its eye less
+than ``SIDE_VIEW_DEG`` above the top, as seen from the middle) keeps its top band's (x, y)
+points as an *outline* instead of voting on the axis; the views' outlines together trace the
+thing's sides from wherever the camera stood, and the rectangle whose sides they lie on
+(``outline_axis``) lies along it. The axis comes from the views that saw the top when there
+are any, else from the outlines.
 """
 
 from __future__ import annotations
@@ -28,6 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tidee.agent.mapping.geometry import column_percentiles
+
 LIFT_M = 0.008  # points this far above the lowest ones belong to the object, not its support
 MIN_POINTS = 12  # fewer points (after the lift) say nothing
 TOP_BAND_M = 0.015  # the points this far below its highest are its top face
@@ -36,6 +47,9 @@ NEAR_SIDE_M = 0.015  # a view's middle lies about this much nearer the eye than 
 RAY_PULL = 0.05  # weight of a view's middle along its own ray, against 1 across it
 RAY_SLACK_M = 0.02  # a view whose ray misses the middle by more counts less (weight × slack / miss)
 RAY_ROUNDS = 3  # rounds of reweighting
+SIDE_VIEW_DEG = 5.0  # a view whose eye is less than this above the top (seen from the middle) sees only sides
+OUTLINE_POINTS = 128  # a side view keeps at most this many of its outline's points
+OUTLINE_UNION_POINTS = 2048  # the side views' outlines are fitted on at most this many points
 
 
 @dataclass(frozen=True)
@@ -43,13 +57,15 @@ class Footprint:
     """One view's estimate: the long axis's heading in degrees ([0, 180): an axis has no
     direction), its elongation (0 round or square .. 1 a line) and the number of points it
     rests on; ``colour``: the mean RGB (0-1) of its points, when given; ``middle``: the middle
-    (x, y) of its top face's trimmed extent, start frame, metres."""
+    (x, y) of its top face's trimmed extent, start frame, metres; ``outline``: set when the
+    view saw only the thing's sides (module docstring)."""
 
     axis_deg: float
     elongation: float
     n: int
     colour: np.ndarray | None = None
     middle: tuple[float, float] | None = None
+    outline: np.ndarray | None = None  # a view of its sides only: its top band's (x, y) points (Mx2)
 
 
 def footprint(
@@ -58,12 +74,15 @@ def footprint(
     lift: float = LIFT_M,
     min_points: int = MIN_POINTS,
     top_band: float = TOP_BAND_M,
+    eye: np.ndarray | None = None,
 ) -> Footprint | None:
     """A view's footprint of an object from its depth points (start frame, metres, Nx3), or None
     when too few points are left. Points no higher than ``lift`` above the lowest few percent
     are its support, unless that leaves too few (a flat thing seen from above: all of it); of
     the rest, those within ``top_band`` of the highest are its top face, unless too few.
-    ``colours``: the points' RGB (Nx3, 0-255), averaged over the object's points."""
+    ``colours``: the points' RGB (Nx3, 0-255), averaged over the object's points. ``eye``: the
+    camera's place (x, y, z); a view from less than ``SIDE_VIEW_DEG`` above the top keeps its
+    outline (module docstring)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     if len(pts) < min_points:
         return None
@@ -73,7 +92,8 @@ def footprint(
         keep[:] = True
     pts = pts[keep]
     colour = None if colours is None else np.asarray(colours, np.float64).reshape(-1, 3)[keep].mean(0) / 255.0
-    top = pts[pts[:, 2] >= np.percentile(pts[:, 2], 98) - top_band]
+    top_z = float(np.percentile(pts[:, 2], 98))
+    top = pts[pts[:, 2] >= top_z - top_band]
     if len(top) >= min_points:  # its top face: the sides a camera sees would pull the axis
         pts = top
     xy = pts[:, :2]
@@ -86,7 +106,42 @@ def footprint(
     major = evecs[:, 1]
     axis = math.degrees(math.atan2(major[1], major[0])) % 180.0
     elongation = 1.0 - math.sqrt(max(float(evals[0]), 0.0) / max(float(evals[1]), 1e-12))
-    return Footprint(axis, float(np.clip(elongation, 0.0, 1.0)), len(xy), colour, middle)
+    outline = None
+    if eye is not None:
+        e = np.asarray(eye, np.float64)
+        reach = math.hypot(middle[0] - float(e[0]), middle[1] - float(e[1]))
+        if float(e[2]) - top_z < reach * math.tan(math.radians(SIDE_VIEW_DEG)):
+            outline = xy[:: max(1, -(-len(xy) // OUTLINE_POINTS))].copy()
+    return Footprint(axis, float(np.clip(elongation, 0.0, 1.0)), len(xy), colour, middle, outline)
+
+
+def outline_axis(xy: np.ndarray, step_deg: float = 1.0) -> tuple[float, float] | None:
+    """The long axis's heading (degrees, [0, 180)) and elongation (1 - short / long side) of
+    the rectangle whose sides the points (x, y: a thing's sides seen from above) lie on: of
+    the rectangles around them (each side at the points' trimmed extent, ``TRIM``), tried every
+    ``step_deg``, the one with the least mean distance from a point to its nearest side (not the
+    least area: two sides of a box, as one view of a corner shows, fit a rectangle along their
+    diagonal as tightly); None when fewer than ``MIN_POINTS``."""
+    pts = np.asarray(xy, np.float64).reshape(-1, 2)
+    if len(pts) < MIN_POINTS:
+        return None
+    pts = pts - pts.mean(axis=0)
+    angles = np.radians(np.arange(0.0, 90.0, step_deg))
+    along = pts @ np.stack([np.cos(angles), np.sin(angles)])  # N x A: each point along each heading
+    across = pts @ np.stack([-np.sin(angles), np.cos(angles)])
+    a_lo, a_hi = column_percentiles(along, *TRIM)
+    c_lo, c_hi = column_percentiles(across, *TRIM)
+    a_ext, c_ext = a_hi - a_lo, c_hi - c_lo
+    gap = np.minimum(
+        np.minimum(np.abs(along - a_lo), np.abs(a_hi - along)),
+        np.minimum(np.abs(across - c_lo), np.abs(c_hi - across)),
+    )
+    best = int(np.argmin(gap.mean(axis=0)))
+    heading = float(np.degrees(angles[best]))
+    long_, short = float(a_ext[best]), float(c_ext[best])
+    if short > long_:
+        heading, long_, short = heading + 90.0, short, long_
+    return heading % 180.0, (1.0 - short / long_) if long_ > 0 else 0.0
 
 
 def axis_gap(a: float, b: float) -> float:
@@ -113,6 +168,8 @@ class FootprintVotes:
         self._axis_weight = 0.0
         self._colour = np.zeros(3)
         self._colour_weight = 0.0
+        self._top_weight = 0.0  # points of the views that saw its top (those that vote on the axis)
+        self._outlines: list[np.ndarray] = []  # the views that saw only its sides
 
     def add(self, fp: Footprint, eye: tuple[float, float] | None = None) -> None:
         """One view; ``eye``: where the camera stood (x, y, the frame of ``fp.middle``)."""
@@ -124,6 +181,10 @@ class FootprintVotes:
         if fp.colour is not None:
             self._colour += w * fp.colour
             self._colour_weight += w
+        if fp.outline is not None:
+            self._outlines.append(fp.outline)
+            return
+        self._top_weight += w
         t = math.radians(2.0 * fp.axis_deg)
         aw = w * fp.elongation
         self._axis += aw * np.array([math.cos(t), math.sin(t)])
@@ -160,9 +221,16 @@ class FootprintVotes:
         return float(x[0]), float(x[1])
 
     def axis_deg(self, min_agreement: float = 0.5, min_elongation: float = 0.15) -> float | None:
-        """The pooled long-axis heading, or None when the views do not agree on one (resultant
-        length below ``min_agreement``) or the object looks about as wide as long."""
-        if self._axis_weight <= 0 or self._axis_weight / self.weight < min_elongation:
+        """The pooled long-axis heading of the views that saw the top, or None when they do not
+        agree on one (resultant length below ``min_agreement``) or the object looks about as
+        wide as long; where no view saw the top, the heading of the rectangle around the side
+        views' outlines (``outline_axis``), None when it is less elongated than
+        ``min_elongation``."""
+        if self._top_weight <= 0:
+            pts = np.concatenate(self._outlines) if self._outlines else np.zeros((0, 2))
+            fit = outline_axis(pts[:: max(1, -(-len(pts) // OUTLINE_UNION_POINTS))])
+            return fit[0] if fit is not None and fit[1] >= min_elongation else None
+        if self._axis_weight <= 0 or self._axis_weight / self._top_weight < min_elongation:
             return None
         if float(np.linalg.norm(self._axis)) / self._axis_weight < min_agreement:
             return None

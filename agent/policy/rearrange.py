@@ -6,7 +6,9 @@ put the shuffled room back.
     walkthrough  look around, map the room (the tidy agent's mapping; pickupables merge only
                  within 25 cm), survey it (waypoints, then a second round with steps to spare),
                  remember every object it tracked, with each small object's footprint pooled
-                 over its views (long axis, mean colour, top face's middle); Done (the runner
+                 over its views (long axis, mean colour, top face's middle; a thing whose top
+                 no view saw, on a counter above the eye, takes its axis from the outline of
+                 its sides); Done (the runner
                  switches to the unshuffle phase and starts a fresh map in the same start frame)
     unshuffle    look around, map the room again, the same survey for as many steps
                  match the two memories class by class (Hungarian on centroid distance and
@@ -437,7 +439,7 @@ class RearrangePolicy(TidyPolicy):
             if region[0].any() or region[-1].any() or region[:, 0].any() or region[:, -1].any():
                 continue  # cut by the image's edge: a part of it, off centre
             pts, pix = unproject(obs.depth, obs.intrinsics, obs.camera_pose, mask=region)
-            fp = footprint(pts, np.asarray(obs.rgb).reshape(-1, 3)[pix])
+            fp = footprint(pts, np.asarray(obs.rgb).reshape(-1, 3)[pix], eye=obs.camera_pose[:3, 3])
             if fp is not None:
                 self.votes.setdefault((obs.phase, tid), FootprintVotes()).add(fp, obs.camera_pose[:2, 3])
 

@@ -13,6 +13,7 @@ from tidee.agent.mapping.footprint import (
     FootprintVotes,
     axis_gap,
     footprint,
+    outline_axis,
     weighted_median,
 )
 
@@ -179,3 +180,101 @@ def test_votes_with_eyes_meet_where_the_views_rays_cross() -> None:
 )
 def test_axis_gap_is_the_shortest_turn_between_two_axes(a: float, b: float, turn: float) -> None:
     assert axis_gap(a, b) == pytest.approx(turn)
+
+
+def side_view(
+    centre: tuple[float, float],
+    size: tuple[float, float, float],
+    heading_deg: float,
+    eye: tuple[float, float, float],
+    base_z: float = 0.92,
+    step: float = 0.004,
+) -> np.ndarray:
+    """Points a camera below a box's top sees of it: the sides that face the eye, no top (a box
+    on a kitchen counter, 0.92 m, seen from the agent's 0.9 m eye)."""
+    sx, sy, sz = size
+    t = math.radians(heading_deg)
+    rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    pts = []
+    faces = (((1, 0), sx / 2, sy), ((-1, 0), sx / 2, sy), ((0, 1), sy / 2, sx), ((0, -1), sy / 2, sx))
+    for normal, half, length in faces:
+        n = rot @ np.array(normal, float)
+        mid = np.array(centre) + n * half
+        if n @ (np.array(eye[:2]) - mid) <= 0:
+            continue  # faces away from the eye
+        along = np.array([-n[1], n[0]])
+        for s_ in np.arange(-length / 2, length / 2 + 1e-9, step):
+            for z in np.arange(base_z, base_z + sz, step):
+                pts.append((*(mid + s_ * along), z))
+    return np.array(pts)
+
+
+def test_a_view_from_below_the_top_keeps_an_outline_and_one_from_above_does_not() -> None:
+    box = box_view((1.0, 0.0), (0.16, 0.05, 0.03), 20.0)  # on a 0.75 m table, top at 0.78
+    above = footprint(box, eye=np.array([0.0, 0.0, 0.9]))  # 12 cm over the top, 1 m away: 7 degrees
+    assert above is not None and above.outline is None
+    level = footprint(box, eye=np.array([0.0, 0.0, 0.85]))  # 7 cm over, 1 m away: 4 degrees
+    assert level is not None and level.outline is not None
+    assert len(level.outline) <= 128 and level.outline.shape[1] == 2
+    assert footprint(box).outline is None  # no eye given: no outline
+
+
+@pytest.mark.parametrize("heading", [0.0, 30.0, 125.0])
+def test_the_rectangle_around_an_outline_lies_along_the_long_side(heading: float) -> None:
+    t = math.radians(heading)
+    rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    # two sides of a 22 x 11 cm box (an L, as one view of a corner shows): 56 + 28 points
+    xs = np.linspace(-0.11, 0.11, 56)
+    ys = np.linspace(-0.055, 0.055, 28)
+    long_side = np.column_stack([xs, np.full_like(xs, -0.055)])
+    ell = np.vstack([long_side, np.column_stack([np.full_like(ys, 0.11), ys])])
+    fit = outline_axis(ell @ rot.T + (2.0, -1.0))
+    assert fit is not None
+    assert abs(axis_gap(fit[0], heading % 180.0)) <= 1.0
+    assert fit[1] == pytest.approx(0.5, abs=0.05)
+    assert outline_axis(ell[:5]) is None
+
+
+def test_an_end_on_view_below_the_top_does_not_turn_the_axis_across() -> None:
+    # a 22 x 11 x 8 cm tissue box on a counter (top 1.0 m, above the 0.9 m eye), its long axis
+    # at 0 degrees: three views from the long side and one close, end-on view of its short end,
+    # which alone has more points than the other three together and whose one side is a line
+    # across the long axis
+    size, centre = (0.22, 0.11, 0.08), (1.0, -1.3)
+    eyes = [(0.3, -0.3, 0.9), (1.0, -0.2, 0.9), (1.7, -0.4, 0.9)]
+    views = [side_view(centre, size, 0.0, e, step=0.008) for e in eyes]
+    end_on = (1.6, -1.3, 0.9)
+    views.append(side_view(centre, size, 0.0, end_on, step=0.003))
+    eyes.append(end_on)
+    fps = [footprint(v, eye=np.array(e)) for v, e in zip(views, eyes)]
+    assert all(fp is not None and fp.outline is not None for fp in fps)
+    assert fps[-1].n > sum(fp.n for fp in fps[:-1])
+    assert abs(axis_gap(fps[-1].axis_deg, 90.0)) < 3.0  # the end alone: across the long axis
+    # pooled by their axes (as views that saw the top are), the end-on view turns it across
+    old = FootprintVotes()
+    for fp in fps:
+        old.add(Footprint(fp.axis_deg, fp.elongation, fp.n))
+    assert abs(axis_gap(old.heading_guess(), 90.0)) < 30.0
+    votes = FootprintVotes()
+    for fp, e in zip(fps, eyes):
+        votes.add(fp, e[:2])
+    axis = votes.axis_deg()
+    assert axis is not None and abs(axis_gap(axis, 0.0)) <= 2.0
+
+
+def test_views_that_saw_the_top_decide_the_axis_over_side_views() -> None:
+    line = np.column_stack([np.full(50, 0.3), np.linspace(0.0, 0.1, 50)])  # one side, along y
+    v = FootprintVotes()
+    v.add(Footprint(90.0, 1.0, 500, outline=line))
+    v.add(Footprint(10.0, 0.6, 40))  # one view of its top
+    axis = v.axis_deg()
+    assert axis is not None and axis == pytest.approx(10.0)
+    sides = FootprintVotes()
+    sides.add(Footprint(90.0, 1.0, 500, outline=line))
+    axis = sides.axis_deg()
+    assert axis is not None and abs(axis_gap(axis, 90.0)) <= 1.0  # one side, a line: all it can say
+    square = FootprintVotes()  # a square's outline: no axis, and a guess all the same
+    edge = np.linspace(0.0, 0.1, 20)
+    ring = np.array([(x, y) for x in edge for y in (0.0, 0.1)] + [(x, y) for y in edge for x in (0.0, 0.1)])
+    square.add(Footprint(0.0, 0.0, 80, outline=ring))
+    assert square.axis_deg() is None and square.heading_guess() is not None
