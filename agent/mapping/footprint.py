@@ -161,7 +161,6 @@ class FootprintVotes:
     """The views of one tracked object pooled: long-axis heading, colour and middle."""
 
     def __init__(self) -> None:
-        self.weight = 0.0
         self._middles: list[tuple[float, float, float]] = []  # (x, y, weight) per view with a middle
         self._eyes: list[tuple[float, float] | None] = []  # the eye (x, y) of each, when given
         self._axis = np.zeros(2)  # sum of weight * (cos 2θ, sin 2θ): an axis's doubled angle
@@ -174,7 +173,6 @@ class FootprintVotes:
     def add(self, fp: Footprint, eye: tuple[float, float] | None = None) -> None:
         """One view; ``eye``: where the camera stood (x, y, the frame of ``fp.middle``)."""
         w = float(fp.n)
-        self.weight += w
         if fp.middle is not None:
             self._middles.append((fp.middle[0], fp.middle[1], w))
             self._eyes.append(None if eye is None else (float(eye[0]), float(eye[1])))
