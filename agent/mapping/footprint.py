@@ -111,8 +111,13 @@ def footprint(
         e = np.asarray(eye, np.float64)
         reach = math.hypot(middle[0] - float(e[0]), middle[1] - float(e[1]))
         if float(e[2]) - top_z < reach * math.tan(math.radians(SIDE_VIEW_DEG)):
-            outline = xy[:: max(1, -(-len(xy) // OUTLINE_POINTS))].copy()
+            outline = thinned(xy, OUTLINE_POINTS).copy()
     return Footprint(axis, float(np.clip(elongation, 0.0, 1.0)), len(xy), colour, middle, outline)
+
+
+def thinned(points: np.ndarray, most: int) -> np.ndarray:
+    """Every k-th point (a view, not a copy), k the smallest step that leaves at most ``most``."""
+    return points[:: max(1, -(-len(points) // most))]
 
 
 def outline_axis(xy: np.ndarray, step_deg: float = 1.0) -> tuple[float, float] | None:
@@ -225,8 +230,9 @@ class FootprintVotes:
         views' outlines (``outline_axis``), None when it is less elongated than
         ``min_elongation``."""
         if self._top_weight <= 0:
-            pts = np.concatenate(self._outlines) if self._outlines else np.zeros((0, 2))
-            fit = outline_axis(pts[:: max(1, -(-len(pts) // OUTLINE_UNION_POINTS))])
+            if not self._outlines:
+                return None
+            fit = outline_axis(thinned(np.concatenate(self._outlines), OUTLINE_UNION_POINTS))
             return fit[0] if fit is not None and fit[1] >= min_elongation else None
         if self._axis_weight <= 0 or self._axis_weight / self._top_weight < min_elongation:
             return None
