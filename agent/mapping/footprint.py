@@ -20,6 +20,12 @@ least squares across each ray, a view whose ray misses by more than ``RAY_SLACK_
 less), held along each ray by a weak pull (``RAY_PULL``) towards the view's middle moved
 ``NEAR_SIDE_M`` further from the eye, which alone decides when every view looked one way.
 
+A thing whose highest part is an edge along one side of it (an open laptop's lid, a book
+leaning on its spine) has a top face that is a line off to that side: a view whose top is such an
+edge (``top_is_an_edge``) takes its middle from the trimmed extent of its body instead, which the
+thing's box spans: its points above the support, or where those show no body beside the edge
+(the lift takes a laptop's base, seen alone, for its support), all its points.
+
 A thing whose top is at or above the eye (on a kitchen counter or a dresser: the camera is at
 0.9 m) shows no top face, only the sides facing the camera, and one view's side says little:
 seen end-on, a tissue box's short end is a line across its long axis. Such a view (its eye less
@@ -48,6 +54,9 @@ RAY_PULL = 0.05  # weight of a view's middle along its own ray, against 1 across
 RAY_SLACK_M = 0.02  # a view whose ray misses the middle by more counts less (weight × slack / miss)
 RAY_ROUNDS = 3  # rounds of reweighting
 SIDE_VIEW_DEG = 5.0  # a view whose eye is less than this above the top (seen from the middle) sees only sides
+EDGE_ELONGATION = 0.7  # a top face this elongated may be an edge (``top_is_an_edge``)
+EDGE_SPREAD = 3.0  # ... when the body under it is this many times as wide across it
+EDGE_M = 0.05  # ... and this much wider
 OUTLINE_POINTS = 128  # a side view keeps at most this many of its outline's points
 OUTLINE_UNION_POINTS = 2048  # the side views' outlines are fitted on at most this many points
 
@@ -57,7 +66,8 @@ class Footprint:
     """One view's estimate: the long axis's heading in degrees ([0, 180): an axis has no
     direction), its elongation (0 round or square .. 1 a line) and the number of points it
     rests on; ``colour``: the mean RGB (0-1) of its points, when given; ``middle``: the middle
-    (x, y) of its top face's trimmed extent, start frame, metres; ``outline``: set when the
+    (x, y) of its top face's trimmed extent (of its whole body's where the top is an edge
+    along one side), start frame, metres; ``outline``: set when the
     view saw only the thing's sides (module docstring)."""
 
     axis_deg: float
@@ -86,11 +96,13 @@ def footprint(
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     if len(pts) < min_points:
         return None
+    every = pts[:, :2]
     z = pts[:, 2]
     keep = z > np.percentile(z, 5) + lift
     if keep.sum() < min_points:
         keep[:] = True
     pts = pts[keep]
+    lifted = pts[:, :2]
     colour = None if colours is None else np.asarray(colours, np.float64).reshape(-1, 3)[keep].mean(0) / 255.0
     top_z = float(np.percentile(pts[:, 2], 98))
     top = pts[pts[:, 2] >= top_z - top_band]
@@ -106,6 +118,15 @@ def footprint(
     major = evecs[:, 1]
     axis = math.degrees(math.atan2(major[1], major[0])) % 180.0
     elongation = 1.0 - math.sqrt(max(float(evals[0]), 0.0) / max(float(evals[1]), 1e-12))
+    body = None
+    if elongation >= EDGE_ELONGATION:
+        # above the support; or all of them, where the lift took a laptop's base for its support
+        body = next((b for b in (lifted, every) if top_is_an_edge(xy, b, evecs[:, 0])), None)
+    if body is not None:
+        frame = evecs[:, ::-1]  # (along the edge, across it): the body's extent is a box in it
+        b_lo, b_hi = np.percentile(body @ frame, TRIM, axis=0)
+        mid = frame @ ((b_lo + b_hi) / 2.0)
+        middle = (float(mid[0]), float(mid[1]))
     outline = None
     if eye is not None:
         e = np.asarray(eye, np.float64)
@@ -113,6 +134,19 @@ def footprint(
         if float(e[2]) - top_z < reach * math.tan(math.radians(SIDE_VIEW_DEG)):
             outline = thinned(xy, OUTLINE_POINTS).copy()
     return Footprint(axis, float(np.clip(elongation, 0.0, 1.0)), len(xy), colour, middle, outline)
+
+
+def top_is_an_edge(top: np.ndarray, body: np.ndarray, across: np.ndarray) -> bool:
+    """Whether a line-like top face (x, y points, Mx2) is an edge along one side of the body
+    under it (x, y points, Nx2), as an open laptop's lid is: across
+    the line (unit ``across``) the body's trimmed extent is at least ``EDGE_SPREAD`` times the
+    top's and ``EDGE_M`` wider, and the top lies in its outer quarter on one side."""
+    t_lo, t_hi = np.percentile(top @ across, TRIM)
+    b_lo, b_hi = np.percentile(body @ across, TRIM)
+    t_w, b_w = float(t_hi - t_lo), float(b_hi - b_lo)
+    if b_w < EDGE_SPREAD * t_w or b_w - t_w < EDGE_M:
+        return False
+    return min(float(t_lo - b_lo), float(b_hi - t_hi)) < b_w / 4.0
 
 
 def thinned(points: np.ndarray, most: int) -> np.ndarray:

@@ -136,6 +136,50 @@ def test_a_views_middle_is_that_of_the_top_face_not_of_the_side_or_the_table(hea
     assert np.allclose(part.middle, (-0.02, 0.0), atol=0.004)
 
 
+def laptop_view(from_front: bool, heading_deg: float, table: bool = False, step: float = 0.004) -> np.ndarray:
+    """Points a camera sees of an open laptop (0.33 x 0.23 m, centred at (0.5, 0.2) on a table
+    at 0.75 m): from the front, its base's top (2 cm high) and its upright lid's front face
+    (2 cm thick, along the back edge, 20 cm tall); from behind, the lid's back face only;
+    ``table``: and the table 6 cm round it (a depth-cut box mask)."""
+    sx, sy = 0.33, 0.23
+    pts = []
+    if table:
+        for lx in np.arange(-sx / 2 - 0.06, sx / 2 + 0.06, step):
+            for ly in np.arange(-sy / 2 - 0.06, sy / 2 + 0.06, step):
+                if abs(lx) > sx / 2 or abs(ly) > sy / 2:
+                    pts.append((lx, ly, 0.75))
+    for lx in np.arange(-sx / 2, sx / 2 + 1e-9, step):
+        if from_front:
+            for ly in np.arange(-sy / 2 + 0.02, sy / 2 + 1e-9, step):
+                pts.append((lx, ly, 0.77))
+        for lz in np.arange(0.0, 0.2, step):
+            pts.append((lx, -sy / 2 + (0.02 if from_front else 0.0), 0.77 + lz))
+        for ly in np.arange(-sy / 2, -sy / 2 + 0.02 + 1e-9, step):  # the lid's top edge
+            pts.append((lx, ly, 0.97))
+    out = np.array(pts)
+    t = math.radians(heading_deg)
+    rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    out[:, :2] = out[:, :2] @ rot.T + (0.5, 0.2)
+    return out
+
+
+@pytest.mark.parametrize("heading", [0.0, 40.0, 115.0])
+def test_a_view_whose_top_is_an_edge_along_one_side_takes_the_middle_of_the_body(heading: float) -> None:
+    # from the front, the laptop's highest points are its lid's top edge, 10.5 cm behind its
+    # centre; the base in front of the lid says where the laptop is
+    for table in (False, True):  # the base alone under the lid: the lift takes it for the support
+        front = footprint(laptop_view(True, heading, table))
+        assert front is not None and front.middle is not None
+        assert np.linalg.norm(np.subtract(front.middle, (0.5, 0.2))) < 0.015
+        assert abs(axis_gap(front.axis_deg, heading % 180.0)) < 3.0  # the lid's edge still gives the axis
+    # from behind only the lid shows: no body beside the edge, the middle stays the lid's
+    back = footprint(laptop_view(False, heading))
+    assert back is not None and back.middle is not None
+    t = math.radians(heading)
+    lid = np.array([0.5, 0.2]) + (-0.105) * np.array([-math.sin(t), math.cos(t)])
+    assert np.linalg.norm(np.subtract(back.middle, lid)) < 0.015
+
+
 def test_weighted_median_is_where_half_the_weight_is_reached() -> None:
     assert (
         weighted_median(np.array([0.3, 0.1, 0.2]), np.array([150.0, 100.0, 100.0])) == 0.2
