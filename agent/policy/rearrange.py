@@ -6,9 +6,10 @@ put the shuffled room back.
     walkthrough  look around, map the room (the tidy agent's mapping; pickupables merge only
                  within 25 cm), survey it (waypoints, then a second round with steps to spare),
                  remember every object it tracked, with each small object's footprint pooled
-                 over its views (long axis, mean colour, top face's middle; a thing whose top
-                 no view saw, on a counter above the eye, takes its axis from the outline of
-                 its sides); Done (the runner
+                 over its views (long axis, mean colour, top face's middle, or its body's
+                 where the top is an edge along one side, as an open laptop's lid is; a thing
+                 whose top no view saw, on a counter above the eye, takes its axis from the
+                 outline of its sides); Done (the runner
                  switches to the unshuffle phase and starts a fresh map in the same start frame)
     unshuffle    look around, map the room again, the same survey for as many steps
                  match the two memories class by class (Hungarian on centroid distance and
@@ -94,8 +95,8 @@ class Seen:
     """What a phase remembers of one tracked object (start frame, metres); for a pickupable
     also its footprint pooled over the views (``tidee.agent.mapping.footprint``): the long
     axis's heading (degrees, None when it showed none), its mean colour and where it stood,
-    from its views' top-face middles (``FootprintVotes.middle``; x, y; None when no view had
-    one)."""
+    from its views' middles (each its top face's, or its body's where that is an edge along one
+    side: ``FootprintVotes.middle``; x, y; None when no view had one)."""
 
     label: str
     centroid: np.ndarray
@@ -104,7 +105,7 @@ class Seen:
     n_obs: int
     axis_deg: float | None = None
     colour: np.ndarray | None = None  # mean RGB (0-1) of its points
-    middle: tuple[float, float] | None = None  # where its top face's middle was (x, y)
+    middle: tuple[float, float] | None = None  # where it stood (x, y), from its views' middles
 
     @staticmethod
     def of(o: TrackedObject, votes: FootprintVotes | None = None) -> Seen:

@@ -167,7 +167,9 @@ def laptop_view(from_front: bool, heading_deg: float, table: bool = False, step:
 def test_a_view_whose_top_is_an_edge_along_one_side_takes_the_middle_of_the_body(heading: float) -> None:
     # from the front, the laptop's highest points are its lid's top edge, 10.5 cm behind its
     # centre; the base in front of the lid says where the laptop is
-    for table in (False, True):  # the base alone under the lid: the lift takes it for the support
+    # with the table in the mask, the points above it are the body; without, the lift takes the
+    # base for the support, and all the points are
+    for table in (False, True):
         front = footprint(laptop_view(True, heading, table))
         assert front is not None and front.middle is not None
         assert np.linalg.norm(np.subtract(front.middle, (0.5, 0.2))) < 0.015
