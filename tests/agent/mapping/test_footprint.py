@@ -18,6 +18,12 @@ from tidee.agent.mapping.footprint import (
 )
 
 
+def turn(heading_deg: float) -> np.ndarray:
+    """The 2x2 rotation by ``heading_deg`` degrees (x, y)."""
+    t = math.radians(heading_deg)
+    return np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+
+
 def box_view(
     centre: tuple[float, float],
     size: tuple[float, float, float],
@@ -31,8 +37,7 @@ def box_view(
     -y side; ``corner``: its -x side too, a camera looking at a corner) and the table around it
     (a depth-cut box mask)."""
     sx, sy, sz = size
-    t = math.radians(heading_deg)
-    rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    rot = turn(heading_deg)
     pts = []
     for lx in np.arange(-sx / 2, sx / 2 + 1e-9, step):
         for ly in np.arange(-sy / 2, sy / 2 + 1e-9, step):
@@ -157,8 +162,7 @@ def laptop_view(from_front: bool, heading_deg: float, table: bool = False, step:
         for ly in np.arange(-sy / 2, -sy / 2 + 0.02 + 1e-9, step):  # the lid's top edge
             pts.append((lx, ly, 0.97))
     out = np.array(pts)
-    t = math.radians(heading_deg)
-    rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    rot = turn(heading_deg)
     out[:, :2] = out[:, :2] @ rot.T + (0.5, 0.2)
     return out
 
@@ -177,8 +181,7 @@ def test_a_view_whose_top_is_an_edge_along_one_side_takes_the_middle_of_the_body
     # from behind only the lid shows: no body beside the edge, the middle stays the lid's
     back = footprint(laptop_view(False, heading))
     assert back is not None and back.middle is not None
-    t = math.radians(heading)
-    lid = np.array([0.5, 0.2]) + (-0.105) * np.array([-math.sin(t), math.cos(t)])
+    lid = np.array([0.5, 0.2]) - 0.105 * turn(heading)[:, 1]  # 10.5 cm behind, along the laptop's -y
     assert np.linalg.norm(np.subtract(back.middle, lid)) < 0.015
 
 
@@ -239,8 +242,7 @@ def side_view(
     """Points a camera below a box's top sees of it: the sides that face the eye, no top (a box
     on a kitchen counter, 0.92 m, seen from the agent's 0.9 m eye)."""
     sx, sy, sz = size
-    t = math.radians(heading_deg)
-    rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    rot = turn(heading_deg)
     pts = []
     faces = (((1, 0), sx / 2, sy), ((-1, 0), sx / 2, sy), ((0, 1), sy / 2, sx), ((0, -1), sy / 2, sx))
     for normal, half, length in faces:
@@ -267,8 +269,7 @@ def test_a_view_from_below_the_top_keeps_an_outline_and_one_from_above_does_not(
 
 @pytest.mark.parametrize("heading", [0.0, 30.0, 125.0])
 def test_the_rectangle_around_an_outline_lies_along_the_long_side(heading: float) -> None:
-    t = math.radians(heading)
-    rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    rot = turn(heading)
     # two sides of a 22 x 11 cm box (an L, as one view of a corner shows): 56 + 28 points
     xs = np.linspace(-0.11, 0.11, 56)
     ys = np.linspace(-0.055, 0.055, 28)
