@@ -43,6 +43,9 @@ DEFAULT_ROLES = {
 }
 DOOR_OPEN_RAD = math.radians(95)
 PLACE_CANDIDATES = 160  # spots tried per PutObject, nearest the aimed point first (6 cm lattice)
+# A put that collides at its aimed spot tries these shifts (metres, 8 directions each) before
+# the lattice: a neighbour put back a centimetre off its own place does not push it 6-20 cm away.
+NUDGES_M = (0.01, 0.02, 0.03)
 
 
 def resolve_category(obj: SceneObject) -> tuple[Category, tuple[Part, ...], tuple[Surface, ...], float]:
@@ -620,7 +623,13 @@ class World:
 
     # ------------------------------------------------------------------ placing
     def place(
-        self, obj_id: str, receptacle_id: str, near: np.ndarray, yaw: float, max_settles: int = 3
+        self,
+        obj_id: str,
+        receptacle_id: str,
+        near: np.ndarray,
+        yaw: float,
+        max_settles: int = 3,
+        nudge: bool = False,
     ) -> bool:
         """Put a held (frozen, hidden) object stably on a surface of the receptacle.
 
@@ -628,7 +637,8 @@ class World:
         are tried nearest to ``near`` first (``near`` itself before all, when on a surface;
         then the nearest ``PLACE_CANDIDATES``, on a 6 cm
         lattice: a spot up to ~0.4 m from the aimed one, as a person would shift a pillow
-        along a crowded bed): the object must fit in the surface, touch
+        along a crowded bed; with ``nudge``, the spots ``NUDGES_M`` round the aimed one come
+        between the two): the object must fit in the surface, touch
         nothing and have headroom; then physics runs and the object must come to rest
         on the receptacle. On failure the object is hidden again and False returned.
         """
@@ -650,6 +660,12 @@ class World:
             ly = -s * (near[0] - cxy[0]) + c * (near[1] - cxy[1])
             if abs(lx) <= mx and abs(ly) <= my and abs(float(near[2]) - z) < 0.1:
                 candidates.append((-1.0, np.array([float(near[0]), float(near[1]), z])))
+                for r in NUDGES_M if nudge else ():
+                    for a in np.arange(8) * math.pi / 4:
+                        nx, ny = lx + r * math.cos(a), ly + r * math.sin(a)
+                        if abs(nx) <= mx and abs(ny) <= my:
+                            p = np.array([cxy[0] + c * nx - s * ny, cxy[1] + s * nx + c * ny, z])
+                            candidates.append((r - 1.0, p))
             for lx in np.linspace(-mx, mx, max(2, int(2 * mx / 0.06) + 1)):
                 for ly in np.linspace(-my, my, max(2, int(2 * my / 0.06) + 1)):
                     p = np.array([cxy[0] + c * lx - s * ly, cxy[1] + s * lx + c * ly, z])

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from tests.support.fixtures import counter_room, project, spec, table_room, table_top
+from tests.support.fixtures import counter_room, make_object, project, spec, table_room, table_top
 from tidee.protocol.messages import Action
 from tidee.protocol.messages import ActionName as A
 from tidee.server.episode import Episode
@@ -114,6 +116,27 @@ def test_pickup_and_put_on_table(ep):
     state = {o["id"]: o for o in ep.object_states()}
     assert state["Mug_0"]["parent"] == "DiningTable_0"
     assert abs(state["Mug_0"]["position"][0] - 2.3) < 0.2
+
+
+@pytest.mark.parametrize("nudge", [False, True])
+def test_a_put_aimed_a_centimetre_into_a_neighbour_is_nudged_not_sent_down_the_lattice(ep, nudge):
+    scene = table_room()
+    table = next(o for o in scene.objects if o.id == "DiningTable_0")
+    book = make_object("Book_0", "Book", (2.3, 2.0), z=table_top(table), parent="DiningTable_0")
+    obs = ep.load(dataclasses.replace(scene, objects=[*scene.objects, book]), spec(), (2.0, 0.6), yaw_deg=90)
+    obs = ep.step(Action(A.LookDown))
+    mug = ep.world.bodies["Mug_0"].obj
+    assert ep.step(Action(A.PickupObject, *project(ep, obs, np.array(mug.position) + [0, 0, 0.05]))).success
+    # The mug's box would overlap the book's by 1 cm along x.
+    aim = np.array([2.3 - (mug.size[0] + book.size[0]) / 2 + 0.01, 2.0, table_top(table)])
+    assert ep.world.place("Mug_0", "DiningTable_0", aim, yaw=0.0, nudge=nudge)
+    off = float(np.linalg.norm(np.array(ep.world.pose("Mug_0")[0][:2]) - aim[:2]))
+    if nudge:  # the first free shift: 1 cm
+        assert off == pytest.approx(0.01, abs=0.005)
+    else:  # the nearest free point of the 6 cm lattice
+        assert off > 0.04
+    assert "Book_0" not in ep.world.collides("Mug_0")
+    assert ep.world.bodies["Mug_0"].obj.parent == "DiningTable_0"
 
 
 def _yaw_deg(ep: Episode, oid: str) -> float:
@@ -319,3 +342,14 @@ def test_a_pixel_acts_on_what_the_render_shows_there(renderer):
         assert total > 100 and hits / total >= 0.97, (hits, total)
     finally:
         e.close()
+
+
+def test_only_a_put_with_a_reach_is_nudged(ep, monkeypatch):
+    """A put at a point (``reach``) aims at that point; one at a pixel only at a receptacle."""
+    calls = []
+    place = type(ep.world).place
+    monkeypatch.setattr(
+        type(ep.world), "place", lambda self, *a, **k: calls.append(k.get("nudge")) or place(self, *a, **k)
+    )
+    test_a_put_with_a_reach_lands_where_a_counter_seen_edge_on_hides_the_spot(ep)
+    assert calls == [False, True]
