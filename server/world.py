@@ -43,8 +43,8 @@ DEFAULT_ROLES = {
 }
 DOOR_OPEN_RAD = math.radians(95)
 PLACE_CANDIDATES = 160  # spots tried per PutObject, nearest the aimed point first (6 cm lattice)
-# A put that collides at its aimed spot tries these shifts (metres, 8 directions each) before
-# the lattice: a neighbour put back a centimetre off its own place does not push it 6-20 cm away.
+# A put at a point (``place(nudge=True)``) whose aimed spot touches a neighbour tries these
+# shifts (metres, 8 directions each) before the lattice.
 NUDGES_M = (0.01, 0.02, 0.03)
 
 
