@@ -673,6 +673,8 @@ class World:
         candidates.sort(key=lambda t: t[0])
         settles = 0
         for _, p in candidates[:PLACE_CANDIDATES]:
+            if nudge:  # the spot tried before would stand in this one's rays
+                self.set_pose(obj_id, hidden_pos, hidden_orn)
             hit_id, _, hit, _ = self.ray(p + [0, 0, 0.03], p - [0, 0, 0.08])
             if hit_id != receptacle_id:
                 continue
