@@ -59,6 +59,7 @@ from tidee.agent.policy.skills import (
     footprint_gap,
     goal_mask_near_box,
     look_around,
+    mask_away_from,
     navigate,
     pitch_to,
     reachable_mask,
@@ -74,6 +75,8 @@ OPEN_M = 0.15  # an openable's box growing (or shrinking) by this much changed i
 SMALL_MERGE_M = 0.25  # the memory merges detections of a pickupable class this close (``map_config``)
 MIN_OBS = 2  # tracks seen fewer times are not trusted to say that something moved
 UNSURE_COST = 100.0  # matching cost (metres) added to a pair with a track seen fewer than MIN_OBS times
+BANNED_COST = 10_000.0  # matching cost (metres) added to a pair ruled out as a move in an earlier round
+REMATCH_ROUNDS = 4  # matchings tried at most (``find_moves``)
 SAME_PIECE_M = 1.2  # two tracks of an openable class this close are one piece of furniture
 DOOR_CELLS = 8  # obstacle cells (5 cm) that must appear or vanish beside a floor-standing openable
 FLOOR_STANDING_Z = 0.3  # an openable whose box starts below this stands on the floor
@@ -83,6 +86,7 @@ FLOOR_Z = 0.08  # a remembered object whose box starts this low stood on the flo
 REACH_LIFT_M = 0.10
 REACH_SLACK = 0.05  # depth this much (relative) nearer than that point: something is in the way
 SURFACE_TOL_M = 0.05  # the surface a pulled-in put lands on is this close to the remembered base
+RETRY_PUT_M = 0.3  # a put at a point tried again stands at least this far from the spots tried
 PULL_REACH_M = 1.45  # a put beyond reach is pulled in to this far from the eye (the limit: 1.5 m)
 
 
@@ -153,13 +157,18 @@ def _pairs(
     now: list[TrackedObject],
     colours: dict[int, np.ndarray] | None = None,
     min_obs: int = 1,
+    banned: frozenset[tuple[int, int]] = frozenset(),
+    kept: frozenset[tuple[int, int]] = frozenset(),
 ) -> list[tuple[Seen, TrackedObject, float]]:
     """One-to-one matching of same-class tracks (Hungarian) on centroid distance plus
     ``COLOUR_M`` per unit of colour difference (``colours``: track id -> the unshuffle's mean
     colour), so two mugs that both moved go back to their own places when they look different;
     plus ``UNSURE_COST`` for a pair in which either track was seen fewer than ``min_obs``
     times, so the matching pairs as many sure tracks with each other as it can before the
-    distances count (a glimpse nearer a sure track's match does not take it). Each pair comes
+    distances count (a glimpse nearer a sure track's match does not take it); plus
+    ``BANNED_COST`` for a pair in ``banned`` (``id()`` of its walkthrough and unshuffle tracks),
+    less as much for one in ``kept``. A track that is another's object tracked again
+    (``_tracked_twice``) pairs as one seen fewer than ``min_obs`` times does. Each pair comes
     with its centroid distance."""
     colours = colours or {}
     out = []
@@ -171,13 +180,29 @@ def _pairs(
             axis=2,
         )
         look = np.array([[colour_gap(s.colour, colours.get(o.id)) for o in b] for s in a])
+        twice_a, twice_b = _tracked_twice(a), _tracked_twice(b)
         unsure = (
-            np.array([s.n_obs < min_obs for s in a])[:, None]
-            | np.array([o.n_obs < min_obs for o in b])[None, :]
+            np.array([s.n_obs < min_obs or id(s) in twice_a for s in a])[:, None]
+            | np.array([o.n_obs < min_obs or id(o) in twice_b for o in b])[None, :]
         )
-        rows, cols = linear_sum_assignment(dist + COLOUR_M * look + UNSURE_COST * unsure)
+        ban = np.array([[(id(s), id(o)) in banned for o in b] for s in a], float)
+        ban -= np.array([[(id(s), id(o)) in kept for o in b] for s in a])
+        rows, cols = linear_sum_assignment(dist + COLOUR_M * look + UNSURE_COST * unsure + BANNED_COST * ban)
         out += [(a[r], b[c], float(dist[r, c])) for r, c in zip(rows, cols)]
     return out
+
+
+def _tracked_twice(tracks: list[Any]) -> set[int]:
+    """``id()`` of the tracks (of one phase and class) that are another's object tracked
+    again (``same_object`` with a track seen more often)."""
+    kept: list[Any] = []
+    twice = set()
+    for t in sorted(tracks, key=lambda t: -t.n_obs):
+        if any(same_object(t, k) for k in kept):
+            twice.add(id(t))
+        else:
+            kept.append(t)
+    return twice
 
 
 def _size(t: Seen | TrackedObject) -> float:
@@ -216,10 +241,60 @@ def find_moves(
     new place either: the walkthrough's memory merges two objects 25 cm apart into one track
     (two remotes on a coffee table) whose box spans both, and one of them, staying, would
     explain it while the other is the "mover"; a second soap bottle 20 cm from where the first
-    was put, still where it stood, has a box of its own and is another object."""
+    was put, still where it stood, has a box of its own and is another object.
+
+    A pair ruled out so is matched again without it (up to ``REMATCH_ROUNDS`` matchings) while
+    a sure track of its class has no partner: a walkthrough glimpse of a second scrub brush, or
+    the walkthrough's track of two remotes together, nearer the moved brush's (or remote's) new
+    place than its own walkthrough track was, takes it in the first matching and leaves that
+    track paired with nothing."""
+    return match_phases(then, now, stay_m, min_obs, colours, other_m)[0]
+
+
+def match_phases(
+    then: list[Seen],
+    now: list[TrackedObject],
+    stay_m: float = STAY_M,
+    min_obs: int = MIN_OBS,
+    colours: dict[int, np.ndarray] | None = None,
+    other_m: float = OTHER_M,
+) -> tuple[list[Move], list[tuple[Seen, TrackedObject, float]]]:
+    """``find_moves``, and the matching its moves came from (``_pairs``'s)."""
     then = [s for s in then if s.label in PICKUPABLE]
     now = [o for o in now if o.label in PICKUPABLE]
-    pairs = _pairs(then, now, colours, min_obs)
+    twice = set().union(
+        *(_tracked_twice([t for t in ts if t.label == c]) for ts in (then, now) for c in PICKUPABLE)
+    )
+    banned: frozenset[tuple[int, int]] = frozenset()  # pairs ruled out
+    kept: frozenset[tuple[int, int]] = frozenset()  # pairs that stayed or moved
+    for _ in range(REMATCH_ROUNDS):
+        pairs = _pairs(then, now, colours, min_obs, banned, kept)
+        moves, ruled_out, stays = _judge(pairs, then, now, stay_m, min_obs, other_m, twice)
+        kept |= {(id(m.then), id(m.now)) for m in moves} | {(id(s), id(o)) for s, o in stays}
+        # a pair ruled out takes part in no other matching while a sure track of its class
+        # is left without a partner (the object that did move, paired with nothing)
+        paired = {id(s) for s, _, _ in pairs} | {id(o) for _, o, _ in pairs}
+        left = {t.label for t in [*then, *now] if id(t) not in paired and t.n_obs >= min_obs}
+        more = {(id(s), id(o)) for s, o in ruled_out if s.label in left} - banned
+        if not more:
+            break
+        banned |= more
+    return moves, pairs
+
+
+def _judge(
+    pairs: list[tuple[Seen, TrackedObject, float]],
+    then: list[Seen],
+    now: list[TrackedObject],
+    stay_m: float,
+    min_obs: int,
+    other_m: float,
+    twice: set[int] = frozenset(),  # type: ignore[assignment]
+) -> tuple[list[Move], list[tuple[Seen, TrackedObject]], list[tuple[Seen, TrackedObject]]]:
+    """The moves among one matching's ``pairs`` (``find_moves``), the pairs of sure tracks
+    that moved but were ruled out (their old place taken or new place held), and those that
+    stayed. A pair of two tracks that are each another's object tracked again (``twice``:
+    ``id()`` of such tracks) is that other pair's object: no move of its own."""
     match_of = {id(o): (s, d) for s, o, d in pairs}  # unshuffle track -> its walkthrough match
     now_of = {id(s): (o, d) for s, o, d in pairs}  # walkthrough track -> its unshuffle match
 
@@ -242,11 +317,12 @@ def find_moves(
             return False
         return box_gap(track.box_min[:2], track.box_max[:2], mover.centroid[:2]) > 0.0
 
-    moves = []
+    moves, ruled_out, stays = [], [], []
     for s, o, d in pairs:
-        if s.n_obs < min_obs or o.n_obs < min_obs:
+        if s.n_obs < min_obs or o.n_obs < min_obs or (id(s) in twice and id(o) in twice):
             continue
         if stayed(s, d):
+            stays.append((s, o))
             continue
         # every track counts against a move, those seen once too (by the old place: unless explained)
         old_taken = any(
@@ -265,7 +341,9 @@ def find_moves(
         )
         if not old_taken and not new_held:
             moves.append(Move(o, s, d))
-    return moves
+        else:
+            ruled_out.append((s, o))
+    return moves, ruled_out, stays
 
 
 def box_change(then: Seen, now: TrackedObject) -> tuple[float, float]:
@@ -475,7 +553,7 @@ class RearrangePolicy(TidyPolicy):
         maps = (self.body.mapper.grid, walk_map, Occupancy.of(self.body.mapper))
         self.toggles = find_toggles(self.walkthrough, now, maps=maps)
         colours = {o.id: s.colour for o, s in zip(now, self.unshuffle) if s.colour is not None}
-        self.moves = find_moves(self.walkthrough, now, colours=colours)
+        self.moves, pairs = match_phases(self.walkthrough, now, colours=colours)
         self.event(
             "compared",  # every same-class pairing of the two memories (the log's account of the decision)
             pairs=[
@@ -487,12 +565,7 @@ class RearrangePolicy(TidyPolicy):
                     [round(float(v), 3) for v in s.centroid],
                     [round(float(v), 3) for v in o.centroid],
                 ]
-                for s, o, d in _pairs(
-                    [s for s in self.walkthrough if s.label in PICKUPABLE],
-                    [o for o in now if o.label in PICKUPABLE],
-                    colours,
-                    MIN_OBS,
-                )
+                for s, o, d in pairs
             ],
         )
         self.state.oop_found = len(self.moves) + len(self.toggles)
@@ -669,8 +742,10 @@ class RearrangePolicy(TidyPolicy):
         """Put the held object at the remembered place (its top face's middle, ``Seen.middle``,
         else its box's centre): from beside it, reach to the point just above its base
         (``Action.reach``: the spot need not be in sight, a counter top at eye height never is),
-        turned as it lay there (``held``: see ``put_turn``); then on the receptacle tracked
-        under it; on the floor where it stood on the floor."""
+        turned as it lay there (``held``: see ``put_turn``), from up to three spots, each at
+        least ``RETRY_PUT_M`` from those tried (a toaster in the way from one side of a counter
+        is not from another); then on the receptacle tracked under it; on the floor where it
+        stood on the floor."""
         # Where the walkthrough's views of its top face place it, else the box's centre; not the
         # centroid of the seen points: those lean towards the camera (with the simulator's masks,
         # 1 cm vs 5 cm median error from the true place).
@@ -678,11 +753,15 @@ class RearrangePolicy(TidyPolicy):
         target = np.array([centre[0], centre[1], max(float(seen.box_min[2]), 0.0) + REACH_LIFT_M])
         support = self.support_of(seen)
         self.state.target_receptacle = support.label if support is not None else "Floor"
+        tried: list[np.ndarray] = []  # spots stood on: the point out of sight or reach, or the put failed
         for radius in (0.55, 0.8, 1.0):
             lo = target - np.array([0.05, 0.05, 0.0])
             hi = target + np.array([0.05, 0.05, 0.0])
             mask = goal_mask_near_box(self.body.mapper, lo, hi, radius)
+            away = mask_away_from(mask, self.body.mapper.grid, tried, RETRY_PUT_M)
+            mask = away if away.any() else mask
             yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
+            tried.append(self.body.xy.copy())
             yield from face_point(self.body, target)
             action = self.reach_action(target, put_turn(seen.axis_deg, held, self.body.pose[2]))
             if isinstance(action, str):

@@ -17,6 +17,7 @@ from tidee.agent.policy.rearrange import (
     door_evidence,
     find_moves,
     find_toggles,
+    match_phases,
     neighbour_at,
     put_turn,
 )
@@ -337,6 +338,22 @@ def test_one_object_tracked_twice_in_the_walkthrough_is_not_a_move() -> None:
     assert m.now.id == 1 and np.allclose(m.then.centroid, [0.0, -1.45, 0.12])
 
 
+def test_a_glimpse_that_takes_the_moved_track_is_matched_again_without_it() -> None:
+    # four scrub brushes by a toilet; the walkthrough saw one of them (B) twice, once in a
+    # glimpse 1.4 cm off; A was carried 1.2 m away. Nearest first, the glimpse and then B itself
+    # pair with A's new track, each ruled out (B still stands there), leaving A's own track
+    # paired with nothing: matched again without them, A moved
+    a = _seen("ScrubBrush", (2.11, 0.33, 0.12), n_obs=26)
+    b = _seen("ScrubBrush", (2.61, 0.68, 0.12), n_obs=23)
+    glimpse = _seen("ScrubBrush", (2.62, 0.67, 0.12), n_obs=2)
+    now = [_track(1, "ScrubBrush", (2.6, 0.67, 0.12), n_obs=23), _track(2, "ScrubBrush", (2.45, 1.52, 0.12))]
+    moves, pairs = match_phases([glimpse, b, a], now)
+    assert [(m.now.id, tuple(m.then.centroid)) for m in moves] == [(2, (2.11, 0.33, 0.12))]
+    assert any(s is a and o.id == 2 for s, o, _ in pairs)  # the matching the log shows
+    # with every track paired (no brush left over) a ruled-out pair is not matched again
+    assert find_moves([glimpse, b], now) == []
+
+
 def test_a_walkthrough_track_by_the_new_place_counts_even_when_its_match_stayed() -> None:
     # the walkthrough merged two remotes 28 cm apart into one track; in the unshuffle both are
     # tracked, one pairs with the merged track, the other with a third remote's old place: that
@@ -416,3 +433,59 @@ def test_a_put_beyond_reach_is_pulled_in_onto_the_same_surface() -> None:
     assert policy.pulled_in(pillow) is None
     # within reach already: nothing to pull in
     assert policy.pulled_in(np.array([1.0, 0.0, 0.7])) is None
+
+
+def test_a_put_blocked_from_one_spot_is_tried_from_another(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A toaster in the way of the reach from the first spot beside a counter: the next walk
+    keeps ``RETRY_PUT_M`` from it, and the put goes from there."""
+    from types import SimpleNamespace
+
+    from tidee.agent.classes import CLASSES
+    from tidee.agent.config import AgentConfig
+    from tidee.agent.mapping.config import MapConfig
+    from tidee.agent.mapping.maps import SemanticMapper
+    from tidee.agent.policy import rearrange
+    from tidee.agent.policy.skills import Body
+
+    mapper = SemanticMapper(MapConfig(), CLASSES)
+    body = Body(mapper)
+    events: list[str] = []
+    policy = rearrange.RearrangePolicy(
+        AgentConfig(), body, None, None, "Kitchen", lambda **kw: events.append(kw["kind"])
+    )
+    spots: list[np.ndarray] = []
+
+    def walk(body_: Body, goal_mask: np.ndarray, **kwargs: object) -> Gen:
+        """Stand on the goal region's cell nearest (1.0, 0.0)."""
+        x, y = np.broadcast_arrays(*mapper.grid.centres())
+        d = np.where(goal_mask, np.hypot(x - 1.0, y - 0.0), np.inf)
+        i = np.unravel_index(int(np.argmin(d)), d.shape)
+        spots.append(np.array([x[i], y[i]]))
+        body.obs = SimpleNamespace(agent_pose=(x[i], y[i], 0.0, 0.0), success=True, error=None)
+        return True
+        yield
+
+    def aim(point: np.ndarray, yaw: float | None) -> rearrange.Action | str:
+        if np.linalg.norm(body.xy - spots[0]) < 1e-6:
+            return "something 0.40 m away in front of it"
+        return rearrange.Action(rearrange.ActionName.PutObject, x=0.5, y=0.5, reach=0.9)
+
+    def face(*args: object, **kwargs: object) -> Gen:
+        return True
+        yield
+
+    monkeypatch.setattr(rearrange, "navigate", walk)
+    monkeypatch.setattr(rearrange, "face_point", face)
+    monkeypatch.setattr(policy, "reach_action", aim)
+    body.obs = SimpleNamespace(agent_pose=(0.0, 0.0, 0.0, 0.0), success=True, error=None)
+    seen = _seen("Mug", (1.5, 0.0, 0.95), half=0.04)
+    run, actions = policy.put_at(seen), []
+    try:
+        action = next(run)
+        while True:
+            actions.append(action.name.value)
+            action = run.send(None)
+    except StopIteration as stop:
+        done = stop.value
+    assert done and actions == ["PutObject"] and events == ["aim_failed", "put_back"]
+    assert len(spots) == 2 and np.linalg.norm(spots[1] - spots[0]) >= rearrange.RETRY_PUT_M
