@@ -641,6 +641,10 @@ class World:
         between the two): the object must fit in the surface, touch
         nothing and have headroom; then physics runs and the object must come to rest
         on the receptacle. On failure the object is hidden again and False returned.
+        Without ``nudge`` the object stays at a spot that touched a neighbour while the next
+        spot's rays are cast, so a spot within its footprint meets the object itself and is
+        skipped (the shuffle's and pixel puts' placements are made so; a put at a point
+        clears the object away before each spot).
         """
         info, target = self.bodies[obj_id], self.bodies[receptacle_id]
         size = np.array(info.obj.size)

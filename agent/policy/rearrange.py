@@ -13,8 +13,9 @@ put the shuffled room back.
                  switches to the unshuffle phase and starts a fresh map in the same start frame)
     unshuffle    look around, map the room again, the same survey for as many steps
                  match the two memories class by class (Hungarian on centroid distance and
-                 colour; every track takes part, but tracks seen ``MIN_OBS`` times pair with
-                 each other first):
+                 colour; every track takes part, but tracks seen ``MIN_OBS`` times, and not
+                 another's object tracked again, pair with each other first; a pair ruled
+                 out below is matched again without it while a sure track has no partner):
                    a pickupable now more than ``stay_m`` (and a third of its size) from its
                    match, both seen ``MIN_OBS`` times, has moved, unless another track of
                    its class holds its old place or held its new one (one whose own match
@@ -28,8 +29,9 @@ put the shuffled room back.
                    standpoint); left as it is when the server says it already is
                  each moved object, nearest first: walk there, pick it up, walk to its
                    walkthrough place (where its views' rays to their top-face middles cross),
-                   reach to the point there (``Action.reach``) and put it down turned onto
-                   the walkthrough's long axis (``Action.yaw``); beyond reach from every
+                   reach to the point there (``Action.reach``; from another spot when
+                   something is in the way) and put it down turned onto the walkthrough's
+                   long axis (``Action.yaw``); beyond reach from every
                    spot (a pillow in the middle of a bed), as near it on the same surface as
                    the arm goes; else on the receptacle tracked under it
     Done
@@ -220,15 +222,20 @@ def same_object(a: Seen | TrackedObject, b: Seen | TrackedObject) -> bool:
     )
 
 
-def find_moves(
+def find_moves(*args: Any, **kwargs: Any) -> list[Move]:
+    """The moves ``match_phases`` finds."""
+    return match_phases(*args, **kwargs)[0]
+
+
+def match_phases(
     then: list[Seen],
     now: list[TrackedObject],
     stay_m: float = STAY_M,
     min_obs: int = MIN_OBS,
     colours: dict[int, np.ndarray] | None = None,
     other_m: float = OTHER_M,
-) -> list[Move]:
-    """Pickupables matched across the phases (every track takes part, sure ones pair first:
+) -> tuple[list[Move], list[tuple[Seen, TrackedObject, float]]]:
+    """The moves of pickupables matched across the phases (every track takes part, sure ones pair first:
     ``_pairs``), both seen at least ``min_obs`` times, that are now farther from where they
     were than ``stay_m`` and than a third of their size (nearer, an object of that size still
     overlaps its old box by IoU 0.5: the metric counts it in place), whose old place no other
@@ -247,19 +254,9 @@ def find_moves(
     a sure track of its class has no partner: a walkthrough glimpse of a second scrub brush, or
     the walkthrough's track of two remotes together, nearer the moved brush's (or remote's) new
     place than its own walkthrough track was, takes it in the first matching and leaves that
-    track paired with nothing."""
-    return match_phases(then, now, stay_m, min_obs, colours, other_m)[0]
+    track paired with nothing.
 
-
-def match_phases(
-    then: list[Seen],
-    now: list[TrackedObject],
-    stay_m: float = STAY_M,
-    min_obs: int = MIN_OBS,
-    colours: dict[int, np.ndarray] | None = None,
-    other_m: float = OTHER_M,
-) -> tuple[list[Move], list[tuple[Seen, TrackedObject, float]]]:
-    """``find_moves``, and the matching its moves came from (``_pairs``'s)."""
+    Returns the moves and the matching they came from (``_pairs``'s, the last tried)."""
     then = [s for s in then if s.label in PICKUPABLE]
     now = [o for o in now if o.label in PICKUPABLE]
     twice = set().union(
@@ -289,7 +286,7 @@ def _judge(
     stay_m: float,
     min_obs: int,
     other_m: float,
-    twice: set[int] = frozenset(),  # type: ignore[assignment]
+    twice: set[int] | frozenset[int] = frozenset(),
 ) -> tuple[list[Move], list[tuple[Seen, TrackedObject]], list[tuple[Seen, TrackedObject]]]:
     """The moves among one matching's ``pairs`` (``find_moves``), the pairs of sure tracks
     that moved but were ruled out (their old place taken or new place held), and those that
