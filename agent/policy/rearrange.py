@@ -260,7 +260,11 @@ def match_phases(
     then = [s for s in then if s.label in PICKUPABLE]
     now = [o for o in now if o.label in PICKUPABLE]
     twice = set().union(
-        *(_tracked_twice([t for t in ts if t.label == c]) for ts in (then, now) for c in PICKUPABLE)
+        *(
+            _tracked_twice([t for t in ts if t.label == c])
+            for ts in (then, now)
+            for c in {t.label for t in ts}
+        )
     )
     banned: frozenset[tuple[int, int]] = frozenset()  # pairs ruled out
     kept: frozenset[tuple[int, int]] = frozenset()  # pairs that stayed or moved
@@ -286,9 +290,9 @@ def _judge(
     stay_m: float,
     min_obs: int,
     other_m: float,
-    twice: set[int] | frozenset[int] = frozenset(),
+    twice: set[int],
 ) -> tuple[list[Move], list[tuple[Seen, TrackedObject]], list[tuple[Seen, TrackedObject]]]:
-    """The moves among one matching's ``pairs`` (``find_moves``), the pairs of sure tracks
+    """The moves among one matching's ``pairs`` (``match_phases``), the pairs of sure tracks
     that moved but were ruled out (their old place taken or new place held), and those that
     stayed. A pair of two tracks that are each another's object tracked again (``twice``:
     ``id()`` of such tracks) is that other pair's object: no move of its own."""
