@@ -21,6 +21,10 @@ put the shuffled room back.
                    its class holds its old place or held its new one (one whose own match
                    stayed with it is another object and does not count; by the new place,
                    only when its box does not reach there either);
+                   a sure unshuffle track paired with nothing, far from every walkthrough
+                   track of its class, moved from beside another object the walkthrough
+                   tracked together with it: the one merged track of its class whose match
+                   stayed and shrank is split (``split_merged``);
                    an openable whose box grew or shrank by ``open_m`` changed openness (on the
                    floor: when obstacle cells appeared or vanished beside it, each cell counted
                    for the nearest matched openable only)
@@ -79,6 +83,8 @@ MIN_OBS = 2  # tracks seen fewer times are not trusted to say that something mov
 UNSURE_COST = 100.0  # matching cost (metres) added to a pair with a track seen fewer than MIN_OBS times
 BANNED_COST = 10_000.0  # matching cost (metres) added to a pair ruled out as a move in an earlier round
 REMATCH_ROUNDS = 4  # matchings tried at most (``match_phases``)
+MERGED_RATIO = 1.4  # a walkthrough track this many times its stayed match's size (and
+MERGED_GAIN_M = 0.05  # this much larger) may be that object and another one tracked as one
 SAME_PIECE_M = 1.2  # two tracks of an openable class this close are one piece of furniture
 DOOR_CELLS = 8  # obstacle cells (5 cm) that must appear or vanish beside a floor-standing openable
 FLOOR_STANDING_Z = 0.3  # an openable whose box starts below this stands on the floor
@@ -280,7 +286,61 @@ def match_phases(
         if not more:
             break
         banned |= more
-    return moves, pairs
+    return moves + split_merged(pairs, then, now, stay_m, min_obs, other_m), pairs
+
+
+def split_merged(
+    pairs: list[tuple[Seen, TrackedObject, float]],
+    then: list[Seen],
+    now: list[TrackedObject],
+    stay_m: float = STAY_M,
+    min_obs: int = MIN_OBS,
+    other_m: float = OTHER_M,
+) -> list[Move]:
+    """Moves out of walkthrough tracks that were two objects: the walkthrough's memory merges
+    two remotes side by side into one track, centred between them, and when one of them is
+    moved the other alone stays matched with it, while the moved one's unshuffle track has no
+    partner at all. For each such track (sure, unpaired, farther than ``other_m`` from every
+    walkthrough track of its class; the most seen first) the one walkthrough track of its class
+    that is sure, whose match stayed and is ``MERGED_RATIO`` times smaller and ``MERGED_GAIN_M``
+    narrower than it, is split: the moved object stood where the stayer mirrors through the
+    merged centre (2 x merged - stayer), its box the moved track's size there. No move when
+    two tracks could be the merge, or when the place found lies closer to the stayer than half
+    their sizes' mean (two objects do not stand inside each other: a big box matched with
+    a smaller view of itself)."""
+    paired = {id(s) for s, _, _ in pairs} | {id(o) for _, o, _ in pairs}
+    merged = [
+        (s, o)
+        for s, o, d in pairs
+        if s.n_obs >= min_obs
+        and d <= max(stay_m, _size(s) / 3)
+        and _size(s) >= MERGED_RATIO * _size(o)
+        and _size(s) - _size(o) >= MERGED_GAIN_M
+    ]
+    used: set[int] = set()
+    moves = []
+    for o in sorted(now, key=lambda t: -t.n_obs):
+        if id(o) in paired or o.n_obs < min_obs:
+            continue
+        if any(
+            s.label == o.label and np.linalg.norm(s.centroid[:2] - o.centroid[:2]) <= other_m for s in then
+        ):
+            continue
+        cands = [(s, stayer) for s, stayer in merged if s.label == o.label]
+        if len(cands) != 1 or id(cands[0][0]) in used:
+            continue
+        s, stayer = cands[0]
+        used.add(id(s))
+        xy = 2 * s.centroid[:2] - stayer.centroid[:2]
+        if np.linalg.norm(xy - stayer.centroid[:2]) < 0.25 * (_size(o) + _size(stayer)):
+            continue
+        half = (o.box_max[:2] - o.box_min[:2]) / 2
+        centre = np.r_[xy, s.centroid[2]]
+        box_min = np.r_[xy - half, s.box_min[2]]
+        box_max = np.r_[xy + half, s.box_max[2]]
+        split = Seen(o.label, centre, box_min, box_max, s.n_obs, middle=(float(xy[0]), float(xy[1])))
+        moves.append(Move(o, split, float(np.linalg.norm(o.centroid - centre))))
+    return moves
 
 
 def _judge(
