@@ -15,7 +15,8 @@ put the shuffled room back.
                  match the two memories class by class (Hungarian on centroid distance and
                  colour; every track takes part, but tracks seen ``MIN_OBS`` times, and not
                  another's object tracked again, pair with each other first; a pair ruled
-                 out below is matched again without it while a sure track has no partner):
+                 out below, or moved to beside a still object of its class, is matched again
+                 without it while a sure track has no partner):
                    a pickupable now more than ``stay_m`` (and a third of its size) from its
                    match, both seen ``MIN_OBS`` times, has moved, unless another track of
                    its class holds its old place or held its new one (one whose own match
@@ -260,7 +261,12 @@ def match_phases(
     a sure track of its class has no partner: a walkthrough glimpse of a second scrub brush, or
     the walkthrough's track of two remotes together, nearer the moved brush's (or remote's) new
     place than its own walkthrough track was, takes it in the first matching and leaves that
-    track paired with nothing.
+    track paired with nothing. So is a move to within ``other_m`` of another object of its
+    class that stayed (allowed: a soap bottle put beside a second one) while a sure unshuffle
+    track of its class has no partner: the track beside the still one is more likely an object
+    the walkthrough did not see (the second of two salt shakers side by side), and the one
+    paired with nothing the object that moved. A walkthrough track that was two objects is
+    split after the matching (``split_merged``).
 
     Returns the moves and the matching they came from (``_pairs``'s, the last tried)."""
     then = [s for s in then if s.label in PICKUPABLE]
@@ -276,13 +282,18 @@ def match_phases(
     kept: frozenset[tuple[int, int]] = frozenset()  # pairs that stayed or moved
     for _ in range(REMATCH_ROUNDS):
         pairs = _pairs(then, now, colours, min_obs, banned, kept)
-        moves, ruled_out, stays = _judge(pairs, then, now, stay_m, min_obs, other_m, twice)
-        kept |= {(id(m.then), id(m.now)) for m in moves} | {(id(s), id(o)) for s, o in stays}
-        # a pair ruled out takes part in no other matching while a sure track of its class
-        # is left without a partner (the object that did move, paired with nothing)
+        moves, ruled_out, stays, beside = _judge(pairs, then, now, stay_m, min_obs, other_m, twice)
+        kept |= {(id(m.then), id(m.now)) for m in moves if all(m is not b for b in beside)} | {
+            (id(s), id(o)) for s, o in stays
+        }
+        # a pair ruled out, or a move to beside another object of its class, takes part in no
+        # other matching while a sure track of its class is left without a partner (the object
+        # that did move, paired with nothing; the track beside the other, of an object the
+        # walkthrough did not see)
         paired = {id(s) for s, _, _ in pairs} | {id(o) for _, o, _ in pairs}
         left = {t.label for t in [*then, *now] if id(t) not in paired and t.n_obs >= min_obs}
-        more = {(id(s), id(o)) for s, o in ruled_out if s.label in left} - banned
+        doubted = [*ruled_out, *((m.then, m.now) for m in beside)]
+        more = {(id(s), id(o)) for s, o in doubted if s.label in left} - banned
         if not more:
             break
         banned |= more
@@ -351,11 +362,13 @@ def _judge(
     min_obs: int,
     other_m: float,
     twice: set[int],
-) -> tuple[list[Move], list[tuple[Seen, TrackedObject]], list[tuple[Seen, TrackedObject]]]:
+) -> tuple[list[Move], list[tuple[Seen, TrackedObject]], list[tuple[Seen, TrackedObject]], list[Move]]:
     """The moves among one matching's ``pairs`` (``match_phases``), the pairs of sure tracks
-    that moved but were ruled out (their old place taken or new place held), and those that
-    stayed. A pair of two tracks that are each another's object tracked again (``twice``:
-    ``id()`` of such tracks) is that other pair's object: no move of its own."""
+    that moved but were ruled out (their old place taken or new place held), those that
+    stayed, and the moves to within ``other_m`` of a walkthrough track of their class that
+    holds its own place (``holds_elsewhere``: among the moves too). A pair of two tracks that
+    are each another's object tracked again (``twice``: ``id()`` of such tracks) is that other
+    pair's object: no move of its own."""
     match_of = {id(o): (s, d) for s, o, d in pairs}  # unshuffle track -> its walkthrough match
     now_of = {id(s): (o, d) for s, o, d in pairs}  # walkthrough track -> its unshuffle match
 
@@ -378,7 +391,7 @@ def _judge(
             return False
         return box_gap(track.box_min[:2], track.box_max[:2], mover.centroid[:2]) > 0.0
 
-    moves, ruled_out, stays = [], [], []
+    moves, ruled_out, stays, beside = [], [], [], []
     for s, o, d in pairs:
         if s.n_obs < min_obs or o.n_obs < min_obs or (id(s) in twice and id(o) in twice):
             continue
@@ -393,18 +406,19 @@ def _judge(
             and not explained(p, s)
             for p in now
         )
-        new_held = any(
-            q.label == o.label
-            and q is not s
-            and np.linalg.norm(q.centroid - o.centroid) <= other_m
-            and not holds_elsewhere(q, o)
+        by_new = [
+            q
             for q in then
-        )
+            if q.label == o.label and q is not s and np.linalg.norm(q.centroid - o.centroid) <= other_m
+        ]
+        new_held = any(not holds_elsewhere(q, o) for q in by_new)
         if not old_taken and not new_held:
             moves.append(Move(o, s, d))
+            if by_new:
+                beside.append(moves[-1])
         else:
             ruled_out.append((s, o))
-    return moves, ruled_out, stays
+    return moves, ruled_out, stays, beside
 
 
 def box_change(then: Seen, now: TrackedObject) -> tuple[float, float]:

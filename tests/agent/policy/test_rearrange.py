@@ -562,3 +562,24 @@ def test_a_big_track_matched_with_a_smaller_view_of_itself_is_not_split() -> Non
         n_obs=20,
     )
     assert find_moves([whole], [part, other]) == []
+
+
+def test_a_move_to_beside_a_still_object_gives_way_to_a_sure_track_paired_with_nothing() -> None:
+    # two salt shakers 15 cm apart; the walkthrough saw one of them (A) and a third (B) on
+    # another counter. B was moved to the table; in the unshuffle both of the pair are seen:
+    # the one the walkthrough missed (X) is nearer B's old place than B is, but it stands
+    # beside A, which stayed, and B's track is paired with nothing: B moved, X did not
+    a, b = (
+        _seen("SaltShaker", (0.41, 1.33, 0.9), half=0.025),
+        _seen("SaltShaker", (1.31, 0.43, 0.9), half=0.025),
+    )
+    now = [
+        _track(1, "SaltShaker", (0.41, 1.33, 0.9), half=0.025),
+        _track(2, "SaltShaker", (0.27, 1.37, 0.9), half=0.025),  # X
+        _track(3, "SaltShaker", (1.78, 2.03, 0.75), half=0.025),  # B now
+    ]
+    (m,) = find_moves([a, b], now)
+    assert m.now.id == 3 and m.then is b
+    # without a track paired with nothing, a move to beside a still object stands
+    (m,) = find_moves([a, b], now[:2])
+    assert m.now.id == 2 and m.then is b
