@@ -219,14 +219,16 @@ def _size(t: Seen | TrackedObject) -> float:
     return float(np.max(t.box_max[:2] - t.box_min[:2]))
 
 
+def _overlap(a: Seen | TrackedObject, b: Seen | TrackedObject, size: Any = max) -> bool:
+    """Two tracks whose centres lie closer (x, y) than half the larger one's size (``size``:
+    or the smaller one's)."""
+    return float(np.linalg.norm(a.centroid[:2] - b.centroid[:2])) < 0.5 * size(_size(a), _size(b))
+
+
 def same_object(a: Seen | TrackedObject, b: Seen | TrackedObject) -> bool:
     """Two tracks of one phase and class whose centres lie closer (x, y) than half the larger
     one's size: one object tracked twice (two tracks of one basketball), not two objects."""
-    return (
-        a is not b
-        and a.label == b.label
-        and float(np.linalg.norm(a.centroid[:2] - b.centroid[:2])) < 0.5 * max(_size(a), _size(b))
-    )
+    return a is not b and a.label == b.label and _overlap(a, b)
 
 
 def find_moves(*args: Any, **kwargs: Any) -> list[Move]:
@@ -297,7 +299,10 @@ def match_phases(
         if not more:
             break
         banned |= more
-    return moves + split_merged(pairs, then, now, stay_m, min_obs, other_m), pairs
+    split = split_merged(pairs, then, now, stay_m, min_obs, other_m, [m.now for m in moves])
+    # one object under two labels: the label seen more often says what it is (``split_merged``)
+    moves = [m for m in moves if not any(_overlap(x.now, m.now, min) for x in split)]
+    return moves + split, pairs
 
 
 def split_merged(
@@ -307,6 +312,7 @@ def split_merged(
     stay_m: float = STAY_M,
     min_obs: int = MIN_OBS,
     other_m: float = OTHER_M,
+    moving: list[TrackedObject] | None = None,
 ) -> list[Move]:
     """Moves out of walkthrough tracks that were two objects: the walkthrough's memory merges
     two remotes side by side into one track, centred between them, and when one of them is
@@ -316,9 +322,12 @@ def split_merged(
     that is sure, whose match stayed and is ``MERGED_RATIO`` times smaller and ``MERGED_GAIN_M``
     narrower than it, is split: the moved object stood where the stayer mirrors through the
     merged centre (2 x merged - stayer), its box the moved track's size there. No move when
-    two tracks could be the merge, or when the place found lies closer to the stayer than half
-    their sizes' mean (two objects do not stand inside each other: a big box matched with
-    a smaller view of itself)."""
+    two tracks could be the merge, when a track already believed moved (``moving``) and seen
+    at least as often lies within half the smaller one's size of it (one object under two
+    labels, a vase also taken for a soap bottle; not a remote on a pillow: the moves of such
+    tracks seen less often are dropped by ``match_phases``), or when the place found lies closer to the stayer
+    than half their sizes' mean (two objects do not stand inside each other: a big box matched
+    with a smaller view of itself)."""
     paired = {id(s) for s, _, _ in pairs} | {id(o) for _, o, _ in pairs}
     merged = [
         (s, o)
@@ -337,6 +346,8 @@ def split_merged(
             s.label == o.label and np.linalg.norm(s.centroid[:2] - o.centroid[:2]) <= other_m for s in then
         ):
             continue
+        if any(p.n_obs >= o.n_obs and _overlap(p, o, min) for p in moving or []):
+            continue  # one object under two labels, put back as the other
         cands = [(s, stayer) for s, stayer in merged if s.label == o.label]
         if len(cands) != 1 or id(cands[0][0]) in used:
             continue

@@ -583,3 +583,20 @@ def test_a_move_to_beside_a_still_object_gives_way_to_a_sure_track_paired_with_n
     # without a track paired with nothing, a move to beside a still object stands
     (m,) = find_moves([a, b], now[:2])
     assert m.now.id == 2 and m.then is b
+
+
+def test_one_object_under_two_labels_is_put_back_as_the_one_seen_more_often() -> None:
+    # the unshuffle tracked a moved vase twice, as a vase (its walkthrough track far away) and
+    # as a soap bottle; a soap bottle the walkthrough merged with a second one stayed
+    merged = _box("SoapBottle", (0.70, -1.10, 0.15), (0.86, -1.02, 0.25))
+    stayer = _track(1, "SoapBottle", (0.74, -1.06, 0.2), half=0.04, n_obs=8)
+    bottle = _track(2, "SoapBottle", (0.52, 0.32, 0.13), half=0.04, n_obs=5)
+    vase_then = _seen("Vase", (0.05, 1.58, 0.86), half=0.06)
+    vase = _track(3, "Vase", (0.53, 0.32, 0.12), half=0.06, n_obs=13)
+    (alone,) = find_moves([merged], [stayer, bottle])
+    assert alone.now is bottle  # without the vase: the second soap bottle moved
+    (m,) = find_moves([merged, vase_then], [stayer, bottle, vase])
+    assert m.now is vase and m.then is vase_then  # the vase, seen more often, says what it is
+    # seen more often as a soap bottle: the split's move, and not the vase's
+    (m,) = find_moves([merged, vase_then], [stayer, dataclasses.replace(bottle, n_obs=20), vase])
+    assert m.now.label == "SoapBottle" and np.allclose(m.then.centroid[:2], [0.82, -1.06])
