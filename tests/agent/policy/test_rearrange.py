@@ -496,29 +496,20 @@ def _box(label: str, lo: tuple[float, float, float], hi: tuple[float, float, flo
     return Seen(label, (a + b) / 2, a, b, n_obs)
 
 
+def _box_track(
+    i: int, label: str, lo: tuple[float, float, float], hi: tuple[float, float, float], n_obs: int
+) -> TrackedObject:
+    a, b = np.array(lo, float), np.array(hi, float)
+    return TrackedObject(i, label, 0.9, (a + b) / 2, a, b, n_obs=n_obs)
+
+
 def test_a_walkthrough_track_of_two_objects_is_split_when_one_of_them_moved() -> None:
     # the walkthrough tracked two remotes side by side (x 0.9-1.1 and 1.1-1.3) as one track
     # centred between them; one stayed, the other went to the sofa: the split puts it back at
     # 2 x merged - stayer, beside the one that stayed
     merged = _box("RemoteControl", (0.9, 1.96, 0.40), (1.3, 2.04, 0.44))
-    stayer = TrackedObject(
-        1,
-        "RemoteControl",
-        0.9,
-        np.array([1.0, 2.0, 0.42]),
-        np.array([0.9, 1.96, 0.40]),
-        np.array([1.1, 2.04, 0.44]),
-        n_obs=8,
-    )
-    moved = TrackedObject(
-        2,
-        "RemoteControl",
-        0.9,
-        np.array([4.0, 0.2, 0.45]),
-        np.array([3.9, 0.16, 0.43]),
-        np.array([4.1, 0.24, 0.47]),
-        n_obs=6,
-    )
+    stayer = _box_track(1, "RemoteControl", (0.9, 1.96, 0.40), (1.1, 2.04, 0.44), n_obs=8)
+    moved = _box_track(2, "RemoteControl", (3.9, 0.16, 0.43), (4.1, 0.24, 0.47), n_obs=6)
     (m,) = find_moves([merged], [stayer, moved])
     assert m.now is moved
     assert np.allclose(m.then.centroid[:2], [1.2, 2.0]) and m.then.middle == pytest.approx((1.2, 2.0))
@@ -527,15 +518,7 @@ def test_a_walkthrough_track_of_two_objects_is_split_when_one_of_them_moved() ->
     assert find_moves([_box("RemoteControl", (0.9, 1.96, 0.40), (1.1, 2.04, 0.44))], [stayer, moved]) == []
     # two tracks that could be the merge: which one is not known
     other = _box("RemoteControl", (-2.2, 0.0, 0.40), (-1.8, 0.08, 0.44))
-    other_now = TrackedObject(
-        3,
-        "RemoteControl",
-        0.9,
-        np.array([-2.1, 0.04, 0.42]),
-        np.array([-2.2, 0.0, 0.40]),
-        np.array([-2.0, 0.08, 0.44]),
-        n_obs=8,
-    )
+    other_now = _box_track(3, "RemoteControl", (-2.2, 0.0, 0.40), (-2.0, 0.08, 0.44), n_obs=8)
     assert find_moves([merged, other], [stayer, other_now, moved]) == []
 
 
@@ -543,24 +526,8 @@ def test_a_big_track_matched_with_a_smaller_view_of_itself_is_not_split() -> Non
     # a box seen whole in the walkthrough and only in part now: the "split" would stand it
     # inside the box that stayed
     whole = _box("Box", (0.0, 0.0, 0.0), (0.75, 0.5, 0.4))
-    part = TrackedObject(
-        1,
-        "Box",
-        0.9,
-        np.array([0.33, 0.25, 0.2]),
-        np.array([0.09, 0.01, 0.0]),
-        np.array([0.57, 0.49, 0.4]),
-        n_obs=7,
-    )
-    other = TrackedObject(
-        2,
-        "Box",
-        0.9,
-        np.array([3.0, 3.0, 0.2]),
-        np.array([2.7, 2.75, 0.0]),
-        np.array([3.3, 3.25, 0.4]),
-        n_obs=20,
-    )
+    part = _box_track(1, "Box", (0.09, 0.01, 0.0), (0.57, 0.49, 0.4), n_obs=7)
+    other = _box_track(2, "Box", (2.7, 2.75, 0.0), (3.3, 3.25, 0.4), n_obs=20)
     assert find_moves([whole], [part, other]) == []
 
 
