@@ -225,6 +225,17 @@ def _overlap(a: Seen | TrackedObject, b: Seen | TrackedObject, size: Any = max) 
     return float(np.linalg.norm(a.centroid[:2] - b.centroid[:2])) < 0.5 * size(_size(a), _size(b))
 
 
+def _stayed(a: Seen | TrackedObject, d: float, stay_m: float) -> bool:
+    """A track ``d`` metres from its match in the other phase stayed: nearer than ``stay_m`` and
+    a third of its size (nearer, the metric counts it in place)."""
+    return d <= max(stay_m, _size(a) / 3)
+
+
+def _paired(pairs: list[tuple[Seen, TrackedObject, float]]) -> set[int]:
+    """``id()`` of every track of a matching's pairs, of both phases."""
+    return {id(s) for s, _, _ in pairs} | {id(o) for _, o, _ in pairs}
+
+
 def same_object(a: Seen | TrackedObject, b: Seen | TrackedObject) -> bool:
     """Two tracks of one phase and class whose centres lie closer (x, y) than half the larger
     one's size: one object tracked twice (two tracks of one basketball), not two objects."""
@@ -292,7 +303,7 @@ def match_phases(
         # other matching while a sure track of its class is left without a partner (the object
         # that did move, paired with nothing; the track beside the other, of an object the
         # walkthrough did not see)
-        paired = {id(s) for s, _, _ in pairs} | {id(o) for _, o, _ in pairs}
+        paired = _paired(pairs)
         left = {t.label for t in [*then, *now] if id(t) not in paired and t.n_obs >= min_obs}
         doubted = [*ruled_out, *((m.then, m.now) for m in beside)]
         more = {(id(s), id(o)) for s, o in doubted if s.label in left} - banned
@@ -328,12 +339,12 @@ def split_merged(
     tracks seen less often are dropped by ``match_phases``), or when the place found lies closer to the stayer
     than half their sizes' mean (two objects do not stand inside each other: a big box matched
     with a smaller view of itself)."""
-    paired = {id(s) for s, _, _ in pairs} | {id(o) for _, o, _ in pairs}
+    paired = _paired(pairs)
     merged = [
         (s, o)
         for s, o, d in pairs
         if s.n_obs >= min_obs
-        and d <= max(stay_m, _size(s) / 3)
+        and _stayed(s, d, stay_m)
         and _size(s) >= MERGED_RATIO * _size(o)
         and _size(s) - _size(o) >= MERGED_GAIN_M
     ]
@@ -383,22 +394,19 @@ def _judge(
     match_of = {id(o): (s, d) for s, o, d in pairs}  # unshuffle track -> its walkthrough match
     now_of = {id(s): (o, d) for s, o, d in pairs}  # walkthrough track -> its unshuffle match
 
-    def stayed(a: Seen | TrackedObject, d: float) -> bool:
-        return d <= max(stay_m, _size(a) / 3)
-
     def explained(track: TrackedObject, mover: Seen) -> bool:
         """``track`` (an unshuffle track by ``mover``'s old place) is another object: its
         walkthrough match stayed with it and is not ``mover`` tracked twice (it is not ``mover``
         itself: that is paired with the moved track)."""
         match = match_of.get(id(track))
-        return match is not None and stayed(*match) and not same_object(match[0], mover)
+        return match is not None and _stayed(*match, stay_m) and not same_object(match[0], mover)
 
     def holds_elsewhere(track: Seen, mover: TrackedObject) -> bool:
         """``track`` (a walkthrough track by ``mover``'s new place) is another object that is
         still where it was: its unshuffle match stayed with it and is not ``mover`` tracked
         twice, and its box does not reach ``mover``'s centre (x, y)."""
         match = now_of.get(id(track))
-        if match is None or not stayed(track, match[1]) or same_object(match[0], mover):
+        if match is None or not _stayed(track, match[1], stay_m) or same_object(match[0], mover):
             return False
         return box_gap(track.box_min[:2], track.box_max[:2], mover.centroid[:2]) > 0.0
 
@@ -406,7 +414,7 @@ def _judge(
     for s, o, d in pairs:
         if s.n_obs < min_obs or o.n_obs < min_obs or (id(s) in twice and id(o) in twice):
             continue
-        if stayed(s, d):
+        if _stayed(s, d, stay_m):
             stays.append((s, o))
             continue
         # every track counts against a move, those seen once too (by the old place: unless explained)
