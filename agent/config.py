@@ -53,6 +53,8 @@ BUILT_VARIANTS = AGENT_VARIANTS
 # How unexplored space is mapped: random reachable goals, or the nearest frontier.
 Explorer = Literal["random", "frontier"]
 EXPLORERS: tuple[Explorer, ...] = get_args(Explorer)
+Localise = Literal["auto", "scan", "off"]
+LOCALISE_MODES: tuple[Localise, ...] = get_args(Localise)
 # Where depth comes from: the sensor, or the shipped depth network from RGB (the paper's +est. depth).
 DepthSource = Literal["sensor", "estimated"]
 DEPTH_SOURCES: tuple[DepthSource, ...] = get_args(DepthSource)
@@ -156,6 +158,11 @@ class AgentConfig:
         choices=_OOPChoices(),
     )
     explorer: Explorer = option("random", "how unexplored space is mapped: random goals | frontier")
+    localise: Localise = option(
+        "auto",
+        "scan: correct the odometry by matching each frame's depth against the map built so far "
+        "(agent/mapping/localise.py); auto: scan when the episode has pose noise; off: trust the odometry",
+    )
     detection_threshold: float | None = option(
         None,
         "learned detector's score threshold (default: 0.3, perception.AGENT_THRESHOLD)",
@@ -183,6 +190,8 @@ class AgentConfig:
             raise ValueError(f"perception must be one of {PERCEPTIONS}, got {self.perception!r}")
         if self.explorer not in EXPLORERS:
             raise ValueError(f"explorer must be one of {EXPLORERS}, got {self.explorer!r}")
+        if self.localise not in LOCALISE_MODES:
+            raise ValueError(f"localise must be one of {LOCALISE_MODES}, got {self.localise!r}")
         if self.depth not in DEPTH_SOURCES:
             raise ValueError(f"depth must be one of {DEPTH_SOURCES}, got {self.depth!r}")
         if self.detection_threshold is not None:

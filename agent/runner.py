@@ -28,6 +28,7 @@ import numpy as np
 from tidee.agent.classes import CLASSES, PICKUPABLE
 from tidee.agent.config import AgentConfig
 from tidee.agent.mapping.geometry import start_to_world_xy
+from tidee.agent.mapping.localise import ScanLocaliser, wants_localiser
 from tidee.agent.mapping.maps import SemanticMapper
 from tidee.agent.perception import make_perception
 from tidee.agent.policy.rearrange import RearrangePolicy, WalkthroughOver
@@ -267,6 +268,11 @@ class EpisodeRunner:
         policy_class = RearrangePolicy if rearrange else TidyPolicy
         mapper = SemanticMapper(policy_class.map_config(self.cfg.map), CLASSES, passable=PICKUPABLE)
         body = Body(mapper)
+        localiser = (
+            ScanLocaliser(mapper.grid, mapper.config.obstacle_z, mapper.config.max_depth)
+            if wants_localiser(self.cfg.localise, spec.pose_noise)
+            else None
+        )
         writer = LogWriter(self.log_dir / (episode_name or self._name(spec))) if self.log_dir else None
         events: list[dict[str, Any]] = []
 
@@ -319,6 +325,8 @@ class EpisodeRunner:
                 t0 = time.perf_counter()
                 if self.depth_net is not None:  # the "+est. depth" agent never reads the depth sensor
                     obs = dataclasses.replace(obs, depth=self.depth_net.predict(obs.rgb))
+                if localiser is not None:  # the poses the agent believes: odometry, corrected
+                    obs = localiser.correct(obs)
                 dets = self.perception.detect(obs)
                 t1 = time.perf_counter()
                 touched = mapper.update(obs, dets)
@@ -373,6 +381,8 @@ class EpisodeRunner:
                     self._emit_walkthrough(body.obs, policy, writer)
                     obs = self.transport.begin_unshuffle(ground_truth=gt)
                     mapper.reset()  # a fresh map of the shuffled room, in the same start frame
+                    if localiser is not None:  # the agent is back at its start pose
+                        localiser.new_phase()
                     body.path, body.goal = None, None
                     if evaluate:
                         unshuffle_start = self.transport.state()
