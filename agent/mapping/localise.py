@@ -42,7 +42,7 @@ COARSE_CELL = 0.05  # one point of a frame per cell this size...
 MAX_POINTS = 600  # ...and at most this many in the fit
 MIN_POINTS = 60  # fewer obstacle cells in view: no correction this frame
 MIN_NEAR = 0.4  # share of them within NEAR_CELLS of a mapped point, under the best fit
-NEAR_CELLS = 2.0
+NEAR_CELLS = 2.0  # (cells: 4 cm)
 MIN_GAIN_CELLS = 0.1  # the best fit's mean distance must beat the uncorrected one's by this
 CUT_CELLS = 10.0  # distances to the nearest mapped obstacle are cut here (cells)
 TIE_CELLS = 0.01  # per cell of shift and per turn step: of two fits as good, the smaller correction
@@ -90,9 +90,9 @@ class ScanLocaliser:
         self.frames = 0  # frames seen
         self.applied = 0  # frames whose fit moved the correction
         self._rays: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
-        # the agent's map's extent, in CELL cells: the points in the obstacle band seen so far
         self._origin = np.asarray(grid.origin, dtype=np.float64)
         n = grid.shape
+        # over the agent's map's extent, in CELL cells: where the frames so far put band points
         self._map = np.zeros((int(round(n[0] * grid.cell / CELL)), int(round(n[1] * grid.cell / CELL))), bool)
 
     def new_phase(self) -> None:
