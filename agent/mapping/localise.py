@@ -75,9 +75,7 @@ class Correction:
 
     def then(self, turn: float, about: np.ndarray, shift: np.ndarray) -> Correction:
         """This correction followed by a turn about the point ``about`` and a shift."""
-        c, s = math.cos(turn), math.sin(turn)
-        rot = np.array([[c, -s], [s, c]])
-        return Correction(self.turn + turn, rot @ (self.shift - about) + about + shift)
+        return Correction(self.turn + turn, _turned(self.shift, turn, about, shift))
 
 
 class ScanLocaliser:
@@ -87,7 +85,6 @@ class ScanLocaliser:
         self.obstacle_z = obstacle_z
         self.max_depth = max_depth
         self.correction = Correction()
-        self.frames = 0  # frames seen
         self.applied = 0  # frames whose fit moved the correction
         self._rays: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self._origin = np.asarray(grid.origin, dtype=np.float64)
@@ -104,14 +101,15 @@ class ScanLocaliser:
     def correct(self, obs: Observation) -> Observation:
         """``obs`` with its poses corrected: the correction so far, refined by this frame's fit
         to the frames before it; the frame then joins the localiser's map."""
-        self.frames += 1
         believed = self._corrected(obs)
-        step = self._fit(believed)
+        pts = self._points(believed)
+        step = self._fit(believed, pts)
         if step is not None:
             self.correction = self.correction.then(*step)
             self.applied += 1
             believed = self._corrected(obs)
-        self.remember(believed)
+            pts = _turned(pts, *step)  # the frame's points at the corrected pose
+        self._remember(pts)
         return believed
 
     def _corrected(self, obs: Observation) -> Observation:
@@ -139,11 +137,12 @@ class ScanLocaliser:
         band = (pts[:, 2] >= self.obstacle_z[0]) & (pts[:, 2] < self.obstacle_z[1])
         return pts[band, :2]
 
-    def _fit(self, obs: Observation) -> tuple[float, np.ndarray, np.ndarray] | None:
-        """(turn, about, shift) that lays this frame best on the localiser's map, or None."""
+    def _fit(self, obs: Observation, pts: np.ndarray) -> tuple[float, np.ndarray, np.ndarray] | None:
+        """(turn, about, shift) that lays this frame's points ``pts`` best on the localiser's
+        map, or None."""
         if not self._map.any():
             return None
-        pts = _one_per_cell(self._points(obs), self._origin, COARSE_CELL, MAX_POINTS)
+        pts = _one_per_cell(pts, self._origin, COARSE_CELL, MAX_POINTS)
         if len(pts) < MIN_POINTS:
             return None
         about = np.array([float(obs.agent_pose[0]), float(obs.agent_pose[1])])
@@ -155,12 +154,18 @@ class ScanLocaliser:
             return None
         return turn, about, shift
 
-    def remember(self, obs: Observation) -> None:
+    def _remember(self, pts: np.ndarray) -> None:
         """Add a frame's obstacle-band points, at its corrected pose, to the localiser's map."""
-        ij = np.floor((self._points(obs) - self._origin) / CELL).astype(np.int64)
+        ij = np.floor((pts - self._origin) / CELL).astype(np.int64)
         n = self._map.shape
         inside = (ij[:, 0] >= 0) & (ij[:, 0] < n[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < n[1])
         self._map[ij[inside, 0], ij[inside, 1]] = True
+
+
+def _turned(pts: np.ndarray, turn: float, about: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """Floor-plane points turned by ``turn`` (radians) about ``about``, then shifted."""
+    c, s = math.cos(turn), math.sin(turn)
+    return (pts - about) @ np.array([[c, s], [-s, c]]) + about + shift
 
 
 def _one_per_cell(pts: np.ndarray, origin: np.ndarray, cell: float, most: int) -> np.ndarray:
@@ -205,11 +210,9 @@ class _Search:
         shifts = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
         cost = TIE_CELLS * np.abs(shifts).sum(axis=1) / self.cell
         turn_step = float(np.abs(np.diff(turns)).min()) if len(turns) > 1 else 1.0
-        rel = pts - about
         best = (np.inf, 0.0, np.zeros(2), 0.0)
         for turn in turns:
-            c, s = math.cos(turn), math.sin(turn)
-            turned = rel @ np.array([[c, s], [-s, c]]) + about
+            turned = _turned(pts, turn, about, np.zeros(2))
             d = self._at(turned[None, :, :] + shifts[:, None, :])  # shifts x points
             score = d.mean(axis=1) + cost + TIE_CELLS * abs(turn) / turn_step
             k = int(np.argmin(score))
