@@ -55,6 +55,9 @@ Explorer = Literal["random", "frontier"]
 EXPLORERS: tuple[Explorer, ...] = get_args(Explorer)
 Localise = Literal["auto", "scan", "off"]
 LOCALISE_MODES: tuple[Localise, ...] = get_args(Localise)
+# Whether rays that pass through a mapped obstacle take it away again (MapConfig.carve).
+Carve = Literal["auto", "on", "off"]
+CARVE_MODES: tuple[Carve, ...] = get_args(Carve)
 # Where depth comes from: the sensor, or the shipped depth network from RGB (the paper's +est. depth).
 DepthSource = Literal["sensor", "estimated"]
 DEPTH_SOURCES: tuple[DepthSource, ...] = get_args(DepthSource)
@@ -163,6 +166,12 @@ class AgentConfig:
         "scan: correct the odometry by matching each frame's depth against the map built so far "
         "(agent/mapping/localise.py); auto: scan when the episode has pose noise; off: trust the odometry",
     )
+    carve: Carve = option(
+        "auto",
+        "on: a mapped obstacle stays only while frames with a point in it outnumber frames whose "
+        "rays passed through it (free-space carving, agent/mapping/maps.py); off: one "
+        "point makes an obstacle for good; auto: on with estimated depth",
+    )
     detection_threshold: float | None = option(
         None,
         "learned detector's score threshold (default: 0.3, perception.AGENT_THRESHOLD)",
@@ -192,6 +201,8 @@ class AgentConfig:
             raise ValueError(f"explorer must be one of {EXPLORERS}, got {self.explorer!r}")
         if self.localise not in LOCALISE_MODES:
             raise ValueError(f"localise must be one of {LOCALISE_MODES}, got {self.localise!r}")
+        if self.carve not in CARVE_MODES:
+            raise ValueError(f"carve must be one of {CARVE_MODES}, got {self.carve!r}")
         if self.depth not in DEPTH_SOURCES:
             raise ValueError(f"depth must be one of {DEPTH_SOURCES}, got {self.depth!r}")
         if self.detection_threshold is not None:

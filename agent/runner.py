@@ -27,6 +27,7 @@ import numpy as np
 
 from tidee.agent.classes import CLASSES, PICKUPABLE
 from tidee.agent.config import AgentConfig
+from tidee.agent.mapping.config import wants_carving
 from tidee.agent.mapping.geometry import start_to_world_xy
 from tidee.agent.mapping.localise import ScanLocaliser, wants_localiser
 from tidee.agent.mapping.maps import SemanticMapper
@@ -266,7 +267,10 @@ class EpisodeRunner:
         initial = self.transport.state() if evaluate else None
         rearrange = spec.rearrange_index is not None
         policy_class = RearrangePolicy if rearrange else TidyPolicy
-        mapper = SemanticMapper(policy_class.map_config(self.cfg.map), CLASSES, passable=PICKUPABLE)
+        map_config = dataclasses.replace(
+            policy_class.map_config(self.cfg.map), carve=wants_carving(self.cfg.carve, self.cfg.depth)
+        )
+        mapper = SemanticMapper(map_config, CLASSES, passable=PICKUPABLE)
         body = Body(mapper)
         localiser = (
             ScanLocaliser(mapper.grid, mapper.config.obstacle_z, mapper.config.max_depth)

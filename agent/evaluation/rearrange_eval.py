@@ -309,7 +309,7 @@ def _plot(report: dict[str, Any]) -> bytes:
 
 
 def run_rearrange_eval(cfg: RearrangeEvalConfig) -> dict[str, Any]:
-    from tidee.agent.evaluation.report import machine_note
+    from tidee.agent.evaluation.report import agent_flags, machine_note
     from tidee.agent.evaluation.tidy_eval import episode_cost, select_configs
 
     agent = cfg.agent
@@ -361,7 +361,9 @@ def run_rearrange_eval(cfg: RearrangeEvalConfig) -> dict[str, Any]:
         f"tidee eval rearrange --split {cfg.split} --episodes {len(configs)} --rows {','.join(cfg.rows)} "
         f"--resolution {cfg.resolution} --walkthrough-steps {cfg.walkthrough_steps} "
         f"--max-steps {cfg.max_steps} "
-        f"--workers {cfg.workers} --renderer {cfg.renderer} --out {out}"
+        # the rows set perception and depth; a rearrangement has no out-of-place detector
+        + agent_flags(cfg.agent, skip=("perception", "depth", "oop"))
+        + f"--workers {cfg.workers} --renderer {cfg.renderer} --out {out}"
     )
     notes = [
         f"command: {command}",

@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shlex
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -82,6 +83,15 @@ Config = tuple[Any, str, Any, Any]
 
 
 # -------------------------------------------------------------------- validation
+
+
+def agent_flags(agent: Any, skip: Sequence[str] = ()) -> str:
+    """The flags of an ``AgentConfig`` that differ from their defaults, each followed by a space
+    (``skip``: field names the report's command already spells out): a report's command must
+    rebuild the run it reports, ``--carve off`` or ``--localise scan`` included."""
+    from tidee.options import to_argv
+
+    return "".join(f"{shlex.quote(a)} " for a in to_argv(agent, skip=skip))
 
 
 def machine_note() -> str:

@@ -198,9 +198,13 @@ def build_jobs(cfg: TidyEvalConfig, configs: list[Any] | None = None) -> list[Ti
     return jobs
 
 
+# the agent options the report's command names whatever their value (the rest: when not default)
+_SPELLED_OUT = ("variant", "perception", "oop", "depth", "explorer", "missing_top", "detection_threshold")
+
+
 def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
 
-    from tidee.agent.evaluation.report import machine_note, with_references, write_report
+    from tidee.agent.evaluation.report import agent_flags, machine_note, with_references, write_report
 
     agent = cfg.agent
     split, variants, workers, renderer = cfg.split, list(cfg.variants), cfg.workers, cfg.renderer
@@ -272,6 +276,7 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
         + f"--perception {perception} --oop {oop} --depth {depth} --explorer {explorer} "
         f"--missing-top {missing_top} "
         + (f"--detection-threshold {detection_threshold} " if detection_threshold is not None else "")
+        + agent_flags(agent, skip=_SPELLED_OUT)
         + f"--max-steps {max_steps} --resolution {resolution} --workers {workers} "
         + (f"--backend {cfg.batch.backend} " if cfg.batch.backend != "local" else "")
         + f"--out {out}",

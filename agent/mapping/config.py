@@ -15,6 +15,13 @@ def _cells_per(length: float, cell: float, what: str) -> int:
     return int(round(n))
 
 
+def wants_carving(mode: str, depth: str) -> bool:
+    """Whether the map carves free space (``AgentConfig.carve``): "on" always, "auto" when depth
+    is estimated from RGB (its errors scatter points in front of and behind every surface), "off"
+    never."""
+    return mode == "on" or (mode == "auto" and depth == "estimated")
+
+
 @dataclass
 class MapConfig:
     """Mapping parameters (metres unless noted). Defaults give 256x256 2D maps at 5 cm and a
@@ -32,6 +39,14 @@ class MapConfig:
     stride: int = 2  # pixel subsampling for the maps (not for objects)
     semantic_sigma_voxels: float = 1.5  # Gaussian dilation of centroids, in xy voxels
     agent_free_radius: float = 0.15  # disc kept free around each believed position
+    # free-space carving: a cell is an obstacle only while, in one carve_z slab of the obstacle
+    # band, the frames with a point outnumber the frames whose rays passed through it short of
+    # their point, and number at least carve_min_hits (for noisy depth: one bad frame's points
+    # do not wall the agent in for good); off: one point makes an obstacle for good
+    carve: bool = False
+    carve_stride: int = 4  # pixel subsampling of the carving rays
+    carve_z: float = 0.1  # carving counts per cell and slab of the obstacle band this high
+    carve_min_hits: int = 3  # carving: frames with a point in a slab before it is an obstacle
     merge_distance: float = 1.0  # object memory: same label within this merges
     # object memory: passable (pickupable) labels merge within this instead (None: merge_distance);
     # the rearrangement agent's: two apples on one counter are two objects to put back
@@ -50,6 +65,7 @@ class MapConfig:
             "voxel_z",
             "merge_distance",
             "small_merge_distance",
+            "carve_z",
         ):
             if name == "small_merge_distance" and self.small_merge_distance is None:
                 continue
@@ -75,6 +91,10 @@ class MapConfig:
             raise ValueError(f"MapConfig.max_depth must be > {MIN_DEPTH} m, got {self.max_depth}")
         if int(self.stride) < 1:
             raise ValueError(f"MapConfig.stride must be >= 1, got {self.stride}")
+        if int(self.carve_min_hits) < 1:
+            raise ValueError(f"MapConfig.carve_min_hits must be >= 1, got {self.carve_min_hits}")
+        if int(self.carve_stride) < 1:
+            raise ValueError(f"MapConfig.carve_stride must be >= 1, got {self.carve_stride}")
         if self.semantic_sigma_voxels < 0:
             raise ValueError(
                 f"MapConfig.semantic_sigma_voxels must be >= 0, got {self.semantic_sigma_voxels}"

@@ -13,6 +13,9 @@ Per frame (``SemanticMapper.update``) the depth image is lifted to points (every
   * 2D maps at ``nav_cell``: ``obstacle`` (a point in the ``obstacle_z`` height band),
     ``floor_seen`` (a point below ``floor_z``), ``seen_count`` (frames that put a point
     in the cell) and ``explored`` (``seen_count >= explored_threshold``);
+  * with ``carve`` (noisy depth, such as estimated from RGB), an obstacle cell is taken away
+    again once as many frames' rays have passed through it as frames put a point in it
+    (counted per ``carve_z`` slab of the band; ``carve_min_hits`` frames make an obstacle);
   * the cells around each believed agent position (radius ``agent_free_radius``) are
     free: the agent stood there;
   * points inside the pixels of a detection whose class is ``passable`` (the small
@@ -110,6 +113,11 @@ class SemanticMapper:
         """Forget every map and the object memory (a new episode)."""
         nx, ny = self.grid.shape
         self.obstacle = np.zeros((nx, ny), bool)
+        cfg = self.config
+        nz = int(math.ceil((cfg.obstacle_z[1] - cfg.obstacle_z[0]) / cfg.carve_z - 1e-9)) if cfg.carve else 0
+        self.hit_frames = np.zeros((nx, ny, nz), np.uint16)  # carving: frames with a point in the slab
+        self.pass_frames = np.zeros((nx, ny, nz), np.uint16)  # carving: frames whose rays crossed it
+        self.stamped = np.zeros((nx, ny), bool)  # carving: obstacles stamped by a blocked move
         self.floor_seen = np.zeros((nx, ny), bool)
         self.seen_count = np.zeros((nx, ny), np.uint16)
         self.visited = np.zeros((nx, ny), bool)  # discs around believed agent positions
@@ -166,6 +174,10 @@ class SemanticMapper:
             if det.label in self.passable:
                 passable |= region_flat[pix]
         vflat = self._accumulate(pts, passable)
+        if cfg.carve:
+            cs = int(cfg.carve_stride)
+            sub = ((pix % w) % cs == 0) & ((pix // w) % cs == 0)
+            self._carve(trans, pts[sub])
         self._mark_agent(obs.agent_pose)
 
         touched: list[TrackedObject] = []
@@ -238,9 +250,56 @@ class SemanticMapper:
         seen = self.seen_count.reshape(-1)
         seen += hit & (seen < np.iinfo(np.uint16).max)
         band = (z >= cfg.obstacle_z[0]) & (z < cfg.obstacle_z[1]) & ~passable[inside]
-        self.obstacle.reshape(-1)[flat[band]] = True
+        if cfg.carve:
+            slab = self._slab_index(pts[inside][band])
+            hit = np.zeros(self.hit_frames.size, bool)
+            hit[slab[slab >= 0]] = True
+            hits = self.hit_frames.reshape(-1)
+            hits += hit & (hits < np.iinfo(np.uint16).max)
+        else:
+            self.obstacle.reshape(-1)[flat[band]] = True
         self.floor_seen.reshape(-1)[flat[z < cfg.floor_z]] = True
         return vflat
+
+    def _carve(self, cam: np.ndarray, pts: np.ndarray) -> None:
+        """Free-space carving (``MapConfig.carve``): count, per cell and ``carve_z`` slab of the
+        obstacle band, this frame's rays that crossed it short of their point (stopping a cell
+        and a half before it), and make ``obstacle`` the cells with a slab where frames with a
+        point in it outnumber those and number at least ``carve_min_hits``. Slabs, not
+        columns: a ray that passes over a table's edge to its top says nothing of the legs."""
+        cfg = self.config
+        step = self.grid.cell
+        d = pts - cam
+        dist = np.sqrt((d * d).sum(axis=1))
+        n = np.floor((dist - 1.5 * step) / step).astype(np.int64)  # samples s = step, 2 step, ...
+        ok = n > 0
+        if ok.any():
+            n = n[ok]
+            unit = (d[ok] / dist[ok, None]).astype(np.float32)
+            ray = np.repeat(np.arange(n.size), n)
+            s = (np.arange(1, int(n.sum()) + 1) - np.repeat(np.cumsum(n) - n, n)).astype(np.float32) * step
+            nx, ny, nz = self.pass_frames.shape
+            ox, oy = self.grid.origin
+            i = np.floor((cam[0] - ox) / step + unit[ray, 0] * (s / step)).astype(np.int64)
+            j = np.floor((cam[1] - oy) / step + unit[ray, 1] * (s / step)).astype(np.int64)
+            z = cam[2] + unit[ray, 2] * s
+            k = np.floor((z - cfg.obstacle_z[0]) / cfg.carve_z).astype(np.int64)
+            inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz) & (z < cfg.obstacle_z[1])
+            crossed = np.zeros(self.pass_frames.size, bool)
+            crossed[((i * ny + j) * nz + k)[inside]] = True
+            passes = self.pass_frames.reshape(-1)
+            passes += crossed & (passes < np.iinfo(np.uint16).max)
+        held = (self.hit_frames > self.pass_frames) & (self.hit_frames >= self.config.carve_min_hits)
+        self.obstacle = self.stamped | held.any(axis=2)
+
+    def _slab_index(self, pts: np.ndarray) -> np.ndarray:
+        """int64 N flat indices into the carving grids (cell x slab), -1 outside the band or map."""
+        cfg = self.config
+        nx, ny, nz = self.hit_frames.shape
+        ij = self.grid.world_to_cell(pts[:, :2])
+        iz = np.floor((pts[:, 2] - cfg.obstacle_z[0]) / cfg.carve_z).astype(np.int64)
+        ok = self.grid.in_bounds(ij) & (iz >= 0) & (iz < nz) & (pts[:, 2] < cfg.obstacle_z[1])
+        return np.where(ok, (ij[:, 0] * ny + ij[:, 1]) * nz + iz, -1)
 
     def _mark_agent(self, agent_pose: Sequence[float]) -> None:
         xy = np.array([float(agent_pose[0]), float(agent_pose[1])])
@@ -336,6 +395,7 @@ class SemanticMapper:
         blocked move); this overrides the free disc around earlier agent positions."""
         cells = self.grid.disc(xy, radius)
         self.obstacle[cells[:, 0], cells[:, 1]] = True
+        self.stamped[cells[:, 0], cells[:, 1]] = True
         self.visited[cells[:, 0], cells[:, 1]] = False
 
     def clear_obstacle(self, xy: Sequence[float] | np.ndarray, radius: float) -> None:
@@ -343,6 +403,9 @@ class SemanticMapper:
         that sees an obstacle there marks it again)."""
         cells = self.grid.disc(xy, radius)
         self.obstacle[cells[:, 0], cells[:, 1]] = False
+        self.stamped[cells[:, 0], cells[:, 1]] = False
+        self.hit_frames[cells[:, 0], cells[:, 1]] = 0
+        self.pass_frames[cells[:, 0], cells[:, 1]] = 0
 
     # ------------------------------------------------------------------ voxels and semantics
     def voxel_points(self) -> tuple[np.ndarray, np.ndarray]:

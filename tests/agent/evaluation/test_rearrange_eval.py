@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shlex
 from pathlib import Path
 
 import pytest
@@ -11,6 +12,7 @@ from tidee.agent.config import AgentConfig
 from tidee.agent.evaluation.config import RearrangeEvalConfig
 from tidee.agent.evaluation.rearrange_eval import RearrangeJob, _run_one, run_rearrange_eval
 from tidee.cli import build_parser
+from tidee.options import from_args
 from tidee.protocol.messages import EpisodeSpec
 
 
@@ -25,6 +27,7 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
         walkthrough_steps=100,
         max_steps=150,
         progress=False,
+        agent=AgentConfig(carve="off"),  # as auto with sensor depth: the report's command must say it
     )
     return run_rearrange_eval(cfg), out
 
@@ -49,6 +52,16 @@ def test_the_oracle_row_plays_both_phases_and_the_report_says_so(report: tuple[d
     assert "TIDEE, ORACLE perception" in md and "Table 4 (RoomR 2022)" in md and "11.6" in md
     assert (out / "report.png").read_bytes()[:4] == b"\x89PNG"
     assert len((out / "episodes.jsonl").read_bytes().splitlines()) == 2
+
+
+def test_the_reports_command_rebuilds_the_run(report: tuple[dict, Path]) -> None:
+    rep, out = report
+    (command,) = [n.removeprefix("command: ") for n in rep["notes"] if n.startswith("command: ")]
+    words = shlex.split(command)
+    assert words[:3] == ["tidee", "eval", "rearrange"] and "--carve" in words
+    again = from_args(RearrangeEvalConfig, build_parser().parse_args(words[1:]))
+    assert again.agent.carve == "off" and again.rows == ("do-nothing", "oracle")
+    assert (again.walkthrough_steps, again.max_steps, again.out) == (100, 150, out)
 
 
 def test_the_oracle_agent_restores_a_kitchen_it_walked_through() -> None:

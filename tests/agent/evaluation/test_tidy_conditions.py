@@ -119,7 +119,7 @@ def test_a_short_run_reports_a_row_per_condition(tmp_path: Path, capsys: pytest.
     out = tmp_path / "o"
     argv = ["eval", "tidy", "--out", str(out), "--episodes", "1", "--variants", "RandomReceptacle"]
     argv += ["--conditions", "clean,noisy-pose", "--perception", "oracle", "--resolution", "64"]
-    argv += ["--max-steps", "40"]
+    argv += ["--max-steps", "40", "--localise", "off"]
     assert main(argv) == 0
     capsys.readouterr()
     report = json.loads((out / "report.json").read_text())
@@ -146,5 +146,6 @@ def test_a_short_run_reports_a_row_per_condition(tmp_path: Path, capsys: pytest.
     assert "| RandomReceptacle +noisy pose |" in md
     assert "VARIANT +noisy pose: noisy-pose, LoCoBot-like pose noise" in md
     assert "--conditions clean,noisy-pose" in md
+    assert "--localise off" in md  # the report's command rebuilds the run, agent options too
     stored = read_records(out / "episodes.jsonl")
     assert sorted(r["variant"] for r in stored.values()) == rows

@@ -294,6 +294,87 @@ def test_obstacles_persist_until_cleared_and_stamps() -> None:
     assert not m.obstacle.any() and not m.occupancy.any() and len(m.memory) == 0
 
 
+def _noisy(obs: Observation, rng: np.random.Generator, sigma: float) -> Observation:
+    """``obs`` with each depth scaled by 1 + N(0, sigma): a depth network's kind of error."""
+    depth = obs.depth * (1.0 + rng.normal(0.0, sigma, obs.depth.shape)).astype(np.float32)
+    return Observation(
+        session=obs.session,
+        step=obs.step,
+        rgb=obs.rgb,
+        depth=depth,
+        camera_pose=obs.camera_pose,
+        agent_pose=obs.agent_pose,
+        intrinsics=obs.intrinsics,
+    )
+
+
+def test_carving_takes_away_an_obstacle_that_later_views_see_through() -> None:
+    kept, carved = SemanticMapper(MapConfig(), []), SemanticMapper(MapConfig(carve=True), [])
+    box, gone = World(), World(boxes=())
+    assert MapConfig().carve_min_hits == 3
+    seq = [(box, False), (box, False), (box, True), (gone, True), (gone, True), (gone, False)]
+    for step, (world, held) in enumerate(seq):
+        for m in (kept, carved):
+            m.update(observe(world, 0.0, 0.0, 0.0, res=256, step=step)[0], [])
+        si, sj = cells_of(kept.grid, 0.99, 1.06, -0.3, 0.3)  # the box's face
+        assert kept.obstacle[si, sj].all()
+        # an obstacle once three frames saw the box, until as many saw through where it stood
+        assert carved.obstacle[si, sj].all() if held else not carved.obstacle[si, sj].any()
+    # a blocked move's stamp is not carved; clearing forgets the points too
+    carved.stamp_obstacle((-1.0, -1.0), 0.1)
+    carved.update(observe(gone, 0.0, 0.0, 225.0, res=256, step=4)[0], [])
+    ij = carved.grid.world_to_cell(np.array([[-1.0, -1.0]]))[0]
+    assert carved.occupancy_grid()[ij[0], ij[1]] == OBSTACLE
+    carved.clear_obstacle((-1.0, -1.0), 0.2)
+    carved.update(observe(gone, 0.0, 0.0, 225.0, res=256, step=5)[0], [])
+    assert not carved.obstacle[ij[0], ij[1]]
+
+
+def test_carving_keeps_walls_and_box_and_clears_noise_on_the_floor() -> None:
+    """Noisy depth (10 % per pixel, about a depth network's error) seen from three standpoints:
+    without carving the open floor fills with raised floor points for good; with it they go,
+    and the box and walls stay."""
+    rng = np.random.default_rng(3)
+    world = World()
+    kept, carved = SemanticMapper(MapConfig(), ["Box"]), SemanticMapper(MapConfig(carve=True), ["Box"])
+    step = 0
+    for x, y in ((0.0, 0.0), (-1.0, 1.0), (-1.5, -1.2)):
+        for yaw in range(0, 360, 45):
+            for pitch in (30.0, 60.0):
+                obs = _noisy(observe(world, x, y, yaw, pitch=pitch, res=256, step=step)[0], rng, 0.10)
+                kept.update(obs, [])
+                carved.update(obs, [])
+                step += 1
+    g = kept.grid
+    open_floor = cells_of(g, -2.5, 0.7, -2.0, 2.5)
+    assert kept.obstacle[open_floor].sum() > 1000
+    assert carved.obstacle[open_floor].sum() * 100 < kept.obstacle[open_floor].sum()
+    front = cells_of(g, 0.9, 1.1, -0.35, 0.35)  # the box's face, give or take the noise
+    assert carved.obstacle[front].any(axis=0).all()
+    x0, x1, y0, y1 = world.room
+    e = 0.15
+    for lo_x, hi_x, lo_y, hi_y, along in (
+        (x0 - e, x0 + e, y0 + 1, y1 - 1, 1),  # the -x wall
+        (x0 + 1, x1 - 1.5, y1 - e, y1 + e, 0),  # the +y wall
+        (x0 + 1, x1 - 1.5, y0 - e, y0 + e, 0),  # the -y wall
+    ):
+        band = carved.obstacle[cells_of(g, lo_x, hi_x, lo_y, hi_y)]
+        assert band.any(axis=1 - along).mean() > 0.95
+
+
+def test_when_the_map_carves() -> None:
+    from tidee.agent.config import AgentConfig
+    from tidee.agent.mapping.config import wants_carving
+
+    assert wants_carving("auto", "estimated") and not wants_carving("auto", "sensor")
+    assert wants_carving("on", "sensor") and not wants_carving("off", "estimated")
+    with pytest.raises(ValueError, match="carve must be one of"):
+        AgentConfig(carve="always")  # type: ignore[arg-type]
+    for bad in (dict(carve_min_hits=0), dict(carve_stride=0), dict(carve_z=0.0)):
+        with pytest.raises(ValueError, match="MapConfig.carve"):
+            MapConfig(**bad)  # type: ignore[arg-type]
+
+
 # ----------------------------------------------------------------------------- detections
 def test_detection_centroid_is_the_median_depth_surface_point() -> None:
     world = World()
