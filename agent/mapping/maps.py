@@ -70,6 +70,15 @@ class _ObjectStats:
     box_max: np.ndarray
 
 
+def _count_once(counts: np.ndarray, flat: np.ndarray) -> None:
+    """Add 1 (saturating) to each of ``counts``' cells named in the flat indices ``flat``, once
+    however often it is named (-1: none): a frame counts once per cell."""
+    once = np.zeros(counts.size, bool)
+    once[flat[flat >= 0]] = True
+    c = counts.reshape(-1)
+    c += once & (c < np.iinfo(counts.dtype).max)
+
+
 class SemanticMapper:
     """Accumulates observations into 2D/3D maps and the object memory (start frame, metres).
 
@@ -240,22 +249,16 @@ class SemanticMapper:
         vflat = self._voxel_index(pts)
         self.occupancy.reshape(-1)[vflat[vflat >= 0]] = True
 
-        nx, ny = self.grid.shape
+        ny = self.grid.shape[1]
         ij = self.grid.world_to_cell(pts[:, :2])
         inside = self.grid.in_bounds(ij)
         flat = (ij[:, 0] * ny + ij[:, 1])[inside]
         z = pts[inside, 2]
-        hit = np.zeros(nx * ny, bool)
-        hit[flat] = True
-        seen = self.seen_count.reshape(-1)
-        seen += hit & (seen < np.iinfo(np.uint16).max)
+        _count_once(self.seen_count, flat)
         band = (z >= cfg.obstacle_z[0]) & (z < cfg.obstacle_z[1]) & ~passable[inside]
         if cfg.carve:
-            slab = self._slab_index(pts[inside][band])
-            hit = np.zeros(self.hit_frames.size, bool)
-            hit[slab[slab >= 0]] = True
-            hits = self.hit_frames.reshape(-1)
-            hits += hit & (hits < np.iinfo(np.uint16).max)
+            p = pts[inside][band]
+            _count_once(self.hit_frames, self._slab_index(p[:, 0], p[:, 1], p[:, 2]))
         else:
             self.obstacle.reshape(-1)[flat[band]] = True
         self.floor_seen.reshape(-1)[flat[z < cfg.floor_z]] = True
@@ -267,7 +270,6 @@ class SemanticMapper:
         and a half before it), and make ``obstacle`` the cells with a slab where frames with a
         point in it outnumber those and number at least ``carve_min_hits``. Slabs, not
         columns: a ray that passes over a table's edge to its top says nothing of the legs."""
-        cfg = self.config
         step = self.grid.cell
         d = pts - cam
         dist = np.sqrt((d * d).sum(axis=1))
@@ -278,28 +280,22 @@ class SemanticMapper:
             unit = (d[ok] / dist[ok, None]).astype(np.float32)
             ray = np.repeat(np.arange(n.size), n)
             s = (np.arange(1, int(n.sum()) + 1) - np.repeat(np.cumsum(n) - n, n)).astype(np.float32) * step
-            nx, ny, nz = self.pass_frames.shape
-            ox, oy = self.grid.origin
-            i = np.floor((cam[0] - ox) / step + unit[ray, 0] * (s / step)).astype(np.int64)
-            j = np.floor((cam[1] - oy) / step + unit[ray, 1] * (s / step)).astype(np.int64)
-            z = cam[2] + unit[ray, 2] * s
-            k = np.floor((z - cfg.obstacle_z[0]) / cfg.carve_z).astype(np.int64)
-            inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz) & (z < cfg.obstacle_z[1])
-            crossed = np.zeros(self.pass_frames.size, bool)
-            crossed[((i * ny + j) * nz + k)[inside]] = True
-            passes = self.pass_frames.reshape(-1)
-            passes += crossed & (passes < np.iinfo(np.uint16).max)
+            along = [cam[a] + unit[ray, a] * s for a in range(3)]
+            _count_once(self.pass_frames, self._slab_index(*along))
         held = (self.hit_frames > self.pass_frames) & (self.hit_frames >= self.config.carve_min_hits)
         self.obstacle = self.stamped | held.any(axis=2)
 
-    def _slab_index(self, pts: np.ndarray) -> np.ndarray:
-        """int64 N flat indices into the carving grids (cell x slab), -1 outside the band or map."""
+    def _slab_index(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """int64 N flat indices into the carving grids (cell x slab) of start-frame points, -1
+        outside the band or the map."""
         cfg = self.config
         nx, ny, nz = self.hit_frames.shape
-        ij = self.grid.world_to_cell(pts[:, :2])
-        iz = np.floor((pts[:, 2] - cfg.obstacle_z[0]) / cfg.carve_z).astype(np.int64)
-        ok = self.grid.in_bounds(ij) & (iz >= 0) & (iz < nz) & (pts[:, 2] < cfg.obstacle_z[1])
-        return np.where(ok, (ij[:, 0] * ny + ij[:, 1]) * nz + iz, -1)
+        ox, oy = self.grid.origin
+        i = np.floor((x - ox) / self.grid.cell).astype(np.int64)
+        j = np.floor((y - oy) / self.grid.cell).astype(np.int64)
+        k = np.floor((z - cfg.obstacle_z[0]) / cfg.carve_z).astype(np.int64)
+        ok = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz) & (z < cfg.obstacle_z[1])
+        return np.where(ok, (i * ny + j) * nz + k, -1)
 
     def _mark_agent(self, agent_pose: Sequence[float]) -> None:
         xy = np.array([float(agent_pose[0]), float(agent_pose[1])])
