@@ -454,7 +454,9 @@ class Episode:
         given) on the receptacle under the point that far along the ray: with its x axis along
         the agent's heading, or (``turn_deg`` given) turned that much from how it lay when
         picked up, as the agent has turned since. A put at a point (``reach``) that would touch
-        a neighbour there is shifted 1-3 cm before it goes to the 6 cm lattice (``World.place``)."""
+        a neighbour there is shifted 1-3 cm before it goes to the 6 cm lattice (``World.place``).
+        A closed openable takes nothing at a pixel (``receptacle_closed``: open it first); a put
+        at a point on its outer top (a toilet roll on a closed bathroom cabinet) lands there."""
         held = self.body.held
         if held is None:
             return False, ActionError.hands_empty, "not holding anything"
@@ -467,7 +469,11 @@ class Episode:
             target = self.world.bodies[target.parent].obj  # aiming at a thing on a table: the table
         if not target.receptacle:
             return False, ActionError.not_receptacle, f"{target.type} is not a receptacle"
-        if target.openable and not target.is_open:
+        if (
+            target.openable
+            and not target.is_open
+            and not (reach is not None and self.world.on_outer_surface(target.id, point))
+        ):
             return False, ActionError.receptacle_closed, f"{target.type} is closed; open it first"
         yaw = (
             self.body.yaw

@@ -467,6 +467,17 @@ class World:
             out.append((cxy, half, pos[2] + s.z * size[2], yaw, s.inside))
         return out
 
+    def on_outer_surface(self, obj_id: str, point: np.ndarray, tol: float = 0.01) -> bool:
+        """Whether a point lies on one of the object's outer surfaces (its top, not a shelf
+        inside): within the surface's extent and ``tol`` of its height."""
+        for cxy, half, z, yaw, _inside in self.surfaces_world(obj_id, include_inside=False):
+            c, s = math.cos(yaw), math.sin(yaw)
+            dx, dy = float(point[0]) - cxy[0], float(point[1]) - cxy[1]
+            lx, ly = c * dx + s * dy, -s * dx + c * dy
+            if abs(lx) <= half[0] and abs(ly) <= half[1] and abs(float(point[2]) - z) <= tol:
+                return True
+        return False
+
     def support_of(self, obj_id: str) -> str:
         """The object that holds ``obj_id`` up: a receptacle, or the floor.
 

@@ -97,6 +97,11 @@ REACH_SLACK = 0.05  # depth this much (relative) nearer than that point: somethi
 SURFACE_TOL_M = 0.05  # the surface a pulled-in put lands on is this close to the remembered base
 RETRY_PUT_M = 0.3  # a put at a point tried again stands at least this far from the spots tried
 PULL_REACH_M = 1.45  # a put beyond reach is pulled in to this far from the eye (the limit: 1.5 m)
+OVERHEAD_M = 0.05  # seen surfaces this much above the put's point are over it (``overhead``) ...
+OVER_M = 0.1  # ... within this of it (x, y)
+OVER_POINTS = 10  # ... when the frame has at least this many points there
+FARTHER_M = 0.2  # ... then the next spot stands at least this much farther from the point,
+BAND_M = 0.25  # ... within this of the farthest that reaches it where it can
 
 
 class WalkthroughOver(Exception):
@@ -838,8 +843,9 @@ class RearrangePolicy(TidyPolicy):
         (``Action.reach``: the spot need not be in sight, a counter top at eye height never is),
         turned as it lay there (``held``: see ``put_turn``), from up to three spots, each at
         least ``RETRY_PUT_M`` from those tried (a toaster in the way from one side of a counter
-        is not from another); then on the receptacle tracked under it; on the floor where it
-        stood on the floor."""
+        is not from another), and farther off than a spot from which something over the point
+        hid it (``overhead``: a coffee table's top over the shelf under it; ``farther_off``);
+        then on the receptacle tracked under it; on the floor where it stood on the floor."""
         # Where the walkthrough's views of its top face place it, else the box's centre; not the
         # centroid of the seen points: those lean towards the camera (with the simulator's masks,
         # 1 cm vs 5 cm median error from the true place).
@@ -848,10 +854,14 @@ class RearrangePolicy(TidyPolicy):
         support = self.support_of(seen)
         self.state.target_receptacle = support.label if support is not None else "Floor"
         tried: list[np.ndarray] = []  # spots stood on: the point out of sight or reach, or the put failed
+        lo = target - np.array([0.05, 0.05, 0.0])
+        hi = target + np.array([0.05, 0.05, 0.0])
+        under_from: float | None = None  # a spot this far (x, y) from the point saw it under something
         for radius in (0.55, 0.8, 1.0):
-            lo = target - np.array([0.05, 0.05, 0.0])
-            hi = target + np.array([0.05, 0.05, 0.0])
             mask = goal_mask_near_box(self.body.mapper, lo, hi, radius)
+            if under_from is not None:
+                farther = self.farther_off(lo, hi, target, under_from)
+                mask = farther if farther.any() else mask
             away = mask_away_from(mask, self.body.mapper.grid, tried, RETRY_PUT_M)
             mask = away if away.any() else mask
             yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
@@ -860,6 +870,8 @@ class RearrangePolicy(TidyPolicy):
             action = self.reach_action(target, put_turn(seen.axis_deg, held, self.body.pose[2]))
             if isinstance(action, str):
                 self.event("aim_failed", label=seen.label, radius=radius, why=action)
+                if action.startswith("something") and self.overhead(target):
+                    under_from = float(np.linalg.norm(self.body.xy - target[:2]))
                 continue
             yield action
             obs = self.body.obs
@@ -886,6 +898,33 @@ class RearrangePolicy(TidyPolicy):
         if support is not None and (yield from self.put_on(support)):
             return self._put_back_done(seen, "on its receptacle")
         return False
+
+    def overhead(self, point: np.ndarray) -> bool:
+        """Whether the current frame shows something over ``point``: of its points within
+        ``OVER_M`` (x, y) of it, at least ``OVER_POINTS``, most stand ``OVERHEAD_M`` or more
+        above it (a coffee table's top over the shelf under it). A ray to a point below the
+        eye meets whatever hides the point above the point, so the ray alone cannot tell a
+        table's top from a sofa's back in front of the floor behind it."""
+        obs = self.body.obs
+        pts, _ = unproject(obs.depth, obs.intrinsics, obs.camera_pose)
+        near = np.hypot(pts[:, 0] - point[0], pts[:, 1] - point[1]) < OVER_M
+        if int(near.sum()) < OVER_POINTS:
+            return False
+        return float(np.median(pts[near, 2])) > float(point[2]) + OVERHEAD_M
+
+    def farther_off(self, lo: np.ndarray, hi: np.ndarray, point: np.ndarray, near_m: float) -> np.ndarray:
+        """Spots (nav grid mask) at least ``FARTHER_M`` farther from the put's point than
+        ``near_m`` and within reach of it (``PULL_REACH_M`` from the eye), the outermost
+        ``BAND_M`` of them where any: the farther off, the lower the ray to a point under a
+        table's top, and the farther in under the top's edge it passes. Empty when none is
+        within reach."""
+        drop = float(self.body.obs.camera_pose[2, 3]) - float(point[2])
+        reach_m = float(np.sqrt(max(PULL_REACH_M**2 - drop**2, 0.0))) - 0.05  # lo / hi: the point ± 5 cm
+        mapper = self.body.mapper
+        within = goal_mask_near_box(mapper, lo, hi, reach_m)
+        farther = within & ~goal_mask_near_box(mapper, lo, hi, near_m + FARTHER_M)
+        outer = farther & ~goal_mask_near_box(mapper, lo, hi, reach_m - BAND_M)
+        return outer if outer.any() else farther
 
     def pulled_in(self, point: np.ndarray) -> np.ndarray | None:
         """``point`` moved level towards the agent until the arm reaches it (``PULL_REACH_M``

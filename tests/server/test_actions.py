@@ -230,6 +230,37 @@ def test_a_reach_needs_a_clear_way_a_surface_under_it_and_arms_length(ep):
     assert obs.error == "too_far" and obs.held == "Mug"
 
 
+def test_a_put_at_a_point_on_a_closed_cabinets_top_lands_there(ep):
+    """A closed openable's top is a surface like any other for a put at a point (the goal
+    state of a rearrangement holds things there); at a pixel it still asks to be opened."""
+    obs, _ = holding_mug_at_counter(ep)
+    scene = counter_room()
+    counter = next(o for o in scene.objects if o.id == "CounterTop_0")
+    scene.objects.remove(counter)
+    scene.objects.append(make_object("Cabinet_0", "Cabinet", (2.0, 3.69), yaw_deg=180, size=[0.8, 0.5, 0.9]))
+    mug = next(o for o in scene.objects if o.id == "Mug_0")
+    mug.position, mug.parent, mug.parent_type = (
+        [2.2, 3.69, table_top(scene.objects[-1])],
+        "Cabinet_0",
+        "Cabinet",
+    )
+    ep.load(scene, spec(), (2.0, 2.9), yaw_deg=90)
+    obs = ep.step(Action(A.LookDown))
+    cabinet = ep.world.bodies["Cabinet_0"].obj
+    assert cabinet.openable and not cabinet.is_open
+    start = np.array(ep.world.pose("Mug_0")[0])
+    assert ep.step(Action(A.PickupObject, *project(ep, obs, start + [0, 0, 0.05]))).success
+    goal = np.array([1.85, 3.6, table_top(cabinet)])
+    obs = ep.step(Action(A.PutObject, *project(ep, obs, goal)))
+    assert obs.error == "receptacle_closed", obs.message
+    point = goal + [0, 0, 0.05]
+    eye = np.array([2.0, 2.9, ep.spec.camera_height])
+    obs = ep.step(Action(A.PutObject, *project(ep, obs, point), reach=float(np.linalg.norm(point - eye))))
+    assert obs.success, obs.message
+    assert np.linalg.norm(np.array(ep.world.pose("Mug_0")[0])[:2] - goal[:2]) < 0.02
+    assert not cabinet.is_open and {o["id"]: o for o in ep.object_states()}["Mug_0"]["parent"] == "Cabinet_0"
+
+
 def test_failure_reasons(ep):
     obs = at_table(ep)
     table = ep.world.bodies["DiningTable_0"].obj

@@ -389,9 +389,12 @@ def test_a_second_instance_that_stayed_near_the_new_place_does_not_hide_a_move()
     assert find_moves(then, now[:1]) == []
 
 
-def _view_of_a_bed(bed_end_x: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _view_of_a_bed(
+    bed_end_x: float, top_z: float = 0.6, bed_start_x: float = 0.3
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A 64x64 depth frame from an eye at 0.9 m looking along +x, 30 degrees down, at a bed
-    top at 0.6 m from x = 0.3 to ``bed_end_x`` with the floor beyond: (depth, K, pose)."""
+    top (a thin slab) at ``top_z`` from x = ``bed_start_x`` to ``bed_end_x`` with the floor
+    beyond and under it: (depth, K, pose)."""
     k = np.array([[32.0, 0.0, 32.0], [0.0, 32.0, 32.0], [0.0, 0.0, 1.0]])
     th = np.radians(30.0)
     rot = np.stack(
@@ -402,9 +405,9 @@ def _view_of_a_bed(bed_end_x: float) -> tuple[np.ndarray, np.ndarray, np.ndarray
     v, u = np.mgrid[0:64, 0:64] + 0.5
     rays = np.stack([(u - 32.0) / 32.0, (v - 32.0) / 32.0, np.ones_like(u)], axis=-1) @ rot.T
     down = np.where(rays[..., 2] < 0, rays[..., 2], -1e-9)
-    on_bed = (0.6 - 0.9) / down  # depth (along the optical axis) where the ray meets z = 0.6
+    on_bed = (top_z - 0.9) / down  # depth (along the optical axis) where the ray meets the top
     x_bed = rays[..., 0] * on_bed
-    depth = np.where((x_bed >= 0.3) & (x_bed <= bed_end_x), on_bed, (0.0 - 0.9) / down)
+    depth = np.where((x_bed >= bed_start_x) & (x_bed <= bed_end_x), on_bed, (0.0 - 0.9) / down)
     return depth, k, pose
 
 
@@ -433,6 +436,91 @@ def test_a_put_beyond_reach_is_pulled_in_onto_the_same_surface() -> None:
     assert policy.pulled_in(pillow) is None
     # within reach already: nothing to pull in
     assert policy.pulled_in(np.array([1.0, 0.0, 0.7])) is None
+
+
+def test_a_point_hidden_under_a_table_top_is_seen_as_overhead() -> None:
+    from types import SimpleNamespace
+
+    from tidee.agent.classes import CLASSES
+    from tidee.agent.config import AgentConfig
+    from tidee.agent.mapping.config import MapConfig
+    from tidee.agent.mapping.maps import SemanticMapper
+    from tidee.agent.policy import rearrange
+    from tidee.agent.policy.skills import Body
+
+    body = Body(SemanticMapper(MapConfig(), CLASSES))
+    policy = rearrange.RearrangePolicy(AgentConfig(), body, None, None, "LivingRoom", lambda **kw: None)
+    depth, k, pose = _view_of_a_bed(1.0, top_z=0.45)  # a coffee table's top from x = 0.3 to 1.0
+    body.obs = SimpleNamespace(depth=depth, intrinsics=k, camera_pose=pose)
+    shelf = np.array([0.8, 0.0, 0.2])  # on the shelf under the top: the ray meets the top at x = 0.51
+    assert isinstance(policy.reach_action(shelf, None), str) and policy.overhead(shelf)
+    on_top = np.array([0.7, 0.0, 0.55])  # above the top: in plain view
+    assert not isinstance(policy.reach_action(on_top, None), str) and not policy.overhead(on_top)
+    # a wall 0.5 m in front of the eye hides the point too, but nothing is seen over it
+    body.obs = SimpleNamespace(depth=np.minimum(depth, 0.5), intrinsics=k, camera_pose=pose)
+    assert isinstance(policy.reach_action(shelf, None), str) and not policy.overhead(shelf)
+
+
+def test_a_put_hidden_under_a_table_top_is_tried_from_farther_off(monkeypatch: pytest.MonkeyPatch) -> None:
+    """From the first spot the table's top hides the shelf under it; the next spot stands at
+    least ``FARTHER_M`` farther from the point, within reach of it."""
+    from types import SimpleNamespace
+
+    from tidee.agent.classes import CLASSES
+    from tidee.agent.config import AgentConfig
+    from tidee.agent.mapping.config import MapConfig
+    from tidee.agent.mapping.maps import SemanticMapper
+    from tidee.agent.policy import rearrange
+    from tidee.agent.policy.skills import Body
+
+    mapper = SemanticMapper(MapConfig(), CLASSES)
+    body = Body(mapper)
+    policy = rearrange.RearrangePolicy(AgentConfig(), body, None, None, "LivingRoom", lambda **kw: None)
+    spots: list[np.ndarray] = []
+    shelf = np.array([1.5, 0.0, 0.2])
+    pose = np.eye(4)
+    pose[2, 3] = 0.9
+
+    def walk(body_: Body, goal_mask: np.ndarray, **kwargs: object) -> Gen:
+        """Stand on the goal region's cell nearest the point."""
+        x, y = np.broadcast_arrays(*mapper.grid.centres())
+        d = np.where(goal_mask, np.hypot(x - shelf[0], y - shelf[1]), np.inf)
+        i = np.unravel_index(int(np.argmin(d)), d.shape)
+        spots.append(np.array([x[i], y[i]]))
+        body.obs = SimpleNamespace(
+            agent_pose=(x[i], y[i], 0.0, 0.0), success=True, error=None, camera_pose=pose
+        )
+        return True
+        yield
+
+    def aim(point: np.ndarray, yaw: float | None) -> rearrange.Action | str:
+        if len(spots) == 1:
+            return "something 0.40 m away in front of it"
+        return rearrange.Action(rearrange.ActionName.PutObject, x=0.5, y=0.5, reach=1.2)
+
+    def face(*args: object, **kwargs: object) -> Gen:
+        return True
+        yield
+
+    monkeypatch.setattr(rearrange, "navigate", walk)
+    monkeypatch.setattr(rearrange, "face_point", face)
+    monkeypatch.setattr(policy, "reach_action", aim)
+    monkeypatch.setattr(policy, "overhead", lambda point: len(spots) == 1)
+    body.obs = SimpleNamespace(agent_pose=(0.0, 0.0, 0.0, 0.0), success=True, error=None, camera_pose=pose)
+    seen = _seen("Book", (1.5, 0.0, 0.15), half=0.04)
+    run = policy.put_at(seen)
+    try:
+        next(run)
+        while True:
+            run.send(None)
+    except StopIteration as stop:
+        assert stop.value
+    first, second = (float(np.linalg.norm(p - shelf[:2])) for p in spots)
+    assert len(spots) == 2 and second >= first + rearrange.FARTHER_M - 0.05
+    # the outermost band within reach: the lowest rays
+    target = np.array([1.5, 0.0, 0.15 - 0.04 + rearrange.REACH_LIFT_M])
+    farthest = np.sqrt(rearrange.PULL_REACH_M**2 - (0.9 - target[2]) ** 2)
+    assert farthest - rearrange.BAND_M - 0.05 <= second <= farthest
 
 
 def test_a_put_blocked_from_one_spot_is_tried_from_another(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -477,6 +565,7 @@ def test_a_put_blocked_from_one_spot_is_tried_from_another(monkeypatch: pytest.M
     monkeypatch.setattr(rearrange, "navigate", walk)
     monkeypatch.setattr(rearrange, "face_point", face)
     monkeypatch.setattr(policy, "reach_action", aim)
+    monkeypatch.setattr(policy, "overhead", lambda point: False)  # the toaster stands beside the point
     body.obs = SimpleNamespace(agent_pose=(0.0, 0.0, 0.0, 0.0), success=True, error=None)
     seen = _seen("Mug", (1.5, 0.0, 0.95), half=0.04)
     run, actions = policy.put_at(seen), []
