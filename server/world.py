@@ -132,6 +132,15 @@ class EGLContext:
             )
 
 
+def surface_local(centre: np.ndarray, yaw: float, point: np.ndarray) -> tuple[float, float]:
+    """A world point's (x, y) in a surface's own frame: from its centre, along its axes."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return (
+        c * (point[0] - centre[0]) + s * (point[1] - centre[1]),
+        -s * (point[0] - centre[0]) + c * (point[1] - centre[1]),
+    )
+
+
 class World:
     """A PyBullet client holding one room."""
 
@@ -471,9 +480,7 @@ class World:
         """Whether a point lies on one of the object's outer surfaces (its top, not a shelf
         inside): within the surface's extent and ``tol`` of its height."""
         for cxy, half, z, yaw, _inside in self.surfaces_world(obj_id, include_inside=False):
-            c, s = math.cos(yaw), math.sin(yaw)
-            dx, dy = float(point[0]) - cxy[0], float(point[1]) - cxy[1]
-            lx, ly = c * dx + s * dy, -s * dx + c * dy
+            lx, ly = surface_local(cxy, yaw, point)
             if abs(lx) <= half[0] and abs(ly) <= half[1] and abs(float(point[2]) - z) <= tol:
                 return True
         return False
@@ -671,8 +678,7 @@ class World:
             c, s = math.cos(syaw), math.sin(syaw)
             # The aimed spot itself first, when the object fits there (a put that aims well
             # lands where it aimed, not on the nearest lattice point, up to 4 cm away).
-            lx = c * (near[0] - cxy[0]) + s * (near[1] - cxy[1])
-            ly = -s * (near[0] - cxy[0]) + c * (near[1] - cxy[1])
+            lx, ly = surface_local(cxy, syaw, near)
             if abs(lx) <= mx and abs(ly) <= my and abs(float(near[2]) - z) < 0.1:
                 candidates.append((-1.0, np.array([float(near[0]), float(near[1]), z])))
                 for r in NUDGES_M if nudge else ():
