@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -461,71 +463,17 @@ def test_a_point_hidden_under_a_table_top_is_seen_as_overhead() -> None:
     assert isinstance(policy.reach_action(shelf, None), str) and not policy.overhead(shelf)
 
 
-def test_a_put_hidden_under_a_table_top_is_tried_from_farther_off(monkeypatch: pytest.MonkeyPatch) -> None:
-    """From the first spot the table's top hides the shelf under it; the next spot stands at
-    least ``FARTHER_M`` farther from the point, within reach of it."""
-    from types import SimpleNamespace
-
-    from tidee.agent.classes import CLASSES
-    from tidee.agent.config import AgentConfig
-    from tidee.agent.mapping.config import MapConfig
-    from tidee.agent.mapping.maps import SemanticMapper
-    from tidee.agent.policy import rearrange
-    from tidee.agent.policy.skills import Body
-
-    mapper = SemanticMapper(MapConfig(), CLASSES)
-    body = Body(mapper)
-    policy = rearrange.RearrangePolicy(AgentConfig(), body, None, None, "LivingRoom", lambda **kw: None)
-    spots: list[np.ndarray] = []
-    shelf = np.array([1.5, 0.0, 0.2])
-    pose = np.eye(4)
-    pose[2, 3] = 0.9
-
-    def walk(body_: Body, goal_mask: np.ndarray, **kwargs: object) -> Gen:
-        """Stand on the goal region's cell nearest the point."""
-        x, y = np.broadcast_arrays(*mapper.grid.centres())
-        d = np.where(goal_mask, np.hypot(x - shelf[0], y - shelf[1]), np.inf)
-        i = np.unravel_index(int(np.argmin(d)), d.shape)
-        spots.append(np.array([x[i], y[i]]))
-        body.obs = SimpleNamespace(
-            agent_pose=(x[i], y[i], 0.0, 0.0), success=True, error=None, camera_pose=pose
-        )
-        return True
-        yield
-
-    def aim(point: np.ndarray, yaw: float | None) -> rearrange.Action | str:
-        if len(spots) == 1:
-            return "something 0.40 m away in front of it"
-        return rearrange.Action(rearrange.ActionName.PutObject, x=0.5, y=0.5, reach=1.2)
-
-    def face(*args: object, **kwargs: object) -> Gen:
-        return True
-        yield
-
-    monkeypatch.setattr(rearrange, "navigate", walk)
-    monkeypatch.setattr(rearrange, "face_point", face)
-    monkeypatch.setattr(policy, "reach_action", aim)
-    monkeypatch.setattr(policy, "overhead", lambda point: len(spots) == 1)
-    body.obs = SimpleNamespace(agent_pose=(0.0, 0.0, 0.0, 0.0), success=True, error=None, camera_pose=pose)
-    seen = _seen("Book", (1.5, 0.0, 0.15), half=0.04)
-    run = policy.put_at(seen)
-    try:
-        next(run)
-        while True:
-            run.send(None)
-    except StopIteration as stop:
-        assert stop.value
-    first, second = (float(np.linalg.norm(p - shelf[:2])) for p in spots)
-    assert len(spots) == 2 and second >= first + rearrange.FARTHER_M - 0.05
-    # the outermost band within reach: the lowest rays
-    target = np.array([1.5, 0.0, 0.15 - 0.04 + rearrange.REACH_LIFT_M])
-    farthest = np.sqrt(rearrange.PULL_REACH_M**2 - (0.9 - target[2]) ** 2)
-    assert farthest - rearrange.BAND_M - 0.05 <= second <= farthest
-
-
-def test_a_put_blocked_from_one_spot_is_tried_from_another(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A toaster in the way of the reach from the first spot beside a counter: the next walk
-    keeps ``RETRY_PUT_M`` from it, and the put goes from there."""
+def _put_at(
+    monkeypatch: pytest.MonkeyPatch,
+    room: str,
+    seen: Seen,
+    toward: tuple[float, float],
+    hidden: Callable[[list[np.ndarray], Any], bool],
+    overhead: Callable[[list[np.ndarray]], bool],
+) -> tuple[bool, list[str], list[str], list[np.ndarray]]:
+    """Run ``put_at(seen)`` with its walks standing on the goal region's cell nearest
+    ``toward`` and its reach failing ("something ... in front of it") while ``hidden(spots,
+    body)``: (its result, the actions it sent, its events, the spots it stood on)."""
     from types import SimpleNamespace
 
     from tidee.agent.classes import CLASSES
@@ -539,22 +487,25 @@ def test_a_put_blocked_from_one_spot_is_tried_from_another(monkeypatch: pytest.M
     body = Body(mapper)
     events: list[str] = []
     policy = rearrange.RearrangePolicy(
-        AgentConfig(), body, None, None, "Kitchen", lambda **kw: events.append(kw["kind"])
+        AgentConfig(), body, None, None, room, lambda **kw: events.append(kw["kind"])
     )
     spots: list[np.ndarray] = []
+    pose = np.eye(4)
+    pose[2, 3] = 0.9  # the eye
 
     def walk(body_: Body, goal_mask: np.ndarray, **kwargs: object) -> Gen:
-        """Stand on the goal region's cell nearest (1.0, 0.0)."""
         x, y = np.broadcast_arrays(*mapper.grid.centres())
-        d = np.where(goal_mask, np.hypot(x - 1.0, y - 0.0), np.inf)
+        d = np.where(goal_mask, np.hypot(x - toward[0], y - toward[1]), np.inf)
         i = np.unravel_index(int(np.argmin(d)), d.shape)
         spots.append(np.array([x[i], y[i]]))
-        body.obs = SimpleNamespace(agent_pose=(x[i], y[i], 0.0, 0.0), success=True, error=None)
+        body.obs = SimpleNamespace(
+            agent_pose=(x[i], y[i], 0.0, 0.0), success=True, error=None, camera_pose=pose
+        )
         return True
         yield
 
     def aim(point: np.ndarray, yaw: float | None) -> rearrange.Action | str:
-        if np.linalg.norm(body.xy - spots[0]) < 1e-6:
+        if hidden(spots, body):
             return "something 0.40 m away in front of it"
         return rearrange.Action(rearrange.ActionName.PutObject, x=0.5, y=0.5, reach=0.9)
 
@@ -565,9 +516,8 @@ def test_a_put_blocked_from_one_spot_is_tried_from_another(monkeypatch: pytest.M
     monkeypatch.setattr(rearrange, "navigate", walk)
     monkeypatch.setattr(rearrange, "face_point", face)
     monkeypatch.setattr(policy, "reach_action", aim)
-    monkeypatch.setattr(policy, "overhead", lambda point: False)  # the toaster stands beside the point
-    body.obs = SimpleNamespace(agent_pose=(0.0, 0.0, 0.0, 0.0), success=True, error=None)
-    seen = _seen("Mug", (1.5, 0.0, 0.95), half=0.04)
+    monkeypatch.setattr(policy, "overhead", lambda point: overhead(spots))
+    body.obs = SimpleNamespace(agent_pose=(0.0, 0.0, 0.0, 0.0), success=True, error=None, camera_pose=pose)
     run, actions = policy.put_at(seen), []
     try:
         action = next(run)
@@ -575,7 +525,44 @@ def test_a_put_blocked_from_one_spot_is_tried_from_another(monkeypatch: pytest.M
             actions.append(action.name.value)
             action = run.send(None)
     except StopIteration as stop:
-        done = stop.value
+        return bool(stop.value), actions, events, spots
+
+
+def test_a_put_hidden_under_a_table_top_is_tried_from_farther_off(monkeypatch: pytest.MonkeyPatch) -> None:
+    """From the first spot the table's top hides the shelf under it; the next spot stands at
+    least ``FARTHER_M`` farther from the point, within reach of it."""
+    from tidee.agent.policy import rearrange
+
+    shelf = np.array([1.5, 0.0, 0.2])
+    done, _, _, spots = _put_at(
+        monkeypatch,
+        "LivingRoom",
+        _seen("Book", (1.5, 0.0, 0.15), half=0.04),
+        toward=(shelf[0], shelf[1]),
+        hidden=lambda spots, body: len(spots) == 1,
+        overhead=lambda spots: len(spots) == 1,
+    )
+    first, second = (float(np.linalg.norm(p - shelf[:2])) for p in spots)
+    assert done and len(spots) == 2 and second >= first + rearrange.FARTHER_M - 0.05
+    # the outermost band within reach: the lowest rays
+    target = np.array([1.5, 0.0, 0.15 - 0.04 + rearrange.REACH_LIFT_M])
+    farthest = np.sqrt(rearrange.PULL_REACH_M**2 - (0.9 - target[2]) ** 2)
+    assert farthest - rearrange.BAND_M - 0.05 <= second <= farthest
+
+
+def test_a_put_blocked_from_one_spot_is_tried_from_another(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A toaster in the way of the reach from the first spot beside a counter: the next walk
+    keeps ``RETRY_PUT_M`` from it, and the put goes from there."""
+    from tidee.agent.policy import rearrange
+
+    done, actions, events, spots = _put_at(
+        monkeypatch,
+        "Kitchen",
+        _seen("Mug", (1.5, 0.0, 0.95), half=0.04),
+        toward=(1.0, 0.0),
+        hidden=lambda spots, body: bool(np.linalg.norm(body.xy - spots[0]) < 1e-6),
+        overhead=lambda spots: False,  # the toaster stands beside the point
+    )
     assert done and actions == ["PutObject"] and events == ["aim_failed", "put_back"]
     assert len(spots) == 2 and np.linalg.norm(spots[1] - spots[0]) >= rearrange.RETRY_PUT_M
 
