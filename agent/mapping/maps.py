@@ -257,8 +257,7 @@ class SemanticMapper:
         _count_once(self.seen_count, flat)
         band = (z >= cfg.obstacle_z[0]) & (z < cfg.obstacle_z[1]) & ~passable[inside]
         if cfg.carve:
-            p = pts[inside][band]
-            _count_once(self.hit_frames, self._slab_index(p[:, 0], p[:, 1], p[:, 2]))
+            _count_once(self.hit_frames, self._slab_index(flat[band], z[band]))
         else:
             self.obstacle.reshape(-1)[flat[band]] = True
         self.floor_seen.reshape(-1)[flat[z < cfg.floor_z]] = True
@@ -280,22 +279,21 @@ class SemanticMapper:
             unit = (d[ok] / dist[ok, None]).astype(np.float32)
             ray = np.repeat(np.arange(n.size), n)
             s = (np.arange(1, int(n.sum()) + 1) - np.repeat(np.cumsum(n) - n, n)).astype(np.float32) * step
-            along = [cam[a] + unit[ray, a] * s for a in range(3)]
-            _count_once(self.pass_frames, self._slab_index(*along))
+            along = np.stack([cam[a] + unit[ray, a] * s for a in range(3)], axis=1)
+            ij = self.grid.world_to_cell(along)
+            flat = np.where(self.grid.in_bounds(ij), ij[:, 0] * self.grid.shape[1] + ij[:, 1], -1)
+            _count_once(self.pass_frames, self._slab_index(flat, along[:, 2]))
         held = (self.hit_frames > self.pass_frames) & (self.hit_frames >= self.config.carve_min_hits)
         self.obstacle = self.stamped | held.any(axis=2)
 
-    def _slab_index(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """int64 N flat indices into the carving grids (cell x slab) of start-frame points, -1
-        outside the band or the map."""
+    def _slab_index(self, flat: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """int64 N flat indices into the carving grids (cell x slab) of points given by their
+        flat 2D cell index (-1: off the map) and height; -1 outside the band or the map."""
         cfg = self.config
-        nx, ny, nz = self.hit_frames.shape
-        ox, oy = self.grid.origin
-        i = np.floor((x - ox) / self.grid.cell).astype(np.int64)
-        j = np.floor((y - oy) / self.grid.cell).astype(np.int64)
+        nz = self.hit_frames.shape[2]
         k = np.floor((z - cfg.obstacle_z[0]) / cfg.carve_z).astype(np.int64)
-        ok = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz) & (z < cfg.obstacle_z[1])
-        return np.where(ok, (i * ny + j) * nz + k, -1)
+        ok = (flat >= 0) & (k >= 0) & (k < nz) & (z < cfg.obstacle_z[1])
+        return np.where(ok, flat * nz + k, -1)
 
     def _mark_agent(self, agent_pose: Sequence[float]) -> None:
         xy = np.array([float(agent_pose[0]), float(agent_pose[1])])
