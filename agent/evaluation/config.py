@@ -85,7 +85,6 @@ REARRANGE_EVAL_SKIP = (
     "agent.preferences",
     "agent.perception",
     "agent.depth",
-    "agent.detection_threshold",
 )
 RearrangeRow = Literal["clean", "noisy-pose", "est-depth", "noisy-depth", "oracle", "do-nothing"]
 REARRANGE_ROWS: tuple[RearrangeRow, ...] = get_args(RearrangeRow)

@@ -96,8 +96,8 @@ def row_setup(row: str, agent: AgentConfig, spec: EpisodeSpec) -> tuple[AgentCon
         return None, spec
     if row in CONDITIONS:
         return apply_condition(row, agent, spec)
-    if row == "oracle":
-        return replace(agent, perception="oracle", oop="auto"), spec
+    if row == "oracle":  # no scores to threshold: a --detection-threshold is the learned rows'
+        return replace(agent, perception="oracle", oop="auto", detection_threshold=None), spec
     return agent, spec
 
 

@@ -11,7 +11,7 @@ import pytest
 
 from tidee.agent.config import AgentConfig
 from tidee.agent.evaluation.conditions import CONDITIONS, apply_condition, row_name
-from tidee.agent.evaluation.config import TidyEvalConfig
+from tidee.agent.evaluation.config import RearrangeEvalConfig, TidyEvalConfig
 from tidee.agent.evaluation.judge import REFERENCE_VARIANTS
 from tidee.agent.evaluation.rearrange_eval import row_setup
 from tidee.agent.evaluation.tidy_eval import build_jobs
@@ -113,6 +113,19 @@ def test_rearrange_rows_use_the_same_conditions() -> None:
     assert row_setup("do-nothing", agent, spec) == (None, spec)
     oracle, same = row_setup("oracle", agent, spec)
     assert oracle is not None and oracle.perception == "oracle" and same == spec
+
+
+def test_a_rearrangement_detection_threshold_reaches_the_learned_rows_only() -> None:
+    args = build_parser().parse_args(
+        ["eval", "rearrange", "--out", "unused", "--detection-threshold", "0.25"]
+    )
+    cfg = from_args(RearrangeEvalConfig, args)
+    spec = EpisodeSpec(room_type="Kitchen", seed=200, rearrange_index=0)
+    for row in ("clean", *CONDITIONS):
+        agent, _ = row_setup(row, cfg.agent, spec)
+        assert agent is not None and agent.perception == "learned" and agent.detection_threshold == 0.25
+    oracle, _ = row_setup("oracle", cfg.agent, spec)  # the oracle has no scores: it would refuse one
+    assert oracle is not None and oracle.perception == "oracle" and oracle.detection_threshold is None
 
 
 def test_a_short_run_reports_a_row_per_condition(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
