@@ -40,6 +40,7 @@ STARTUP_TIMEOUT_S = (
 FRAMES_BEFORE_SIGNAL = 2  # agent frames seen on the feed before the signal: it is stepping
 RUN_DELAY_S = (0.0, 4.0)  # the signal comes this long after the run is seen running
 SERVER_DELAY_S = (0.0, 3.0)  # after the server process starts, or after its client's first reset
+CLEAR_TIMEOUT_S = 5.0  # the killed members of a try's session are gone within this
 
 
 def session_processes(sid: int) -> dict[int, str]:
@@ -91,6 +92,10 @@ def end_try(proc: subprocess.Popen, sig: int, exit_timeout: float) -> dict[str, 
     if proc.poll() is None:
         proc.kill()
     proc.wait()
+    # A SIGKILLed process lives on until the kernel delivers the signal, later on a busy machine.
+    cleared_by = time.monotonic() + CLEAR_TIMEOUT_S
+    while session_processes(sid) and time.monotonic() < cleared_by:
+        time.sleep(0.05)
     return {"exit_code": code, "exit_s": round(exit_s, 2), "orphans": left}
 
 

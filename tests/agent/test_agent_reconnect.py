@@ -48,7 +48,10 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
     try:
         out = OutputLines(agent)
         out.wait_for("agent: session", deadline)
-        time.sleep(3)  # a few steps into the episode
+        # A few steps into the episode (its log has them), long before its 80th: a fast machine
+        # plays all 80 in about 2.5 s.
+        while _steps_logged(tmp_path / "runs") < 3 and time.monotonic() < deadline:
+            time.sleep(0.02)
         assert agent.poll() is None, out.text
         kill_group(server)
         second = start_tidee(*server_args, output=False)
@@ -67,6 +70,11 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
         kill_group(server)
         if second is not None:
             kill_group(second)
+
+
+def _steps_logged(runs: Path) -> int:
+    """Actions in the agent's episode logs so far."""
+    return sum(f.read_text().count('"kind": "action"') for f in runs.rglob("events.jsonl"))
 
 
 class _GoneClient:
