@@ -70,6 +70,13 @@ def listening(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
+def _gone_or_left(sid: int, until: float) -> dict[int, str]:
+    """Wait until session ``sid`` has no live process or ``until`` (monotonic) passes; what is left."""
+    while (left := session_processes(sid)) and time.monotonic() < until:
+        time.sleep(0.05)
+    return left
+
+
 def end_try(proc: subprocess.Popen, sig: int, exit_timeout: float) -> dict[str, Any]:
     """Send ``sig`` to ``proc`` alone; its exit code and time, and what of its session is left."""
     sid = proc.pid
@@ -80,10 +87,7 @@ def end_try(proc: subprocess.Popen, sig: int, exit_timeout: float) -> dict[str, 
     except subprocess.TimeoutExpired:
         code = None
     exit_s = time.monotonic() - t0
-    deadline = t0 + exit_timeout
-    while session_processes(sid) and time.monotonic() < deadline:  # the rest of the tree: same bound
-        time.sleep(0.1)
-    left = session_processes(sid)
+    left = _gone_or_left(sid, t0 + exit_timeout)  # the rest of the tree: same bound
     for pid in left:  # counted: now clear them, so the next try starts clean
         try:
             os.kill(pid, signal.SIGKILL)
@@ -93,9 +97,7 @@ def end_try(proc: subprocess.Popen, sig: int, exit_timeout: float) -> dict[str, 
         proc.kill()
     proc.wait()
     # A SIGKILLed process lives on until the kernel delivers the signal, later on a busy machine.
-    cleared_by = time.monotonic() + CLEAR_TIMEOUT_S
-    while session_processes(sid) and time.monotonic() < cleared_by:
-        time.sleep(0.05)
+    _gone_or_left(sid, time.monotonic() + CLEAR_TIMEOUT_S)
     return {"exit_code": code, "exit_s": round(exit_s, 2), "orphans": left}
 
 

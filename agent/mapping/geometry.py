@@ -202,6 +202,12 @@ class GridSpec:
         q = (p[:, :2] - np.asarray(self.origin)) / self.cell
         return np.floor(q).astype(np.int64)
 
+    def flat_index(self, xy: np.ndarray) -> np.ndarray:
+        """int64 N: the row-major flat index of the cell holding each start-frame point (Nx2 or
+        Nx3, metres), -1 off the grid."""
+        ij = self.world_to_cell(xy)
+        return np.where(self.in_bounds(ij), ij[:, 0] * self.shape[1] + ij[:, 1], -1)
+
     @staticmethod
     def centred(size: int = 256, cell: float = 0.05) -> GridSpec:
         """A ``size`` x ``size`` grid of ``cell`` metres centred on the start pose."""

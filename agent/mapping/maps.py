@@ -249,10 +249,9 @@ class SemanticMapper:
         vflat = self._voxel_index(pts)
         self.occupancy.reshape(-1)[vflat[vflat >= 0]] = True
 
-        ny = self.grid.shape[1]
-        ij = self.grid.world_to_cell(pts[:, :2])
-        inside = self.grid.in_bounds(ij)
-        flat = (ij[:, 0] * ny + ij[:, 1])[inside]
+        flat = self.grid.flat_index(pts)
+        inside = flat >= 0
+        flat = flat[inside]
         z = pts[inside, 2]
         _count_once(self.seen_count, flat)
         band = (z >= cfg.obstacle_z[0]) & (z < cfg.obstacle_z[1]) & ~passable[inside]
@@ -280,9 +279,7 @@ class SemanticMapper:
             ray = np.repeat(np.arange(n.size), n)
             s = (np.arange(1, int(n.sum()) + 1) - np.repeat(np.cumsum(n) - n, n)).astype(np.float32) * step
             along = np.stack([cam[a] + unit[ray, a] * s for a in range(3)], axis=1)
-            ij = self.grid.world_to_cell(along)
-            flat = np.where(self.grid.in_bounds(ij), ij[:, 0] * self.grid.shape[1] + ij[:, 1], -1)
-            _count_once(self.pass_frames, self._slab_index(flat, along[:, 2]))
+            _count_once(self.pass_frames, self._slab_index(self.grid.flat_index(along), along[:, 2]))
         held = (self.hit_frames > self.pass_frames) & (self.hit_frames >= self.config.carve_min_hits)
         self.obstacle = self.stamped | held.any(axis=2)
 

@@ -18,6 +18,7 @@ from tidee.agent.config import AgentConfig
 from tidee.agent.process import AgentProcessConfig, _run_until_done
 from tidee.launch import free_port
 from tidee.protocol.client import RemoteError
+from tidee.protocol.episode_log import TLOG_NAME, LogReader
 from tidee.protocol.messages import EpisodeSpec, ErrorCode
 
 
@@ -73,8 +74,14 @@ def test_agent_survives_a_server_restart(tmp_path: Path) -> None:
 
 
 def _steps_logged(runs: Path) -> int:
-    """Actions in the agent's episode logs so far."""
-    return sum(f.read_text().count('"kind": "action"') for f in runs.rglob("events.jsonl"))
+    """Actions in the agent's episode logs so far (a log not yet begun counts none)."""
+    n = 0
+    for log in runs.rglob(TLOG_NAME):
+        try:
+            n += sum(e.get("kind") == "action" for e in LogReader(log.parent).events())
+        except (FileNotFoundError, ValueError):
+            pass
+    return n
 
 
 class _GoneClient:
