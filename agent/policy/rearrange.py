@@ -87,6 +87,7 @@ REMATCH_ROUNDS = 4  # matchings tried at most (``match_phases``)
 MERGED_RATIO = 1.4  # a walkthrough track this many times its stayed match's size (and
 MERGED_GAIN_M = 0.05  # this much larger) may be that object and another one tracked as one
 SAME_PIECE_M = 1.2  # two tracks of an openable class this close are one piece of furniture
+STEP_UP_M = 0.7  # an openable's part in view but out of reach: walk to within this of it (x, y)
 DOOR_CELLS = 8  # obstacle cells (5 cm) that must appear or vanish beside a floor-standing openable
 FLOOR_STANDING_Z = 0.3  # an openable whose box starts below this stands on the floor
 FLOOR_Z = 0.08  # a remembered object whose box starts this low stood on the floor
@@ -750,7 +751,9 @@ class RearrangePolicy(TidyPolicy):
     def restore_openness(self, t: Toggle) -> Gen:
         """Walk to the openable and set it back: Close when its box grew, Open when it shrank.
         A pixel nearer another tracked openable than this one is not acted on (``neighbour_at``:
-        that would toggle the neighbour); the next standpoint is tried. When the server says it
+        that would toggle the neighbour); the next standpoint is tried. A part in view beyond
+        reach (the walk ends by the box's near edge, the end of an open door) is walked up to
+        first (``STEP_UP_M``). When the server says it
         already is, it is left so: either it is as the walkthrough saw it or the direction was
         guessed wrong, and the other action was making things worse more often than not."""
         st = self.state
@@ -762,6 +765,10 @@ class RearrangePolicy(TidyPolicy):
             yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=self.p.goal_step_budget)
             yield from face_point(self.body, t.now.centroid)
             sighting = find_in_view(self.body, t.now, max_pixel_gap=0.3)
+            if sighting is not None and sighting.distance > self.p.interact_m:
+                # the walk stops at the box's near edge, an open door's end, from where the
+                # part in view is out of reach: walk up to that part and look again
+                sighting = yield from self._step_up_to(t.now, sighting.point)
             if sighting is None or sighting.distance > self.p.interact_m:
                 continue
             other = neighbour_at(sighting.point, t.now, self.body.mapper.memory)
@@ -792,6 +799,19 @@ class RearrangePolicy(TidyPolicy):
         self.event("openness_failed", label=t.now.label, track_id=t.now.id)
         st.target = None
         return False
+
+    def _step_up_to(self, track: TrackedObject, point: np.ndarray) -> Gen:
+        """Walk to within ``STEP_UP_M`` (x, y) of ``point``, the part of ``track`` in view, face
+        it and look again: the sighting there (None when gone from view)."""
+        yield from navigate(
+            self.body,
+            goal_xy=(float(point[0]), float(point[1])),
+            radius=STEP_UP_M,
+            stop_radius=0.05,
+            budget=self.p.goal_step_budget,
+        )
+        yield from face_point(self.body, point)
+        return find_in_view(self.body, track, max_pixel_gap=0.3)
 
     # ------------------------------------------------------------------ objects
     def put_back(self, m: Move) -> Gen:

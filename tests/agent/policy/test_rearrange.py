@@ -12,6 +12,7 @@ import pytest
 from tidee.agent.mapping.geometry import GridSpec
 from tidee.agent.mapping.memory import TrackedObject
 from tidee.agent.policy.rearrange import (
+    STEP_UP_M,
     Occupancy,
     Seen,
     _pairs,
@@ -235,12 +236,17 @@ def test_a_pixel_nearer_another_openable_is_that_ones() -> None:
 
 
 def _restore(
-    monkeypatch: pytest.MonkeyPatch, points: list[np.ndarray], replies: list[str | None]
+    monkeypatch: pytest.MonkeyPatch,
+    points: list[np.ndarray],
+    replies: list[str | None],
+    distances: list[float] | None = None,
+    walks: list[dict[str, object]] | None = None,
 ) -> tuple[list[str], list[str], bool]:
     """Run ``restore_openness`` for a fridge that was opened (its box grew), beside a cabinet,
-    with the walk and the turn stubbed out: each standpoint's sighting is at the next of
-    ``points``, and the server answers the agent's actions with the next of ``replies`` (None:
-    done). Returns the actions, the events and the skill's result."""
+    with the walk and the turn stubbed out: each look's sighting is at the next of ``points``,
+    the next of ``distances`` from the eye (0.8 m when None), and the server answers the
+    agent's actions with the next of ``replies`` (None: done). Each walk's keyword arguments
+    go to ``walks``. Returns the actions, the events and the skill's result."""
     from types import SimpleNamespace
 
     from tidee.agent.classes import CLASSES
@@ -262,14 +268,23 @@ def _restore(
         AgentConfig(), body, None, None, "Kitchen", lambda **kw: events.append(kw["kind"])
     )
     views = iter(points)
+    far = iter(distances or [0.8] * len(points))
 
     def stay(*args: object, **kwargs: object) -> Gen:
         return True
         yield
 
-    monkeypatch.setattr(rearrange, "navigate", stay)
+    def walk(*args: object, **kwargs: object) -> Gen:
+        if walks is not None:
+            walks.append(kwargs)
+        return True
+        yield
+
+    monkeypatch.setattr(rearrange, "navigate", walk)
     monkeypatch.setattr(rearrange, "face_point", stay)
-    monkeypatch.setattr(rearrange, "find_in_view", lambda *a, **k: Sighting(None, 4, 4, 0.8, next(views)))
+    monkeypatch.setattr(
+        rearrange, "find_in_view", lambda *a, **k: Sighting(None, 4, 4, next(far), next(views))
+    )
     toggle = rearrange.Toggle(fridge, Seen.of(fridge), opened=True, change_m=0.5)
     run, answers, actions = policy.restore_openness(toggle), iter(replies), []
     try:
@@ -303,6 +318,25 @@ def test_a_pixel_on_the_neighbour_is_skipped_and_a_blocked_door_retried(
         and events == ["openness_neighbour", "openness_neighbour", "openness_failed"]
         and not done
     )
+
+
+def test_an_openable_in_view_beyond_reach_is_walked_up_to(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the walk to the fridge's box ends by its open door's end; the part in view is 1.45 m off
+    on_fridge, nearer = np.array([0.8, -0.4, 1.0]), np.array([0.75, -0.35, 1.0])
+    walks: list[dict[str, object]] = []
+    actions, events, done = _restore(
+        monkeypatch, [on_fridge, nearer], [None], distances=[1.45, 0.9], walks=walks
+    )
+    assert actions == ["CloseObject"] and events == ["openness_restored"] and done
+    assert walks[0]["goal_mask"] is not None  # the walk to the box, then one up to the point seen
+    assert walks[1]["goal_xy"] == (0.8, -0.4) and walks[1]["radius"] == STEP_UP_M
+    # still beyond reach from there: the next standpoint (a wider ring round the box), then give up
+    walks.clear()
+    actions, events, done = _restore(
+        monkeypatch, [on_fridge] * 4, [], distances=[1.45, 1.45, 1.6, 1.5], walks=walks
+    )
+    assert actions == [] and events == ["openness_failed"] and not done
+    assert [("goal_mask" in w, "goal_xy" in w) for w in walks] == [(True, False), (False, True)] * 2
 
 
 def test_a_second_instance_that_stayed_near_the_old_place_does_not_hide_a_move() -> None:
