@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import sys
 from collections.abc import Iterator
 
 import pytest
@@ -11,6 +13,25 @@ from tests.support.net import start_server, wait_until
 from tidee.protocol import keys
 from tidee.protocol.zenoh_config import make_config
 from tidee.server.service import SimServer
+
+_EXIT_STATUS: list[int] = []
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    _EXIT_STATUS.append(int(exitstatus))
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """End the test process once pytest is done, without the interpreter's finalization. A
+    native thread (Zenoh's runtime and others) that calls into Python while the interpreter
+    finalizes is ended by CPython with a forced unwind, which native frames can swallow: the
+    process then aborts ("FATAL: exception not rethrown") after every test has passed, and the
+    command fails. Output is flushed first; the exit status is pytest's."""
+    if _EXIT_STATUS:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(_EXIT_STATUS[-1])
 
 
 @pytest.fixture
