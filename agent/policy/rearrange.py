@@ -753,9 +753,9 @@ class RearrangePolicy(TidyPolicy):
         A pixel nearer another tracked openable than this one is not acted on (``neighbour_at``:
         that would toggle the neighbour); the next standpoint is tried. A part in view beyond
         reach (the walk ends by the box's near edge, the end of an open door) is walked up to
-        first (``STEP_UP_M``). When the server says it
-        already is, it is left so: either it is as the walkthrough saw it or the direction was
-        guessed wrong, and the other action was making things worse more often than not."""
+        first (``STEP_UP_M``). When the server says it already is, it is left so: either it is
+        as the walkthrough saw it or the direction was guessed wrong, and the other action was
+        making things worse more often than not."""
         st = self.state
         st.target, st.phase, st.target_receptacle = t.now, "approaching", None
         shape = self.body.obs.depth.shape
