@@ -16,8 +16,11 @@ pseudo code::
         after m failed tries per class: drop the object where the agent stands
     with a household's preferences, when no OOP object is left: each object a category
         preference names and the agent has not handled: walk up to it (mapped) or search
-        for it (not mapped) and put it where asked if it is not there (OOP objects met on
-        the way are tidied; they start no new round of search goals)
+        for it (not mapped, and none of it put away yet) and put it where asked if it is not
+        there (OOP objects met on the way are tidied; they start no new round of search goals)
+    an object this agent put away is never picked again, unless a preference names it and
+        finds it out of place where it came to rest, on another receptacle than the one the put
+        aimed at: picked again, twice per category at most
     Done
 
 Approaching an object or a receptacle that is not in view or not within reach from the spot
@@ -35,7 +38,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from tidee.agent.classes import OPENABLE, PICKUPABLE, PLACEABLE_RECEPTACLES
+from tidee.agent.classes import OPENABLE, PICKUPABLE, PLACEABLE_RECEPTACLES, RECEPTACLES
 from tidee.agent.config import AgentConfig
 from tidee.agent.mapping.config import MapConfig
 from tidee.agent.mapping.memory import TrackedObject
@@ -85,6 +88,9 @@ REAIM_AFTER_OPENING = (
 )  # errors of an aim gone stale
 APPROACH_TRIES = 4  # walks to get an object or a receptacle in view and within reach
 ASKED_SEARCH_FACTOR = 2  # a receptacle a preference asks for gets this many times the search goals
+PUT_AGAIN = 2  # a category's puts that missed what a preference asks are tried again this many times
+SURE_SUPPORT_OBS = 5  # ... when they rest on a receptacle tracked at least this often (or the floor)
+AIMED_MARGIN_M = 0.1  # ... and lie farther than this (x, y) from every track of the one aimed at
 
 
 class Searcher(Protocol):
@@ -150,12 +156,14 @@ class TidyPolicy:
         self.state = PolicyState()
         self.on_event = on_event
         self.placed: list[tuple[str, np.ndarray]] = []  # (label, xy) of objects this agent put away
+        self.placed_on: list[str] = []  # ... and the receptacle each put aimed at
         self.dropped: list[tuple[str, np.ndarray]] = []  # (label, agent xy) of objects it gave up on
         self.flagged: set[int] = set()
         self.frontier = FrontierExplorer(body.mapper.grid)
         self._rescore = True
         self._last_put_xy = np.zeros(2)
         self._asked_searched: set[str] = set()  # named categories searched for after the tidying
+        self._put_again: dict[int, str] = {}  # track id -> label: puts that missed (``_note_misputs``)
 
     @staticmethod
     def map_config(config: MapConfig) -> MapConfig:
@@ -182,10 +190,12 @@ class TidyPolicy:
         targets = [o for o in objs if o.label in PICKUPABLE]
         probs = self.oop.score_all(targets, objs, self.room_type)
         if self.preferences is not None:
-            probs = self.preferences.adjust_oop(probs, targets, objs)
+            verdicts = self.preferences.verdicts(targets, objs)
+            probs = {**probs, **verdicts}
+            self._note_misputs([o for o in targets if verdicts.get(o.id) == 1.0], objs)
         for o in targets:
             o.oop_prob = float(probs[o.id])
-            o.out_of_place = o.oop_prob >= self.p.oop_threshold and not self._is_placed(o)
+            o.out_of_place = o.oop_prob >= self.p.oop_threshold and not self._held_back(o)
             if o.out_of_place and o.id not in self.flagged:
                 self.flagged.add(o.id)
                 self.state.oop_found += 1
@@ -199,6 +209,51 @@ class TidyPolicy:
                     centroid=[round(float(v), 3) for v in o.centroid],
                 )
 
+    def _held_back(self, o: TrackedObject) -> bool:
+        """Not to be picked: put away (or dropped) by this agent, unless the put missed what a
+        household asked (``_note_misputs``)."""
+        return self._is_placed(o) and o.id not in self._put_again
+
+    def _note_misputs(self, misplaced: list[TrackedObject], objects: list[TrackedObject]) -> None:
+        """Tracks the preferences find out of place where this agent put them, resting on
+        something else than the receptacle the put aimed at: on the floor (a plate put at a
+        pixel of a cabinet whose ray met the floor in front of it), or on a receptacle tracked
+        at least ``SURE_SUPPORT_OBS`` times, away from every track of the one aimed at (a teddy
+        bear aimed at the sofa, on the coffee table in front of it). Over the receptacle aimed at,
+        the support rules' answer is not believed (lettuce on the counter above a stool the map
+        knows well). Each is picked again, up to ``PUT_AGAIN`` times per category."""
+        from tidee.agent.reasoning.oop import as_ref
+        from tidee.agent.reasoning.relations import supported_by
+
+        recs = [as_ref(r) for r in objects if r.label in RECEPTACLES]
+        for o in misplaced:
+            aimed = self._put_target(o)
+            if o.id in self._put_again or aimed is None:
+                continue
+            sup = supported_by(as_ref(o), [r for r in recs if r.id != o.id], xy_margin_m=0.7)
+            if isinstance(sup, str):
+                on, sure = sup, True
+            else:
+                on = sup.label
+                sure = any(r.id == sup.id and r.n_obs >= SURE_SUPPORT_OBS for r in objects) and not any(
+                    r.label == aimed
+                    and footprint_gap(r.box_min, r.box_max, *o.centroid[:2]) <= AIMED_MARGIN_M
+                    for r in objects
+                )
+            if on == aimed or not sure:
+                continue
+            tries = sum(1 for label in self._put_again.values() if label == o.label)
+            if tries < PUT_AGAIN:
+                self._put_again[o.id] = o.label
+                self.event("put_missed", label=o.label, track_id=o.id, aimed=aimed, rests_on=on)
+
+    def _put_target(self, o: TrackedObject) -> str | None:
+        """The receptacle this agent aimed at when it put ``o`` where it lies (None: not put by it)."""
+        for (label, xy), target in zip(self.placed, self.placed_on):
+            if label == o.label and np.linalg.norm(o.centroid[:2] - xy) < 0.6:
+                return target
+        return None
+
     def _is_placed(self, o: TrackedObject) -> bool:
         """Put there by this agent: never picked again (a dropped object, whose receptacle was
         not found or was full, would otherwise be picked, carried and dropped in a loop)."""
@@ -211,7 +266,7 @@ class TidyPolicy:
         objs = [
             o
             for o in self.body.mapper.memory
-            if o.out_of_place and not o.meta.get("give_up") and not self._is_placed(o)
+            if o.out_of_place and not o.meta.get("give_up") and not self._held_back(o)
         ]
         return sorted(objs, key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
 
@@ -263,25 +318,27 @@ class TidyPolicy:
         """After the usual tidying, the next object a category preference names that the agent
         has not handled: (category, track) for a mapped one not visited for it yet (its OOP
         score left it alone, or an approach gave up on it: from up close the agent judges it
-        again), (category, None) for a category it has not mapped, to search for like a
-        receptacle; None when every named category is handled (one of it put away by the
-        agent, its mapped ones visited, or searched for in vain)."""
+        again; also after one of its category was put away: the preference names every one),
+        (category, None) for a category it has not mapped and has put none of away, to search
+        for like a receptacle; None when every named category is handled (its mapped ones
+        visited, and one put away or searched for in vain)."""
         if self.preferences is None:
             return None
         memory, xy = self.body.mapper.memory, self.body.xy
         for cat in self.preferences.named_categories():
-            if cat not in PICKUPABLE or any(lbl == cat for lbl, _ in self.placed):
+            if cat not in PICKUPABLE:
                 continue
             tracks = [
                 o
                 for o in memory.of_label(cat)
                 if not o.meta.get("asked_visit")
-                and not self._is_placed(o)
+                and not self._held_back(o)
                 and (not o.meta.get("give_up") or o.n_obs >= 2)
             ]
             if tracks:
                 return cat, min(tracks, key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
-            if cat not in self._asked_searched and not memory.of_label(cat):
+            put_away = any(lbl == cat for lbl, _ in self.placed)
+            if cat not in self._asked_searched and not memory.of_label(cat) and not put_away:
                 return cat, None
         return None
 
@@ -636,6 +693,7 @@ class TidyPolicy:
     def _placed(self, label: str, receptacle: str) -> bool:
         self.state.objects_fixed += 1
         self.placed.append((label, self.body.xy.copy() if receptacle == FLOOR else self._last_put_xy))
+        self.placed_on.append(receptacle)
         self._rescore = True
         self.event("placed", label=label, receptacle=receptacle)
         return True

@@ -27,9 +27,14 @@ OOP detector and placement model:
   (then searches for another, with twice the usual search goals) before the model's next
   choice (``TidyPolicy.put_away``);
 * **did it find them?** after its usual tidying the policy looks for the objects the category
-  preferences name (``named_categories``) that it has not handled: it walks up to a mapped
-  one its OOP score left alone (it judges again from up close) and searches, like for a
-  receptacle, for one it has not seen (``TidyPolicy.asked_object_goal``).
+  preferences name (``named_categories``) that it has not handled: it walks up to every
+  mapped one its OOP score left alone (it judges again from up close), also after it has put
+  one of that category away, and searches, like for a receptacle, for a category it has not
+  seen (``TidyPolicy.asked_object_goal``);
+* **did the put land where asked?** an object the agent put away is judged again where it came
+  to rest: when a preference finds it out of place there, on something else than the put aimed
+  at (the put's ray met the floor in front of the cabinet), it is picked again
+  (``TidyPolicy._note_misputs``).
 
 Sentences a person types in the viewer join the profile and, when it came from a file, are
 written back to it, so a household's preferences persist from one run to the next.
@@ -222,7 +227,15 @@ class PreferenceProfile:
         self, probs: Mapping[int, float], targets: Sequence[TrackedObject], objects: Sequence[TrackedObject]
     ) -> dict[int, float]:
         """P(out of place) after the preferences (see the module docstring)."""
-        out = dict(probs)
+        return {**probs, **self.verdicts(targets, objects)}
+
+    def verdicts(
+        self, targets: Sequence[TrackedObject], objects: Sequence[TrackedObject]
+    ) -> dict[int, float]:
+        """What the preferences decide for the ``targets`` they name, by track id: 1.0 out of
+        place, 0.0 in place; a track they decide nothing about (seen too few times to move, or
+        resting elsewhere than a "never" preference forbids) is left out."""
+        out: dict[int, float] = {}
         named = [t for t in targets if self.about(t.label)]
         if not named:
             return out
