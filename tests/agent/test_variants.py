@@ -873,6 +873,24 @@ def test_objects_met_on_the_way_to_an_asked_one_start_no_new_round_of_search_goa
     assert len(random_goals) == 3 + policy2.p.k_empty_goals
 
 
+class _FlatOOP:
+    """The same P(out of place) for every target."""
+
+    def __init__(self, p):
+        self.p = p
+
+    def score_all(self, targets, objects, room_type):
+        return {t.id: self.p for t in targets}
+
+
+def _box(mem, label, lo, hi, n_obs=1):
+    """A track with this box (centred in it), seen ``n_obs`` times."""
+    lo, hi = np.array(lo, float), np.array(hi, float)
+    track = mem.add_or_merge(label, 0.9, (lo + hi) / 2, lo, hi, 1)
+    track.n_obs = n_obs
+    return track
+
+
 def test_a_put_that_missed_what_a_household_asked_is_picked_again_twice_per_category():
     # The plate was put at a pixel of the cabinet, but the server's ray met the floor in front of
     # it: the preference finds the plate out of place where the agent put it. Without preferences
@@ -881,20 +899,10 @@ def test_a_put_that_missed_what_a_household_asked_is_picked_again_twice_per_cate
 
     policy, events = _policy(variant="CommonMemory")
     mem = policy.body.mapper.memory
-    mem.add_or_merge(
-        "Cabinet", 0.9, np.array([2.0, 0.0, 0.4]), np.array([1.8, -0.4, 0.0]), np.array([2.2, 0.4, 0.8]), 1
-    )
+    _box(mem, "Cabinet", [1.8, -0.4, 0.0], [2.2, 0.4, 0.8])
 
     def plate(x):
-        t = mem.add_or_merge(
-            "Plate",
-            0.9,
-            np.array([x, 2.0, 0.01]),
-            np.array([x - 0.1, 1.9, 0.0]),
-            np.array([x + 0.1, 2.1, 0.02]),
-            1,
-        )
-        t.n_obs = 2
+        t = _box(mem, "Plate", [x - 0.1, 1.9, 0.0], [x + 0.1, 2.1, 0.02], n_obs=2)
         policy.placed.append(("Plate", np.array([x, 2.0])))
         policy.placed_on.append("Cabinet")  # aimed at the cabinet, landed on the floor
         return t
@@ -903,8 +911,7 @@ def test_a_put_that_missed_what_a_household_asked_is_picked_again_twice_per_cate
         policy._rescore = True
         policy.score_objects()
 
-    policy.oop = _StubOOP(probs={})
-    policy.oop.score_all = lambda targets, objects, room_type: {t.id: 0.2 for t in targets}
+    policy.oop = _FlatOOP(0.2)
     policy.state.phase = "searching"
     first = plate(0.0)
     score()
@@ -927,31 +934,12 @@ def test_a_put_is_missed_only_on_a_support_seen_often_away_from_the_one_aimed_at
     policy, events = _policy(variant="CommonMemory")
     policy.preferences = PreferenceProfile([parse_preference("the wine bottle goes on the tv stand")])
     mem = policy.body.mapper.memory
-    stand = mem.add_or_merge(
-        "TVStand", 0.9, np.array([1.4, 1.6, 0.3]), np.array([0.9, 0.5, 0.0]), np.array([1.9, 2.8, 0.6]), 1
-    )
-    stand.n_obs = 50
-    shelf = mem.add_or_merge(
-        "Shelf",
-        0.4,
-        np.array([1.36, 1.0, 0.05]),
-        np.array([1.32, 0.77, 0.0]),
-        np.array([1.41, 1.19, 0.09]),
-        1,
-    )
-    bottle = mem.add_or_merge(
-        "WineBottle",
-        0.9,
-        np.array([1.41, 0.97, 0.7]),
-        np.array([1.39, 0.94, 0.548]),
-        np.array([1.43, 1.02, 0.82]),
-        1,
-    )
-    bottle.n_obs = 2
+    _box(mem, "TVStand", [0.9, 0.5, 0.0], [1.9, 2.8, 0.6], n_obs=50)
+    shelf = _box(mem, "Shelf", [1.32, 0.77, 0.0], [1.41, 1.19, 0.09])
+    bottle = _box(mem, "WineBottle", [1.39, 0.94, 0.548], [1.43, 1.02, 0.82], n_obs=2)
     policy.placed.append(("WineBottle", np.array([1.4, 1.0])))
     policy.placed_on.append("TVStand")
-    policy.oop = _StubOOP(probs={})
-    policy.oop.score_all = lambda targets, objects, room_type: {t.id: 0.2 for t in targets}
+    policy.oop = _FlatOOP(0.2)
     policy.state.phase = "searching"
 
     def missed():
