@@ -218,10 +218,10 @@ class TidyPolicy:
         """Tracks the preferences find out of place where this agent put them, resting on
         something else than the receptacle the put aimed at: on the floor (a plate put at a
         pixel of a cabinet whose ray met the floor in front of it), or on a receptacle tracked
-        at least ``SURE_SUPPORT_OBS`` times, away from every track of the one aimed at (a teddy
-        bear aimed at the sofa, on the coffee table in front of it). Over the receptacle aimed at,
-        the support rules' answer is not believed (lettuce on the counter above a stool the map
-        knows well). Each is picked again, up to ``PUT_AGAIN`` times per category."""
+        at least ``SURE_SUPPORT_OBS`` times, more than ``AIMED_MARGIN_M`` from every track of the
+        one aimed at. Over the receptacle aimed at, the support rules' answer is not believed
+        (lettuce on the counter above a stool the map knows well). Each is picked again, up to
+        ``PUT_AGAIN`` times per category."""
         from tidee.agent.reasoning.oop import as_ref
         from tidee.agent.reasoning.relations import supported_by
 
