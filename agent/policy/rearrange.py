@@ -1003,8 +1003,7 @@ class RearrangePolicy(TidyPolicy):
         """Count a put; ``target``: the point it reached for (start frame; the evaluation splits
         a put's error into the estimate's and the landing's)."""
         self.state.objects_fixed += 1
-        self.placed.append((seen.label, seen.centroid[:2].copy()))
-        self.placed_on.append(self.state.target_receptacle or "")
+        self.placed.append((seen.label, seen.centroid[:2].copy(), self.state.target_receptacle or ""))
         where = {} if target is None else {"target": [round(float(v), 3) for v in target]}
         self.event("put_back", label=seen.label, how=how, receptacle=self.state.target_receptacle, **where)
         return True

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from tidee.agent.classes import OPENABLE, PICKUPABLE, PLACEABLE_RECEPTACLES, RECEPTACLES
+from tidee.agent.classes import OPENABLE, PICKUPABLE, PLACEABLE_RECEPTACLES
 from tidee.agent.config import AgentConfig
 from tidee.agent.mapping.config import MapConfig
 from tidee.agent.mapping.memory import TrackedObject
@@ -71,7 +71,7 @@ from tidee.agent.policy.skills import (
     receptacle_in_view,
     sighting_of,
 )
-from tidee.agent.reasoning.oop import OOPDetector
+from tidee.agent.reasoning.oop import OOPDetector, supports
 from tidee.agent.reasoning.placement import PlacementModel
 from tidee.protocol.messages import Action, ActionName
 
@@ -155,8 +155,8 @@ class TidyPolicy:
         self.rng = np.random.default_rng(config.seed)
         self.state = PolicyState()
         self.on_event = on_event
-        self.placed: list[tuple[str, np.ndarray]] = []  # (label, xy) of objects this agent put away
-        self.placed_on: list[str] = []  # ... and the receptacle each put aimed at
+        # (label, xy, receptacle the put aimed at) of the objects this agent put away
+        self.placed: list[tuple[str, np.ndarray, str]] = []
         self.dropped: list[tuple[str, np.ndarray]] = []  # (label, agent xy) of objects it gave up on
         self.flagged: set[int] = set()
         self.frontier = FrontierExplorer(body.mapper.grid)
@@ -222,15 +222,12 @@ class TidyPolicy:
         one aimed at. Over the receptacle aimed at, the support rules' answer is not believed
         (lettuce on the counter above a stool the map knows well). Each is picked again, up to
         ``PUT_AGAIN`` times per category."""
-        from tidee.agent.reasoning.oop import as_ref
-        from tidee.agent.reasoning.relations import supported_by
-
-        recs = [as_ref(r) for r in objects if r.label in RECEPTACLES]
+        misplaced = [o for o in misplaced if o.id not in self._put_again and self._put_target(o) is not None]
+        if not misplaced:
+            return
+        rests_on = supports(misplaced, objects)
         for o in misplaced:
-            aimed = self._put_target(o)
-            if o.id in self._put_again or aimed is None:
-                continue
-            sup = supported_by(as_ref(o), [r for r in recs if r.id != o.id], xy_margin_m=0.7)
+            aimed, sup = self._put_target(o), rests_on[o.id]
             if isinstance(sup, str):
                 on, sure = sup, True
             else:
@@ -249,7 +246,7 @@ class TidyPolicy:
 
     def _put_target(self, o: TrackedObject) -> str | None:
         """The receptacle this agent aimed at when it put ``o`` where it lies (None: not put by it)."""
-        for (label, xy), target in zip(self.placed, self.placed_on):
+        for label, xy, target in self.placed:
             if label == o.label and np.linalg.norm(o.centroid[:2] - xy) < 0.6:
                 return target
         return None
@@ -258,7 +255,7 @@ class TidyPolicy:
         """Put there by this agent: never picked again (a dropped object, whose receptacle was
         not found or was full, would otherwise be picked, carried and dropped in a loop)."""
         return any(
-            lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 0.6 for lbl, xy in self.placed
+            lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 0.6 for lbl, xy, _ in self.placed
         ) or any(lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 1.2 for lbl, xy in self.dropped)
 
     def _candidates(self) -> list[TrackedObject]:
@@ -337,7 +334,7 @@ class TidyPolicy:
             ]
             if tracks:
                 return cat, min(tracks, key=lambda o: float(np.linalg.norm(o.centroid[:2] - xy)))
-            put_away = any(lbl == cat for lbl, _ in self.placed)
+            put_away = any(lbl == cat for lbl, _, _ in self.placed)
             if cat not in self._asked_searched and not memory.of_label(cat) and not put_away:
                 return cat, None
         return None
@@ -692,8 +689,9 @@ class TidyPolicy:
 
     def _placed(self, label: str, receptacle: str) -> bool:
         self.state.objects_fixed += 1
-        self.placed.append((label, self.body.xy.copy() if receptacle == FLOOR else self._last_put_xy))
-        self.placed_on.append(receptacle)
+        self.placed.append(
+            (label, self.body.xy.copy() if receptacle == FLOOR else self._last_put_xy, receptacle)
+        )
         self._rescore = True
         self.event("placed", label=label, receptacle=receptacle)
         return True

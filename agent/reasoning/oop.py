@@ -23,7 +23,7 @@ from typing import Any, Protocol, TypeVar
 
 from tidee.agent.classes import RECEPTACLES
 from tidee.agent.mapping.memory import TrackedObject
-from tidee.agent.reasoning.relations import ObjectRef, supported_by
+from tidee.agent.reasoning.relations import ObjectRef, Support, supported_by
 from tidee.agent.reasoning.stats import PlacementStats
 
 FLOOR = "Floor"
@@ -46,18 +46,24 @@ def support_label(obj: TrackedObject, others: list[TrackedObject]) -> str:
 
 
 def support_labels(targets: list[TrackedObject], objects: list[TrackedObject]) -> dict[int, str]:
-    """``support_label`` for many targets, building each object's reference once.
+    """``support_label`` for many targets, building each object's reference once."""
+    return {
+        tid: sup if isinstance(sup, str) else sup.label for tid, sup in supports(targets, objects).items()
+    }
+
+
+def supports(targets: list[TrackedObject], objects: list[TrackedObject]) -> dict[int, Support]:
+    """What each target rests on (``supported_by``): "Floor" or a receptacle's reference, whose
+    ``id`` is its track's.
 
     The x, y margin is wide (0.7 m) because the agent's boxes of big receptacles come from
     the surfaces it saw: a counter seen from the front is a thin slab at its front edge,
     while the knife on it lies 0.4 m further back. The height rule picks the right one.
     """
     recs = [as_ref(o) for o in objects if o.label in RECEPTACLES]
-    out = {}
-    for t in targets:
-        sup = supported_by(as_ref(t), [r for r in recs if r.id != t.id], xy_margin_m=0.7)
-        out[t.id] = sup if isinstance(sup, str) else sup.label
-    return out
+    return {
+        t.id: supported_by(as_ref(t), [r for r in recs if r.id != t.id], xy_margin_m=0.7) for t in targets
+    }
 
 
 class OOPDetector(Protocol):

@@ -772,7 +772,7 @@ def test_after_tidying_the_objects_a_household_names_are_visited_or_searched_for
     # a category the agent already put away is not searched for again, but another mapped one
     # of it is visited (the preference names every mug)
     del stray.meta["give_up"]
-    policy.placed.append(("Mug", np.array([5.0, 5.0])))
+    policy.placed.append(("Mug", np.array([5.0, 5.0]), "Shelf"))
     assert policy.asked_object_goal() == ("Mug", stray)
     stray.meta["asked_visit"] = True
     assert policy.asked_object_goal() is None
@@ -903,8 +903,9 @@ def test_a_put_that_missed_what_a_household_asked_is_picked_again_twice_per_cate
 
     def plate(x):
         t = _box(mem, "Plate", [x - 0.1, 1.9, 0.0], [x + 0.1, 2.1, 0.02], n_obs=2)
-        policy.placed.append(("Plate", np.array([x, 2.0])))
-        policy.placed_on.append("Cabinet")  # aimed at the cabinet, landed on the floor
+        policy.placed.append(
+            ("Plate", np.array([x, 2.0]), "Cabinet")
+        )  # aimed at the cabinet, landed on the floor
         return t
 
     def score():
@@ -937,8 +938,7 @@ def test_a_put_is_missed_only_on_a_support_seen_often_away_from_the_one_aimed_at
     _box(mem, "TVStand", [0.9, 0.5, 0.0], [1.9, 2.8, 0.6], n_obs=50)
     shelf = _box(mem, "Shelf", [1.32, 0.77, 0.0], [1.41, 1.19, 0.09])
     bottle = _box(mem, "WineBottle", [1.39, 0.94, 0.548], [1.43, 1.02, 0.82], n_obs=2)
-    policy.placed.append(("WineBottle", np.array([1.4, 1.0])))
-    policy.placed_on.append("TVStand")
+    policy.placed.append(("WineBottle", np.array([1.4, 1.0]), "TVStand"))
     policy.oop = _FlatOOP(0.2)
     policy.state.phase = "searching"
 
@@ -951,7 +951,15 @@ def test_a_put_is_missed_only_on_a_support_seen_often_away_from_the_one_aimed_at
     assert bottle.oop_prob == 1.0  # the preference reads it as on the shelf, but the map is unsure
     shelf.n_obs = SURE_SUPPORT_OBS
     assert missed() == []  # a well-seen shelf, but the bottle is over the tv stand aimed at
-    policy.placed_on[0] = "Shelf"  # the put aimed at the shelf (no tv stand found): no second try
+    policy.placed[0] = (
+        "WineBottle",
+        np.array([1.4, 1.0]),
+        "Shelf",
+    )  # the put aimed at the shelf (no tv stand found): no second try
     assert missed() == []
-    policy.placed_on[0] = "Sofa"  # aimed at a sofa (none tracked here), on a shelf seen often
+    policy.placed[0] = (
+        "WineBottle",
+        np.array([1.4, 1.0]),
+        "Sofa",
+    )  # aimed at a sofa (none tracked here), on a shelf seen often
     assert missed() == ["Shelf"] and bottle.out_of_place
