@@ -254,9 +254,9 @@ class TidyPolicy:
     def _is_placed(self, o: TrackedObject) -> bool:
         """Put there by this agent: never picked again (a dropped object, whose receptacle was
         not found or was full, would otherwise be picked, carried and dropped in a loop)."""
-        return any(
-            lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 0.6 for lbl, xy, _ in self.placed
-        ) or any(lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 1.2 for lbl, xy in self.dropped)
+        return self._put_target(o) is not None or any(
+            lbl == o.label and np.linalg.norm(o.centroid[:2] - xy) < 1.2 for lbl, xy in self.dropped
+        )
 
     def _candidates(self) -> list[TrackedObject]:
         xy = self.body.xy
