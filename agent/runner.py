@@ -747,7 +747,7 @@ class EpisodeRunner:
         for e in events:
             if e["kind"] == "picked":
                 held = e.get("held_id")
-            elif e["kind"] == "put_back" and held is not None and "target" in e:
+            elif e["kind"] in ("put_back", "put_mended") and held is not None and "target" in e:
                 aims[held] = start_to_world_xy(end["start"], e["target"])
         fates = change_fates(
             metrics,

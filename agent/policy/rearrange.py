@@ -9,7 +9,8 @@ put the shuffled room back.
                  over its views (long axis, mean colour, top face's middle, or its body's
                  where the top is an edge along one side, as an open laptop's lid is; a thing
                  whose top no view saw, on a counter above the eye, takes its axis from the
-                 outline of its sides); Done (the runner
+                 outline of its sides) and, for each view within 2.5 m, the pose it was seen
+                 from with its points and their colours; Done (the runner
                  switches to the unshuffle phase and starts a fresh map in the same start frame)
     unshuffle    look around, map the room again, the same survey for as many steps
                  match the two memories class by class (Hungarian on centroid distance and
@@ -38,7 +39,12 @@ put the shuffled room back.
                    something is in the way) and put it down turned onto the walkthrough's
                    long axis (``Action.yaw``); beyond reach from every
                    spot (a pillow in the middle of a bed), as near it on the same surface as
-                   the arm goes; else on the receptacle tracked under it
+                   the arm goes; else on the receptacle tracked under it. A put at the point
+                   is then checked from the pose of a walkthrough view of the place (the
+                   agent moves on a lattice from one start pose, so the pose recurs): when
+                   the object's points as that view saw them fit the new frame turned or
+                   shifted (``tidee.agent.mapping.view_match``), it is picked up and put
+                   down again where the view saw it, turned back
     Done
 
 Only the agent's own maps and detections decide; ``--perception oracle`` feeds it the
@@ -59,7 +65,9 @@ from tidee.agent.mapping.config import MapConfig
 from tidee.agent.mapping.footprint import FootprintVotes, axis_gap, footprint
 from tidee.agent.mapping.geometry import project, unproject
 from tidee.agent.mapping.memory import TrackedObject
+from tidee.agent.mapping.view_match import FrameCrop, ObjectView, ViewMatch, grip_pixel, match_view
 from tidee.agent.navigation.explore import FrontierExplorer
+from tidee.agent.navigation.fmm import wrap_deg
 from tidee.agent.policy.skills import (
     face_point,
     find_in_view,
@@ -70,6 +78,7 @@ from tidee.agent.policy.skills import (
     navigate,
     pitch_to,
     reachable_mask,
+    rotate_to,
 )
 from tidee.agent.policy.tidy import Gen, TidyPolicy
 from tidee.protocol.messages import INTERACT_M, Action, ActionName
@@ -103,6 +112,21 @@ OVER_M = 0.1  # ... within this of it (x, y)
 OVER_POINTS = 10  # ... when the frame has at least this many points there
 FARTHER_M = 0.2  # ... then the next spot stands at least this much farther from the point,
 BAND_M = 0.25  # ... within this of the farthest that reaches it where it can
+VIEW_POINTS = 12  # a walkthrough view of a pickupable with this many points is kept ...
+VIEW_NEAR_M = 2.5  # ... when they lie this close to the eye
+VIEW_MARGIN_M = 0.02  # a view's points count when inside the walkthrough track's box grown by this ...
+VIEW_ABOVE_M = 0.005  # ... and this much above its base (not the surface under it)
+CHECK_VIEWS = 2  # a put is checked from at most this many of those views' poses ...
+CHECK_STEPS = 40  # ... while this many steps are left over the reserve; the walk to one at most
+POSE_TOL_M = 0.01  # the agent stands at a view's pose when this close to it (and turned alike)
+LATTICE_M = 0.25  # a move's length: every pose lies on a lattice this fine from the start pose
+REPLANS = 3  # a walk over the lattice plans again round a blocked move this many times at most
+FIT_GAIN = 0.05  # a turn and shift fits the frame better than none by this much mean misfit ...
+FIT_MAX = 0.4  # ... and fits it this well ...
+FIT_SEEN = 0.6  # ... with this share of the points in front of what the frame shows: believed
+OFF_M = 0.01  # a put believed this far off (x, y) ...
+OFF_DEG = 8.0  # ... or turned this far (folded to a half turn) is mended
+MENDS = 2  # at most this many times per object
 
 
 class WalkthroughOver(Exception):
@@ -125,11 +149,14 @@ class Seen:
     axis_deg: float | None = None
     colour: np.ndarray | None = None  # mean RGB (0-1) of its points
     middle: tuple[float, float] | None = None  # where it stood (x, y), from its views' middles
+    track_id: int | None = None  # its track in that phase's memory (None: not one track's own)
 
     @staticmethod
     def of(o: TrackedObject, votes: FootprintVotes | None = None) -> Seen:
         if votes is None:
-            return Seen(o.label, o.centroid.copy(), o.box_min.copy(), o.box_max.copy(), o.n_obs)
+            return Seen(
+                o.label, o.centroid.copy(), o.box_min.copy(), o.box_max.copy(), o.n_obs, track_id=o.id
+            )
         return Seen(
             o.label,
             o.centroid.copy(),
@@ -139,6 +166,7 @@ class Seen:
             votes.heading_guess(),
             votes.colour,
             votes.middle(),
+            o.id,
         )
 
 
@@ -574,6 +602,62 @@ def neighbour_at(
     return best[1] if best else None
 
 
+def lattice_key(pose: tuple[float, ...]) -> tuple[int, int]:
+    """The lattice point (moves of ``LATTICE_M`` from the start pose) nearest a pose's (x, y)."""
+    return int(round(pose[0] / LATTICE_M)), int(round(pose[1] / LATTICE_M))
+
+
+def lattice_path(
+    stood: set[tuple[int, int]],
+    start: tuple[int, int],
+    goal: tuple[int, int],
+    most: int,
+    blocked: set[frozenset[tuple[int, int]]] | None = None,
+) -> list[tuple[int, int]] | None:
+    """The fewest moves (each one lattice step along x or y, none of the pairs in
+    ``blocked``) from ``start`` to ``goal`` through points in ``stood``, at most ``most``:
+    the points after ``start``; None when there is no such path."""
+    if start == goal:
+        return []
+    if goal not in stood:
+        return None
+    came: dict[tuple[int, int], tuple[int, int]] = {start: start}
+    frontier = [start]
+    for _ in range(most):
+        nxt: list[tuple[int, int]] = []
+        for i, j in frontier:
+            for key in ((i + 1, j), (i - 1, j), (i, j + 1), (i, j - 1)):
+                if key in came or key not in stood or (blocked and frozenset(((i, j), key)) in blocked):
+                    continue
+                came[key] = (i, j)
+                if key == goal:
+                    path = [key]
+                    while came[path[-1]] != start:
+                        path.append(came[path[-1]])
+                    return path[::-1]
+                nxt.append(key)
+        frontier = nxt
+    return None
+
+
+def lattice_move(yaw_deg: float, here: tuple[int, int], there: tuple[int, int]) -> ActionName | None:
+    """The move (ahead, back, left or right, no turn) from lattice point ``here`` to its
+    neighbour ``there`` for an agent heading ``yaw_deg`` (a multiple of 90)."""
+    want = (there[0] - here[0], there[1] - here[1])
+    t = np.radians(yaw_deg)
+    for name, (fwd, left) in (
+        (ActionName.MoveAhead, (1, 0)),
+        (ActionName.MoveBack, (-1, 0)),
+        (ActionName.MoveLeft, (0, 1)),
+        (ActionName.MoveRight, (0, -1)),
+    ):
+        dx = fwd * np.cos(t) - left * np.sin(t)
+        dy = fwd * np.sin(t) + left * np.cos(t)
+        if (int(round(dx)), int(round(dy))) == want:
+            return name
+    return None
+
+
 def put_turn(goal_axis: float | None, held: tuple[float, float] | None, heading: float) -> float | None:
     """The put's turn (degrees, ``Action.yaw``) that lays a held object's long axis at
     ``goal_axis`` (its heading in the walkthrough): ``held`` is (the axis's heading as it lay
@@ -599,6 +683,9 @@ class RearrangePolicy(TidyPolicy):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.votes: dict[tuple[str | None, int], FootprintVotes] = {}  # (phase, track id): its views
+        self.views: dict[int, list[FrameCrop]] = {}  # walkthrough track id: its views within VIEW_NEAR_M
+        self.aimed: np.ndarray | None = None  # the point the last put reached for
+        self.stood: set[tuple[int, int]] = set()  # lattice points stood on, both phases (``lattice_key``)
         self.walkthrough: list[Seen] = []
         self.unshuffle: list[Seen] = []  # the unshuffle's memory as the phases were compared
         self.moves: list[Move] = []
@@ -610,6 +697,7 @@ class RearrangePolicy(TidyPolicy):
         obs, mapper = self.body.obs, self.body.mapper
         if obs is None:
             return
+        self.stood.add(lattice_key(self.body.pose))
         shape = obs.depth.shape
         for det, tid in zip(self.body.detections, mapper.last_track_ids):
             if tid is None or det.label not in PICKUPABLE:
@@ -621,6 +709,14 @@ class RearrangePolicy(TidyPolicy):
             fp = footprint(pts, np.asarray(obs.rgb).reshape(-1, 3)[pix], eye=obs.camera_pose[:3, 3])
             if fp is not None:
                 self.votes.setdefault((obs.phase, tid), FootprintVotes()).add(fp, obs.camera_pose[:2, 3])
+            if obs.phase == "walkthrough" and len(pts) >= VIEW_POINTS:
+                eye = obs.camera_pose[:3, 3]
+                if float(np.linalg.norm(pts.mean(axis=0) - eye)) <= VIEW_NEAR_M:
+                    crop = FrameCrop.of(
+                        obs.rgb, obs.depth, obs.intrinsics, obs.camera_pose, region, self.body.pose
+                    )
+                    if crop is not None:
+                        self.views.setdefault(tid, []).append(crop)
 
     def seen(self, o: TrackedObject) -> Seen:
         """``o`` as this phase saw it, with its pooled footprint."""
@@ -830,14 +926,186 @@ class RearrangePolicy(TidyPolicy):
         if not (yield from self.pick(m.now, sighting)):
             st.target = None
             return False
+        held = self.body.obs.held
         st.phase = "placing"
+        self.aimed = None
         placed = yield from self.put_at(m.then, None if lay is None else (lay, heading))
         if not placed:
             st.phase = "dropping"
             yield from self.drop()
             self.event("dropped", label=m.then.label)
+        elif self.aimed is not None:
+            yield from self.check_put(m.then, self.aimed, held)
         st.target = None
         return placed
+
+    def check_put(self, seen: Seen, aim: np.ndarray, held: str | None) -> Gen:
+        """Look at the object just put down from the pose of a walkthrough view of its place
+        (``ObjectView``; of ``CHECK_VIEWS`` at most, nearest first) and, when the frame says it
+        lies off or turned (``match_view``), pick it up and put it down again where the view
+        saw it, turned back; at most ``MENDS`` times, each checked from the same pose. Left as
+        it is when no view's pose can be stood at, the match is not believed, or a pick takes
+        something else."""
+        kept = self.views.get(seen.track_id, []) if seen.track_id is not None else []
+        made = [crop.view() for crop in kept]
+        views = [
+            v.within(seen.box_min, seen.box_max, VIEW_MARGIN_M, VIEW_ABOVE_M) for v in made if v is not None
+        ]
+        here = self.body.xy
+
+        def cost(v: ObjectView) -> float:  # the walk there and how far it looked
+            eye_to = float(np.linalg.norm(v.points.mean(axis=0)[:2] - np.array(v.pose[:2])))
+            return float(np.hypot(v.pose[0] - here[0], v.pose[1] - here[1])) + eye_to
+
+        views = sorted((v for v in views if len(v.points) >= VIEW_POINTS), key=cost)
+        if not views:
+            self.event(
+                "put_unchecked", label=seen.label, why=f"no view of its place ({len(kept)} before the box)"
+            )
+            return False
+        i, j = lattice_key(self.body.pose)
+        if np.hypot(self.body.xy[0] - i * LATTICE_M, self.body.xy[1] - j * LATTICE_M) >= POSE_TOL_M:
+            # the pose is corrected for noise, so no pose recurs exactly: nothing to compare
+            self.event("put_unchecked", label=seen.label, why="the agent's pose is off the lattice")
+            return False
+        tried: list[tuple[float, float]] = []
+        for view in views:
+            if len(tried) >= CHECK_VIEWS or self.body.steps_left() <= self.p.reserve_steps + CHECK_STEPS:
+                break
+            if any(np.hypot(view.pose[0] - x, view.pose[1] - y) < POSE_TOL_M for x, y in tried):
+                continue
+            tried.append((view.pose[0], view.pose[1]))
+            undo: tuple[float, np.ndarray, float] | None = (
+                None  # the last mend: still misfit before, aim, turn
+            )
+            for mend in range(MENDS + 1):
+                if not (yield from self._stand_at(view)):
+                    self.event("put_unchecked", label=seen.label, why="could not stand at a view's pose")
+                    break
+                obs = self.body.obs
+                match = match_view(view, obs.rgb, obs.depth, obs.intrinsics, obs.camera_pose)
+                turn = (match.turn_deg + 90.0) % 180.0 - 90.0  # a box turned half round is the same box
+                believed = (
+                    match.still_misfit - match.misfit >= FIT_GAIN
+                    and match.misfit <= FIT_MAX
+                    and match.seen >= FIT_SEEN
+                )
+                self.event(
+                    "put_checked",
+                    label=seen.label,
+                    shift=[round(float(v), 3) for v in match.shift],
+                    turn=round(match.turn_deg, 1),
+                    misfit=round(match.misfit, 3),
+                    still_misfit=round(match.still_misfit, 3),
+                    seen=round(match.seen, 2),
+                    believed=believed,
+                )
+                if undo is not None and match.still_misfit > undo[0]:
+                    # the view's place fits the frame worse than before the mend: the mend
+                    # moved the object away from it, so it goes back as it lay before
+                    before, back_to, turned_by = undo
+                    done = ViewMatch(aim[:2] - view.centre, 0.0, 0.0, 0.0, 1.0)
+                    undone = yield from self._mend_put(view, done, back_to, -turned_by, held, seen.label)
+                    self.event("mend_undone", label=seen.label, put=undone is not None)
+                    return True
+                off = float(np.hypot(*match.shift))
+                if not believed or (off < OFF_M and abs(turn) < OFF_DEG) or mend == MENDS:
+                    return True
+                if self.body.steps_left() <= self.p.reserve_steps + CHECK_STEPS // 2:
+                    return True
+                target = match.moved_from(view.centre, aim)  # the put landed at its aim
+                point = np.array([target[0], target[1], aim[2]])
+                mended = yield from self._mend_put(view, match, point, -turn, held, seen.label)
+                if mended is None:
+                    return False
+                undo, aim = (match.still_misfit, aim, -turn), mended
+            else:
+                return True
+        return False
+
+    def _stand_at(self, view: ObjectView) -> Gen:
+        """Walk to ``view``'s pose over lattice points stood on before (``lattice_path``; the
+        planner's map can hold a pose the agent stood on beside furniture as an obstacle),
+        else with the planner, then turn and tilt as it was; whether the agent stands so."""
+        x, y, yaw, pitch = view.pose
+        goal = lattice_key(view.pose)
+        blocked: set[frozenset[tuple[int, int]]] = set()
+        for _ in range(REPLANS):
+            here = lattice_key(self.body.pose)
+            path = lattice_path(self.stood, here, goal, CHECK_STEPS // 2, blocked)
+            if path is None:
+                break
+            for key in path:
+                action = lattice_move(self.body.pose[2], here, key)
+                if action is None:
+                    break
+                yield Action(action)
+                if not self.body.obs.success:  # a door the other phase had shut
+                    blocked.add(frozenset((here, key)))
+                    break
+                here = key
+            if here == goal:
+                break
+        if lattice_key(self.body.pose) != goal:
+            yield from navigate(self.body, goal_xy=(x, y), stop_radius=0.0, budget=CHECK_STEPS // 2)
+        yield from rotate_to(self.body, yaw)
+        yield from pitch_to(self.body, pitch)
+        px, py, pyaw, ppitch = self.body.pose
+        at = np.hypot(px - x, py - y) < POSE_TOL_M
+        return bool(at and abs(wrap_deg(pyaw - yaw)) < 1.0 and abs(ppitch - pitch) < 1.0)
+
+    def _mend_put(
+        self, view: ObjectView, match: ViewMatch, target: np.ndarray, yaw: float, held: str | None, label: str
+    ) -> Gen:
+        """Pick the object up where ``match`` says the view's points lie now (walking up to
+        it when it is beyond reach; ``grip_pixel``) and put it down at ``target`` turned by
+        ``yaw`` degrees: the point put at, or None when the pick or the put failed (the
+        object then lies wherever it went; a put that cannot go to ``target`` goes back to
+        the point it was picked from)."""
+        centre = view.centre
+        now = match.moved_to(centre, centre)
+        top = np.array([now[0], now[1], float(np.max(view.points[:, 2]))])
+        if float(np.linalg.norm(top - self.body.obs.camera_pose[:3, 3])) > PULL_REACH_M:
+            lo, hi = top - np.array([0.05, 0.05, 0.0]), top + np.array([0.05, 0.05, 0.0])
+            mask = goal_mask_near_box(self.body.mapper, lo, hi, 0.55)
+            yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=CHECK_STEPS // 2)
+            yield from face_point(self.body, top)
+        obs = self.body.obs
+        grip = grip_pixel(view, match, obs.rgb, obs.depth, obs.intrinsics, obs.camera_pose)
+        if grip is None:
+            pixel = self._pixel_of(top)
+            grip = None if pixel is None else (int(pixel[0]), int(pixel[1]))
+        eye = obs.camera_pose[:3, 3]
+        if grip is None or float(np.linalg.norm(top - eye)) > INTERACT_M:
+            self.event("mend_failed", label=label, error="out of reach", message="")
+            return None
+        h, w = obs.depth.shape
+        at = ((grip[0] + 0.5) / w, (grip[1] + 0.5) / h)
+        self.state.phase = "picking"
+        yield Action(ActionName.PickupObject, x=at[0], y=at[1])
+        obs = self.body.obs
+        if not obs.success:
+            self.event("mend_failed", label=label, error=obs.error, message=obs.message)
+            return None
+        if obs.held != held:  # something else was there: put it back where it was
+            self.event("mend_failed", label=label, error="picked another", message=str(obs.held))
+            yield Action(ActionName.PutObject, x=at[0], y=at[1])
+            return None
+        self.state.phase = "placing"
+        was = np.array([now[0], now[1], target[2]])
+        for point, turn in ((target, yaw), (was, 0.0)):
+            action = self.reach_action(point, turn)
+            if isinstance(action, str):
+                continue
+            yield action
+            if self.body.obs.success:
+                where = [round(float(c), 3) for c in point]
+                self.event("put_mended", label=label, target=where, turn=round(turn, 1))
+                return point
+        self.event("mend_failed", label=label, error="put", message=str(self.body.obs.message))
+        self.state.phase = "dropping"
+        yield from self.drop()
+        return None
 
     def support_of(self, seen: Seen) -> TrackedObject | None:
         """The receptacle track (in the current map) the remembered object stood on or in:
@@ -896,6 +1164,7 @@ class RearrangePolicy(TidyPolicy):
             yield action
             obs = self.body.obs
             if obs.success:
+                self.aimed = target
                 return self._put_back_done(seen, "reached", target)
             self.event(
                 "put_failed", receptacle=self.state.target_receptacle, error=obs.error, message=obs.message

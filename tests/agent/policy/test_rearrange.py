@@ -677,3 +677,148 @@ def test_one_object_under_two_labels_is_put_back_as_the_one_seen_more_often() ->
     # seen more often as a soap bottle: the split's move, and not the vase's
     (m,) = find_moves([merged, vase_then], [stayer, dataclasses.replace(bottle, n_obs=20), vase])
     assert m.now.label == "SoapBottle" and np.allclose(m.then.centroid[:2], [0.82, -1.06])
+
+
+def _check_put(
+    monkeypatch: pytest.MonkeyPatch,
+    matches: list[tuple[float, float, float, float]],
+    views: int = 1,
+    x: float = 1.0,
+) -> tuple[bool, list[str], list[float]]:
+    """Run ``check_put`` on a mug put down at (1.5, 0, 1.0), with the walk to a view's pose
+    stubbed out and ``match_view`` answering the next of ``matches`` (shift x in metres, turn,
+    misfit, misfit standing still); a mend records its turn and lands where it aimed. Returns
+    the skill's result, the events and the mends' turns."""
+    from types import SimpleNamespace
+
+    from tidee.agent.classes import CLASSES
+    from tidee.agent.config import AgentConfig
+    from tidee.agent.mapping.config import MapConfig
+    from tidee.agent.mapping.maps import SemanticMapper
+    from tidee.agent.mapping.view_match import ObjectView, ViewMatch
+    from tidee.agent.policy import rearrange
+    from tidee.agent.policy.skills import Body
+
+    body = Body(SemanticMapper(MapConfig(), CLASSES))
+    body.obs = SimpleNamespace(
+        rgb=None,
+        depth=None,
+        intrinsics=None,
+        camera_pose=None,
+        steps_left=300,
+        agent_pose=(x, 0.0, 0.0, 30.0),
+    )
+    events: list[str] = []
+    policy = rearrange.RearrangePolicy(
+        AgentConfig(), body, None, None, "Kitchen", lambda **kw: events.append(kw["kind"])
+    )
+    seen = dataclasses.replace(_seen("Mug", (1.5, 0.0, 0.95), half=0.05), track_id=7)
+    pts = np.array([[1.5 + 0.01 * (i % 5), 0.01 * (i // 5), 0.96] for i in range(20)])
+    made = [ObjectView((1.0, 0.25 * k, 0.0, 30.0), pts, np.zeros((20, 3))) for k in range(views)]
+    policy.views[7] = [SimpleNamespace(view=lambda v=v: v) for v in made]  # type: ignore[misc]
+    answers = iter(matches)
+    turns: list[float] = []
+
+    def stand(self: Any, view: Any) -> Gen:
+        return True
+        yield
+
+    def mend(self: Any, view: Any, match: Any, target: np.ndarray, yaw: float, held: Any, label: str) -> Gen:
+        turns.append(yaw)
+        return target
+        yield
+
+    def match_view(*args: Any) -> ViewMatch:
+        dx, turn, misfit, still = next(answers)
+        return ViewMatch(np.array([dx, 0.0]), turn, misfit, still, 1.0)
+
+    monkeypatch.setattr(rearrange.RearrangePolicy, "_stand_at", stand)
+    monkeypatch.setattr(rearrange.RearrangePolicy, "_mend_put", mend)
+    monkeypatch.setattr(rearrange, "match_view", match_view)
+    run = policy.check_put(seen, np.array([1.5, 0.0, 1.0]), "Mug")
+    try:
+        next(run)
+        raise AssertionError("the stubs take no action")
+    except StopIteration as stop:
+        return bool(stop.value), events, turns
+
+
+def test_a_put_seen_off_its_place_from_a_walkthrough_pose_is_mended_once_in_place(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """3 cm off and turned 170 degrees (a box turned 10 degrees less than half round): mended
+    with a turn of 10 degrees, then seen in place."""
+    done, events, turns = _check_put(monkeypatch, [(0.03, 170.0, 0.1, 0.5), (0.002, 1.0, 0.05, 0.06)])
+    assert done and events == ["put_checked", "put_checked"]
+    assert turns == [pytest.approx(10.0)]
+
+
+def test_a_mend_that_leaves_the_frame_fitting_worse_is_undone(monkeypatch: pytest.MonkeyPatch) -> None:
+    """After the mend the view's place fits the frame worse (0.8) than before it (0.7): the
+    object goes back, turned the other way."""
+    done, events, turns = _check_put(monkeypatch, [(0.1, 30.0, 0.1, 0.7), (0.1, 150.0, 0.75, 0.8)])
+    assert done and events == ["put_checked", "put_checked", "mend_undone"]
+    assert turns == [pytest.approx(-30.0), pytest.approx(30.0)]
+
+
+def test_a_walk_to_a_view_pose_keeps_to_lattice_points_stood_on() -> None:
+    from tidee.agent.policy.rearrange import lattice_key, lattice_move, lattice_path
+    from tidee.protocol.messages import ActionName
+
+    stood = {(0, 0), (1, 0), (2, 0), (2, 1), (0, 2), (1, 2), (2, 2)}
+    assert lattice_key((0.49, -0.01, 90.0, 30.0)) == (2, 0)
+    assert lattice_path(stood, (0, 0), (2, 2), 10) == [(1, 0), (2, 0), (2, 1), (2, 2)]
+    assert lattice_path(stood, (0, 0), (1, 1), 10) is None  # never stood on
+    assert lattice_path(stood, (0, 0), (2, 2), 3) is None  # farther than allowed
+    assert lattice_path(stood, (1, 0), (1, 0), 3) == []
+    # heading +y (90 degrees): +x is to the right, -y behind
+    assert lattice_move(90.0, (0, 0), (1, 0)) == ActionName.MoveRight
+    assert lattice_move(90.0, (0, 0), (0, -1)) == ActionName.MoveBack
+    assert lattice_move(180.0, (0, 0), (-1, 0)) == ActionName.MoveAhead
+    assert lattice_move(0.0, (0, 0), (0, 1)) == ActionName.MoveLeft
+    assert lattice_move(0.0, (0, 0), (2, 0)) is None
+
+
+def test_a_put_is_left_alone_when_in_place_or_when_the_match_is_not_believed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # 5 mm and 3 degrees off: in place for IoU 0.5
+    assert _check_put(monkeypatch, [(0.005, 3.0, 0.05, 0.2)])[2] == []
+    # 4 cm off, but no better a fit than standing still (a frame where the mug is hidden)
+    assert _check_put(monkeypatch, [(0.04, 0.0, 0.5, 0.52)])[2] == []
+    # a better fit than standing still, but a poor one
+    from tidee.agent.policy import rearrange
+
+    assert _check_put(monkeypatch, [(0.04, 0.0, rearrange.FIT_MAX + 0.05, 0.9)])[2] == []
+
+
+def test_a_put_still_off_is_mended_at_most_twice(monkeypatch: pytest.MonkeyPatch) -> None:
+    from tidee.agent.policy import rearrange
+
+    done, events, turns = _check_put(monkeypatch, [(0.03, 20.0, 0.1, 0.5)] * 5)
+    assert done and len(turns) == rearrange.MENDS and events == ["put_checked"] * (rearrange.MENDS + 1)
+
+
+def test_a_put_without_a_walkthrough_view_of_its_place_is_not_checked(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    done, events, turns = _check_put(monkeypatch, [], views=0)
+    assert not done and events == ["put_unchecked"] and turns == []
+
+
+def test_a_put_is_not_checked_when_the_pose_is_off_the_lattice(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With noisy odometry the corrected pose is off the lattice: no pose recurs exactly."""
+    done, events, turns = _check_put(monkeypatch, [(0.03, 20.0, 0.1, 0.5)], x=1.03)
+    assert not done and events == ["put_unchecked"] and turns == []
+
+
+def test_a_lattice_walk_goes_round_a_move_found_blocked() -> None:
+    from tidee.agent.policy.rearrange import lattice_path
+
+    stood = {(0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (2, 1)}
+    assert lattice_path(stood, (0, 0), (2, 0), 10) == [(1, 0), (2, 0)]
+    blocked = {frozenset(((1, 0), (2, 0)))}
+    assert lattice_path(stood, (0, 0), (2, 0), 10, blocked) in (
+        [(1, 0), (1, 1), (2, 1), (2, 0)],
+        [(0, 1), (1, 1), (2, 1), (2, 0)],
+    )
