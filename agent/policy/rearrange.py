@@ -117,12 +117,15 @@ VIEW_NEAR_M = 2.5  # ... when they lie this close to the eye
 VIEW_MARGIN_M = 0.02  # a view's points count when inside the walkthrough track's box grown by this ...
 VIEW_ABOVE_M = 0.005  # ... and this much above its base (not the surface under it)
 CHECK_VIEWS = 2  # a put is checked from at most this many of those views' poses ...
-CHECK_STEPS = 40  # ... while this many steps are left over the reserve; the walk to one at most
+CHECK_STEPS = 40  # ... while this many steps are left over the reserve (a walk to a view's pose
+# takes a quarter of them at most over lattice points stood on, half with the planner) ...
+PENDING_STEPS = 30  # ... and this many more for each moved object still to put back
 POSE_TOL_M = 0.01  # the agent stands at a view's pose when this close to it (and turned alike)
 LATTICE_M = 0.25  # a move's length: every pose lies on a lattice this fine from the start pose
+MEND_REACH_M = 1.3  # a mend picks the object from at most this far from the eye (the limit: 1.5 m)
 REPLANS = 3  # a walk over the lattice plans again round a blocked move this many times at most
-FIT_GAIN = 0.05  # a turn and shift fits the frame better than none by this much mean misfit ...
-FIT_MAX = 0.4  # ... and fits it this well ...
+FIT_RATIO = 0.5  # a turn and shift fits the frame with at most this share of the mean misfit of none ...
+FIT_MAX = 0.25  # ... and at most this much ...
 FIT_SEEN = 0.6  # ... with this share of the points in front of what the frame shows: believed
 OFF_M = 0.01  # a put believed this far off (x, y) ...
 OFF_DEG = 8.0  # ... or turned this far (folded to a half turn) is mended
@@ -685,6 +688,7 @@ class RearrangePolicy(TidyPolicy):
         self.votes: dict[tuple[str | None, int], FootprintVotes] = {}  # (phase, track id): its views
         self.views: dict[int, list[FrameCrop]] = {}  # walkthrough track id: its views within VIEW_NEAR_M
         self.aimed: np.ndarray | None = None  # the point the last put reached for
+        self.pending = 0  # moved objects still to put back after the one in hand
         self.stood: set[tuple[int, int]] = set()  # lattice points stood on, both phases (``lattice_key``)
         self.walkthrough: list[Seen] = []
         self.unshuffle: list[Seen] = []  # the unshuffle's memory as the phases were compared
@@ -790,9 +794,11 @@ class RearrangePolicy(TidyPolicy):
             if self.body.steps_left() <= self.p.reserve_steps:
                 break
             yield from self.restore_openness(t)
-        for m in sorted(self.moves, key=self._distance):
+        moves = sorted(self.moves, key=self._distance)
+        for k, m in enumerate(moves):
             if self.body.steps_left() <= self.p.reserve_steps:
                 break
+            self.pending = len(moves) - k - 1
             yield from self.put_back(m)
         self.state.phase = "done"
         self.state.end_reason = self.state.end_reason or "restored what it found"
@@ -969,8 +975,9 @@ class RearrangePolicy(TidyPolicy):
             self.event("put_unchecked", label=seen.label, why="the agent's pose is off the lattice")
             return False
         tried: list[tuple[float, float]] = []
+        spare = self.p.reserve_steps + CHECK_STEPS + PENDING_STEPS * self.pending  # the others come first
         for view in views:
-            if len(tried) >= CHECK_VIEWS or self.body.steps_left() <= self.p.reserve_steps + CHECK_STEPS:
+            if len(tried) >= CHECK_VIEWS or self.body.steps_left() <= spare:
                 break
             if any(np.hypot(view.pose[0] - x, view.pose[1] - y) < POSE_TOL_M for x, y in tried):
                 continue
@@ -986,7 +993,7 @@ class RearrangePolicy(TidyPolicy):
                 match = match_view(view, obs.rgb, obs.depth, obs.intrinsics, obs.camera_pose)
                 turn = (match.turn_deg + 90.0) % 180.0 - 90.0  # a box turned half round is the same box
                 believed = (
-                    match.still_misfit - match.misfit >= FIT_GAIN
+                    match.misfit <= FIT_RATIO * match.still_misfit
                     and match.misfit <= FIT_MAX
                     and match.seen >= FIT_SEEN
                 )
@@ -1005,7 +1012,7 @@ class RearrangePolicy(TidyPolicy):
                     # moved the object away from it, so it goes back as it lay before
                     before, back_to, turned_by = undo
                     done = ViewMatch(aim[:2] - view.centre, 0.0, 0.0, 0.0, 1.0)
-                    undone = yield from self._mend_put(view, done, back_to, -turned_by, held, seen.label)
+                    undone = yield from self._mend_put(view, done, back_to, -turned_by, held, seen)
                     self.event("mend_undone", label=seen.label, put=undone is not None)
                     return True
                 off = float(np.hypot(*match.shift))
@@ -1015,7 +1022,7 @@ class RearrangePolicy(TidyPolicy):
                     return True
                 target = match.moved_from(view.centre, aim)  # the put landed at its aim
                 point = np.array([target[0], target[1], aim[2]])
-                mended = yield from self._mend_put(view, match, point, -turn, held, seen.label)
+                mended = yield from self._mend_put(view, match, point, -turn, held, seen)
                 if mended is None:
                     return False
                 undo, aim = (match.still_misfit, aim, -turn), mended
@@ -1032,7 +1039,7 @@ class RearrangePolicy(TidyPolicy):
         blocked: set[frozenset[tuple[int, int]]] = set()
         for _ in range(REPLANS):
             here = lattice_key(self.body.pose)
-            path = lattice_path(self.stood, here, goal, CHECK_STEPS // 2, blocked)
+            path = lattice_path(self.stood, here, goal, CHECK_STEPS // 4, blocked)
             if path is None:
                 break
             for key in path:
@@ -1055,17 +1062,17 @@ class RearrangePolicy(TidyPolicy):
         return bool(at and abs(wrap_deg(pyaw - yaw)) < 1.0 and abs(ppitch - pitch) < 1.0)
 
     def _mend_put(
-        self, view: ObjectView, match: ViewMatch, target: np.ndarray, yaw: float, held: str | None, label: str
+        self, view: ObjectView, match: ViewMatch, target: np.ndarray, yaw: float, held: str | None, seen: Seen
     ) -> Gen:
         """Pick the object up where ``match`` says the view's points lie now (walking up to
-        it when it is beyond reach; ``grip_pixel``) and put it down at ``target`` turned by
-        ``yaw`` degrees: the point put at, or None when the pick or the put failed (the
-        object then lies wherever it went; a put that cannot go to ``target`` goes back to
-        the point it was picked from)."""
+        it first unless it is within ``MEND_REACH_M``; ``grip_pixel``) and put it down at
+        ``target`` turned by ``yaw`` degrees; from elsewhere (``put_at``) when the point is
+        out of reach or sight from here. The point put at, or None when the pick or the put
+        failed (the object then lies wherever it went)."""
         centre = view.centre
         now = match.moved_to(centre, centre)
         top = np.array([now[0], now[1], float(np.max(view.points[:, 2]))])
-        if float(np.linalg.norm(top - self.body.obs.camera_pose[:3, 3])) > PULL_REACH_M:
+        if float(np.linalg.norm(top - self.body.obs.camera_pose[:3, 3])) > MEND_REACH_M:
             lo, hi = top - np.array([0.05, 0.05, 0.0]), top + np.array([0.05, 0.05, 0.0])
             mask = goal_mask_near_box(self.body.mapper, lo, hi, 0.55)
             yield from navigate(self.body, goal_mask=mask, stop_radius=0.05, budget=CHECK_STEPS // 2)
@@ -1075,9 +1082,8 @@ class RearrangePolicy(TidyPolicy):
         if grip is None:
             pixel = self._pixel_of(top)
             grip = None if pixel is None else (int(pixel[0]), int(pixel[1]))
-        eye = obs.camera_pose[:3, 3]
-        if grip is None or float(np.linalg.norm(top - eye)) > INTERACT_M:
-            self.event("mend_failed", label=label, error="out of reach", message="")
+        if grip is None or float(np.linalg.norm(top - obs.camera_pose[:3, 3])) > MEND_REACH_M:
+            self.event("mend_failed", label=seen.label, error="out of reach", message="")
             return None
         h, w = obs.depth.shape
         at = ((grip[0] + 0.5) / w, (grip[1] + 0.5) / h)
@@ -1085,24 +1091,39 @@ class RearrangePolicy(TidyPolicy):
         yield Action(ActionName.PickupObject, x=at[0], y=at[1])
         obs = self.body.obs
         if not obs.success:
-            self.event("mend_failed", label=label, error=obs.error, message=obs.message)
+            self.event("mend_failed", label=seen.label, error=obs.error, message=obs.message)
             return None
         if obs.held != held:  # something else was there: put it back where it was
-            self.event("mend_failed", label=label, error="picked another", message=str(obs.held))
+            self.event("mend_failed", label=seen.label, error="picked another", message=str(obs.held))
             yield Action(ActionName.PutObject, x=at[0], y=at[1])
             return None
         self.state.phase = "placing"
-        was = np.array([now[0], now[1], target[2]])
-        for point, turn in ((target, yaw), (was, 0.0)):
-            action = self.reach_action(point, turn)
-            if isinstance(action, str):
-                continue
+        heading = self.body.pose[2]
+        action = self.reach_action(target, yaw)
+        if not isinstance(action, str):
             yield action
             if self.body.obs.success:
-                where = [round(float(c), 3) for c in point]
-                self.event("put_mended", label=label, target=where, turn=round(turn, 1))
-                return point
-        self.event("mend_failed", label=label, error="put", message=str(self.body.obs.message))
+                self.event(
+                    "put_mended",
+                    label=seen.label,
+                    target=[round(float(c), 3) for c in target],
+                    turn=round(yaw, 1),
+                )
+                return target
+        # out of reach or sight from here (a shelf above the eye): from the spots a put tries
+        self.event(
+            "mend_elsewhere", label=seen.label, why=action if isinstance(action, str) else str(obs.error)
+        )
+        self.aimed = None
+        # put_at turns it by ``yaw`` from how it lay: its axis then is taken for 0 and the place's for -yaw
+        there = replace(seen, middle=(float(target[0]), float(target[1])), axis_deg=0.0)
+        if (yield from self.put_at(there, (-yaw, heading))):
+            if self.aimed is not None:
+                self.event(
+                    "put_mended", label=seen.label, target=[round(float(c), 3) for c in self.aimed], turn=0.0
+                )
+            return self.aimed
+        self.event("mend_failed", label=seen.label, error="put", message=str(self.body.obs.message))
         self.state.phase = "dropping"
         yield from self.drop()
         return None

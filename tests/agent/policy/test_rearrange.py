@@ -684,6 +684,7 @@ def _check_put(
     matches: list[tuple[float, float, float, float]],
     views: int = 1,
     x: float = 1.0,
+    pending: int = 0,
 ) -> tuple[bool, list[str], list[float]]:
     """Run ``check_put`` on a mug put down at (1.5, 0, 1.0), with the walk to a view's pose
     stubbed out and ``match_view`` answering the next of ``matches`` (shift x in metres, turn,
@@ -735,6 +736,7 @@ def _check_put(
     monkeypatch.setattr(rearrange.RearrangePolicy, "_stand_at", stand)
     monkeypatch.setattr(rearrange.RearrangePolicy, "_mend_put", mend)
     monkeypatch.setattr(rearrange, "match_view", match_view)
+    policy.pending = pending
     run = policy.check_put(seen, np.array([1.5, 0.0, 1.0]), "Mug")
     try:
         next(run)
@@ -786,6 +788,8 @@ def test_a_put_is_left_alone_when_in_place_or_when_the_match_is_not_believed(
     assert _check_put(monkeypatch, [(0.005, 3.0, 0.05, 0.2)])[2] == []
     # 4 cm off, but no better a fit than standing still (a frame where the mug is hidden)
     assert _check_put(monkeypatch, [(0.04, 0.0, 0.5, 0.52)])[2] == []
+    # a fit not much better than standing still's (an alarm clock on a shelf above the eye)
+    assert _check_put(monkeypatch, [(0.06, 0.0, 0.2, 0.3)])[2] == []
     # a better fit than standing still, but a poor one
     from tidee.agent.policy import rearrange
 
@@ -822,3 +826,11 @@ def test_a_lattice_walk_goes_round_a_move_found_blocked() -> None:
         [(1, 0), (1, 1), (2, 1), (2, 0)],
         [(0, 1), (1, 1), (2, 1), (2, 0)],
     )
+
+
+def test_a_put_is_not_checked_when_the_objects_still_to_put_back_need_the_steps(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """300 steps left, 10 objects still to put back: they come first."""
+    assert _check_put(monkeypatch, [(0.03, 20.0, 0.1, 0.5)], pending=10) == (False, [], [])
+    assert _check_put(monkeypatch, [(0.03, 20.0, 0.1, 0.5)] * 3, pending=2)[2] != []
