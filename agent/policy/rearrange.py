@@ -982,9 +982,8 @@ class RearrangePolicy(TidyPolicy):
             if any(np.hypot(view.pose[0] - x, view.pose[1] - y) < POSE_TOL_M for x, y in tried):
                 continue
             tried.append((view.pose[0], view.pose[1]))
-            undo: tuple[float, np.ndarray, float] | None = (
-                None  # the last mend: still misfit before, aim, turn
-            )
+            # the last mend: the place's misfit before it, the aim and the turn it undid
+            undo: tuple[float, np.ndarray, float] | None = None
             for mend in range(MENDS + 1):
                 if not (yield from self._stand_at(view)):
                     self.event("put_unchecked", label=seen.label, why="could not stand at a view's pose")
@@ -1010,7 +1009,7 @@ class RearrangePolicy(TidyPolicy):
                 if undo is not None and match.still_misfit > undo[0]:
                     # the view's place fits the frame worse than before the mend: the mend
                     # moved the object away from it, so it goes back as it lay before
-                    before, back_to, turned_by = undo
+                    _, back_to, turned_by = undo
                     done = ViewMatch(aim[:2] - view.centre, 0.0, 0.0, 0.0, 1.0)
                     undone = yield from self._mend_put(view, done, back_to, -turned_by, held, seen)
                     self.event("mend_undone", label=seen.label, put=undone is not None)
@@ -1047,7 +1046,7 @@ class RearrangePolicy(TidyPolicy):
                 if action is None:
                     break
                 yield Action(action)
-                if not self.body.obs.success:  # a door the other phase had shut
+                if not self.body.obs.success:  # in the way in this phase (a door open now)
                     blocked.add(frozenset((here, key)))
                     break
                 here = key
@@ -1117,7 +1116,7 @@ class RearrangePolicy(TidyPolicy):
         self.aimed = None
         # put_at turns it by ``yaw`` from how it lay: its axis then is taken for 0 and the place's for -yaw
         there = replace(seen, middle=(float(target[0]), float(target[1])), axis_deg=0.0)
-        if (yield from self.put_at(there, (-yaw, heading))):
+        if (yield from self.put_at(there, (-yaw, heading), again=True)):
             if self.aimed is not None:
                 self.event(
                     "put_mended", label=seen.label, target=[round(float(c), 3) for c in self.aimed], turn=0.0
@@ -1146,7 +1145,7 @@ class RearrangePolicy(TidyPolicy):
                 best = (score, o)
         return best[1] if best else None
 
-    def put_at(self, seen: Seen, held: tuple[float, float] | None = None) -> Gen:
+    def put_at(self, seen: Seen, held: tuple[float, float] | None = None, again: bool = False) -> Gen:
         """Put the held object at the remembered place (its top face's middle, ``Seen.middle``,
         else its box's centre): from beside it, reach to the point just above its base
         (``Action.reach``: the spot need not be in sight, a counter top at eye height never is),
@@ -1186,7 +1185,7 @@ class RearrangePolicy(TidyPolicy):
             obs = self.body.obs
             if obs.success:
                 self.aimed = target
-                return self._put_back_done(seen, "reached", target)
+                return self._put_back_done(seen, "reached", target, again)
             self.event(
                 "put_failed", receptacle=self.state.target_receptacle, error=obs.error, message=obs.message
             )
@@ -1198,7 +1197,7 @@ class RearrangePolicy(TidyPolicy):
             if not isinstance(action, str):
                 yield action
                 if self.body.obs.success:
-                    return self._put_back_done(seen, "as near as it reaches", near)
+                    return self._put_back_done(seen, "as near as it reaches", near, again)
                 self.event(
                     "put_failed",
                     receptacle=self.state.target_receptacle,
@@ -1206,7 +1205,7 @@ class RearrangePolicy(TidyPolicy):
                     message=self.body.obs.message,
                 )
         if support is not None and (yield from self.put_on(support)):
-            return self._put_back_done(seen, "on its receptacle")
+            return self._put_back_done(seen, "on its receptacle", None, again)
         return False
 
     def overhead(self, point: np.ndarray) -> bool:
@@ -1289,11 +1288,15 @@ class RearrangePolicy(TidyPolicy):
             return f"something {seen_at:.2f} m away in front of it"
         return Action(ActionName.PutObject, x=(u + 0.5) / w, y=(v + 0.5) / h, yaw=yaw, reach=reach)
 
-    def _put_back_done(self, seen: Seen, how: str, target: np.ndarray | None = None) -> bool:
-        """Count a put; ``target``: the point it reached for (start frame; the evaluation splits
-        a put's error into the estimate's and the landing's)."""
-        self.state.objects_fixed += 1
-        self.placed.append((seen.label, seen.centroid[:2].copy(), self.state.target_receptacle or ""))
+    def _put_back_done(
+        self, seen: Seen, how: str, target: np.ndarray | None = None, again: bool = False
+    ) -> bool:
+        """Count a put (``again``: an object put back before, not counted again); ``target``:
+        the point it reached for (start frame; the evaluation splits a put's error into the
+        estimate's and the landing's)."""
+        if not again:
+            self.state.objects_fixed += 1
+            self.placed.append((seen.label, seen.centroid[:2].copy(), self.state.target_receptacle or ""))
         where = {} if target is None else {"target": [round(float(v), 3) for v in target]}
         self.event("put_back", label=seen.label, how=how, receptacle=self.state.target_receptacle, **where)
         return True
