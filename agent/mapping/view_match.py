@@ -45,24 +45,6 @@ class ObjectView:
     points: np.ndarray
     colours: np.ndarray
 
-    @staticmethod
-    def of(
-        rgb: np.ndarray,
-        depth: np.ndarray,
-        intrinsics: np.ndarray,
-        camera_pose: np.ndarray,
-        region: np.ndarray,
-        pose: tuple[float, float, float, float],
-    ) -> ObjectView | None:
-        """The view of the object in ``region`` (bool HxW; its pixels unlike the colours round
-        its rim, ``foreground``); None when no pixel has depth."""
-        pts, pix = unproject(depth, intrinsics, camera_pose, mask=foreground(rgb, region))
-        if len(pts) == 0:
-            return None
-        keep = np.linspace(0, len(pts) - 1, min(len(pts), MAX_POINTS)).round().astype(int)
-        colours = np.asarray(rgb).reshape(-1, 3)[pix[keep]].astype(np.float32)
-        return ObjectView(tuple(float(v) for v in pose), pts[keep].astype(np.float64), colours)  # type: ignore[arg-type]
-
     def within(self, box_min: np.ndarray, box_max: np.ndarray, margin: float, above: float) -> ObjectView:
         """The points inside the box grown by ``margin`` and ``above`` over its base (a box
         mask's pixels of the wall behind the object or the surface under it are not it)."""
@@ -99,6 +81,7 @@ class FrameCrop:
         region: np.ndarray,
         pose: tuple[float, float, float, float],
     ) -> FrameCrop | None:
+        """The crop of a frame round ``region`` (bool HxW); None when it is empty."""
         rows, cols = np.nonzero(region)
         if len(rows) == 0:
             return None
@@ -116,7 +99,16 @@ class FrameCrop:
         )
 
     def view(self) -> ObjectView | None:
-        return ObjectView.of(self.rgb, self.depth, self.intrinsics, self.camera_pose, self.region, self.pose)
+        """The view of the object: the region's pixels unlike the colours round its rim
+        (``foreground``); None when no pixel has depth."""
+        pts, pix = unproject(
+            self.depth, self.intrinsics, self.camera_pose, mask=foreground(self.rgb, self.region)
+        )
+        if len(pts) == 0:
+            return None
+        keep = np.linspace(0, len(pts) - 1, min(len(pts), MAX_POINTS)).round().astype(int)
+        colours = np.asarray(self.rgb).reshape(-1, 3)[pix[keep]].astype(np.float32)
+        return ObjectView(self.pose, pts[keep].astype(np.float64), colours)
 
 
 def foreground(rgb: np.ndarray, region: np.ndarray) -> np.ndarray:

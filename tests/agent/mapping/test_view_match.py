@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from tidee.agent.mapping.view_match import ObjectView, foreground, match_view, turned
+from tidee.agent.mapping.view_match import FrameCrop, ObjectView, foreground, match_view, turned
 
 SIZE = 256
 FOCAL = SIZE / 2  # 90 degrees across
@@ -24,6 +24,11 @@ def camera(pitch_deg: float) -> tuple[np.ndarray, np.ndarray]:
     pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, down, fwd, EYE
     k = np.array([[FOCAL, 0.0, (SIZE - 1) / 2], [0.0, FOCAL, (SIZE - 1) / 2], [0.0, 0.0, 1.0]])
     return k, pose
+
+
+def view_of(rgb, depth, k, pose, region, agent_pose):
+    crop = FrameCrop.of(rgb, depth, k, pose, region, agent_pose)
+    return None if crop is None else crop.view()
 
 
 def render(k: np.ndarray, pose: np.ndarray, xy: tuple[float, float], yaw_deg: float):
@@ -57,7 +62,7 @@ def test_match_view_finds_the_move_and_the_turn(pitch):
     k, pose = camera(pitch)
     place = (0.8, 0.05) if pitch == 30.0 else (0.6, -0.05)
     rgb, depth, hit = render(k, pose, place, 30.0)
-    view = ObjectView.of(rgb, depth, k, pose, hit, (0.0, 0.0, 0.0, pitch))
+    view = view_of(rgb, depth, k, pose, hit, (0.0, 0.0, 0.0, pitch))
     assert view is not None and len(view.points) > 50
     moved = (place[0] + 0.035, place[1] - 0.02)
     rgb2, depth2, _ = render(k, pose, moved, 30.0 + 25.0)
@@ -73,7 +78,7 @@ def test_match_view_finds_the_move_and_the_turn(pitch):
 def test_match_view_of_an_unmoved_object_is_still():
     k, pose = camera(45.0)
     rgb, depth, hit = render(k, pose, (0.9, 0.0), -10.0)
-    view = ObjectView.of(rgb, depth, k, pose, hit, (0.0, 0.0, 0.0, 45.0))
+    view = view_of(rgb, depth, k, pose, hit, (0.0, 0.0, 0.0, 45.0))
     match = match_view(view, rgb, depth, k, pose)
     assert np.linalg.norm(match.shift) < 1e-9 and match.turn_deg == 0.0
     assert match.misfit < 1e-6 and match.still_misfit < 1e-6
@@ -83,7 +88,7 @@ def test_a_turned_half_round_box_is_told_from_one_not_turned():
     """The two-coloured ends tell 180 degrees from none."""
     k, pose = camera(60.0)
     rgb, depth, hit = render(k, pose, (0.6, 0.0), 0.0)
-    view = ObjectView.of(rgb, depth, k, pose, hit, (0.0, 0.0, 0.0, 60.0))
+    view = view_of(rgb, depth, k, pose, hit, (0.0, 0.0, 0.0, 60.0))
     rgb2, depth2, _ = render(k, pose, (0.6, 0.0), 180.0)
     match = match_view(view, rgb2, depth2, k, pose)
     assert abs(abs(match.turn_deg) - 180.0) <= 3.0
@@ -105,7 +110,7 @@ def test_a_views_points_are_the_objects_not_the_floor_round_it():
     box = np.zeros_like(hit)
     box[rows.min() - 2 : rows.max() + 3, cols.min() - 2 : cols.max() + 3] = True
     assert foreground(rgb, box).tolist() == hit.tolist()
-    view = ObjectView.of(rgb, depth, k, pose, box, (0.0, 0.0, 0.0, 60.0))
+    view = view_of(rgb, depth, k, pose, box, (0.0, 0.0, 0.0, 60.0))
     assert view is not None and view.points[:, 2].min() > 0.0
     # an object that fills its box: the box is kept
     assert foreground(rgb, hit).tolist() == hit.tolist()
@@ -127,11 +132,9 @@ def test_moved_from_undoes_moved_to():
 
 
 def test_a_frame_crop_makes_the_same_view_as_its_frame():
-    from tidee.agent.mapping.view_match import FrameCrop
-
     k, pose = camera(45.0)
     rgb, depth, hit = render(k, pose, (0.9, 0.1), 20.0)
     crop = FrameCrop.of(rgb, depth, k, pose, hit, (0.0, 0.0, 0.0, 45.0))
     assert crop is not None and crop.rgb.shape[0] < SIZE / 4
-    whole = ObjectView.of(rgb, depth, k, pose, hit, (0.0, 0.0, 0.0, 45.0))
+    whole = FrameCrop((0.0, 0.0, 0.0, 45.0), rgb, depth, hit, k, pose).view()
     assert crop.view().points == pytest.approx(whole.points)
