@@ -106,7 +106,7 @@ class FrameCrop:
         )
         if len(pts) == 0:
             return None
-        keep = np.linspace(0, len(pts) - 1, min(len(pts), MAX_POINTS)).round().astype(int)
+        keep = _evenly(len(pts), MAX_POINTS)
         colours = np.asarray(self.rgb).reshape(-1, 3)[pix[keep]].astype(np.float32)
         return ObjectView(self.pose, pts[keep].astype(np.float64), colours)
 
@@ -250,8 +250,7 @@ def grip_pixel(
     so, those that fit the frame (misfit under ``GRIP_MISFIT``), the one nearest their middle;
     None when none fits. A thin thing's top, projected alone, can miss it and hit the wall."""
     moved = _moved(view, match.turn_deg, match.shift[None, :])[0]
-    rgb = np.asarray(rgb, dtype=np.float32)
-    depth = np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0, posinf=0.0)
+    rgb, depth = _as_frame(rgb, depth)
     m, _, u, v = _point_misfits(moved, view.colours, rgb, depth, intrinsics, camera_pose)
     fit = m < GRIP_MISFIT
     if not fit.any():
@@ -259,6 +258,18 @@ def grip_pixel(
     uu, vv = u[fit], v[fit]
     k = int(np.argmin(np.hypot(uu - np.median(uu), vv - np.median(vv))))
     return int(round(float(uu[k]))), int(round(float(vv[k])))
+
+
+def _as_frame(rgb: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A frame as the misfits read it: RGB as float, depth with no return as 0."""
+    return np.asarray(rgb, dtype=np.float32), np.nan_to_num(
+        np.asarray(depth, dtype=np.float64), nan=0.0, posinf=0.0
+    )
+
+
+def _evenly(n: int, most: int) -> np.ndarray:
+    """Indices of at most ``most`` of ``n`` items, evenly spaced."""
+    return np.linspace(0, n - 1, min(n, most)).round().astype(int)
 
 
 def _grid(step: float, half: float) -> np.ndarray:
@@ -277,11 +288,10 @@ def match_view(
     """The turn and shift that best carry ``view``'s points onto the frame (``rgb`` HxWx3,
     ``depth`` HxW metres, taken from the view's pose): turns all round, shifts within
     ``SEARCH_M``, searched coarse to fine (``STAGES``)."""
-    rgb = np.asarray(rgb, dtype=np.float32)
-    depth = np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0, posinf=0.0)
+    rgb, depth = _as_frame(rgb, depth)
     best_turn, best_shift = 0.0, np.zeros(2)
     for k, (turn_step, turn_half, shift_step, shift_half, points) in enumerate(STAGES):
-        few = np.linspace(0, len(view.points) - 1, min(len(view.points), points)).round().astype(int)
+        few = _evenly(len(view.points), points)
         part = ObjectView(view.pose, view.points[few], view.colours[few])
         if k == 0:
             turns = np.arange(-180.0, 180.0, turn_step)

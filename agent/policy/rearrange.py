@@ -1025,8 +1025,6 @@ class RearrangePolicy(TidyPolicy):
                 if mended is None:
                     return False
                 undo, aim = (match.still_misfit, aim, -turn), mended
-            else:
-                return True
         return False
 
     def _stand_at(self, view: ObjectView) -> Gen:
