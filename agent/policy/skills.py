@@ -364,17 +364,20 @@ def raised_sighting(
     body: Body,
     obj: TrackedObject,
     reach: float = 1.4,
-    min_rise: float = 0.01,
+    min_rise: float = 0.004,
+    above_top: float = 0.03,
     skip: tuple[int, int] | None = None,
 ) -> Sighting | None:
     """A second pixel to pick ``obj`` at, after the first hit its support (a pick that reported
-    "Floor cannot be picked up": a box's centre or a projected centroid can miss a mug or a key
-    ring by a few centimetres). Among the pixels within ``reach`` whose 3D point lies over the
-    track's footprint (its box grown by 5 cm, and at least 12 cm around the centroid), the one
-    highest above the lowest of them, when it rises at least ``min_rise``: the thing that stands
-    on the surface there. None when nothing rises there (a track with no object under it), or
-    when a detection of another pickupable class covers that pixel. ``skip``: the pixel (u, v)
-    that already failed."""
+    "Floor cannot be picked up": a box's centre or a projected centroid can miss a mug, a key
+    ring or a spoon lying flat by a few centimetres). Among the pixels within ``reach`` whose 3D
+    point lies over the track's footprint (its box grown by 5 cm, and at least 12 cm around the
+    centroid) and no more than ``above_top`` over the track's top (a wall, a stool or a counter
+    beside a thing on the floor rises higher than the thing), those at least ``min_rise`` above
+    the lowest of them stand on the surface there; the one nearest the centroid across the floor
+    is the pixel. None when nothing rises there (a track with no object under it), or when a
+    detection of another pickupable class covers that pixel. ``skip``: the pixel (u, v) that
+    already failed."""
     obs = body.obs
     assert obs is not None
     w = obs.depth.shape[1]
@@ -384,14 +387,16 @@ def raised_sighting(
     lo, hi = obj.box_min[:2] - grow, obj.box_max[:2] + grow
     keep = np.all((pts[:, :2] >= lo) & (pts[:, :2] <= hi), axis=1)
     keep &= np.linalg.norm(pts - cam, axis=1) <= reach
+    keep &= pts[:, 2] <= float(obj.box_max[2]) + above_top
     if skip is not None:
         keep &= index != skip[1] * w + skip[0]
     if keep.sum() < 2:
         return None
     pts, index = pts[keep], index[keep]
-    k = int(np.argmax(pts[:, 2]))
-    if float(pts[k, 2] - pts[:, 2].min()) < min_rise:
+    rising = np.flatnonzero(pts[:, 2] - pts[:, 2].min() >= min_rise)
+    if len(rising) == 0:
         return None
+    k = int(rising[np.argmin(np.linalg.norm(pts[rising, :2] - obj.centroid[:2], axis=1))])
     v, u = divmod(int(index[k]), w)
     if _other_pickupable_at(body, obj.label, u, v):
         return None

@@ -301,6 +301,42 @@ def test_a_second_pick_aims_at_what_stands_over_the_track():
     assert raised_sighting(body(mug, [Detection("Mug", 0.7, (145, 145, 165, 165))]), track) is not None
 
 
+def test_a_second_pick_aims_at_a_flat_thing_not_at_the_stool_beside_it():
+    """A spoon lying flat (6 mm high) with a stool's leg 40 cm tall inside the track's grown
+    footprint: the retry aims at the spoon, not at the highest point there (the stool), and a
+    spoon too flat to rise 4 mm above the floor gets no second pixel."""
+    from types import SimpleNamespace
+
+    from tidee.agent.mapping.geometry import unproject
+    from tidee.agent.mapping.memory import TrackedObject
+    from tidee.agent.policy.skills import raised_sighting
+
+    pose = np.eye(4)  # camera 1 m up looking straight down
+    pose[:3, :3] = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    pose[:3, 3] = (0.0, 0.0, 1.0)
+    k = np.array([[128.0, 0.0, 128.0], [0.0, 128.0, 128.0], [0.0, 0.0, 1.0]])
+    floor = np.full((256, 256), 1.0, np.float32)
+    spoon = floor.copy()
+    spoon[150:153, 140:160] = 0.994  # 6 mm high, 15 cm long
+    pts, _ = unproject(spoon, k, pose, mask=np.pad(np.ones((3, 20), bool), ((150, 103), (140, 96))))
+    lo, hi = pts.min(0), pts.max(0)
+    track = TrackedObject(0, "Spoon", 0.5, pts.mean(0), lo, hi)
+    stool = spoon.copy()
+    stool[156:160, 150:154] = 0.6  # a leg 3 cm from the spoon
+
+    def body(depth):
+        return SimpleNamespace(
+            obs=SimpleNamespace(depth=depth, intrinsics=k, camera_pose=pose), detections=[]
+        )
+
+    s = raised_sighting(body(stool), track)
+    assert s is not None and 150 <= s.v < 153 and 140 <= s.u < 160
+    assert abs(s.point[2] - 0.006) < 1e-3
+    flat = floor.copy()
+    flat[150:153, 140:160] = 0.998  # a card 2 mm thick: nothing rises enough to aim at
+    assert raised_sighting(body(flat), track) is None
+
+
 def test_a_detection_of_the_category_counts_only_within_the_stop_radius():
     """Stop needs an instance near the agent: a detection of the label whose near side is 2.5 m
     away (the real TV stand across the room while the track that brought the agent here was
