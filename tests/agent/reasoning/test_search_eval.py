@@ -260,9 +260,9 @@ def test_a_start_with_no_lattice_move_steps_down_to_half_the_radius():
 
 
 def test_a_second_pick_aims_at_what_stands_over_the_track():
-    """A pick that hit the floor beside a mug retries at the highest point over the track's
+    """A pick that hit the floor beside a mug retries at the mug, what rises over the track's
     footprint; a track with nothing standing there (bare floor) gets no second pixel, nor does
-    one whose highest point a detection of another pickupable class covers."""
+    one whose chosen point a detection of another pickupable class covers."""
     from types import SimpleNamespace
 
     from tidee.agent.mapping.geometry import unproject
