@@ -150,6 +150,10 @@ def row_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     """Means of RoomR's metrics over a row's episodes, with steps and wall time."""
     out = aggregate([r["rearrange"] for r in records])
     out["steps_median"] = float(np.median([r["steps"] + (r.get("walkthrough_steps") or 0) for r in records]))
+    # How long the walkthrough looked: it ends before its cap once the survey has been to every
+    # waypoint it drew from the reachable map.
+    walked = [r["walkthrough_steps"] for r in records if r.get("walkthrough_steps")]
+    out["walkthrough_steps_median"] = float(np.median(walked)) if walked else None
     walls = [r["wall_s"] for r in records]
     out["wall_s_median"] = float(np.median(walls))
     out["wall_s_p90"] = float(np.percentile(walls, 90))
@@ -175,6 +179,10 @@ def row_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def _count(x: float | None) -> str:
+    return "-" if x is None else f"{x:.0f}"
+
+
 def _pct(x: float | None) -> str:
     return "-" if x is None else f"{100 * x:.1f}"
 
@@ -192,8 +200,8 @@ def format_markdown(report: dict[str, Any]) -> str:
         "",
         "| row | FixedStrict | Success | Energy | Misplaced | FixedStrict, pickupable "
         "| FixedStrict, openable | changes found | false beliefs | episodes | steps (median) "
-        "| wall s (median / p90 / max) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| walkthrough steps (median) | wall s (median / p90 / max) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, m in rows.items():
         pick, opn = m["fixed_strict_pickupable"], m["fixed_strict_openable"]
@@ -203,6 +211,7 @@ def format_markdown(report: dict[str, Any]) -> str:
             f"{_pct(opn)} ({m['episodes_openable']}) | {m['changed_found']} of {m['changed']} | "
             f"{m['false_beliefs']} | {m['episodes']} | "
             f"{m['steps_median']:.0f} | "
+            f"{_count(m.get('walkthrough_steps_median'))} | "
             f"{m['wall_s_median']:.1f} / {m['wall_s_p90']:.1f} / {m['wall_s_max']:.1f} |"
         )
     lines += fates_markdown(rows)

@@ -48,7 +48,10 @@ def test_the_oracle_row_plays_both_phases_and_the_report_says_so(report: tuple[d
     assert 0 <= ep["changed_found"] <= m["start_misplaced"]
     stored = json.loads((out / "report.json").read_text())
     assert stored["rows"]["oracle"]["fixed_strict"] == rep["rows"]["oracle"]["fixed_strict"]
+    assert stored["rows"]["oracle"]["walkthrough_steps_median"] == ep["walkthrough_steps"]
+    assert stored["rows"]["do-nothing"]["walkthrough_steps_median"] is None  # it never walks through
     md = (out / "report.md").read_text()
+    assert "| walkthrough steps (median) |" in md
     assert "TIDEE, ORACLE perception" in md and "Table 4 (RoomR 2022)" in md and "11.6" in md
     assert (out / "report.png").read_bytes()[:4] == b"\x89PNG"
     assert len((out / "episodes.jsonl").read_bytes().splitlines()) == 2
