@@ -211,7 +211,7 @@ def format_markdown(report: dict[str, Any]) -> str:
             f"{_pct(opn)} ({m['episodes_openable']}) | {m['changed_found']} of {m['changed']} | "
             f"{m['false_beliefs']} | {m['episodes']} | "
             f"{m['steps_median']:.0f} | "
-            f"{_count(m.get('walkthrough_steps_median'))} | "
+            f"{_count(m['walkthrough_steps_median'])} | "
             f"{m['wall_s_median']:.1f} / {m['wall_s_p90']:.1f} / {m['wall_s_max']:.1f} |"
         )
     lines += fates_markdown(rows)
