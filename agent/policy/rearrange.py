@@ -33,13 +33,16 @@ put the shuffled room back.
                  each changed openable, nearest first: walk there, Close it (Open it when its
                    box shrank), not at a pixel nearer another tracked openable (try the next
                    standpoint); left as it is when the server says it already is
-                 each moved object, nearest first: walk there, pick it up, walk to its
-                   walkthrough place (where its views' rays to their top-face middles cross),
-                   reach to the point there (``Action.reach``; from another spot when
-                   something is in the way) and put it down turned onto the walkthrough's
-                   long axis (``Action.yaw``); beyond reach from every
-                   spot (a pillow in the middle of a bed), as near it on the same surface as
-                   the arm goes; else on the receptacle tracked under it. A put at the point
+                 each moved object, nearest first: walk there, pick it up (when the hand
+                   holds another kind of thing, put that back down where it lay and leave
+                   the move: the pick hit a neighbour, or a still object taken for the one
+                   believed moved), walk to its walkthrough place (where its views' rays
+                   to their top-face middles cross), reach to the point there
+                   (``Action.reach``; from another spot when something is in the way) and
+                   put it down turned onto the walkthrough's long axis (``Action.yaw``);
+                   beyond reach from every spot (a pillow in the middle of a bed), as near
+                   it on the same surface as the arm goes; else on the receptacle tracked
+                   under it. A put at the point
                    is then checked from the pose of a walkthrough view of the place (the
                    agent moves on a lattice from one start pose, so the pose recurs): when
                    the object's points as that view saw them fit the new frame turned or
@@ -58,6 +61,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
 
 from tidee.agent.classes import OPENABLE, PICKUPABLE, PLACEABLE_RECEPTACLES
@@ -130,6 +134,8 @@ FIT_SEEN = 0.6  # ... with this share of the points in front of what the frame s
 OFF_M = 0.01  # a put believed this far off (x, y) ...
 OFF_DEG = 8.0  # ... or turned this far (folded to a half turn) is mended
 MENDS = 2  # at most this many times per object
+GONE_M = 0.01  # a pixel whose surface went this much farther away when a pick took something ...
+SAME_THING_M = 0.3  # ... and whose depth was this close to the pick pixel's: the thing taken
 
 
 class WalkthroughOver(Exception):
@@ -605,6 +611,28 @@ def neighbour_at(
     return best[1] if best else None
 
 
+def where_it_lay(before: Any, after: Any, pick: Action | None) -> np.ndarray | None:
+    """The middle (start frame) of what a pick took, from two frames of one pose: the pixels
+    round the pick's pixel whose surface went ``GONE_M`` farther away (or out of range) in the
+    frame ``after`` it and lay within ``SAME_THING_M`` of its depth, lifted with the depth
+    ``before``; None when the pick's pixel did not change or ``before`` is not of the same
+    pose. A book lying flat is 3 cm thick: that much farther along a ray looking down on it."""
+    if before is None or after is None or pick is None or pick.x is None or pick.y is None:
+        return None
+    if not np.array_equal(before.camera_pose, after.camera_pose):
+        return None
+    d0, d1 = np.asarray(before.depth, float), np.asarray(after.depth, float)
+    h, w = d0.shape
+    u, v = min(int(pick.x * w), w - 1), min(int(pick.y * h), h - 1)
+    with np.errstate(invalid="ignore"):
+        gone = np.isfinite(d0) & (d0 > 0) & ~(d1 - d0 <= GONE_M) & (np.abs(d0 - d0[v, u]) <= SAME_THING_M)
+    if not gone[v, u]:
+        return None
+    parts, _ = ndimage.label(gone)
+    points, _ = unproject(d0, before.intrinsics, before.camera_pose, mask=parts == parts[v, u])
+    return points.mean(axis=0) if len(points) else None
+
+
 def lattice_key(pose: tuple[float, ...]) -> tuple[int, int]:
     """The lattice point (moves of ``LATTICE_M`` from the start pose) nearest a pose's (x, y)."""
     return int(round(pose[0] / LATTICE_M)), int(round(pose[1] / LATTICE_M))
@@ -929,10 +957,15 @@ class RearrangePolicy(TidyPolicy):
         votes = self.votes.get(("unshuffle", m.now.id))
         lay = votes.heading_guess() if votes is not None else None
         heading = self.body.pose[2]
+        before = self.body.obs
         if not (yield from self.pick(m.now, sighting)):
             st.target = None
             return False
         held = self.body.obs.held
+        if held != m.now.label:  # the hand holds another kind of thing: it lay there, unmoved
+            yield from self.unpick(m.now.label, held, before)
+            st.target = None
+            return False
         st.phase = "placing"
         self.aimed = None
         placed = yield from self.put_at(m.then, None if lay is None else (lay, heading))
@@ -944,6 +977,26 @@ class RearrangePolicy(TidyPolicy):
             yield from self.check_put(m.then, self.aimed, held)
         st.target = None
         return placed
+
+    def unpick(self, label: str, held: str | None, before: Any) -> Gen:
+        """Put back what a pick of a ``label`` took instead (``held``: its type, as the hand
+        says), turned as it lay (the agent has not moved): where its points were in the frame
+        ``before`` the pick (``where_it_lay``), else at the pixel it was picked at, else on the
+        floor."""
+        self.event("picked_another", label=label, held=held)
+        self.state.phase = "dropping"
+        point = where_it_lay(before, self.body.obs, self.picked_at)
+        action = self.reach_action(point, 0.0) if point is not None else "no points"
+        if not isinstance(action, str):
+            yield action
+            if self.body.obs.success:
+                return
+        at = self.picked_at
+        if at is not None:
+            yield Action(ActionName.PutObject, x=at.x, y=at.y, yaw=0.0)
+            if self.body.obs.success:
+                return
+        yield from self.drop()
 
     def check_put(self, seen: Seen, aim: np.ndarray, held: str | None) -> Gen:
         """Look at the object just put down from the pose of a walkthrough view of its place
@@ -1092,7 +1145,7 @@ class RearrangePolicy(TidyPolicy):
             return None
         if obs.held != held:  # something else was there: put it back where it was
             self.event("mend_failed", label=seen.label, error="picked another", message=str(obs.held))
-            yield Action(ActionName.PutObject, x=at[0], y=at[1])
+            yield Action(ActionName.PutObject, x=at[0], y=at[1], yaw=0.0)  # turned as it lay
             return None
         self.state.phase = "placing"
         heading = self.body.pose[2]

@@ -164,6 +164,7 @@ class TidyPolicy:
         self._last_put_xy = np.zeros(2)
         self._asked_searched: set[str] = set()  # named categories searched for after the tidying
         self._put_again: dict[int, str] = {}  # track id -> label: puts that missed (``_note_misputs``)
+        self.picked_at: Action | None = None  # the last pick action (``pick``)
 
     @staticmethod
     def map_config(config: MapConfig) -> MapConfig:
@@ -410,16 +411,19 @@ class TidyPolicy:
 
     def pick(self, obj: TrackedObject, sighting: Sighting) -> Gen:
         """Pick ``obj`` up at the pixel of its sighting (again at the highest point over its
-        footprint when that pixel hit its support); a picked object leaves the memory."""
+        footprint when that pixel hit its support; ``picked_at``: the last pick action); a
+        picked object leaves the memory."""
         self.state.phase = "picking"
-        yield sighting.action(ActionName.PickupObject, self.body.obs.depth.shape)
+        self.picked_at = sighting.action(ActionName.PickupObject, self.body.obs.depth.shape)
+        yield self.picked_at
         obs = self.body.obs
         if not obs.success and obs.error == "not_pickupable":
             # the pixel hit what the object stands on: try the highest point over its footprint
             again = raised_sighting(self.body, obj, reach=self.p.interact_m, skip=(sighting.u, sighting.v))
             if again is not None:
                 self.event("pick_retry", label=obj.label, first=obs.message)
-                yield again.action(ActionName.PickupObject, self.body.obs.depth.shape)
+                self.picked_at = again.action(ActionName.PickupObject, self.body.obs.depth.shape)
+                yield self.picked_at
                 obs = self.body.obs
         if not obs.success:
             obj.meta["pick_fails"] = obj.meta.get("pick_fails", 0) + 1

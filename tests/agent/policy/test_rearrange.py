@@ -834,3 +834,116 @@ def test_a_put_is_not_checked_when_the_objects_still_to_put_back_need_the_steps(
     """300 steps left, 10 objects still to put back: they come first."""
     assert _check_put(monkeypatch, [(0.03, 20.0, 0.1, 0.5)], pending=10) == (False, [], [])
     assert _check_put(monkeypatch, [(0.03, 20.0, 0.1, 0.5)] * 3, pending=2)[2] != []
+
+
+_K = np.array([[4.0, 0.0, 4.0], [0.0, 4.0, 4.0], [0.0, 0.0, 1.0]])  # an 8x8 camera
+
+
+def _frame(depth: np.ndarray, pose: np.ndarray | None = None, **kw: Any) -> Any:
+    from types import SimpleNamespace
+
+    pose = np.eye(4) if pose is None else pose
+    return SimpleNamespace(
+        depth=depth, intrinsics=_K, camera_pose=pose, success=True, error=None, agent_pose=(0, 0, 0, 30), **kw
+    )
+
+
+def _lying(patch: tuple[slice, slice] = (slice(4, 7), slice(1, 4))) -> tuple[np.ndarray, np.ndarray]:
+    """Depth before and after a pick took a thing 1 m from the eye off a surface 2 m away."""
+    after = np.full((8, 8), 2.0)
+    before = after.copy()
+    before[patch] = 1.0
+    return before, after
+
+
+def test_where_a_picked_thing_lay_is_the_middle_of_the_pixels_it_left() -> None:
+    from tidee.agent.mapping.geometry import unproject
+    from tidee.agent.policy.rearrange import where_it_lay
+    from tidee.protocol.messages import Action, ActionName
+
+    before, after = _lying()
+    before[0:2, 6:8] = 1.5  # something else gone too, not touching it: not the picked thing
+    pick = Action(ActionName.PickupObject, x=2.5 / 8, y=5.5 / 8)
+    mask = np.zeros((8, 8), bool)
+    mask[4:7, 1:4] = True
+    expected = unproject(before, _K, np.eye(4), mask=mask)[0].mean(axis=0)
+    assert where_it_lay(_frame(before), _frame(after), pick) == pytest.approx(expected, abs=1e-6)
+    # the pick's pixel did not change, or the frames are of two poses: nothing to go by
+    assert where_it_lay(_frame(before), _frame(after), Action(ActionName.PickupObject, x=0.9, y=0.9)) is None
+    moved = np.eye(4)
+    moved[0, 3] = 0.25
+    assert where_it_lay(_frame(before), _frame(after, moved), pick) is None
+
+
+def _put_back(monkeypatch: pytest.MonkeyPatch, held: str) -> tuple[list[Any], list[Any], bool]:
+    """Run ``put_back`` on a spoon believed moved, the walk stubbed out and the put at its
+    walkthrough place recorded as an event; the pick (at pixel (2, 5)) succeeds with ``held``
+    in the hand, the thing gone from the frame, and every other action succeeds. Returns the
+    actions, the events (kind and fields) and the skill's result."""
+    from tidee.agent.classes import CLASSES
+    from tidee.agent.config import AgentConfig
+    from tidee.agent.mapping.config import MapConfig
+    from tidee.agent.mapping.maps import SemanticMapper
+    from tidee.agent.policy import rearrange
+    from tidee.agent.policy.skills import Body, Sighting
+
+    mapper = SemanticMapper(MapConfig(), CLASSES)
+    c = np.array([1.0, 0.0, 0.8])
+    spoon = mapper.memory.add_or_merge("Spoon", 0.9, c, c - 0.05, c + 0.05, step=0)
+    body = Body(mapper)
+    before, after = _lying()
+    body.obs = _frame(before, held=None, held_id=None)
+    events: list[Any] = []
+    policy = rearrange.RearrangePolicy(
+        AgentConfig(), body, None, None, "Kitchen", lambda **kw: events.append(kw)
+    )
+
+    def approach(self: Any, *args: Any) -> Gen:
+        return Sighting(None, 2, 5, 0.8, c)
+        yield
+
+    def put_at(self: Any, *args: Any, **kwargs: Any) -> Gen:
+        events.append({"kind": "put_at"})
+        return True
+        yield
+
+    monkeypatch.setattr(rearrange.RearrangePolicy, "approach", approach)
+    monkeypatch.setattr(rearrange.RearrangePolicy, "put_at", put_at)
+    move = rearrange.Move(spoon, _seen("Spoon", (2.0, 0.0, 0.8)), 1.0)
+    run, actions = policy.put_back(move), []
+    try:
+        action = next(run)
+        while True:
+            actions.append(action)
+            if action.name.value == "PickupObject":
+                body.obs = _frame(after, held=held, held_id=f"{held}_0")
+            else:
+                body.obs = _frame(
+                    before if action.name.value == "PutObject" else after, held=None, held_id=None
+                )
+            action = run.send(None)
+    except StopIteration as stop:
+        return actions, events, bool(stop.value)
+
+
+def test_a_pick_that_took_another_kind_of_thing_puts_it_back_where_it_lay(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A spatula in the hand where a spoon was believed moved: it was lying there and did not
+    move, so it goes back down, turned as it lay, at the middle of the pixels it left in the
+    frame (reached for at its distance along that pixel's ray), and nothing is carried off."""
+    actions, events, done = _put_back(monkeypatch, "Spatula")
+    assert [a.name.value for a in actions] == ["PickupObject", "PutObject"]
+    pick, put = actions
+    assert (pick.x, pick.y) == (2.5 / 8, 5.5 / 8)
+    # the 3x3 pixels it left (rows 4-6, columns 1-3) have their middle at pixel (2, 5), 1 m away
+    assert (put.x, put.y, put.yaw) == (2.5 / 8, 5.5 / 8, 0.0)
+    assert put.reach == pytest.approx(np.linalg.norm([-2 / 4, 1 / 4, 1.0]), rel=1e-6)
+    assert [e["kind"] for e in events] == ["picked", "picked_another"] and not done
+    assert events[1]["held"] == "Spatula"
+
+
+def test_a_pick_that_took_the_believed_thing_carries_it_back(monkeypatch: pytest.MonkeyPatch) -> None:
+    actions, events, done = _put_back(monkeypatch, "Spoon")
+    assert [a.name.value for a in actions] == ["PickupObject"]
+    assert [e["kind"] for e in events] == ["picked", "put_at"] and done
