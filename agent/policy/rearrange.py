@@ -616,7 +616,7 @@ def where_it_lay(before: Any, after: Any, pick: Action | None) -> np.ndarray | N
     round the pick's pixel whose surface went ``GONE_M`` farther away (or out of range) in the
     frame ``after`` it and lay within ``SAME_THING_M`` of its depth, lifted with the depth
     ``before``; None when the pick's pixel did not change or ``before`` is not of the same
-    pose. A book lying flat is 3 cm thick: that much farther along a ray looking down on it."""
+    pose. ``GONE_M`` is small because a thing lying flat is thin: a book is 3 cm thick."""
     if before is None or after is None or pick is None or pick.x is None or pick.y is None:
         return None
     if not np.array_equal(before.camera_pose, after.camera_pose):
