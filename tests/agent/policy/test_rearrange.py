@@ -848,11 +848,12 @@ def _frame(depth: np.ndarray, pose: np.ndarray | None = None, **kw: Any) -> Any:
     )
 
 
-def _lying(patch: tuple[slice, slice] = (slice(4, 7), slice(1, 4))) -> tuple[np.ndarray, np.ndarray]:
-    """Depth before and after a pick took a thing 1 m from the eye off a surface 2 m away."""
+def _lying() -> tuple[np.ndarray, np.ndarray]:
+    """Depth before and after a pick took a thing 1 m from the eye (pixels in rows 4-6,
+    columns 1-3) off a surface 2 m away."""
     after = np.full((8, 8), 2.0)
     before = after.copy()
-    before[patch] = 1.0
+    before[4:7, 1:4] = 1.0
     return before, after
 
 
