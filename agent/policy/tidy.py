@@ -398,13 +398,25 @@ class TidyPolicy:
             return
         if not (yield from self.pick(obj, sighting)):
             return
+        tracked_as = obj.label
+        held = self.body.obs.held
+        if held is not None and held != obj.label and held in PICKUPABLE:
+            # the hand holds another kind of thing (a spoon tracked as a knife, or the pick took
+            # a neighbour): it goes where that kind goes
+            self.event("held_another", label=obj.label, held=held, track_id=obj.id)
+            obj.label = held
         st.phase = "inferring"
         placed = yield from self.put_away(obj)
+        if placed and tracked_as != obj.label:  # the detector may name it as before: held back so too
+            _, xy, receptacle = self.placed[-1]
+            self.placed.append((tracked_as, xy, receptacle))
         if not placed:
             st.phase = "dropping"
             placed = yield from self.drop()
             if placed:
                 self.dropped.append((obj.label, self.body.xy.copy()))
+                if tracked_as != obj.label:
+                    self.dropped.append((tracked_as, self.body.xy.copy()))
                 self._rescore = True
                 self.event("dropped", label=obj.label)
         st.target = None

@@ -323,6 +323,66 @@ def test_the_top_receptacle_not_in_memory_is_searched_for_first_only_with_missin
         PolicyConfig(missing_top="later")
 
 
+def _tidy_one(held):
+    """tidy_object on a knife track whose pick succeeds holding ``held``: (policy, events, what
+    the placement model was asked to place)."""
+    policy, events = _policy(variant="CommonMemory")
+    mem = policy.body.mapper.memory
+    knife = _box(mem, "Knife", [1.9, -0.1, 0.9], [2.1, 0.1, 0.92], n_obs=2)
+    policy.oop = _FlatOOP(0.9)
+    asked: list[str] = []
+
+    class ByLabel:
+        def predict(self, obj, memory, room_type):
+            asked.append(obj.label)
+            return [("Drawer" if obj.label == "Spoon" else "CounterTop", 0.9)]
+
+    policy.placement = ByLabel()
+
+    def approach(obj, radius):
+        return SimpleNamespace(u=10, v=10)
+        yield  # noqa
+
+    def pick(obj, sighting):
+        mem.remove(obj.id)
+        policy.body.obs = SimpleNamespace(**{**vars(policy.body.obs), "held": held})
+        return True
+        yield  # noqa
+
+    def put_on(rec):
+        policy._last_put_xy = rec.centroid[:2].copy()
+        return True
+        yield  # noqa
+
+    _box(mem, "Drawer", [0.0, 1.9, 0.5], [0.4, 2.1, 0.7])
+    _box(mem, "CounterTop", [3.0, -0.5, 0.0], [3.5, 0.5, 0.9])
+    policy.approach, policy.pick, policy.put_on = approach, pick, put_on
+    _drive(policy.tidy_object(knife))
+    return policy, events, asked
+
+
+def test_a_picked_thing_goes_where_the_kind_the_hand_holds_goes():
+    # The track said knife; the hand holds a spoon: it is placed as a spoon (in the drawer), and
+    # held back under both names, so a later "knife" detection of it is not picked again.
+    policy, events, asked = _tidy_one("Spoon")
+    assert asked == ["Spoon"]
+    assert [(label, target) for label, _, target in policy.placed] == [
+        ("Spoon", "Drawer"),
+        ("Knife", "Drawer"),
+    ]
+    assert [e for e in events if e["kind"] == "held_another"] == [
+        {"kind": "held_another", "label": "Knife", "held": "Spoon", "track_id": 0}
+    ]
+    again = _box(policy.body.mapper.memory, "Knife", [0.1, 1.95, 0.7], [0.3, 2.05, 0.72], n_obs=2)
+    assert policy._held_back(again)
+    # the hand holds what the track said: placed as that, one record
+    policy, events, asked = _tidy_one("Knife")
+    assert asked == ["Knife"] and [(label, target) for label, _, target in policy.placed] == [
+        ("Knife", "CounterTop")
+    ]
+    assert not [e for e in events if e["kind"] == "held_another"]
+
+
 def _more_counter_tops(mem):
     for x in (5.0, 8.0):
         mem.add_or_merge(
