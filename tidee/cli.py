@@ -319,6 +319,18 @@ def _cmd_eval_tidy_merge(cfg: ec.TidyMergeConfig) -> int:
     return 0
 
 
+def _cmd_eval_compare(cfg: ec.CompareConfig) -> int:
+    from tidee.agent.evaluation.compare import compare_reports, write_comparison
+
+    try:
+        result = compare_reports(cfg.before, cfg.after)
+    except ValueError as e:
+        print(f"tidee eval compare: error: {e}", file=sys.stderr)
+        return 2
+    print(write_comparison(result, cfg.out).read_text())
+    return 0
+
+
 def _cmd_eval_human(cfg: ec.HumanEvalConfig) -> int:
     from tidee.agent.evaluation.human_judge import run_human_eval
 
@@ -522,6 +534,13 @@ def build_parser() -> argparse.ArgumentParser:
         "(compare a new agent with earlier records without rerunning them)",
     )
 
+    add_command(
+        ev,
+        "compare",
+        ec.CompareConfig,
+        _cmd_eval_compare,
+        "two runs of one tidy or rearrangement evaluation, episode by episode: better, worse, same",
+    )
     add_command(
         ev,
         "human",

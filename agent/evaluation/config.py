@@ -137,6 +137,15 @@ class TidyMergeConfig:
 
 
 @dataclass
+class CompareConfig:
+    """``tidee eval compare``: two runs of one evaluation, episode by episode."""
+
+    before: Path = option(help="the earlier report: a directory (report.json or report.json.gz) or the file")
+    after: Path = option(help="the later report, of the same kind (tidy or rearrange)")
+    out: Path = option(help="directory for compare.json and compare.md", type=argtypes.output_path)
+
+
+@dataclass
 class AgentBenchConfig:
     """``tidee bench agent``: mapping, planning and step time, and episode wall time."""
 

@@ -119,6 +119,10 @@ CASES: list[tuple[list[str], str]] = [
     (["viewer", "--replay", "{tmp}/no_such_log"], "--replay"),
     (["viewer", "--screenshot", "/dev/null/x.png", "--replay", "{tmp}"], "argument --screenshot"),
     (["eval", "tidy-merge", "--from", "{tmp}/no_such_report", "--out", "{tmp}/m"], "no_such_report"),
+    (
+        ["eval", "compare", "--before", "{tmp}/no_such_report", "--after", "{tmp}", "--out", "{tmp}/c"],
+        "tidee eval compare: error: {tmp}/no_such_report: no such report directory or file",
+    ),
     # Zenoh config files: missing, unparsable, refused by Zenoh when read or when used
     (["server", "--zenoh-config", "{tmp}/no_such.json5"], "--zenoh-config {tmp}/no_such.json5: no such file"),
     (
