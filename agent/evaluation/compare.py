@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from tidee.agent.evaluation.conditions import row_name
 from tidee.agent.evaluation.report import load_report
 from tidee.protocol.episode_log import write_atomic
 
@@ -56,8 +57,14 @@ def _tidy_course(e: dict[str, Any]) -> Any:
 
 
 def _tidy_row(key: Key) -> str:
+    """The report's row name: an agent's already names its condition (``TIDEE +est. depth``), a
+    reference row's does not (its records are kept once per condition)."""
     variant, condition = key[0], key[1]
-    return variant if condition == "clean" else f"{variant} ({condition})"
+    try:
+        named = variant.endswith(row_name("", condition))
+    except ValueError:  # a condition this version does not know
+        named = False
+    return variant if named else f"{variant} ({condition})"
 
 
 def _tidy_name(key: Key) -> str:

@@ -147,3 +147,13 @@ def test_reports_that_cannot_be_compared_are_refused_in_one_line(tmp_path):
     dup = _write(tmp_path / "d", [_tidy_episode("TIDEE", 200, 2)] * 2, "d")
     with pytest.raises(ValueError, match="two episodes of"):
         compare_reports(dup, tidy)
+
+
+def test_a_condition_row_keeps_the_report_name_and_reference_rows_name_their_condition(tmp_path):
+    agent = dict(_tidy_episode("TIDEE +est. depth", 200, 1), condition="est-depth")
+    reference = dict(_tidy_episode("AI2THORPlacement", 200, 3), condition="est-depth")
+    clean = _tidy_episode("AI2THORPlacement", 200, 3)
+    report = _write(tmp_path / "a", [agent, reference, clean], "tidee eval tidy --conditions clean,est-depth")
+    rows = compare_reports(report, report)["rows"]
+    assert sorted(rows) == ["AI2THORPlacement", "AI2THORPlacement (est-depth)", "TIDEE +est. depth"]
+    assert all(r["identical"] == 1 for r in rows.values())
