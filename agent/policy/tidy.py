@@ -6,7 +6,8 @@ pseudo code::
     map the scene                     (look around, then unexplored goals until < A unexplored)
     while an OOP object is found within k search goals:
         navigate to it, PickupObject
-        receptacle classes <- placement model (CommonMemory, rGCN, ...)
+        receptacle classes <- placement model (CommonMemory, rGCN, ...) for the kind the hand
+            holds (the observation's ``held``; a track's class can be wrong)
         if one is in the object memory: navigate there, PutObject (open it first if closed)
         else: search for it (exploration / visual search network), PutObject
               (missing_top="search": the top-ranked class is searched for before the others,
@@ -26,7 +27,8 @@ pseudo code::
 Approaching an object or a receptacle that is not in view or not within reach from the spot
 reached: the neighbouring pitch, then another spot at least ``RETRY_AWAY_M`` from those tried.
 
-Every decision reads the agent's own maps and detections; events go to ``on_event``.
+Every decision reads the agent's own maps, detections and observations; events go to
+``on_event``.
 """
 
 from __future__ import annotations
