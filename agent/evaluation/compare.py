@@ -25,7 +25,8 @@ from pathlib import Path
 from typing import Any
 
 from tidee.agent.evaluation.conditions import row_name
-from tidee.agent.evaluation.report import load_report
+from tidee.agent.evaluation.rearrange_metrics import aggregate
+from tidee.agent.evaluation.report import load_report, variant_metrics
 from tidee.protocol.episode_log import write_atomic
 
 Key = tuple[Any, ...]
@@ -77,7 +78,7 @@ def _rearrange_key(e: dict[str, Any]) -> Key:
 
 def _rearrange_score(e: dict[str, Any]) -> tuple[float, ...]:
     m = e["rearrange"]
-    return (float(m["fixed_strict"]), -float(m["energy"]))
+    return (float(m["fixed_strict"] or 0.0), -float(m["energy"] or 0.0))  # None: nothing to fix
 
 
 def _rearrange_course(e: dict[str, Any]) -> Any:
@@ -136,25 +137,22 @@ def _by_key(
     return out
 
 
-def _row_metric(kind: str, episodes: Sequence[dict[str, Any]]) -> dict[str, float]:
-    """The row's headline over ``episodes``: tidy object success (%) and false picks; for a
-    rearrangement, FixedStrict (%), Success (%) and Energy (%)."""
+def _row_metric(kind: str, episodes: Sequence[dict[str, Any]]) -> dict[str, float | None]:
+    """The row's headline over ``episodes``, as the reports compute it: tidy object success (%,
+    ``variant_metrics``, the judge) and false picks; for a rearrangement, FixedStrict, Success and
+    Energy (%, RoomR's means, ``aggregate``)."""
     if kind == "tidy":
-        moved = [o for e in episodes for o in e["objects"] if o["moved"]]
-        picked = [o for e in episodes for o in e["objects"] if o["picked"]]
+        m = next(iter(variant_metrics(episodes).values()))
+        success = m["object_success"]
         return {
-            "object_success_pct": round(
-                100.0 * sum(bool(o["plausible"]) for o in moved) / max(len(moved), 1), 1
-            ),
-            "moved_objects": float(len(moved)),
-            "false_picks": float(sum(not o["moved"] for o in picked)),
+            "object_success_pct": None if success is None else round(100.0 * success, 1),
+            "moved_objects": float(m["moved"]),
+            "false_picks": float(m["false_picks"]),
         }
-    metrics = [e["rearrange"] for e in episodes]
-    n = max(len(metrics), 1)
+    a = aggregate([e["rearrange"] for e in episodes])
     return {
-        "fixed_strict_pct": round(100.0 * sum(m["fixed_strict"] for m in metrics) / n, 1),
-        "success_pct": round(100.0 * sum(bool(m["success"]) for m in metrics) / n, 1),
-        "energy_pct": round(100.0 * sum(m["energy"] for m in metrics) / n, 1),
+        f"{key}_pct": None if a[key] is None else round(100.0 * a[key], 1)
+        for key in ("fixed_strict", "success", "energy")
     }
 
 
@@ -217,6 +215,10 @@ def compare_reports(before: str | os.PathLike[str], after: str | os.PathLike[str
     }
 
 
+def _num(x: float | None) -> str:
+    return "–" if x is None else f"{x:g}"
+
+
 def format_markdown(result: dict[str, Any]) -> str:
     rows = result["rows"]
     metric_names = list(next(iter(rows.values()))["metric_before"])
@@ -233,7 +235,7 @@ def format_markdown(result: dict[str, Any]) -> str:
     ]
     for name, row in rows.items():
         metrics = " | ".join(
-            f"{row['metric_before'][m]:g} → {row['metric_after'][m]:g}" for m in metric_names
+            f"{_num(row['metric_before'][m])} → {_num(row['metric_after'][m])}" for m in metric_names
         )
         lines.append(
             f"| {name} | {row['episodes']} | {len(row['better'])} | {len(row['worse'])} | "

@@ -10,33 +10,34 @@ import pytest
 from tidee.agent.evaluation.compare import compare_reports, format_markdown, write_comparison
 
 
+def _object(oid, moved, picked, plausible, final):
+    # a book in a bedroom: plausible on the shelf, bed or dresser, not on the floor (the judge
+    # decides from the receptacle; the flag is what the report stored beside it)
+    return {
+        "id": oid,
+        "type": "Book",
+        "variant": None,
+        "moved": moved,
+        "found": picked,
+        "picked": picked,
+        "original_parent_type": "Shelf",
+        "messy_parent_type": "Floor" if moved else "Shelf",
+        "final_parent_type": final if plausible else "Floor",
+        "plausible": plausible,
+    }
+
+
 def _tidy_episode(variant, seed, plausible, steps=300, picked_unmoved=0, final="Shelf"):
-    objects = [
-        {
-            "id": f"Book_{i}",
-            "moved": True,
-            "picked": True,
-            "plausible": i < plausible,
-            "final_parent_type": final,
-        }
-        for i in range(3)
-    ]
-    objects += [
-        {
-            "id": f"Vase_{i}",
-            "moved": False,
-            "picked": i < picked_unmoved,
-            "plausible": True,
-            "final_parent_type": "Shelf",
-        }
-        for i in range(2)
-    ]
+    objects = [_object(f"Book_{i}", True, True, i < plausible, final) for i in range(3)]
+    objects += [_object(f"Book_{i + 3}", False, i < picked_unmoved, True, "Shelf") for i in range(2)]
     return {
         "variant": variant,
         "room_type": "Bedroom",
         "seed": seed,
         "mess_index": 0,
         "steps": steps,
+        "wall_s": 10.0,
+        "present_receptacles": ["Bed", "Dresser", "Floor", "Shelf"],
         "objects": objects,
     }
 
@@ -100,8 +101,10 @@ def _rearrange_episode(row, seed, fixed_strict, energy, steps=400):
     metrics = {
         "fixed_strict": fixed_strict,
         "success": fixed_strict == 1.0,
+        "misplaced": None,
         "energy": energy,
         "objects": objects,
+        "by_kind": {k: {"fixed_strict": None} for k in ("pickupable", "openable")},
     }
     return {
         "row": row,
