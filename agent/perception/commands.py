@@ -16,7 +16,7 @@ from dataclasses import asdict
 from tidee.agent.perception.depth.config import DepthEvalConfig, DepthTrainConfig
 from tidee.agent.perception.detector.config import GenDetectionConfig, TrainDetectorConfig
 from tidee.agent.perception.reclassifier.config import TrainReclassifierConfig
-from tidee.options import add_command
+from tidee.options import add_command, to_argv
 from tidee.protocol.vocab import HELD_OUT_SPLITS
 
 
@@ -81,10 +81,18 @@ def run_train_depth(cfg: DepthTrainConfig) -> int:
     from tidee.agent.perception.depth.config import DOCS_LOSS_PNG
     from tidee.agent.perception.depth.train import train_depth
 
-    data = cfg.data if cfg.data is not None else cfg.data_dir  # as given, else the checkout's data/detection
-    command = (
-        f"tidee train depth --data {data} --steps {cfg.steps} --batch-size {cfg.batch_size} "
-        f"--lr {cfg.lr} --seed {cfg.seed}" + (f" --out {cfg.out}" if cfg.out else "")
+    # every option that shapes the weights, the data as given (else the checkout's data/detection)
+    shaping = to_argv(
+        cfg,
+        skip=("data", "steps", "batch_size", "lr", "seed", "out", "work_dir", "resume", "checkpoint_every"),
+    )
+    command = " ".join(
+        [
+            f"tidee train depth --data {cfg.data_spec} --steps {cfg.steps} --batch-size {cfg.batch_size}",
+            f"--lr {cfg.lr} --seed {cfg.seed}",
+            *shaping,
+            *([f"--out {cfg.out}"] if cfg.out else []),
+        ]
     )
     # the docs show the shipped curve only
     result = train_depth(cfg, command=command, docs_png=DOCS_LOSS_PNG if ships(cfg.out_path) else None)
@@ -95,6 +103,7 @@ def run_train_depth(cfg: DepthTrainConfig) -> int:
 def run_eval_depth(cfg: DepthEvalConfig) -> int:
     from pathlib import Path
 
+    from tidee.agent.learning import sha256_file
     from tidee.agent.perception.depth.eval import (
         evaluate_depth,
         heldout_frames,
@@ -103,6 +112,7 @@ def run_eval_depth(cfg: DepthEvalConfig) -> int:
         time_inference,
     )
     from tidee.agent.perception.depth.model import DepthEstimator
+    from tidee.paths import PROJECT_DIR
     from tidee.protocol.episode_log import write_json_atomic
 
     if cfg.split not in HELD_OUT_SPLITS:
@@ -121,7 +131,9 @@ def run_eval_depth(cfg: DepthEvalConfig) -> int:
     )
     result = {
         "split": cfg.split,
-        "weights": str(weights),
+        # as given, else the shipped file's place in the checkout (not this machine's path)
+        "weights": cfg.weights or weights.relative_to(PROJECT_DIR).as_posix(),
+        "sha256": sha256_file(weights),
         "command": command,
         "eval_set": asdict(eval_set),
         "metrics": evaluate_depth(estimator, frames),

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tidee import argtypes
-from tidee.agent.perception.detector.config import DEFAULT_DATA, WEIGHTS_DIR
+from tidee.agent.perception.detector.config import DEFAULT_DATA, WEIGHTS_DIR, Precision
 from tidee.options import option
 from tidee.paths import PROJECT_DIR, RUNS_DIR
 from tidee.protocol.vocab import HeldOutSplit
@@ -39,34 +39,44 @@ class DepthTrainConfig:
     """``tidee train depth``: the depth-from-RGB network (the '+est. depth' setting)."""
 
     data: str | None = option(
-        None, "frames from `tidee gen detection` (default: data/detection in the checkout)"
+        None,
+        "frames from `tidee gen detection`: one directory or several, comma-separated, holding "
+        "different rooms (default: data/detection in the checkout)",
     )
     out: str | None = option(
         None,
         "weights file, default agent/weights/depth.pt (its manifest .json goes beside it)",
         type=argtypes.output_path,
     )
-    # 1200: the shipped weights' run (agent/weights/depth.json), so the default command reproduces them
-    steps: int = option(1200, "training steps", type=argtypes.positive_int)
+    # the shipped weights' options (agent/weights/depth.json, which also names their data)
+    steps: int = option(8000, "training steps", type=argtypes.positive_int)
     batch_size: int = option(16, "frames per step", type=argtypes.positive_int)
     lr: float = option(2e-3, "peak learning rate")
     seed: int = option(
         0, "seed of the initial weights, the batches and the augmentation", type=argtypes.non_negative_int
     )
     device: str = option("auto", "auto | cpu | cuda")
+    precision: Precision = option(
+        "auto",
+        "bf16 autocast (faster on a CPU with AVX512-BF16); auto: bf16 where the CPU or GPU "
+        "supports it, fp32 otherwise",
+    )
     work_dir: str | None = option(
         None, "checkpoint and loss curve (default: runs/depth in the checkout)", type=argtypes.output_path
     )
     resume: bool = option(False, "continue from the checkpoint in --work-dir")
     checkpoint_every: int = option(100, "steps between checkpoints", type=argtypes.positive_int)
     log_every: int = option(10, cli=False)
-    widths: tuple[int, ...] = option((16, 24, 48, 96), cli=False)
+    widths: tuple[int, ...] = option(
+        (16, 24, 48, 96), "channels of the four encoder stages (1/2 to 1/16), comma separated"
+    )
+    context: bool = option(True, "a global context vector at 1/16 (DepthNet's context branch)")
     # scored at the end of training (held-out test rooms); None skips it
     eval_set: EvalSet | None = option(default_factory=EvalSet, cli=False)
 
     @property
-    def data_dir(self) -> Path:
-        return Path(self.data) if self.data is not None else DEFAULT_DATA
+    def data_spec(self) -> str:
+        return self.data if self.data is not None else str(DEFAULT_DATA)
 
     @property
     def out_path(self) -> Path:

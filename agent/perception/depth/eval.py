@@ -131,7 +131,8 @@ def metrics_markdown(result: dict[str, Any]) -> str:
     lines = [
         f"# Depth from RGB: {result['split']} rooms",
         "",
-        f"Weights `{result['weights']}`; {m['frames']} frames: {e['rooms_per_type']} rooms per type, "
+        f"Weights `{result['weights']}` (sha256 {result.get('sha256', '?')[:12]}); "
+        f"{m['frames']} frames: {e['rooms_per_type']} rooms per type, "
         f"tidy + {e['messes']} messy configurations each, {e['frames_per_walk']} frames per walk, "
         f"seed {e['seed']}.",
         "",

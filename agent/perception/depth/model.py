@@ -1,9 +1,9 @@
 """Depth from RGB: a small U-Net for the paper's "+est. depth" setting.
 
 ``DepthNet`` maps an RGB frame to metric depth along the optical axis (metres, bounded to
-``[min_depth, max_depth]``). It is small enough for the agent's CPU budget: about 8 ms per
-256^2 frame on one thread with BatchNorm folded into the convolutions (``DepthEstimator``
-does that when it loads the weights).
+``[min_depth, max_depth]``). It is small enough for the agent's CPU budget: about 4 ms per
+256^2 frame on one thread of an AVX512 EPYC (``tidee eval depth``) with BatchNorm folded into
+the convolutions (``DepthEstimator`` does that when it loads the weights).
 
 ``tidee train depth`` fits it (:mod:`.train`) on the detector frames of the training rooms
 (``tidee gen detection``); ``tidee eval depth`` (:mod:`.eval`) measures it on held-out test
@@ -45,8 +45,10 @@ class DepthNet(nn.Module):
     """RGB in [0, 1] (B x 3 x H x W, H and W multiples of 16) -> depth in metres (B x H x W).
 
     Encoder: one stride-2 stage per entry of ``widths`` (1/2 ... 1/16), two 3x3 conv-BN-ReLU
-    each. Decoder: bilinear x2, a 1x1 projection added to the skip of the same scale, one
-    3x3 conv-BN-ReLU. The head predicts at 1/2 resolution and is upsampled bilinearly; its
+    each. With ``context``, a vector pooled over the whole 1/16 map (a 1x1 conv and ReLU of its
+    mean) is added to every cell of it, so each pixel sees the room's layout. Decoder:
+    bilinear x2, a 1x1 projection added to the skip of the same scale, one 3x3 conv-BN-ReLU.
+    The head predicts at 1/2 resolution and is upsampled bilinearly; its
     output is squashed to log depth in [log min_depth, log max_depth].
     """
 
@@ -58,6 +60,7 @@ class DepthNet(nn.Module):
         widths: tuple[int, ...] | list[int] = (16, 24, 48, 96),
         min_depth: float = 0.1,
         max_depth: float = 8.0,
+        context: bool = False,
     ):
         super().__init__()
         if len(widths) != 4:
@@ -66,6 +69,7 @@ class DepthNet(nn.Module):
             raise ValueError(f"need 0 < min_depth < max_depth, got {min_depth}, {max_depth}")
         self.widths = tuple(int(w) for w in widths)
         self.min_depth, self.max_depth = float(min_depth), float(max_depth)
+        self.context = bool(context)
         w = self.widths
         self.encoder = nn.ModuleList(
             nn.Sequential(_conv_bn_relu(c_in, c_out, 2), _conv_bn_relu(c_out, c_out))
@@ -74,6 +78,9 @@ class DepthNet(nn.Module):
         self.lateral = nn.ModuleList(nn.Conv2d(w[i + 1], w[i], 1) for i in range(len(w) - 1))
         self.decoder = nn.ModuleList(_conv_bn_relu(w[i], w[i]) for i in range(len(w) - 1))
         self.head = nn.Conv2d(w[0], 1, 3, 1, 1)
+        self.global_context = (
+            nn.Sequential(nn.Conv2d(w[-1], w[-1], 1), nn.ReLU(inplace=True)) if self.context else None
+        )
         # Start at a typical room depth, not the geometric middle of the range (0.9 m).
         start = (math.log(TYPICAL_DEPTH) - math.log(min_depth)) / (math.log(max_depth) - math.log(min_depth))
         assert self.head.bias is not None
@@ -82,7 +89,14 @@ class DepthNet(nn.Module):
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
     def config(self) -> dict[str, Any]:
-        return {"widths": list(self.widths), "min_depth": self.min_depth, "max_depth": self.max_depth}
+        config: dict[str, Any] = {
+            "widths": list(self.widths),
+            "min_depth": self.min_depth,
+            "max_depth": self.max_depth,
+        }
+        if self.context:  # older weights files have no key: no context branch
+            config["context"] = True
+        return config
 
     def log_depth(self, rgb: torch.Tensor) -> torch.Tensor:
         if rgb.shape[-1] % 16 or rgb.shape[-2] % 16:
@@ -92,6 +106,8 @@ class DepthNet(nn.Module):
         for stage in self.encoder:
             x = stage(x)
             skips.append(x)
+        if self.global_context is not None:
+            x = x + self.global_context(x.mean(dim=(2, 3), keepdim=True))
         for i in range(len(skips) - 2, -1, -1):
             up = F.interpolate(self.lateral[i](x), scale_factor=2, mode="bilinear", align_corners=False)
             x = self.decoder[i](up + skips[i])

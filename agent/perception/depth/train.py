@@ -7,7 +7,6 @@ seed and the step number) and resumable from the checkpoint in ``--work-dir``.
 
 from __future__ import annotations
 
-import json
 import math
 import shutil
 import time
@@ -21,6 +20,7 @@ import torch
 from tidee.agent.learning import (
     load_checkpoint,
     pick_device,
+    resolve_precision,
     save_checkpoint,
     save_loss_curve,
     write_manifest,
@@ -102,12 +102,20 @@ def lr_at(step: int, steps: int, lr: float, warmup: int = 50) -> float:
 
 
 def train_step(
-    model: DepthNet, opt: torch.optim.Optimizer, rgb: torch.Tensor, depth: torch.Tensor, lr: float
+    model: DepthNet,
+    opt: torch.optim.Optimizer,
+    rgb: torch.Tensor,
+    depth: torch.Tensor,
+    lr: float,
+    precision: str = "fp32",
 ) -> dict[str, float]:
+    """One AdamW step; ``precision`` "bf16" runs the network under bf16 autocast (the loss in fp32)."""
     for group in opt.param_groups:
         group["lr"] = lr
     model.train()
-    losses = depth_loss(model.log_depth(rgb), depth)
+    with torch.autocast(rgb.device.type, dtype=torch.bfloat16, enabled=precision == "bf16"):
+        log_pred = model.log_depth(rgb)
+    losses = depth_loss(log_pred.float(), depth)
     opt.zero_grad(set_to_none=True)
     losses["loss"].backward()
     opt.step()
@@ -117,19 +125,14 @@ def train_step(
 # --- training ------------------------------------------------------------------------------------
 
 
-def _data_summary(data_dir: Path) -> dict[str, Any]:
-    man_path = data_dir / "manifest.json"
-    if not man_path.exists():
-        raise FileNotFoundError(
-            f"no manifest.json in {data_dir}: generate training frames with "
-            f"`tidee gen detection --out {data_dir}` (or let a running one finish)"
-        )
-    manifest = json.loads(man_path.read_text())
+def _data_summary(spec: str, manifests: list[dict[str, Any]]) -> dict[str, Any]:
+    """What the manifest records of the training frames: their directories, commands, rooms, frames."""
+    commands = [m.get("command", "") for m in manifests]
     return {
-        "dir": str(data_dir),
-        "command": manifest.get("command", ""),
-        "rooms": len(manifest.get("rooms", [])),
-        "frames": manifest.get("frames"),
+        "dir": spec,
+        "command": commands[0] if len(commands) == 1 else commands,
+        "rooms": sum(len(m.get("rooms", [])) for m in manifests),
+        "frames": sum(int(m.get("frames") or 0) for m in manifests),
     }
 
 
@@ -149,21 +152,21 @@ def train_depth(
     """
     from tqdm import tqdm
 
-    from tidee.agent.perception.detector.data import load_shards
+    from tidee.agent.perception.detector.data import load_datasets
 
     steps, batch_size, lr, seed, widths = cfg.steps, cfg.batch_size, cfg.lr, cfg.seed, cfg.widths
     log_every, checkpoint_every, eval_set = cfg.log_every, cfg.checkpoint_every, cfg.eval_set
     if steps < 1 or batch_size < 1 or lr <= 0:
         raise ValueError(f"need steps >= 1, batch_size >= 1 and lr > 0, got {steps}, {batch_size}, {lr}")
-    data_dir, out_weights, work_dir = cfg.data_dir, cfg.out_path, cfg.work_path
-    data = _data_summary(data_dir)
+    out_weights, work_dir = cfg.out_path, cfg.work_path
     device = pick_device(cfg.device)
     t0 = time.time()
-    frames = load_shards(data_dir)
+    frames, manifests = load_datasets(cfg.data_spec)  # ValueError naming a directory without a manifest
+    data = _data_summary(cfg.data_spec, manifests)
     rgb_all, depth_all = frames["rgb"], frames["depth"]
     n = len(rgb_all)
     if n < batch_size:
-        raise ValueError(f"{data_dir} has {n} frames, fewer than one batch of {batch_size}")
+        raise ValueError(f"{cfg.data_spec} has {n} frames, fewer than one batch of {batch_size}")
 
     run = {
         "seed": seed,
@@ -171,10 +174,13 @@ def train_depth(
         "batch_size": batch_size,
         "lr": lr,
         "widths": list(widths),
+        "context": cfg.context,
+        "precision": resolve_precision(cfg.precision, device),
         "frames": n,
     }
+    precision = run["precision"]
     torch.manual_seed(seed)  # the initial weights; batches and augmentation draw from (seed, step)
-    model = DepthNet(widths).to(device)
+    model = DepthNet(widths, context=cfg.context).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     ckpt_path = work_dir / "checkpoint.pt"
     start, history, sums = 0, [], {}
@@ -207,7 +213,7 @@ def train_depth(
     for step in bar:
         idx = batch_indices(n, batch_size, seed, step)
         rgb, depth = augment(*to_tensors(rgb_all[idx], depth_all[idx], device), seed, step)
-        losses = train_step(model, opt, rgb, depth, lr_at(step, steps, lr))
+        losses = train_step(model, opt, rgb, depth, lr_at(step, steps, lr), precision)
         for k, v in losses.items():
             sums[k] = sums.get(k, 0.0) + v
         if (step + 1) % log_every == 0 or step + 1 == steps:
