@@ -68,7 +68,7 @@ class DepthTrainConfig:
     checkpoint_every: int = option(100, "steps between checkpoints", type=argtypes.positive_int)
     log_every: int = option(10, cli=False)
     widths: tuple[int, ...] = option(
-        (16, 24, 48, 96), "channels of the four encoder stages (1/2 to 1/16), comma separated"
+        (16, 24, 48, 96), "channels of the four encoder stages (1/2 to 1/16), comma-separated"
     )
     context: bool = option(True, "a global context vector at 1/16 (DepthNet's context branch)")
     # scored at the end of training (held-out test rooms); None skips it
