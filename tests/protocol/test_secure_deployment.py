@@ -125,16 +125,17 @@ def _lines(proc: subprocess.Popen) -> queue.Queue[str]:
     return lines
 
 
-def _wait_for_line(lines: queue.Queue[str], prefix: str, timeout: float) -> str:
+def _wait_for_line(lines: queue.Queue[str], prefix: str, timeout: float, anywhere: bool = False) -> str:
+    """The first line starting with ``prefix`` (``anywhere``: holding it, as in a log line)."""
     deadline = time.monotonic() + timeout
     while (left := deadline - time.monotonic()) > 0:
         try:
             line = lines.get(timeout=left)
         except queue.Empty:
             break
-        if line.startswith(prefix):
+        if line.startswith(prefix) or (anywhere and prefix in line):
             return line
-    raise AssertionError(f"no line starting {prefix!r} within {timeout} s")
+    raise AssertionError(f"no line {'holding' if anywhere else 'starting'} {prefix!r} within {timeout} s")
 
 
 def _stop(proc: subprocess.Popen, sig: int, grace: float = 30.0) -> int:
@@ -194,11 +195,14 @@ def deployment(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Deployment]
         ]  # fmt: skip
         server = subprocess.Popen(
             [*tidee, *command("server0")],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
             env=env,
             cwd=REPO,
         )
+        # up before any test: the teardown's SIGINT must meet a running server, not its imports
+        _wait_for_line(_lines(server), f"tidee server {SERVER_ID!r} ready", START_S, anywhere=True)
         yield dep
     finally:
         for z in dep.sessions:
