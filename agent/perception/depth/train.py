@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from tidee.agent.learning import (
+    dataset_record,
     load_checkpoint,
     pick_device,
     resolve_precision,
@@ -125,17 +126,6 @@ def train_step(
 # --- training ------------------------------------------------------------------------------------
 
 
-def _data_summary(spec: str, manifests: list[dict[str, Any]]) -> dict[str, Any]:
-    """What the manifest records of the training frames: their directories, commands, rooms, frames."""
-    commands = [m.get("command", "") for m in manifests]
-    return {
-        "dir": spec,
-        "command": commands[0] if len(commands) == 1 else commands,
-        "rooms": sum(len(m.get("rooms", [])) for m in manifests),
-        "frames": sum(int(m.get("frames") or 0) for m in manifests),
-    }
-
-
 def train_depth(
     cfg: DepthTrainConfig,
     progress: bool = True,
@@ -152,7 +142,7 @@ def train_depth(
     """
     from tqdm import tqdm
 
-    from tidee.agent.perception.detector.data import load_datasets
+    from tidee.agent.perception.detector.data import TRAIN_ROOMS, load_datasets
 
     steps, batch_size, lr, seed, widths = cfg.steps, cfg.batch_size, cfg.lr, cfg.seed, cfg.widths
     log_every, checkpoint_every, eval_set = cfg.log_every, cfg.checkpoint_every, cfg.eval_set
@@ -162,7 +152,7 @@ def train_depth(
     device = pick_device(cfg.device)
     t0 = time.time()
     frames, manifests = load_datasets(cfg.data_spec)  # ValueError naming a directory without a manifest
-    data = _data_summary(cfg.data_spec, manifests)
+    data = dataset_record(cfg.data_spec, frames, manifests, TRAIN_ROOMS)
     rgb_all, depth_all = frames["rgb"], frames["depth"]
     n = len(rgb_all)
     if n < batch_size:

@@ -47,6 +47,8 @@ WALK_ACTIONS = (
     "LookDown",
     "LookUp",
 )
+# the rooms a `tidee gen detection` directory holds (its models' manifests record it)
+TRAIN_ROOMS = "train (seeds 0-19 + pool 10000...), never val/test"
 MIN_PIXELS = 12  # at 256^2 (scaled with resolution): smaller instances are not targets
 
 
@@ -413,6 +415,7 @@ def describe(cfg: GenConfig) -> str:
 
 
 __all__ = [
+    "TRAIN_ROOMS",
     "configs",
     "frame_targets",
     "iter_frames",

@@ -32,7 +32,7 @@ from tidee.agent.learning import (
     write_manifest,
 )
 from tidee.agent.perception.detector.config import DetectorConfig, TrainConfig
-from tidee.agent.perception.detector.data import load_datasets
+from tidee.agent.perception.detector.data import TRAIN_ROOMS, load_datasets
 from tidee.agent.perception.detector.model import CenterDetector, detector_loss, encode_targets, preprocess
 
 
@@ -317,9 +317,7 @@ def train_detector(
         result["manifest"] = write_manifest(
             cfg.out_path,
             command=command,
-            data=dataset_record(
-                cfg.data_spec, data, data_manifests, "train (seeds 0-19 + pool 10000...), never val/test"
-            ),
+            data=dataset_record(cfg.data_spec, data, data_manifests, TRAIN_ROOMS),
             metrics={"train_loss_final": history[-1] if history else None},
             train_config={**asdict(cfg), "precision_used": precision, "device_used": device},
             model_config=model_cfg.to_dict(),
