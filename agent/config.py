@@ -37,7 +37,7 @@ from typing import Literal, get_args
 
 from tidee import argtypes
 from tidee.agent.mapping.config import MapConfig
-from tidee.agent.perception import PERCEPTIONS, PerceptionMode
+from tidee.agent.perception import DETECTOR_SETS, PERCEPTIONS, DetectorSet, PerceptionMode
 from tidee.agent.reasoning.oop import OOP_DETECTORS, check_oop_detector
 from tidee.agent.reasoning.placement import PAPER_VARIANTS, PLACEMENT_MODELS, check_variant
 from tidee.launch import RunConfig
@@ -151,6 +151,11 @@ class AgentConfig:
     perception: PerceptionMode = option(
         "learned", "learned: the shipped RGB-D detector | oracle: reads the simulator's segmentation"
     )
+    detector: DetectorSet = option(
+        DETECTOR_SETS[0],
+        "the learned detector and its crop classifier, by the renderers they were trained on: tiny "
+        "(TinyRenderer frames) | tiny+egl (TinyRenderer and EGL frames alike: the one for --renderer egl)",
+    )
     depth: DepthSource = option(
         "sensor", "estimated: depth from RGB by the shipped depth network (the paper's +est. depth)"
     )
@@ -205,6 +210,12 @@ class AgentConfig:
             raise ValueError(f"carve must be one of {CARVE_MODES}, got {self.carve!r}")
         if self.depth not in DEPTH_SOURCES:
             raise ValueError(f"depth must be one of {DEPTH_SOURCES}, got {self.depth!r}")
+        if self.detector not in DETECTOR_SETS:
+            raise ValueError(f"detector must be one of {DETECTOR_SETS}, got {self.detector!r}")
+        if self.detector != DETECTOR_SETS[0] and self.perception != "learned":
+            raise ValueError(
+                f"--detector {self.detector} is a learned detector: it needs --perception learned"
+            )
         if self.detection_threshold is not None:
             if self.perception != "learned":
                 raise ValueError(
@@ -218,6 +229,11 @@ class AgentConfig:
         if self.oop == "visual" and self.perception != "learned":
             raise ValueError(
                 "--oop visual reads the learned detector's OOP head: it needs --perception learned"
+            )
+        if self.oop == "fused" and self.detector != DETECTOR_SETS[0]:
+            raise ValueError(
+                f"--oop fused reads the {DETECTOR_SETS[0]} detector's features (it was trained on them): "
+                f"it cannot run with --detector {self.detector}"
             )
 
 

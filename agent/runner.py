@@ -162,6 +162,7 @@ class AgentModels:
         return (
             config.perception,
             config.detection_threshold,
+            config.detector,
             config.depth,
             config.oop,
             config.variant,
@@ -170,7 +171,7 @@ class AgentModels:
 
     @staticmethod
     def load(config: AgentConfig) -> AgentModels:
-        perception = make_perception(config.perception, config.detection_threshold)
+        perception = make_perception(config.perception, config.detection_threshold, config.detector)
         depth_net = None
         if config.depth == "estimated":
             from tidee.agent.perception.depth.model import DepthEstimator

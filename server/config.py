@@ -22,8 +22,8 @@ TRAINED_RENDERER: Renderer = "tiny"
 # Resets a simulator process runs before a fresh one replaces it (ServerConfig.recycle_after).
 DEFAULT_RECYCLE_AFTER = 50
 RENDERER_HELP = (
-    f"who draws the frames; {TRAINED_RENDERER}: what the shipped detector was trained on (auto picks "
-    "EGL when it loads: faster, but the detector scores lower on its frames)"
+    f"who draws the frames; {TRAINED_RENDERER}: what the default detector was trained on (auto picks "
+    "EGL when it loads: faster; the agent's --detector tiny+egl was trained on both)"
 )
 
 

@@ -27,8 +27,10 @@ from tidee import batch
 from tidee.agent.config import REFERENCE_VARIANTS, AgentConfig, check_variant_built
 from tidee.agent.evaluation.conditions import CONDITION_MEANINGS, Condition, apply_condition, row_name
 from tidee.agent.evaluation.config import TidyEvalConfig
+from tidee.agent.perception import DETECTOR_SETS
 from tidee.batch import Backend, worker_transport
 from tidee.protocol.messages import EpisodeSpec
+from tidee.server.config import TRAINED_RENDERER
 
 EPISODES_FILE = "episodes.jsonl"  # in OUT: every episode's record as it finishes (--resume reads it)
 
@@ -258,6 +260,11 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
             if perception == "oracle"
             else " (the shipped RGB-D detector)"
         )
+        + (
+            f", detector {agent.detector}, frames drawn by {renderer}"
+            if (agent.detector, renderer) != (DETECTOR_SETS[0], TRAINED_RENDERER)
+            else ""
+        )
         + f", depth: {depth}"
         + (" (the est-depth rows: estimated)" if depth != "estimated" and "est-depth" in conditions else "")
         + (f", detection threshold {detection_threshold}" if detection_threshold is not None else ""),
@@ -278,6 +285,7 @@ def run_tidy_eval(cfg: TidyEvalConfig) -> dict[str, Any]:
         + (f"--detection-threshold {detection_threshold} " if detection_threshold is not None else "")
         + agent_flags(agent, skip=_SPELLED_OUT)
         + f"--max-steps {max_steps} --resolution {resolution} --workers {workers} "
+        + (f"--renderer {renderer} " if renderer != TRAINED_RENDERER else "")
         + (f"--backend {cfg.batch.backend} " if cfg.batch.backend != "local" else "")
         + f"--out {out}",
         f"total wall time {time.time() - t0:.0f} s with {workers} worker(s), backend {cfg.batch.backend}"

@@ -72,6 +72,16 @@ def test_bad_agent_configurations_say_what_is_wrong() -> None:
         AgentConfig(detection_threshold=1.5)
     with pytest.raises(ValueError, match="learned perception only"):
         make_perception("oracle", threshold=0.2)
+    with pytest.raises(ValueError, match="needs --perception learned"):
+        AgentConfig(perception="oracle", detector="tiny+egl")
+    with pytest.raises(ValueError, match="detector must be one of"):
+        AgentConfig(detector="egl")
+    with pytest.raises(ValueError, match="cannot run with --detector tiny\\+egl"):
+        AgentConfig(detector="tiny+egl", oop="fused")
+    with pytest.raises(ValueError, match="oracle perception has none"):
+        make_perception("oracle", detector="tiny+egl")
+    with pytest.raises(ValueError, match="unknown detector 'egl'"):
+        make_perception("learned", detector="egl")
 
 
 def test_shipped_statistics_come_from_training_rooms_only() -> None:
@@ -244,3 +254,21 @@ def test_the_detection_threshold_reaches_the_learned_detector() -> None:
 
     assert make_perception("learned").threshold == AGENT_THRESHOLD
     assert make_perception("learned", threshold=0.2).threshold == 0.2
+
+
+def test_the_detector_option_picks_the_weights_the_agent_loads() -> None:
+    from tidee.agent.learning import WEIGHTS_DIR
+    from tidee.agent.runner import AgentModels
+
+    default = make_perception("learned")
+    both = make_perception("learned", detector="tiny+egl")
+    assert default.path == WEIGHTS_DIR / "detector.pt"
+    assert both.path == WEIGHTS_DIR / "detector_tiny_egl.pt"
+    assert both.sha256 != default.sha256
+    assert both.reclassifier_manifest["weights"] == "reclassifier_tiny_egl.pt"
+    # its own fusion, chosen on the validation rooms for this pair
+    assert (both.alpha, both.beta, both.gate) == tuple(
+        both.reclassifier_manifest["metrics"]["fusion"][k] for k in ("alpha", "beta", "gate")
+    )
+    # agents with different detectors never share loaded models in a batch worker
+    assert AgentModels.key_of(AgentConfig()) != AgentModels.key_of(AgentConfig(detector="tiny+egl"))

@@ -44,8 +44,10 @@ from tidee.agent.evaluation.detection.report import (
 )
 from tidee.agent.perception import AGENT_THRESHOLD, TRAINED_RENDERER
 from tidee.agent.perception.base import Detection
+from tidee.agent.perception.detector.config import DEFAULT_WEIGHTS
 from tidee.agent.perception.detector.data import held_out_frames
 from tidee.agent.perception.reclassifier.config import DEFAULT_RECLASSIFIER
+from tidee.paths import PROJECT_DIR
 from tidee.protocol.episode_log import write_atomic, write_json_atomic
 from tidee.protocol.vocab import ROOM_TYPES
 
@@ -218,7 +220,7 @@ def run_detector_eval(
         )
         + (f" --peaks {peaks}" if peaks != "class-max" else "")
         + (f" --renderer {renderer}" if renderer != TRAINED_RENDERER else "")
-        + _reclassifier_flag(detector)
+        + _weights_flags(detector)
         + f" --out {out}"
     )
     report: dict[str, Any] = {
@@ -245,17 +247,35 @@ def run_detector_eval(
     return report
 
 
-def _reclassifier_flag(detector: FrameDetector) -> str:
-    """The ``--reclassifier`` option that reloads ``detector``'s second stage ("" for the default)."""
+def _weights_flags(detector: FrameDetector) -> str:
+    """The ``--weights`` and ``--reclassifier`` options that reload ``detector`` ("" for the
+    defaults)."""
     if not hasattr(detector, "reclassifier"):
         return ""
+    path = getattr(detector, "path", None)
+    flag = ""
+    if path is not None and Path(path).resolve() != DEFAULT_WEIGHTS.resolve():
+        flag = f" --weights {_in_checkout(Path(path))}"
+    return flag + _reclassifier_flag(detector)
+
+
+def _in_checkout(path: Path) -> str:
+    """``path`` relative to the checkout when it lies inside it (as a user types it there)."""
+    try:
+        return path.resolve().relative_to(PROJECT_DIR).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def _reclassifier_flag(detector: FrameDetector) -> str:
+    """The ``--reclassifier`` option that reloads ``detector``'s second stage ("" for the default)."""
     rc = _detector_info(detector).get("reclassifier")
     if rc is None:
         return " --reclassifier none" if DEFAULT_RECLASSIFIER.exists() else ""
     return (
         ""
         if Path(rc["weights"]).resolve() == DEFAULT_RECLASSIFIER.resolve()
-        else f" --reclassifier {rc['weights']}"
+        else f" --reclassifier {_in_checkout(Path(rc['weights']))}"
     )
 
 
@@ -343,7 +363,7 @@ def run_oop_eval(
     command = (
         f"tidee eval oop --split {split} --views {views_per_config} --rooms-per-type {rooms_per_type} "
         f"--messes {messes} --walks {walks} --seed {seed}{'' if extra_rows else ' --visual-only'}"
-        f"{_reclassifier_flag(detector)} --out {out}"
+        f"{_weights_flags(detector)} --out {out}"
     )
     report: dict[str, Any] = {
         "command": command,

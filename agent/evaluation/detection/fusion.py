@@ -20,7 +20,7 @@ from tidee.agent.evaluation.detection.eval import (
     _detect_all,
     _detector_info,
     _frames_summary,
-    _reclassifier_flag,
+    _weights_flags,
 )
 from tidee.agent.evaluation.detection.metrics import evaluate_boxes
 from tidee.agent.evaluation.detection.report import _fusion_markdown
@@ -141,7 +141,7 @@ def run_fusion_sweep(detector: FrameDetector, cfg: EvalFusionConfig, progress: b
             if cfg.gates and cfg.gate_tolerance != GATE_TOLERANCE
             else ""
         )
-        + _reclassifier_flag(detector)
+        + _weights_flags(detector)
         + f" --out {out}"
     )
     report: dict[str, Any] = {

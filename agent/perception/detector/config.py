@@ -112,7 +112,11 @@ class GenConfig:
     )
     per_config: int | None = option(None, "stop a configuration once it has this many frames", cli=False)
     tidy: bool = option(True, "include the tidy configuration of each room", cli=False)
-    renderer: Renderer = option(TRAINED_RENDERER, cli=False)
+    renderer: Renderer = option(
+        TRAINED_RENDERER,
+        f"who draws the frames ({TRAINED_RENDERER}: what the shipped detector was trained on; egl, to "
+        "train one for both renderers)",
+    )
     extra: dict[str, Any] = option(default_factory=dict, cli=False)
 
 

@@ -259,6 +259,8 @@ def generate(cfg: GenDetectionConfig, command: str = "", progress: bool = True) 
             "tidee gen detection writes training data only (split train); evaluation builds "
             "its test frames itself"
         )
+    if gen.renderer == "auto":
+        raise ValueError("--renderer auto: name the renderer (tiny or egl), so the data says which drew it")
     if cfg.batch.backend == "ray":
         import_ray()  # not installed: say how, before anything runs
     out = cfg.out_dir

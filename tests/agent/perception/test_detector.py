@@ -31,6 +31,9 @@ def test_generator_refuses_held_out_rooms_and_lists_training_rooms() -> None:
 
     with pytest.raises(ValueError, match="training data only"):
         generate(GenDetectionConfig(out="/nonexistent", gen=GenConfig(split="test")))
+    # the data says which renderer drew it: "auto" would depend on the machine
+    with pytest.raises(ValueError, match="name the renderer"):
+        generate(GenDetectionConfig(out="/nonexistent", gen=GenConfig(renderer="auto")))
 
 
 def test_instance_masks_match_the_rendered_geometry() -> None:
@@ -379,6 +382,45 @@ def test_shipped_detector_clears_an_accuracy_floor_on_test_rooms(shipped, test_r
             assert d.source == "learned" and 0 <= d.oop_prob <= 1 and d.feature.shape == (64,)
             x0, y0, x1, y1 = d.box
             assert 0 <= x0 < x1 <= 256 and 0 <= y0 < y1 <= 256
+
+
+def test_each_detector_set_ships_with_verified_manifests() -> None:
+    from tidee.agent.learning import WEIGHTS_DIR, read_manifest
+    from tidee.agent.perception import DETECTOR_SETS, DETECTORS
+    from tidee.agent.perception.detector.config import DEFAULT_WEIGHTS
+    from tidee.agent.perception.reclassifier.config import DEFAULT_RECLASSIFIER
+    from tidee.protocol.vocab import RENDERERS
+
+    assert tuple(DETECTORS) == DETECTOR_SETS
+    assert DETECTORS[DETECTOR_SETS[0]] == (DEFAULT_WEIGHTS.name, DEFAULT_RECLASSIFIER.name)
+    for name, (det, rc) in DETECTORS.items():
+        d, r = read_manifest(WEIGHTS_DIR / det), read_manifest(WEIGHTS_DIR / rc)  # checksums verified
+        assert d["command"].startswith("tidee train detector"), name
+        assert r["command"].startswith("tidee train reclassifier"), name
+        assert {"alpha", "beta", "gate"} <= set(r["metrics"]["fusion"]), name
+    # the set for both renderers was trained on frames of both
+    renderers = {
+        part["room_seeds"]["renderer"]
+        for part in read_manifest(WEIGHTS_DIR / DETECTORS["tiny+egl"][0])["data"]["parts"]
+    }
+    assert renderers == set(RENDERERS) - {"auto"}  # every renderer there is
+
+
+def test_the_detector_for_both_renderers_clears_the_floor_on_egl_test_frames() -> None:
+    from tidee.agent.evaluation.detection.metrics import evaluate_boxes
+    from tidee.agent.perception import make_perception
+    from tidee.agent.perception.detector.data import held_out_frames
+    from tidee.server.world import RendererUnavailable
+
+    try:
+        frames = held_out_frames(
+            "test", rooms_per_type=1, messes=1, frames_per_walk=3, seed=7, renderer="egl", progress=False
+        )
+    except RendererUnavailable:
+        pytest.skip("PyBullet's eglRenderer plugin does not load here")
+    det = make_perception("learned", threshold=0.05, detector="tiny+egl")
+    r = evaluate_boxes(det.detect_batch(frames["rgb"], frames["depth"].astype(np.float32)), frames)
+    assert r["map50"] >= DETECTOR_FLOOR_MAP50, r["map50"]
 
 
 def test_agent_runs_an_episode_with_learned_perception(tmp_path) -> None:
