@@ -16,6 +16,7 @@ import uuid
 from typing import TYPE_CHECKING
 
 from tidee.agent.config import AgentProcessConfig
+from tidee.agent.perception import DETECTOR_SETS
 from tidee.agent.telemetry import TelemetryPublisher
 from tidee.protocol.client import RemoteError, SimClient
 from tidee.protocol.messages import AgentCommand, EpisodeSpec, ErrorCode
@@ -70,7 +71,8 @@ def run_agent_process(cfg: AgentProcessConfig) -> int:
         chosen = " (chosen: the live server with the most room)" if client.auto else ""
         print(
             f"agent: session {session} on server {client.server_id!r}{chosen}, variant {cfg.agent.variant}, "
-            f"perception {cfg.agent.perception}{' (ORACLE)' if cfg.agent.perception == 'oracle' else ''}; "
+            f"perception {cfg.agent.perception}{' (ORACLE)' if cfg.agent.perception == 'oracle' else ''}"
+            f"{'' if cfg.agent.detector == DETECTOR_SETS[0] else f', detector {cfg.agent.detector}'}; "
             f"logs in {cfg.log_dir}",
             flush=True,
         )
