@@ -13,6 +13,15 @@ BENCH_DIR = PROJECT_DIR / "bench"
 RUNS_DIR = PROJECT_DIR / "runs"
 
 
+def in_checkout(path: str | Path) -> str:
+    """``path`` relative to the checkout when it lies inside it (as a user types it there, and
+    not this machine's absolute path), else as given."""
+    try:
+        return Path(path).resolve().relative_to(PROJECT_DIR).as_posix()
+    except ValueError:
+        return str(path)
+
+
 def bench_out(out: str | Path | None, name: str) -> Path:
     """``out``, else ``bench/<name>`` in the checkout."""
     return Path(out) if out is not None else BENCH_DIR / name

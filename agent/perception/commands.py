@@ -112,7 +112,7 @@ def run_eval_depth(cfg: DepthEvalConfig) -> int:
         time_inference,
     )
     from tidee.agent.perception.depth.model import DepthEstimator
-    from tidee.paths import PROJECT_DIR
+    from tidee.paths import in_checkout
     from tidee.protocol.episode_log import write_json_atomic
 
     if cfg.split not in HELD_OUT_SPLITS:
@@ -132,7 +132,7 @@ def run_eval_depth(cfg: DepthEvalConfig) -> int:
     result = {
         "split": cfg.split,
         # as given, else the shipped file's place in the checkout (not this machine's path)
-        "weights": cfg.weights or weights.relative_to(PROJECT_DIR).as_posix(),
+        "weights": cfg.weights or in_checkout(weights),
         "sha256": sha256_file(weights),
         "command": command,
         "eval_set": asdict(eval_set),

@@ -47,7 +47,7 @@ from tidee.agent.perception.base import Detection
 from tidee.agent.perception.detector.config import DEFAULT_WEIGHTS
 from tidee.agent.perception.detector.data import held_out_frames
 from tidee.agent.perception.reclassifier.config import DEFAULT_RECLASSIFIER
-from tidee.paths import PROJECT_DIR
+from tidee.paths import in_checkout
 from tidee.protocol.episode_log import write_atomic, write_json_atomic
 from tidee.protocol.vocab import ROOM_TYPES
 
@@ -255,16 +255,8 @@ def _weights_flags(detector: FrameDetector) -> str:
     path = getattr(detector, "path", None)
     flag = ""
     if path is not None and Path(path).resolve() != DEFAULT_WEIGHTS.resolve():
-        flag = f" --weights {_in_checkout(Path(path))}"
+        flag = f" --weights {in_checkout(path)}"
     return flag + _reclassifier_flag(detector)
-
-
-def _in_checkout(path: Path) -> str:
-    """``path`` relative to the checkout when it lies inside it (as a user types it there)."""
-    try:
-        return path.resolve().relative_to(PROJECT_DIR).as_posix()
-    except ValueError:
-        return str(path)
 
 
 def _reclassifier_flag(detector: FrameDetector) -> str:
@@ -275,7 +267,7 @@ def _reclassifier_flag(detector: FrameDetector) -> str:
     return (
         ""
         if Path(rc["weights"]).resolve() == DEFAULT_RECLASSIFIER.resolve()
-        else f" --reclassifier {_in_checkout(Path(rc['weights']))}"
+        else f" --reclassifier {in_checkout(rc['weights'])}"
     )
 
 

@@ -16,14 +16,14 @@ from typing import Any, Literal
 
 from tidee import argtypes
 from tidee.agent.learning import WEIGHTS_DIR
-from tidee.agent.perception import TRAINED_RENDERER
+from tidee.agent.perception import DETECTOR_SETS, DETECTORS, TRAINED_RENDERER
 from tidee.batch import BatchConfig
 from tidee.options import option
 from tidee.paths import PROJECT_DIR, RUNS_DIR
 from tidee.protocol.vocab import ROOM_TYPES, Renderer, RoomType, Split
 from tidee.server.splits import SPLIT_SEEDS, TRAIN_POOL
 
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "detector.pt"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / DETECTORS[DETECTOR_SETS[0]][0]
 DATA_DIR = PROJECT_DIR / "data"  # `tidee gen detection` output folders: data/detection, data/detection_d, ...
 DEFAULT_DATA = DATA_DIR / "detection"
 

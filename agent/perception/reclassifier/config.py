@@ -15,11 +15,12 @@ from pathlib import Path
 from typing import Literal, get_args
 
 from tidee import argtypes
+from tidee.agent.perception import DETECTOR_SETS, DETECTORS
 from tidee.agent.perception.detector.config import DATA_DIR, WEIGHTS_DIR, Precision
 from tidee.options import option
 from tidee.paths import RUNS_DIR
 
-DEFAULT_RECLASSIFIER = WEIGHTS_DIR / "reclassifier.pt"
+DEFAULT_RECLASSIFIER = WEIGHTS_DIR / DETECTORS[DETECTOR_SETS[0]][1]
 DEFAULT_DATA = DATA_DIR / "detection_d"
 
 # Where the training boxes come from: jittered ground-truth boxes, or the detector's own detections.
