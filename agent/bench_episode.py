@@ -32,19 +32,19 @@ _INPROC = """
 import json, sys, time
 t0 = time.perf_counter()
 from tidee.agent.config import AgentConfig
-from tidee.agent.perception import TRAINED_RENDERER
 from tidee.agent.runner import EpisodeRunner
 from tidee.protocol.messages import EpisodeSpec
 from tidee.protocol.transport import InProcessTransport
 from tidee.threads import threads_per_process, use_threads
 use_threads(threads_per_process(1))
 a = json.loads(sys.argv[1])
-with InProcessTransport(renderer=TRAINED_RENDERER) as transport:
+with InProcessTransport(renderer=a["renderer"]) as transport:
+    drawn_by = transport.episode.renderer
     runner = EpisodeRunner(AgentConfig(variant=a["variant"]), transport, session="bench")
     res = runner.run(EpisodeSpec(room_type=a["room_type"], seed=a["seed"], mess_index=a["mess_index"],
                                  max_steps=a["max_steps"]))
 print(json.dumps({"steps": res.steps, "episode_s": res.wall_s, "command_s": time.perf_counter() - t0,
-                  "put_away": res.objects_fixed}))
+                  "put_away": res.objects_fixed, "renderer": drawn_by}))
 """
 
 
@@ -110,33 +110,40 @@ def _inprocess(args: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def live_argv(args: dict[str, Any], port: int, logs: str) -> list[str]:
+    """The ``tidee run`` command of a live run: the configuration and renderer of ``args``."""
+    return [
+        sys.executable,
+        "-m",
+        "tidee.cli",
+        "run",
+        "--variant",
+        args["variant"],
+        "--room-type",
+        args["room_type"],
+        "--seed",
+        str(args["seed"]),
+        "--mess-index",
+        str(args["mess_index"]),
+        "--max-steps",
+        str(args["max_steps"]),
+        "--renderer",
+        args["renderer"],
+        "--linger",
+        "0",
+        "--port",
+        str(port),
+        "--log-dir",
+        logs,
+    ]
+
+
 def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
     from tidee.launch import free_port
 
     port = free_port()
     with tempfile.TemporaryDirectory(prefix="tidee-bench-episode-") as logs:
-        cmd = [
-            sys.executable,
-            "-m",
-            "tidee.cli",
-            "run",
-            "--variant",
-            args["variant"],
-            "--room-type",
-            args["room_type"],
-            "--seed",
-            str(args["seed"]),
-            "--mess-index",
-            str(args["mess_index"]),
-            "--max-steps",
-            str(args["max_steps"]),
-            "--linger",
-            "0",
-            "--port",
-            str(port),
-            "--log-dir",
-            logs,
-        ]
+        cmd = live_argv(args, port, logs)
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         sampler = CpuSampler(proc.pid)
@@ -186,15 +193,21 @@ def run_episode_bench(
     variant: str = "TIDEE",
     max_steps: int = 1000,
     browser: bool = False,
+    renderer: str = "tiny",
 ) -> dict[str, Any]:
+    """``renderer``: tiny or egl, the same for both sides (auto could resolve differently in the
+    live server's simulator process)."""
     from tidee.server.bench_sim import spread, write_report
 
+    if renderer not in ("tiny", "egl"):
+        raise ValueError(f"--renderer must be tiny or egl (both sides draw alike), got {renderer!r}")
     args = {
         "room_type": room_type,
         "seed": seed,
         "mess_index": mess_index,
         "variant": variant,
         "max_steps": max_steps,
+        "renderer": renderer,
     }
     load0 = os.getloadavg()[0]
     runs: dict[str, list[dict[str, Any]]] = {"inprocess": [], "live": []}
@@ -206,6 +219,7 @@ def run_episode_bench(
         "configuration": f"{room_type} seed {seed} mess {mess_index}, {variant}, max {max_steps} steps",
         "repeats": repeats,
         "browser_attached": browser,
+        "renderer": sorted({r["renderer"] for r in runs["inprocess"]}),  # what drew the in-process frames
         "steps": {m: [r["steps"] for r in rs] for m, rs in runs.items()},
     }
     for mode, rs in runs.items():
@@ -226,7 +240,7 @@ def run_episode_bench(
     result["load_avg_1m_before_after"] = [round(load0, 2), round(os.getloadavg()[0], 2)]
     result["command"] = (
         f"tidee bench episode --repeats {repeats} --room-type {room_type} --seed {seed} "
-        f"--mess-index {mess_index} --variant {variant} --max-steps {max_steps}"
+        f"--mess-index {mess_index} --variant {variant} --max-steps {max_steps} --renderer {renderer}"
         + (" --browser" if browser else "")
         + f" --out {out}"
     )

@@ -613,7 +613,12 @@ class SimServer:
             entry.publisher = self._z.declare_publisher(
                 keys.observations(server_id, session), congestion_control=zenoh.CongestionControl.DROP
             )
-            log.info("session %s: opened (%d held)", session, len(self.sessions))
+            log.info(
+                "session %s: opened (%d held), renderer %s",
+                session,
+                len(self.sessions),
+                getattr(entry.episode, "renderer", "?"),
+            )
         return entry.episode
 
     def _readmit_if_alive(self, session: str) -> None:

@@ -194,6 +194,7 @@ def _cmd_bench_episode(cfg: ec.EpisodeBenchConfig) -> int:
             variant=cfg.variant,
             max_steps=cfg.max_steps,
             browser=cfg.browser,
+            renderer=cfg.renderer,
         )
     )
 

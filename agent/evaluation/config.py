@@ -168,6 +168,11 @@ class EpisodeBenchConfig:
     variant: str = option("TIDEE", "the agent", choices=PLACEMENT_MODELS)
     max_steps: int = option(1000, "the episode's step budget", type=argtypes.max_steps)
     browser: bool = option(False, "a headless Chromium shows the viewer during live runs")
+    renderer: Renderer = option(
+        TRAINED_RENDERER,
+        f"who draws the frames of both sides: tiny or egl ({TRAINED_RENDERER}: what the default detector was "
+        "trained on; not auto, which each process resolves on its own)",
+    )
     out: Path | None = option(None, "report path (default: bench/episode.json)", type=argtypes.output_path)
 
 

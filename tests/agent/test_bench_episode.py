@@ -40,3 +40,45 @@ def test_a_child_that_exited_but_is_not_yet_reaped_keeps_its_role() -> None:
     cpu = sampler.stop()
     assert 0.4 <= cpu.get("agent", 0.0) <= 1.5, cpu
     assert cpu.get("other", 0.0) < 0.4, cpu
+
+
+def test_both_sides_draw_with_the_renderer_asked_for(monkeypatch, tmp_path) -> None:
+    import pytest
+
+    from tidee.agent import bench_episode
+
+    seen: list[tuple[str, str]] = []
+
+    def fake(mode: str):
+        def run(args, *rest):
+            seen.append((mode, args["renderer"]))
+            out = {
+                "steps": 10,
+                "episode_s": 1.0,
+                "command_s": 2.0,
+                "put_away": 0,
+                "renderer": args["renderer"],
+            }
+            return out | ({"cpu_s": {"agent": 1.0}} if mode == "live" else {})
+
+        return run
+
+    monkeypatch.setattr(bench_episode, "_inprocess", fake("inprocess"))
+    monkeypatch.setattr(bench_episode, "_live", fake("live"))
+    result = bench_episode.run_episode_bench(str(tmp_path / "episode.json"), repeats=2, renderer="egl")
+    assert sorted(seen) == [("inprocess", "egl")] * 2 + [("live", "egl")] * 2
+    assert result["renderer"] == ["egl"] and "--renderer egl" in result["command"]
+    argv = bench_episode.live_argv(
+        {
+            **dict.fromkeys(("variant", "room_type"), "x"),
+            "seed": 1,
+            "mess_index": 0,
+            "max_steps": 5,
+            "renderer": "egl",
+        },
+        8080,
+        "/tmp/logs",
+    )
+    assert argv[argv.index("--renderer") + 1] == "egl"
+    with pytest.raises(ValueError, match="tiny or egl"):  # auto could resolve apart in the two processes
+        bench_episode.run_episode_bench(str(tmp_path / "x.json"), repeats=1, renderer="auto")
