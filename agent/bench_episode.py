@@ -197,10 +197,12 @@ def run_episode_bench(
 ) -> dict[str, Any]:
     """``renderer``: tiny or egl, the same for both sides (auto could resolve differently in the
     live server's simulator process)."""
+    from tidee.protocol.vocab import RENDERERS
     from tidee.server.bench_sim import spread, write_report
 
-    if renderer not in ("tiny", "egl"):
-        raise ValueError(f"--renderer must be tiny or egl (both sides draw alike), got {renderer!r}")
+    named = [r for r in RENDERERS if r != "auto"]
+    if renderer not in named:
+        raise ValueError(f"--renderer must be {' or '.join(named)} (both sides draw alike), got {renderer!r}")
     args = {
         "room_type": room_type,
         "seed": seed,
