@@ -8,7 +8,7 @@ agent's telemetry; optionally a headless Chromium showing the viewer page). Both
 agent's own episode wall time (reset to end, from the episode record) and the steps; the
 live run also its whole command time (process start-up and model load included) and the CPU
 seconds each of its processes used (agent, server, simulator, viewer: who competes for the
-cores). Writes
+cores), and with a browser the CPU seconds of its main, GPU and renderer processes. Writes
 JSON and Markdown with median, p90 and max, the live / in-process ratio of the medians, and
 the load average before and after.
 """
@@ -55,15 +55,23 @@ ROLES = (
     ("server", " server "),
     ("simulator", "multiprocessing.spawn"),
 )
+# Which process of a headless Chromium a command line belongs to (the rest: "browser").
+BROWSER_ROLES = (
+    ("gpu", "--type=gpu-process"),
+    ("renderer", "--type=renderer"),
+)
 
 
 class CpuSampler(threading.Thread):
-    """The CPU seconds (user + system) of a process tree, by role (``ROLES``; others:
-    "other"), sampled every ``period`` s while the tree runs: a process's last sample counts."""
+    """The CPU seconds (user + system) of a process tree, by role (``roles``, the first mark
+    found in a command line names it; others: ``rest``), sampled every ``period`` s while the
+    tree runs: a process's last sample counts."""
 
-    def __init__(self, root: int, period: float = 0.5) -> None:
+    def __init__(
+        self, root: int, period: float = 0.5, roles: tuple[tuple[str, str], ...] = ROLES, rest: str = "other"
+    ) -> None:
         super().__init__(daemon=True)
-        self.root, self.period = root, period
+        self.root, self.period, self.roles, self.rest = root, period, roles, rest
         self._last: dict[int, tuple[str, float]] = {}
         self._finished = threading.Event()
         self._tick = os.sysconf("SC_CLK_TCK")
@@ -78,7 +86,7 @@ class CpuSampler(threading.Thread):
                 cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
             except OSError:
                 continue
-            role = next((r for r, mark in ROLES if mark in f" {cmd} "), "other")
+            role = next((r for r, mark in self.roles if mark in f" {cmd} "), self.rest)
             if not cmd.strip() and pid in self._last:  # exited, not yet reaped: no command line left
                 role = self._last[pid][0]
             self._last[pid] = (role, (int(fields[11]) + int(fields[12])) / self._tick)
@@ -149,6 +157,7 @@ def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
         sampler = CpuSampler(proc.pid)
         sampler.start()
         chromium = None
+        browser_sampler: CpuSampler | None = None
         try:
             if browser:
                 from tidee.viewer.browser import HeadlessChromium, find_chromium
@@ -156,6 +165,9 @@ def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
                 if find_chromium() is None:
                     raise RuntimeError("--browser: no chromium found")
                 chromium = HeadlessChromium()
+                # its own tree, apart from tidee run's: the GPU process draws the 3D panel (in software here)
+                browser_sampler = CpuSampler(chromium.pids()[0], roles=BROWSER_ROLES, rest="main")
+                browser_sampler.start()
                 deadline = time.monotonic() + 60
                 while time.monotonic() < deadline:
                     try:
@@ -166,6 +178,8 @@ def _live(args: dict[str, Any], browser: bool) -> dict[str, Any]:
             rc = proc.wait(timeout=1800)
         finally:
             cpu = sampler.stop()
+            if browser_sampler is not None:
+                cpu |= {f"browser_{role}": v for role, v in browser_sampler.stop().items()}
             if chromium is not None:
                 chromium.close()
             if proc.poll() is None:

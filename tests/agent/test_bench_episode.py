@@ -22,6 +22,19 @@ def test_the_cpu_sampler_charges_a_grandchild_to_its_role() -> None:
     assert cpu.get("other", 0.0) < cpu["agent"], cpu
 
 
+def test_a_browsers_processes_are_told_apart_by_their_type() -> None:
+    from tidee.agent.bench_episode import BROWSER_ROLES
+
+    spawn = f"import subprocess, sys; subprocess.run([sys.executable, '-c', {BURN!r}, '--type=gpu-process'])"
+    root = subprocess.Popen([sys.executable, "-c", spawn])
+    sampler = CpuSampler(root.pid, period=0.05, roles=BROWSER_ROLES, rest="main")
+    sampler.start()
+    root.wait(timeout=60)
+    cpu = sampler.stop()
+    assert 0.4 <= cpu["gpu"] <= 1.5, cpu
+    assert set(cpu) <= {"gpu", "main"} and cpu.get("main", 0.0) < cpu["gpu"], cpu
+
+
 def test_a_child_that_exited_but_is_not_yet_reaped_keeps_its_role() -> None:
     # An exited child lingers until its parent waits for it, with an empty command line: its
     # CPU seconds still belong to the agent, not to "other".
