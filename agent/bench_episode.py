@@ -55,7 +55,7 @@ ROLES = (
     ("server", " server "),
     ("simulator", "multiprocessing.spawn"),
 )
-# Which process of a headless Chromium a command line belongs to (the rest: "browser").
+# Which process of a headless Chromium a command line belongs to (the rest: its main process).
 BROWSER_ROLES = (
     ("gpu", "--type=gpu-process"),
     ("renderer", "--type=renderer"),
