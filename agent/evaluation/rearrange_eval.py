@@ -176,6 +176,21 @@ def row_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     with_fates = [r["fates"] for r in records if r.get("fates")]
     out["fates"] = sum_counts(with_fates) if with_fates else None
     out["put_off"] = put_errors([c for f in with_fates for c in f["changes"]])
+    out["by_receptacle"] = by_receptacle([c for f in with_fates for c in f["changes"]])
+    return out
+
+
+def by_receptacle(changes: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, int]]]:
+    """The moved pickupables' fates by what held them: ``{"goal_on" | "start_on": {type: {fate: n,
+    "n": n}}}`` (rows without the field, from older records, are left out)."""
+    out: dict[str, dict[str, dict[str, int]]] = {"goal_on": {}, "start_on": {}}
+    for c in changes:
+        for side, table in out.items():
+            if c.get("kind") != "pickupable" or c.get(side) is None:
+                continue
+            cell = table.setdefault(str(c[side]), {"n": 0})
+            cell["n"] += 1
+            cell[c["fate"]] = cell.get(c["fate"], 0) + 1
     return out
 
 
@@ -215,6 +230,7 @@ def format_markdown(report: dict[str, Any]) -> str:
             f"{m['wall_s_median']:.1f} / {m['wall_s_p90']:.1f} / {m['wall_s_max']:.1f} |"
         )
     lines += fates_markdown(rows)
+    lines += receptacles_markdown(rows)
     lines += [
         "",
         "For comparison (not the same rooms: AI2THOR's RoomR test sets, with the paper's own agent and "
@@ -281,6 +297,39 @@ def fates_markdown(rows: dict[str, Any]) -> list[str]:
             f"| {cm(po['position_cm'])} / {cm(po['yaw_deg'], '.0f')} / {cm(po['iou'], '.2f')} "
             f"| {cm(po['estimate_cm'])} / {cm(po['landed_cm'])} |"
         )
+    return lines
+
+
+RECEPTACLE_ROWS = 8  # receptacles listed per side, most moved objects first
+RECEPTACLE_FATES = ("fixed", "missed_walkthrough", "missed_unshuffle")
+
+
+def receptacles_markdown(rows: dict[str, Any]) -> list[str]:
+    """Where the moved pickupables lay in the goal state and after the shuffle, with each row's
+    fixed / missed-walkthrough / missed-unshuffle counts there (empty without ``by_receptacle``)."""
+    rows = {n: m for n, m in rows.items() if (m.get("by_receptacle") or {}).get("goal_on")}
+    if not rows:
+        return []
+    head = " | ".join(f"{ROW_TITLES.get(n, n)}: fixed / missed walkthrough / missed unshuffle" for n in rows)
+    lines = [
+        "",
+        "## Where the moved objects lay",
+        "",
+        "The receptacles that held the moved pickupables in the goal state and after the shuffle "
+        f"(the {RECEPTACLE_ROWS} with the most of each), with each row's counts of three fates there.",
+        "",
+        f"| held by | objects | {head} |",
+        "|---|---|" + "---|" * len(rows),
+    ]
+    first = next(iter(rows.values()))["by_receptacle"]
+    for side, title in (("goal_on", "goal"), ("start_on", "shuffled")):
+        ranked = sorted(first[side].items(), key=lambda kv: (-kv[1]["n"], kv[0]))[:RECEPTACLE_ROWS]
+        for rec, cell in ranked:
+            counts = []
+            for m in rows.values():
+                c = m["by_receptacle"][side].get(rec, {})
+                counts.append(" / ".join(str(c.get(f, 0)) for f in RECEPTACLE_FATES))
+            lines.append(f"| {title}: {rec} | {cell['n']} | " + " | ".join(counts) + " |")
     return lines
 
 

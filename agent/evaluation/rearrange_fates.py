@@ -20,10 +20,12 @@ put_off             put down, not in place: ``position_cm`` (x, y distance of th
 ==================  ============================================================================
 
 Every pickupable row also says how far the shuffle moved it (``moved_cm``, box centre to box
-centre). An openable that changed is ``fixed``, ``not_believed`` or ``not_restored``. An object in
-place at the start and misplaced at the end (what makes FixedStrict 0) is ``newly`` misplaced:
-``picked`` (the agent took it for moved), ``believed`` (an openable it took for toggled) or
-``disturbed`` (knocked while it walked, put or opened something). A put-down object also says
+centre) and what held it in the goal state and after the shuffle (``goal_on``, ``start_on``: the
+receptacle's type, or Floor). An openable that changed is ``fixed``, ``not_believed`` or
+``not_restored``. An object in place at the start and misplaced at the end (what makes
+FixedStrict 0) is ``newly`` misplaced: ``picked`` (the agent took it for moved), ``believed``
+(an openable it took for toggled) or ``disturbed`` (knocked while it walked, put or opened
+something). A put-down object also says
 where its put's (x, y) error came from: ``estimate_cm`` (the point the agent aimed the put at,
 from the goal place) and ``landed_cm`` (where the object came to rest, from that point).
 """
@@ -127,6 +129,9 @@ def change_fates(
                 newly.append({"id": oid, "type": row["type"], "cause": cause})
             continue
         out: dict[str, Any] = {"id": oid, "type": row["type"], "kind": kind}
+        if kind == "pickupable":  # what held it in the goal state and after the shuffle
+            out["goal_on"] = g[oid].get("parent_type") if oid in g else None
+            out["start_on"] = s[oid].get("parent_type") if oid in s else None
         if kind == "pickupable" and oid in s:
             out["moved_cm"] = round(100 * float(np.linalg.norm(box_centre(g[oid]) - box_centre(s[oid]))), 1)
         if not row["misplaced_end"]:

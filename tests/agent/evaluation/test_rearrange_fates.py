@@ -127,3 +127,33 @@ def test_openables_and_the_newly_misplaced() -> None:
 @pytest.mark.parametrize("a, b, gap", [(0, 10, 10), (0, 170, 10), (0, 180, 0), (30, -60, 90), (-45, 45, 90)])
 def test_a_box_turned_half_way_round_is_the_same_box(a: float, b: float, gap: float) -> None:
     assert folded_yaw_gap(yaw(a), yaw(b)) == pytest.approx(gap, abs=1e-6)
+
+
+def test_the_moved_objects_are_counted_by_what_held_them() -> None:
+    from tidee.agent.evaluation.rearrange_eval import by_receptacle, receptacles_markdown
+
+    ids = ["Apple_0", "Soap_0", "Soap_1"]
+    goal = [thing("Apple_0", 0.0, 0.0, parent_type="Sink")]
+    goal += [thing(oid, 1.0 + k, 0.0, parent_type="Bathtub") for k, oid in enumerate(ids[1:])]
+    start = [
+        thing(oid, 0.5 * k, 1.0, parent_type="GarbageCan" if k else "Floor") for k, oid in enumerate(ids)
+    ]
+    end = [thing("Apple_0", 0.0, 0.0, parent_type="Sink")] + [dict(o) for o in start[1:]]
+    walk = [(o["type"], start_frame(*o["position"][:2]), 5) for o in goal[:2]]  # Soap_1's place unseen
+    out = fates(goal, start, end, walk, [])
+    by_id = {c["id"]: c for c in out["changes"]}
+    assert (by_id["Apple_0"]["goal_on"], by_id["Apple_0"]["start_on"]) == ("Sink", "Floor")
+    table = by_receptacle(out["changes"])
+    assert table["goal_on"] == {
+        "Sink": {"n": 1, "fixed": 1},
+        # Soap_0: a Soap track lies at its goal place, none at its shuffled one; Soap_1: none at its goal
+        "Bathtub": {"n": 2, "missed_unshuffle": 1, "missed_walkthrough": 1},
+    }
+    assert table["start_on"] == {
+        "Floor": {"n": 1, "fixed": 1},
+        "GarbageCan": {"n": 2, "missed_unshuffle": 1, "missed_walkthrough": 1},
+    }
+    md = receptacles_markdown({"clean": {"by_receptacle": table}, "oracle": {"by_receptacle": table}})
+    assert "| goal: Bathtub | 2 | 0 / 1 / 1 | 0 / 1 / 1 |" in md
+    assert "| shuffled: GarbageCan | 2 | 0 / 1 / 1 | 0 / 1 / 1 |" in md
+    assert receptacles_markdown({"clean": {"by_receptacle": {"goal_on": {}, "start_on": {}}}}) == []
