@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal, get_args
 
@@ -44,6 +44,7 @@ from tidee.launch import RunConfig
 from tidee.options import option
 from tidee.paths import RUNS_DIR
 from tidee.protocol.messages import EpisodeSpec
+from tidee.protocol.vocab import check_choice
 
 # The paper's agents (Table 1), the default of `tidee eval tidy`. Validation reads the registry,
 # PLACEMENT_MODELS, which also holds any variant a user registers.
@@ -65,6 +66,9 @@ DEPTH_SOURCES: tuple[DepthSource, ...] = get_args(DepthSource)
 # or search for it first (the paper's Algorithm S1).
 MissingTop = Literal["skip", "search"]
 MISSING_TOP: tuple[MissingTop, ...] = get_args(MissingTop)
+# A rearrangement's unshuffle: what becomes of an object it sees but cannot match to the walkthrough.
+Unmatched = Literal["leave", "commonsense"]
+UNMATCHED: tuple[Unmatched, ...] = get_args(Unmatched)
 
 
 class _OOPChoices:
@@ -117,6 +121,13 @@ class PolicyConfig:
     interact_m: float = option(1.35, "aim to interact within this eye-to-target distance, m (server: 1.5)")
     approach_m: float = option(0.9, "navigation stop radius around an object's (x, y), m")
     reserve_steps: int = option(15, "stop handling new objects when fewer steps than this remain")
+    unmatched: Unmatched = option(
+        "leave",
+        "a rearrangement's unshuffle, after restoring what it matched: an object seen there (at "
+        "least twice) that matches nothing of the walkthrough is left where it is | tidied with "
+        "the tidy agent's commonsense when its OOP detector finds it out of place (picked and "
+        "put where the --variant's placement model ranks first)",
+    )
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.explore_unexplored_stop < 1.0:
@@ -127,6 +138,7 @@ class PolicyConfig:
             raise ValueError(f"sure_oop must be in (0, 1], got {self.sure_oop}")
         if self.missing_top not in MISSING_TOP:
             raise ValueError(f"missing_top must be one of {MISSING_TOP}, got {self.missing_top!r}")
+        check_choice("unmatched", self.unmatched, UNMATCHED)
         for name in (
             "mapping_step_budget",
             "goal_step_budget",
@@ -242,7 +254,9 @@ class AgentProcessConfig:
     """``tidee agent``: one agent process, its episodes and its connection to a server."""
 
     agent: AgentConfig = option(default_factory=AgentConfig)
-    spec: EpisodeSpec = option(default_factory=functools.partial(EpisodeSpec, seed=200, mess_index=0))
+    # mess 0 unless a rearrangement is asked for (``__post_init__``): a default mess index would
+    # make every --rearrange-index a spec asking for both
+    spec: EpisodeSpec = option(default_factory=functools.partial(EpisodeSpec, seed=200))
     endpoint: str | None = option(
         None,
         "Zenoh rendezvous endpoint (default: loopback, see protocol/README.md)",
@@ -297,6 +311,8 @@ class AgentProcessConfig:
             )
         if self.log_dir is None:
             self.log_dir = RUNS_DIR
+        if self.spec.mess_index is None and self.spec.rearrange_index is None:
+            self.spec = replace(self.spec, mess_index=0)  # the agent's episode: a messy room
 
 
 @dataclass

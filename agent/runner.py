@@ -268,6 +268,8 @@ class EpisodeRunner:
         initial = self.transport.state() if evaluate else None
         rearrange = spec.rearrange_index is not None
         policy_class = RearrangePolicy if rearrange else TidyPolicy
+        # the tidy agent's commonsense: placement and search (a rearrangement's unmatched objects, when asked)
+        common = not rearrange or self.cfg.policy.unmatched == "commonsense"
         map_config = dataclasses.replace(
             policy_class.map_config(self.cfg.map), carve=wants_carving(self.cfg.carve, self.cfg.depth)
         )
@@ -291,10 +293,10 @@ class EpisodeRunner:
             self.cfg,
             body,
             self.oop,
-            None if rearrange else self.placement,
+            self.placement if common else None,
             spec.room_type,
             on_event=on_event,
-            searcher=None if rearrange else self.searcher,
+            searcher=self.searcher if common else None,
             preferences=None if rearrange else self.models.preferences,
         )
         unshuffle_start: dict | None = None  # a rearrangement's state when its unshuffle began (evaluation)

@@ -140,7 +140,10 @@ class EpisodeSpec:
     room_type: RoomType = option("LivingRoom", "the room type")
     seed: int = option(0, "room seed (200-204 are test rooms)", type=argtypes.non_negative_int)
     mess_index: int | None = option(
-        None, "messy configuration index (default: the tidy room)", type=argtypes.non_negative_int
+        None,
+        "messy configuration index (none: the tidy room; an agent plays mess 0 unless it is given "
+        "this or --rearrange-index)",
+        type=argtypes.non_negative_int,
     )
     resolution: int = option(256, "square images, pixels a side", type=argtypes.resolution)
     camera_height: float = option(0.9015, "camera height, metres (the paper's)", cli=False)

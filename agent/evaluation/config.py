@@ -86,8 +86,11 @@ REARRANGE_EVAL_SKIP = (
     "agent.perception",
     "agent.depth",
 )
-RearrangeRow = Literal["clean", "noisy-pose", "est-depth", "noisy-depth", "oracle", "do-nothing"]
+RearrangeRow = Literal[
+    "clean", "noisy-pose", "est-depth", "noisy-depth", "oracle", "do-nothing", "commonsense"
+]
 REARRANGE_ROWS: tuple[RearrangeRow, ...] = get_args(RearrangeRow)
+DEFAULT_REARRANGE_ROWS = REARRANGE_ROWS[:-1]  # commonsense: on request
 
 
 @dataclass
@@ -101,9 +104,11 @@ class RearrangeEvalConfig:
         None, "configurations (default: all; test has 100)", type=argtypes.positive_int
     )
     rows: tuple[RearrangeRow, ...] = option(
-        REARRANGE_ROWS,
+        DEFAULT_REARRANGE_ROWS,
         "comma list of rows: clean (learned perception), noisy-pose, est-depth (depth from RGB), "
-        "noisy-depth, oracle (ORACLE perception: the simulator's segmentation), do-nothing",
+        "noisy-depth, oracle (ORACLE perception: the simulator's segmentation), do-nothing, "
+        "commonsense (clean, and what matches nothing of the walkthrough is tidied with the tidy "
+        "agent's commonsense: --unmatched commonsense; not run unless named)",
     )
     agent: AgentConfig = option(default_factory=AgentConfig)
     resolution: int = option(256, "square images, pixels a side", type=argtypes.resolution)

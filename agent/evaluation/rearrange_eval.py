@@ -61,6 +61,7 @@ ROW_TITLES = {
     "noisy-depth": "TIDEE +noisy depth",
     "oracle": "TIDEE, ORACLE perception",
     "do-nothing": "do nothing",
+    "commonsense": "TIDEE + commonsense for unmatched objects",
 }
 
 
@@ -98,6 +99,8 @@ def row_setup(row: str, agent: AgentConfig, spec: EpisodeSpec) -> tuple[AgentCon
         return apply_condition(row, agent, spec)
     if row == "oracle":  # no scores to threshold: a --detection-threshold is the learned rows'
         return replace(agent, perception="oracle", oop="auto", detection_threshold=None), spec
+    if row == "commonsense":
+        return replace(agent, policy=replace(agent.policy, unmatched="commonsense")), spec
     return agent, spec
 
 

@@ -48,6 +48,9 @@ put the shuffled room back.
                    the object's points as that view saw them fit the new frame turned or
                    shifted (``tidee.agent.mapping.view_match``), it is picked up and put
                    down again where the view saw it, turned back
+                 with ``--unmatched commonsense`` (the commonsense row), then each object seen
+                   twice that matches nothing of the walkthrough and that the OOP detector
+                   finds out of place: tidied as the tidy agent tidies (``tidy_unmatched``)
     Done
 
 Only the agent's own maps and detections decide; ``--perception oracle`` feeds it the
@@ -702,7 +705,8 @@ def put_turn(goal_axis: float | None, held: tuple[float, float] | None, heading:
 
 class RearrangePolicy(TidyPolicy):
     """Walkthrough, then unshuffle (module docstring). Reuses the tidy agent's mapping,
-    approach, pick and put skills; needs no OOP detector and no placement model."""
+    approach, pick and put skills; needs no OOP detector and no placement model, except for
+    ``--unmatched commonsense``."""
 
     @staticmethod
     def map_config(config: MapConfig) -> MapConfig:
@@ -828,10 +832,45 @@ class RearrangePolicy(TidyPolicy):
                 break
             self.pending = len(moves) - k - 1
             yield from self.put_back(m)
+        if self.p.unmatched == "commonsense" and self.placement is not None:
+            yield from self.tidy_unmatched(now, pairs)
         self.state.phase = "done"
         self.state.end_reason = self.state.end_reason or "restored what it found"
         self.event("done", reason=self.state.end_reason, fixed=self.state.objects_fixed)
         yield Action(ActionName.Done)
+
+    def tidy_unmatched(self, now: list[TrackedObject], pairs: list[tuple[Seen, TrackedObject, float]]) -> Gen:
+        """The tidy agent's commonsense for what the walkthrough cannot explain (``--unmatched
+        commonsense``): each pickupable of the unshuffle's memory seen ``MIN_OBS`` times that
+        paired with no walkthrough track and was not believed moved, still tracked, and that
+        the OOP detector finds out of place, nearest first, is tidied as the tidy agent tidies
+        (approach, pick, put where the placement model ranks first). It goes to a plausible
+        place, not to its own: RoomR counts it fixed only if that is where it was."""
+        paired = {o.id for _, o, _ in pairs} | {m.now.id for m in self.moves}
+        tracked = {o.id: o for o in self.body.mapper.memory}
+        unmatched = [
+            tracked[o.id]
+            for o in now
+            if o.label in PICKUPABLE and o.id not in paired and o.id in tracked and o.n_obs >= MIN_OBS
+        ]
+        if not unmatched:
+            return
+        probs = self.oop.score_all(unmatched, list(self.body.mapper.memory), self.room_type)
+        out = [o for o in unmatched if probs[o.id] >= self.p.oop_threshold]
+        for o in out:
+            o.oop_prob, o.out_of_place = float(probs[o.id]), True
+            self.event(
+                "unmatched_oop",
+                label=o.label,
+                track_id=o.id,
+                oop_prob=round(float(probs[o.id]), 3),
+                centroid=[round(float(v), 3) for v in o.centroid],
+            )
+        for o in sorted(out, key=lambda t: float(np.linalg.norm(t.centroid[:2] - self.body.xy))):
+            if self.body.steps_left() <= self.p.reserve_steps:
+                break
+            if o.id in {t.id for t in self.body.mapper.memory}:  # not taken along by an earlier pick
+                yield from self.tidy_object(o)
 
     def survey(self, budget: int) -> Gen:
         """Walk to waypoints spread over the reachable map (farthest-point order from the

@@ -180,6 +180,33 @@ def test_a_rerun_into_the_same_log_directory_never_shows_the_earlier_runs_summar
     assert LogReader(tmp_path / "ep").summary() is None
 
 
+def test_an_agent_plays_mess_0_unless_a_mess_or_a_rearrangement_is_asked_for(monkeypatch) -> None:
+    import tidee.launch
+    from tidee import cli
+    from tidee.agent.config import AgentProcessConfig
+    from tidee.options import from_args
+
+    def spec(*argv: str):
+        return from_args(AgentProcessConfig, cli.build_parser().parse_args(["agent", *argv])).spec
+
+    assert (spec().mess_index, spec().rearrange_index) == (0, None)
+    assert spec("--mess-index", "3").mess_index == 3
+    assert (spec("--rearrange-index", "2").mess_index, spec("--rearrange-index", "2").rearrange_index) == (
+        None,
+        2,
+    )
+    with pytest.raises(ValueError, match="not both"):
+        spec("--mess-index", "1", "--rearrange-index", "2")
+    seen = {}
+    monkeypatch.setattr(tidee.launch, "run_all", lambda cfg: seen.setdefault("cfg", cfg) and 0)
+    args = cli.build_parser().parse_args(["run", "--rearrange-index", "1", "--unmatched", "commonsense"])
+    args.func(args)  # a live rearrangement: the agent gets the index and no mess
+    fwd = seen["cfg"].agent_args
+    assert fwd[fwd.index("--rearrange-index") + 1] == "1" and "--mess-index" not in fwd
+    assert fwd[fwd.index("--unmatched") + 1] == "commonsense"
+    assert spec(*fwd).rearrange_index == 1
+
+
 def test_tidee_run_forwards_agent_options(monkeypatch) -> None:
     import tidee.launch
     from tidee import cli

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tidee.agent.config import AgentConfig
+from tidee.agent.config import AgentConfig, PolicyConfig
 from tidee.agent.evaluation.conditions import CONDITIONS, apply_condition, row_name
 from tidee.agent.evaluation.config import RearrangeEvalConfig, TidyEvalConfig
 from tidee.agent.evaluation.judge import REFERENCE_VARIANTS
@@ -113,6 +113,18 @@ def test_rearrange_rows_use_the_same_conditions() -> None:
     assert row_setup("do-nothing", agent, spec) == (None, spec)
     oracle, same = row_setup("oracle", agent, spec)
     assert oracle is not None and oracle.perception == "oracle" and same == spec
+    common, same = row_setup("commonsense", agent, spec)  # the clean row, plus the tidy agent's commonsense
+    assert common == replace(agent, policy=replace(agent.policy, unmatched="commonsense")) and same == spec
+    assert agent.policy.unmatched == "leave"
+
+
+def test_the_commonsense_rearrangement_row_runs_only_when_named() -> None:
+    default = from_args(RearrangeEvalConfig, build_parser().parse_args(["eval", "rearrange", "--out", "x"]))
+    assert "commonsense" not in default.rows and "clean" in default.rows
+    named = build_parser().parse_args(["eval", "rearrange", "--out", "x", "--rows", "clean,commonsense"])
+    assert from_args(RearrangeEvalConfig, named).rows == ("clean", "commonsense")
+    with pytest.raises(ValueError, match="unmatched must be one of leave, commonsense"):
+        PolicyConfig(unmatched="tidy")  # type: ignore[arg-type]
 
 
 def test_a_rearrangement_detection_threshold_reaches_the_learned_rows_only() -> None:

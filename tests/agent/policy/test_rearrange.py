@@ -948,3 +948,72 @@ def test_a_pick_that_took_the_believed_thing_carries_it_back(monkeypatch: pytest
     actions, events, done = _put_back(monkeypatch, "Spoon")
     assert [a.name.value for a in actions] == ["PickupObject"]
     assert [e["kind"] for e in events] == ["picked", "put_at"] and done
+
+
+def test_the_commonsense_row_tidies_only_sure_unmatched_objects_found_out_of_place(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``--unmatched commonsense``: after the moves, an unshuffle track seen at least twice
+    that paired with nothing of the walkthrough and that the OOP detector finds out of place
+    is tidied as the tidy agent tidies, nearest first; one in place, one seen once, one paired
+    and one believed moved (``put_back``'s) are left alone."""
+    from types import SimpleNamespace
+
+    from tidee.agent.classes import CLASSES
+    from tidee.agent.config import AgentConfig, PolicyConfig
+    from tidee.agent.mapping.config import MapConfig
+    from tidee.agent.mapping.maps import SemanticMapper
+    from tidee.agent.policy import rearrange
+    from tidee.agent.policy.skills import Body
+
+    mapper = SemanticMapper(MapConfig(), CLASSES)
+
+    def add(label: str, x: float, n_obs: int = 3) -> TrackedObject:
+        c = np.array([x, 0.0, 0.8])
+        t = mapper.memory.add_or_merge(label, 0.9, c, c - 0.05, c + 0.05, step=0)
+        t.n_obs = n_obs
+        return t
+
+    far_knife, near_apple, still_spoon, glimpse = (
+        add("Knife", 3.0),
+        add("Apple", 1.0),
+        add("Spoon", 2.0),
+        add("Fork", 1.5, 1),
+    )
+    paired_cup, moved_bowl = add("Cup", 2.5), add("Bowl", 0.5)
+    oop = {"Knife": 0.9, "Apple": 0.7, "Spoon": 0.1, "Fork": 0.99, "Cup": 0.99, "Bowl": 0.99}
+
+    class FakeOOP:
+        name = "fake"
+
+        def score_all(self, targets: list, objects: list, room_type: str) -> dict[int, float]:
+            assert {t.label for t in targets} == {"Knife", "Apple", "Spoon"}  # sure, unmatched, unmoved
+            return {t.id: oop[t.label] for t in targets}
+
+    body = Body(mapper)
+    body.obs = SimpleNamespace(steps_left=100, agent_pose=(0.0, 0.0, 0.0, 30.0))
+    events: list[Any] = []
+    cfg = AgentConfig(policy=PolicyConfig(unmatched="commonsense"))
+    policy = rearrange.RearrangePolicy(
+        cfg, body, FakeOOP(), object(), "Kitchen", lambda **kw: events.append(kw)
+    )
+    policy.moves = [rearrange.Move(moved_bowl, _seen("Bowl", (0.0, 1.0, 0.8)), 1.0)]
+    tidied: list[str] = []
+
+    def tidy_object(self: Any, obj: TrackedObject) -> Gen:
+        tidied.append(obj.label)
+        return None
+        yield
+
+    monkeypatch.setattr(rearrange.RearrangePolicy, "tidy_object", tidy_object)
+    now = list(mapper.memory)
+    pairs = [(_seen("Cup", (2.5, 0.0, 0.8)), paired_cup, 0.0)]
+    assert list(policy.tidy_unmatched(now, pairs)) == []
+    assert tidied == ["Apple", "Knife"]  # nearest first
+    assert [e["label"] for e in events if e["kind"] == "unmatched_oop"] == ["Knife", "Apple"]
+    assert near_apple.out_of_place and far_knife.out_of_place and not still_spoon.out_of_place
+    assert not glimpse.out_of_place
+
+    tidied.clear()
+    body.obs = SimpleNamespace(steps_left=cfg.policy.reserve_steps, agent_pose=(0.0, 0.0, 0.0, 30.0))
+    assert list(policy.tidy_unmatched(now, pairs)) == [] and tidied == []  # no steps to spare
