@@ -400,7 +400,7 @@ def phase_html(s: AgentStatus) -> str:
         colour, head, what = palette.WALKTHROUGH_RGB, "WALKTHROUGH · phase 1 of 2", "mapping the goal room"
     else:
         colour, head, what = palette.WARNING_RGB, "UNSHUFFLE · phase 2 of 2", "putting the shuffled room back"
-        what += f" · {s.oop_found} changes believed · {s.objects_fixed} restored"
+        what += f" · {s.oop_found} changes believed · {s.objects_fixed} put back or reset"
     ep = s.episode or {}
     return (
         f"<div id='{PHASE_ID}' style='border-left:6px solid {palette.css(colour)};background:#f7f5fb;"

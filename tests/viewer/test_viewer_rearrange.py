@@ -114,7 +114,7 @@ def test_phase_banner_names_the_phase_and_hides_for_tidying():
     assert f"id='{PHASE_ID}'" in walk and "WALKTHROUGH" in walk and "rearrangement 1" in walk
     assert palette.css(palette.WALKTHROUGH_RGB) in walk
     later = phase_html(_status(3, "placing", oop_found=2, objects_fixed=1))
-    assert "UNSHUFFLE" in later and "2 changes believed" in later and "1 restored" in later
+    assert "UNSHUFFLE" in later and "2 changes believed" in later and "1 put back or reset" in later
     tidy = AgentStatus("t", 3, "searching", {"room_type": "Kitchen", "mess_index": 0}, (0, 0, 0, 0))
     assert phase_html(tidy) == ""
 
