@@ -222,8 +222,7 @@ class AgentConfig:
             raise ValueError(f"carve must be one of {CARVE_MODES}, got {self.carve!r}")
         if self.depth not in DEPTH_SOURCES:
             raise ValueError(f"depth must be one of {DEPTH_SOURCES}, got {self.depth!r}")
-        if self.detector not in DETECTOR_SETS:
-            raise ValueError(f"detector must be one of {DETECTOR_SETS}, got {self.detector!r}")
+        check_choice("detector", self.detector, DETECTOR_SETS)
         if self.detector != DETECTOR_SETS[0] and self.perception != "learned":
             raise ValueError(
                 f"--detector {self.detector} is a learned detector: it needs --perception learned"

@@ -832,7 +832,7 @@ class RearrangePolicy(TidyPolicy):
                 break
             self.pending = len(moves) - k - 1
             yield from self.put_back(m)
-        if self.p.unmatched == "commonsense" and self.placement is not None:
+        if self.p.unmatched == "commonsense":
             yield from self.tidy_unmatched(now, pairs)
         self.state.phase = "done"
         self.state.end_reason = self.state.end_reason or "restored what it found"
